@@ -1,0 +1,38 @@
+# Per-target build settings. Nothing here touches CMAKE_CXX_FLAGS: every flag is scoped to the
+# targets that call decima_target_defaults().
+
+function(decima_target_defaults target)
+  target_compile_options(${target} PRIVATE -Wall -Wextra)
+  if(DECIMA_WERROR)
+    target_compile_options(${target} PRIVATE -Werror)
+  endif()
+  if(DECIMA_SANITIZE)
+    target_compile_options(${target} PRIVATE -fsanitize=address,undefined -fno-omit-frame-pointer
+                                              -fno-sanitize-recover=undefined)
+    target_link_options(${target} PRIVATE -fsanitize=address,undefined)
+  endif()
+endfunction()
+
+# decima_core_module(NAME SOURCES ... DEPS ...): one small library per core module, linked
+# into the umbrella target decima_core.
+function(decima_core_module name)
+  cmake_parse_arguments(ARG "" "" "SOURCES;DEPS;PRIVATE_DEPS" ${ARGN})
+  add_library(decima_${name} STATIC ${ARG_SOURCES})
+  target_include_directories(decima_${name} PUBLIC ${PROJECT_SOURCE_DIR})
+  target_link_libraries(decima_${name} PUBLIC ${ARG_DEPS} PRIVATE ${ARG_PRIVATE_DEPS})
+  set_target_properties(decima_${name} PROPERTIES POSITION_INDEPENDENT_CODE ON)
+  decima_target_defaults(decima_${name})
+  add_library(decima::${name} ALIAS decima_${name})
+  set_property(GLOBAL APPEND PROPERTY DECIMA_CORE_MODULES decima_${name})
+endfunction()
+
+# decima_test(NAME SOURCES ... DEPS ...): one GoogleTest executable registered with ctest.
+function(decima_test name)
+  cmake_parse_arguments(ARG "" "" "SOURCES;DEPS;LABELS" ${ARGN})
+  add_executable(${name} ${ARG_SOURCES})
+  target_link_libraries(${name} PRIVATE ${ARG_DEPS} decima_testing GTest::gtest GTest::gmock GTest::gtest_main)
+  decima_target_defaults(${name})
+  gtest_discover_tests(${name} DISCOVERY_TIMEOUT 60
+                       PROPERTIES LABELS "${ARG_LABELS}"
+                                  ENVIRONMENT "DECIMA_SHARED_DATA=${DECIMA_SHARED_DATA}")
+endfunction()

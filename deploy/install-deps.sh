@@ -1,0 +1,43 @@
+#!/usr/bin/env bash
+# Installs every Debian 12 package that Decima's build, tests, benchmarks and demo need.
+# Idempotent and non-interactive: packages already present are skipped by apt itself.
+# Usage: deploy/install-deps.sh [--with-demo-data]
+set -euo pipefail
+
+packages=(
+  # toolchain
+  build-essential cmake ninja-build pkg-config git ca-certificates
+  # service: gRPC + Protobuf (Debian ships CMake configs), abseil for Status/StatusOr
+  libgrpc++-dev protobuf-compiler-grpc libprotobuf-dev protobuf-compiler libabsl-dev
+  # core numerics and logging
+  libeigen3-dev libspdlog-dev libfmt-dev
+  # readers and writers of outside formats
+  zlib1g-dev libpng-dev libnifti2-dev libgdcm-dev
+  # job store, CLI parsing, JSON
+  libsqlite3-dev libcli11-dev nlohmann-json3-dev
+  # tests and benchmarks
+  libgtest-dev libgmock-dev libbenchmark-dev
+  # independent tools that prove our files are readable by others
+  python3 python3-vtk9 python3-numpy gmsh
+  # the real MRI the demo and tests use
+  mricron-data
+)
+
+missing=()
+for p in "${packages[@]}"; do
+  if ! dpkg-query -W -f='${Status}' "$p" 2>/dev/null | grep -q "install ok installed"; then
+    missing+=("$p")
+  fi
+done
+
+if [ ${#missing[@]} -eq 0 ]; then
+  echo "install-deps: all ${#packages[@]} packages present"
+  exit 0
+fi
+
+SUDO=""
+if [ "$(id -u)" -ne 0 ]; then SUDO="sudo"; fi
+echo "install-deps: installing ${missing[*]}"
+export DEBIAN_FRONTEND=noninteractive
+$SUDO apt-get update -qq
+$SUDO apt-get install -y -qq --no-install-recommends "${missing[@]}"
