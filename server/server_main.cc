@@ -49,13 +49,12 @@ absl::StatusOr<std::string> ReadFileText(const std::string& path, const char* wh
 
 int RunJobMode(int argc, char** argv) {
   fs::path dir, input, label_map;
-  for (int i = 2; i + 1 < argc; i += 2) {
+  for (int i = 1; i + 1 < argc; i += 2) {
     std::string k = argv[i];
     if (k == "--run-job") dir = argv[i + 1];
     if (k == "--input") input = argv[i + 1];
     if (k == "--label-map") label_map = argv[i + 1];
   }
-  dir = argv[2];
   return RunJobProcess(dir, input, label_map, kWorkerFd);
 }
 
