@@ -386,8 +386,8 @@ absl::StatusOr<Volume> ReadNifti(const fs::path& path) {
   if (h.swap) {
     internal::SwapBytes(v.bytes.data(), static_cast<size_t>(v.voxel_count()), VoxelTypeSize(type));
   }
-  // scl_slope = 0 means "no scaling" (nifti1.h); a non-finite slope is treated the same way,
-  // as libnifti does.
+  // scl_slope = 0 means "no scaling" (nifti1.h); a non-finite slope is treated the same way
+  // rather than poisoning every voxel with NaN.
   if (std::isfinite(h.scl_slope) && h.scl_slope != 0 && !(h.scl_slope == 1 && h.scl_inter == 0)) {
     if (!std::isfinite(h.scl_inter)) {
       return Invalid(header_path, "scl_inter = ", h.scl_inter, ", expected a finite number");
