@@ -88,7 +88,7 @@ absl::StatusOr<std::vector<uint8_t>> ReadVoxelBytes(const std::filesystem::path&
 void SwapBytes(uint8_t* data, size_t count, size_t elem_size);
 
 // dims must be >= 2 each (a volume needs two voxels per axis to be meshed) and the product
-// <= kMaxVoxels. `axis_names` labels errors ("dim[1]", "DimSize[0]", ...).
+// <= kMaxVoxels. `field` names the header field in errors ("dim[1..3]", "DimSize", "sizes").
 absl::Status CheckDims(const std::filesystem::path& path, const std::array<int64_t, 3>& dims,
                        absl::string_view field);
 
