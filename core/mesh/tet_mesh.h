@@ -1,0 +1,65 @@
+// The tetrahedral mesh every later stage works on, as flat arrays (struct of arrays).
+//
+// Invariants of a valid TetMesh:
+//  - positions.size() == 3 * vertex_count(); scalars, labels, interface_distance and
+//    vertex_flags have vertex_count() entries (labels/interface_distance may be all 0 / +inf
+//    when no segmentation was given);
+//  - tets.size() == 4 * tet_count(), every index in [0, vertex_count()), the four distinct;
+//  - every tet is positively oriented: dot(p1 - p0, cross(p2 - p0, p3 - p0)) > 0;
+//  - cell_regions has tet_count() entries.
+// The mesh is conforming: two tets share a whole face or nothing of that face.
+#pragma once
+
+#include <array>
+#include <cstdint>
+#include <vector>
+
+#include <Eigen/Core>
+#include <Eigen/Geometry>
+
+namespace decima {
+
+// Bits of TetMesh::vertex_flags.
+enum VertexFlag : uint8_t {
+  kFeatureVertex = 1 << 0,           // on an interior boundary (paper §2.2.1)
+  kExteriorBoundaryVertex = 1 << 1,  // on the hull of the mesh
+};
+
+struct TetMesh {
+  std::vector<float> positions;           // x, y, z per vertex, LPS mm
+  std::vector<float> scalars;             // field value per vertex (the image intensity)
+  std::vector<uint8_t> labels;            // region per vertex, 0..7
+  std::vector<float> interface_distance;  // distance to the nearest region interface, voxels
+  std::vector<uint8_t> vertex_flags;      // VertexFlag bits
+  std::vector<int32_t> tets;              // 4 vertex indices per cell, positively oriented
+  std::vector<uint8_t> cell_regions;      // region per cell (see CellRegion in tetrahedralize.h)
+
+  int64_t vertex_count() const { return static_cast<int64_t>(scalars.size()); }
+  int64_t tet_count() const { return static_cast<int64_t>(tets.size() / 4); }
+  Eigen::Vector3d Position(int64_t v) const {
+    return {positions[3 * v], positions[3 * v + 1], positions[3 * v + 2]};
+  }
+};
+
+// Vertex -> incident tets in compressed sparse rows: tets of vertex v are
+// tet_ids[offsets[v] .. offsets[v + 1]), in increasing tet id.
+struct VertexTetAdjacency {
+  std::vector<int64_t> offsets;  // vertex_count() + 1 entries
+  std::vector<int32_t> tet_ids;
+};
+
+// Builds the CSR adjacency in two counting passes (no per-vertex allocation). O(V + T).
+VertexTetAdjacency BuildVertexTetAdjacency(const TetMesh& mesh);
+
+// Signed volume of tet t in mm^3 (positive for a valid mesh).
+double TetVolume(const TetMesh& mesh, int64_t t);
+
+// Faces that belong to exactly one tet, 3 vertex indices each, ordered so their normal points out
+// of the mesh. Also the set of vertices on them. Works on any conforming mesh (sorts faces).
+struct BoundarySurface {
+  std::vector<int32_t> faces;
+  std::vector<uint8_t> is_boundary_vertex;  // vertex_count() entries, 0/1
+};
+BoundarySurface ExtractBoundary(const TetMesh& mesh);
+
+}  // namespace decima

@@ -1,0 +1,169 @@
+#include "core/mesh/tetrahedralize.h"
+
+#include <algorithm>
+#include <array>
+#include <cmath>
+#include <limits>
+#include <thread>
+#include <vector>
+
+#include "absl/strings/str_cat.h"
+#include "core/common/status.h"
+
+namespace decima {
+namespace {
+
+// Cube corner c sits at offset (c & 1, (c >> 1) & 1, (c >> 2) & 1).
+using TetTemplate = std::array<std::array<int, 4>, 5>;
+
+// Even cubes ((i + j + k) % 2 == 0) keep the corners with an even number of set bits as the
+// ones cut off; odd cubes the opposite, so each face diagonal agrees with the neighbour's.
+constexpr TetTemplate kEvenCube = {
+    {{1, 2, 4, 7}, {0, 1, 2, 4}, {3, 2, 1, 7}, {5, 1, 4, 7}, {6, 2, 4, 7}}};
+constexpr TetTemplate kOddCube = {
+    {{0, 3, 5, 6}, {1, 0, 3, 5}, {2, 0, 3, 6}, {4, 0, 5, 6}, {7, 3, 5, 6}}};
+
+Eigen::Vector3d CornerOffset(int c) {
+  return {double(c & 1), double((c >> 1) & 1), double((c >> 2) & 1)};
+}
+
+// Reorders every template tet so it is positively oriented in index space, then flips all of
+// them if the index-to-physical map reverses orientation.
+TetTemplate Oriented(TetTemplate t, bool flip) {
+  for (auto& tet : t) {
+    const Eigen::Vector3d p0 = CornerOffset(tet[0]);
+    const double vol = (CornerOffset(tet[1]) - p0)
+                           .dot((CornerOffset(tet[2]) - p0).cross(CornerOffset(tet[3]) - p0));
+    if ((vol < 0) != flip) std::swap(tet[2], tet[3]);
+  }
+  return t;
+}
+
+template <typename Fn>
+void ParallelFor(int64_t n, int threads, Fn&& fn) {
+  threads = std::max(1, std::min<int>(threads, static_cast<int>(std::min<int64_t>(n, 64))));
+  if (threads == 1) {
+    fn(0, n);
+    return;
+  }
+  std::vector<std::thread> pool;
+  for (int t = 0; t < threads; ++t) {
+    const int64_t begin = n * t / threads, end = n * (t + 1) / threads;
+    pool.emplace_back([&fn, begin, end] { fn(begin, end); });
+  }
+  for (auto& th : pool) th.join();
+}
+
+}  // namespace
+
+uint8_t CellRegion(uint8_t a, uint8_t b, uint8_t c, uint8_t d) {
+  const uint8_t v[4] = {a, b, c, d};
+  uint8_t best = 255;
+  int best_count = 0;
+  for (int i = 0; i < 4; ++i) {
+    int count = 0;
+    for (int j = 0; j < 4; ++j) count += v[j] == v[i];
+    if (count > best_count || (count == best_count && v[i] < best)) {
+      best = v[i];
+      best_count = count;
+    }
+  }
+  return best;
+}
+
+absl::StatusOr<TetMesh> Tetrahedralize(const Volume& image, const TetrahedralizeOptions& options,
+                                       const ProgressFn& progress, const CancelToken* cancel) {
+  const int64_t nx = image.dims[0], ny = image.dims[1], nz = image.dims[2];
+  if (nx < 2 || ny < 2 || nz < 2) {
+    return absl::InvalidArgumentError(absl::StrCat("tetrahedralize: volume ", Describe(image),
+                                                   " needs at least 2 voxels along every axis"));
+  }
+  if (options.labels != nullptr &&
+      (!SameGrid(image, *options.labels) || options.labels->type != VoxelType::kUInt8)) {
+    return absl::InvalidArgumentError(
+        "tetrahedralize: the label volume must be uint8 on the same grid as the image");
+  }
+  const int64_t cubes = (nx - 1) * (ny - 1) * (nz - 1);
+  if (cubes * 5 * 4 > std::numeric_limits<int32_t>::max() ||
+      image.voxel_count() > std::numeric_limits<int32_t>::max()) {
+    return absl::InvalidArgumentError(absl::StrCat(
+        "tetrahedralize: ", Describe(image), " gives more cells than 32-bit indices address"));
+  }
+  const int64_t nv = image.voxel_count();
+  const int threads =
+      options.threads > 0 ? options.threads : std::max(1u, std::thread::hardware_concurrency());
+
+  TetMesh mesh;
+  mesh.positions.resize(3 * nv);
+  mesh.scalars = image.ToFloat();
+  mesh.labels.assign(nv, 0);
+  if (options.labels != nullptr) {
+    std::copy_n(options.labels->data<uint8_t>(), nv, mesh.labels.begin());
+  }
+  mesh.interface_distance.resize(nv);
+  mesh.vertex_flags.resize(nv);
+  mesh.tets.resize(cubes * 5 * 4);
+  mesh.cell_regions.resize(cubes * 5);
+  Report(progress, {"tetra", 0.0, "allocated", {}});
+
+  // Vertices: one per voxel centre.
+  const Eigen::Matrix3d linear = image.direction * image.spacing.asDiagonal();
+  const float inf = std::numeric_limits<float>::infinity();
+  ParallelFor(nz, threads, [&](int64_t k0, int64_t k1) {
+    for (int64_t k = k0; k < k1; ++k) {
+      for (int64_t j = 0; j < ny; ++j) {
+        const Eigen::Vector3d row =
+            image.origin + linear * Eigen::Vector3d(0, double(j), double(k));
+        const bool jk_edge = j == 0 || j == ny - 1 || k == 0 || k == nz - 1;
+        for (int64_t i = 0; i < nx; ++i) {
+          const int64_t v = i + nx * (j + ny * k);
+          const Eigen::Vector3d p = row + linear.col(0) * double(i);
+          mesh.positions[3 * v] = static_cast<float>(p.x());
+          mesh.positions[3 * v + 1] = static_cast<float>(p.y());
+          mesh.positions[3 * v + 2] = static_cast<float>(p.z());
+          const float d = options.interface_distance ? options.interface_distance[v] : inf;
+          mesh.interface_distance[v] = d;
+          uint8_t flags = std::abs(d) <= options.feature_threshold_voxels ? kFeatureVertex : 0;
+          if (jk_edge || i == 0 || i == nx - 1) flags |= kExteriorBoundaryVertex;
+          mesh.vertex_flags[v] = flags;
+        }
+      }
+    }
+  });
+  DECIMA_RETURN_IF_ERROR(CheckCancelled(cancel, "tetrahedralize"));
+  Report(progress, {"tetra", 0.3, "vertices placed", {}});
+
+  // Cells: 5 per cube, cube c = i + (nx-1) * (j + (ny-1) * k) owns tets 5c .. 5c+4.
+  const bool flip = linear.determinant() < 0;
+  const TetTemplate even = Oriented(kEvenCube, flip), odd = Oriented(kOddCube, flip);
+  int64_t corner[8];
+  for (int c = 0; c < 8; ++c) corner[c] = (c & 1) + nx * (((c >> 1) & 1) + ny * ((c >> 2) & 1));
+  const uint8_t* labels = mesh.labels.data();
+  ParallelFor(nz - 1, threads, [&](int64_t k0, int64_t k1) {
+    for (int64_t k = k0; k < k1; ++k) {
+      for (int64_t j = 0; j + 1 < ny; ++j) {
+        int64_t cube = (nx - 1) * (j + (ny - 1) * k);
+        for (int64_t i = 0; i + 1 < nx; ++i, ++cube) {
+          const int64_t base = i + nx * (j + ny * k);
+          const TetTemplate& t = ((i + j + k) & 1) ? odd : even;
+          int32_t* out = &mesh.tets[cube * 20];
+          uint8_t* region = &mesh.cell_regions[cube * 5];
+          for (int s = 0; s < 5; ++s) {
+            int32_t v[4];
+            for (int q = 0; q < 4; ++q) v[q] = static_cast<int32_t>(base + corner[t[s][q]]);
+            std::copy_n(v, 4, out + 4 * s);
+            region[s] = CellRegion(labels[v[0]], labels[v[1]], labels[v[2]], labels[v[3]]);
+          }
+        }
+      }
+    }
+  });
+  DECIMA_RETURN_IF_ERROR(CheckCancelled(cancel, "tetrahedralize"));
+  Report(progress, {"tetra",
+                    1.0,
+                    absl::StrCat(mesh.tet_count(), " tets"),
+                    {{"vertices", double(nv)}, {"tets", double(mesh.tet_count())}}});
+  return mesh;
+}
+
+}  // namespace decima

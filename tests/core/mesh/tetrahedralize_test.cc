@@ -1,0 +1,214 @@
+#include "core/mesh/tetrahedralize.h"
+
+#include <algorithm>
+#include <array>
+#include <cmath>
+#include <map>
+#include <vector>
+
+#include <gtest/gtest.h>
+
+#include "core/volume/phantom.h"
+
+namespace decima {
+namespace {
+
+Volume Ramp(std::array<int64_t, 3> dims, Eigen::Vector3d spacing = Eigen::Vector3d::Ones()) {
+  auto v = MakeVolume(dims, VoxelType::kInt16, spacing);
+  EXPECT_TRUE(v.ok());
+  for (int64_t i = 0; i < v->voxel_count(); ++i) v->mutable_data<int16_t>()[i] = int16_t(i % 1000);
+  return *std::move(v);
+}
+
+// Counts how many tets use each face (vertex triple, sorted).
+std::map<std::array<int32_t, 3>, int> FaceUse(const TetMesh& m) {
+  std::map<std::array<int32_t, 3>, int> use;
+  for (int64_t t = 0; t < m.tet_count(); ++t) {
+    const int32_t* v = &m.tets[4 * t];
+    for (int skip = 0; skip < 4; ++skip) {
+      std::array<int32_t, 3> f;
+      int n = 0;
+      for (int q = 0; q < 4; ++q)
+        if (q != skip) f[n++] = v[q];
+      std::sort(f.begin(), f.end());
+      ++use[f];
+    }
+  }
+  return use;
+}
+
+double BoxVolume(const Volume& v) {
+  return (v.dims[0] - 1) * v.spacing[0] * (v.dims[1] - 1) * v.spacing[1] * (v.dims[2] - 1) *
+         v.spacing[2];
+}
+
+void ExpectValidMesh(const Volume& image, const TetMesh& m) {
+  const int64_t nx = image.dims[0], ny = image.dims[1], nz = image.dims[2];
+  ASSERT_EQ(m.vertex_count(), nx * ny * nz);
+  ASSERT_EQ(m.tet_count(), 5 * (nx - 1) * (ny - 1) * (nz - 1));
+  double total = 0;
+  for (int64_t t = 0; t < m.tet_count(); ++t) {
+    const double vol = TetVolume(m, t);
+    ASSERT_GT(vol, 0) << "tet " << t << " is not positively oriented";
+    total += vol;
+  }
+  EXPECT_NEAR(total, BoxVolume(image), 1e-6 * BoxVolume(image));
+
+  int64_t boundary_faces = 0;
+  for (const auto& [face, count] : FaceUse(m)) {
+    ASSERT_LE(count, 2) << "face shared by " << count << " tets";
+    if (count == 1) {
+      ++boundary_faces;
+      for (int32_t v : face) ASSERT_TRUE(m.vertex_flags[v] & kExteriorBoundaryVertex);
+    }
+  }
+  // Every square on the box surface is split into exactly two triangles.
+  EXPECT_EQ(boundary_faces, 4 * ((nx - 1) * (ny - 1) + (nx - 1) * (nz - 1) + (ny - 1) * (nz - 1)));
+}
+
+TEST(Tetrahedralize, SingleCubeGivesFiveTetsFillingIt) {
+  Volume v = Ramp({2, 2, 2});
+  auto m = Tetrahedralize(v);
+  ASSERT_TRUE(m.ok()) << m.status();
+  ExpectValidMesh(v, *m);
+}
+
+TEST(Tetrahedralize, NeighbouringCubesShareWholeFaces) {
+  Volume v = Ramp({5, 4, 6});
+  auto m = Tetrahedralize(v);
+  ASSERT_TRUE(m.ok()) << m.status();
+  ExpectValidMesh(v, *m);
+  // Scalars are the voxel values at the voxel centres.
+  EXPECT_EQ(m->scalars[v.Index(3, 2, 4)], float(v.Index(3, 2, 4) % 1000));
+}
+
+TEST(Tetrahedralize, AnisotropicSpacingAndRotatedDirection) {
+  Volume v = Ramp({4, 5, 3}, Eigen::Vector3d(0.7, 1.3, 2.5));
+  v.origin = Eigen::Vector3d(-10, 4, 2);
+  v.direction = Eigen::AngleAxisd(0.4, Eigen::Vector3d(1, 2, 3).normalized()).toRotationMatrix();
+  auto m = Tetrahedralize(v);
+  ASSERT_TRUE(m.ok()) << m.status();
+  ExpectValidMesh(v, *m);
+  const Eigen::Vector3d expected = v.PhysicalPoint(3, 1, 2);
+  EXPECT_TRUE(m->Position(v.Index(3, 1, 2)).isApprox(expected, 1e-6));
+}
+
+TEST(Tetrahedralize, MirroredDirectionStillGivesPositiveTets) {
+  Volume v = Ramp({3, 4, 5}, Eigen::Vector3d(1, 1, 2));
+  v.direction = Eigen::Vector3d(-1, -1, 1).asDiagonal() * Eigen::Matrix3d::Identity();
+  v.direction.col(2) *= -1;  // determinant -1
+  ASSERT_LT(v.direction.determinant(), 0);
+  auto m = Tetrahedralize(v);
+  ASSERT_TRUE(m.ok()) << m.status();
+  ExpectValidMesh(v, *m);
+}
+
+TEST(Tetrahedralize, PaperCtHeadSizeGivesTable1Counts) {
+  auto v = MakeVolume({128, 128, 53}, VoxelType::kUInt16);
+  ASSERT_TRUE(v.ok());
+  auto m = Tetrahedralize(*v);
+  ASSERT_TRUE(m.ok()) << m.status();
+  EXPECT_EQ(m->vertex_count(), 868352);
+  EXPECT_EQ(m->tet_count(), 4193540);
+}
+
+TEST(Tetrahedralize, OutputDoesNotDependOnThreadCount) {
+  Volume v = Ramp({9, 7, 11});
+  TetrahedralizeOptions one, two;
+  one.threads = 1;
+  two.threads = 2;
+  auto a = Tetrahedralize(v, one), b = Tetrahedralize(v, two);
+  ASSERT_TRUE(a.ok() && b.ok());
+  EXPECT_EQ(a->tets, b->tets);
+  EXPECT_EQ(a->positions, b->positions);
+}
+
+TEST(Tetrahedralize, CarriesLabelsDistancesAndFeatureFlags) {
+  HeadPhantomOptions o;
+  o.dims = {12, 12, 12};
+  o.region_means = {0, 100};
+  auto p = MakeHeadPhantom(o);
+  ASSERT_TRUE(p.ok());
+  std::vector<float> distance(p->image.voxel_count(), 3.0f);
+  distance[p->image.Index(6, 6, 6)] = 0.5f;
+  distance[p->image.Index(6, 6, 7)] = -0.4f;
+  distance[p->image.Index(6, 6, 8)] = 0.6f;
+  TetrahedralizeOptions opts;
+  opts.labels = &p->labels;
+  opts.interface_distance = distance.data();
+  auto m = Tetrahedralize(p->image, opts);
+  ASSERT_TRUE(m.ok()) << m.status();
+  EXPECT_TRUE(m->vertex_flags[p->image.Index(6, 6, 6)] & kFeatureVertex);
+  EXPECT_TRUE(m->vertex_flags[p->image.Index(6, 6, 7)] & kFeatureVertex);
+  EXPECT_FALSE(m->vertex_flags[p->image.Index(6, 6, 8)] & kFeatureVertex);
+  EXPECT_EQ(m->labels[p->image.Index(6, 6, 6)], 1);
+  EXPECT_EQ(m->labels[0], 0);
+  for (int64_t t = 0; t < m->tet_count(); ++t) {
+    const int32_t* tv = &m->tets[4 * t];
+    EXPECT_EQ(m->cell_regions[t],
+              CellRegion(m->labels[tv[0]], m->labels[tv[1]], m->labels[tv[2]], m->labels[tv[3]]));
+  }
+}
+
+TEST(Tetrahedralize, RejectsFlatVolumesAndForeignLabelGrids) {
+  Volume flat = Ramp({8, 8, 1});
+  auto m = Tetrahedralize(flat);
+  ASSERT_FALSE(m.ok());
+  EXPECT_NE(m.status().message().find("at least 2 voxels"), std::string::npos) << m.status();
+
+  Volume v = Ramp({4, 4, 4});
+  auto labels = MakeVolume({4, 4, 5}, VoxelType::kUInt8);
+  TetrahedralizeOptions opts;
+  opts.labels = &*labels;
+  EXPECT_FALSE(Tetrahedralize(v, opts).ok());
+}
+
+TEST(Tetrahedralize, CellRegionIsMajorityWithTiesToSmaller) {
+  EXPECT_EQ(CellRegion(2, 2, 1, 0), 2);
+  EXPECT_EQ(CellRegion(2, 1, 2, 1), 1);
+  EXPECT_EQ(CellRegion(3, 3, 3, 3), 3);
+  EXPECT_EQ(CellRegion(0, 1, 2, 3), 0);
+}
+
+TEST(MeshTopology, AdjacencyListsEveryIncidentTetOnce) {
+  Volume v = Ramp({4, 3, 3});
+  auto m = Tetrahedralize(v);
+  ASSERT_TRUE(m.ok());
+  const VertexTetAdjacency adj = BuildVertexTetAdjacency(*m);
+  ASSERT_EQ(adj.offsets.size(), size_t(m->vertex_count() + 1));
+  EXPECT_EQ(adj.offsets.back(), 4 * m->tet_count());
+  for (int64_t vtx = 0; vtx < m->vertex_count(); ++vtx) {
+    for (int64_t e = adj.offsets[vtx]; e < adj.offsets[vtx + 1]; ++e) {
+      const int32_t* tv = &m->tets[4 * adj.tet_ids[e]];
+      EXPECT_TRUE(tv[0] == vtx || tv[1] == vtx || tv[2] == vtx || tv[3] == vtx);
+      if (e > adj.offsets[vtx]) {
+        EXPECT_LT(adj.tet_ids[e - 1], adj.tet_ids[e]);
+      }
+    }
+  }
+}
+
+TEST(MeshTopology, BoundarySurfaceIsTheBoxHullFacingOutwards) {
+  Volume v = Ramp({4, 5, 3}, Eigen::Vector3d(1, 2, 3));
+  auto m = Tetrahedralize(v);
+  ASSERT_TRUE(m.ok());
+  const BoundarySurface b = ExtractBoundary(*m);
+  const int64_t nx = 4, ny = 5, nz = 3;
+  EXPECT_EQ(int64_t(b.faces.size() / 3),
+            4 * ((nx - 1) * (ny - 1) + (nx - 1) * (nz - 1) + (ny - 1) * (nz - 1)));
+  for (int64_t vtx = 0; vtx < m->vertex_count(); ++vtx) {
+    EXPECT_EQ(bool(b.is_boundary_vertex[vtx]),
+              bool(m->vertex_flags[vtx] & kExteriorBoundaryVertex));
+  }
+  // Divergence theorem: sum over outward faces of (centroid . normal) / 3 = enclosed volume.
+  double volume = 0;
+  for (size_t f = 0; f < b.faces.size(); f += 3) {
+    const Eigen::Vector3d a = m->Position(b.faces[f]), c1 = m->Position(b.faces[f + 1]),
+                          c2 = m->Position(b.faces[f + 2]);
+    volume += a.dot(c1.cross(c2)) / 6.0;
+  }
+  EXPECT_NEAR(volume, BoxVolume(v), 1e-6);
+}
+
+}  // namespace
+}  // namespace decima
