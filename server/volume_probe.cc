@@ -14,6 +14,9 @@
 #include "absl/strings/str_split.h"
 #include "absl/strings/strip.h"
 #include "core/volume/volume.h"
+#ifdef DECIMA_HAVE_IO
+#include "core/io/volume_io.h"
+#endif
 
 namespace decima::server {
 namespace fs = std::filesystem;
@@ -267,6 +270,31 @@ absl::StatusOr<VolumeHeader> ProbeVolume(const fs::path& dir, const std::vector<
   }
   h.format = format;
   absl::Status s;
+#ifdef DECIMA_HAVE_IO
+  // The core reader: the same code the job's load stage runs, so a volume accepted here loads.
+  if (format != v1::VOLUME_FORMAT_DICOM) {
+    auto vol = io::ReadVolume(dir / main);
+    if (!vol.ok()) {
+      // Name the file as the client did, not by its path on the server.
+      std::string msg(vol.status().message());
+      std::string server_path = (dir / main).string();
+      if (absl::StartsWith(msg, server_path)) msg = main + msg.substr(server_path.size());
+      return absl::Status(vol.status().code() == absl::StatusCode::kNotFound
+                              ? absl::StatusCode::kInvalidArgument
+                              : vol.status().code(),
+                          msg);
+    }
+    for (int i = 0; i < 3; ++i) {
+      h.dims[i] = vol->dims[i];
+      h.spacing[i] = vol->spacing[i];
+    }
+    h.modality = vol->modality;
+    h.scalar_type = std::string(VoxelTypeName(vol->type));
+    h.parsed = true;
+    h.input = dir / main;
+    return h;
+  }
+#endif
   switch (format) {
     case v1::VOLUME_FORMAT_NIFTI:
       s = ProbeNifti(dir / main, main, h);

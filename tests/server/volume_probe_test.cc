@@ -22,6 +22,8 @@ std::string Nifti(int16_t nx, int16_t ny, int16_t nz, size_t data_bytes) {
   std::memcpy(&h[70], &type, 2);
   float px[4] = {1, 1.5f, 1.5f, 1.5f};
   std::memcpy(&h[76], px, 16);
+  float vox_offset = 352;
+  std::memcpy(&h[108], &vox_offset, 4);
   std::memcpy(&h[344], "n+1", 4);
   return h + std::string(data_bytes, '\0');
 }
@@ -71,7 +73,7 @@ TEST_F(VolumeProbeTest, MetaImageAndNrrdHeaders) {
   EXPECT_EQ(m->modality, "CT");
   Write("b.nrrd",
         "NRRD0004\ntype: short\ndimension: 3\nsizes: 2 3 4\nspacings: 1 1 3\n"
-        "encoding: raw\n\n" +
+        "encoding: raw\nendian: little\n\n" +
             std::string(48, '\0'));
   auto n = ProbeVolume(dir_, {"b.nrrd"}, v1::VOLUME_FORMAT_UNSPECIFIED);
   ASSERT_TRUE(n.ok()) << n.status();
