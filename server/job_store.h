@@ -18,7 +18,9 @@
 #include <string>
 #include <vector>
 
+#include <google/protobuf/timestamp.pb.h>
 #include "absl/status/statusor.h"
+
 #include "decima/v1/jobs.pb.h"
 #include "decima/v1/volumes.pb.h"
 
@@ -43,6 +45,9 @@ struct Recovered {
 };
 
 bool IsFinal(v1::JobState state);
+
+// The wall clock with nanoseconds (protobuf 3.21's TimeUtil::GetCurrentTime drops them here).
+google::protobuf::Timestamp NowTimestamp();
 
 class JobStore {
  public:

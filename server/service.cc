@@ -265,7 +265,7 @@ class Services::VolumesImpl final : public v1::Volumes::Service {
     vol.set_modality(header->modality);
     vol.set_scalar_type(header->scalar_type);
     vol.set_size_bytes(total);
-    *vol.mutable_create_time() = TimeUtil::GetCurrentTime();
+    *vol.mutable_create_time() = NowTimestamp();
     if (vol.display_name().empty()) vol.set_display_name(paths[0]);
     bool created = false;
     auto stored = s_->jobs_store_->CreateVolume(id, vol, req->request_id(), &created);
@@ -501,7 +501,7 @@ class Services::JobsImpl final : public v1::Jobs::Service {
     {
       v1::JobEvent snap;
       snap.set_sequence(job->last_sequence());
-      *snap.mutable_time() = TimeUtil::GetCurrentTime();
+      *snap.mutable_time() = NowTimestamp();
       *snap.mutable_snapshot() = *job;
       if (!writer->Write(snap)) return grpc::Status::CANCELLED;
     }
@@ -567,7 +567,7 @@ class Services::JobsImpl final : public v1::Jobs::Service {
           std::chrono::milliseconds(s_->options_.heartbeat_ms)) {
         v1::JobEvent hb;
         hb.set_sequence(last);
-        *hb.mutable_time() = TimeUtil::GetCurrentTime();
+        *hb.mutable_time() = NowTimestamp();
         hb.mutable_heartbeat();
         if (!writer->Write(hb)) return grpc::Status::CANCELLED;
         last_write = std::chrono::steady_clock::now();

@@ -165,7 +165,7 @@ class SqliteJobStore : public JobStore {
     *job.mutable_spec() = spec;
     job.set_state(v1::QUEUED);
     job.set_request_id(request_id);
-    *job.mutable_create_time() = TimeUtil::GetCurrentTime();
+    *job.mutable_create_time() = NowTimestamp();
     AddStateEvent(job, v1::QUEUED, nullptr);
     Stmt ins(db_, "INSERT INTO jobs(id, request_id, state, volume, job) VALUES(?,?,?,?,?)");
     ins.Bind(1, id);
@@ -241,7 +241,7 @@ class SqliteJobStore : public JobStore {
     if (!job.ok()) return job.status();
     job->set_state(v1::RUNNING);
     job->set_attempts(job->attempts() + 1);
-    *job->mutable_start_time() = TimeUtil::GetCurrentTime();
+    *job->mutable_start_time() = NowTimestamp();
     job->clear_end_time();
     job->clear_error();
     job->clear_progress();
@@ -288,7 +288,7 @@ class SqliteJobStore : public JobStore {
     auto job = LoadHeld(id, owner);
     if (!job.ok()) return job.status();
     job->set_state(state);
-    *job->mutable_end_time() = TimeUtil::GetCurrentTime();
+    *job->mutable_end_time() = NowTimestamp();
     if (outcome.has_error()) *job->mutable_error() = outcome.error();
     *job->mutable_artifacts() = outcome.artifacts();
     job->set_metrics_json(outcome.metrics_json());
@@ -337,7 +337,7 @@ class SqliteJobStore : public JobStore {
         job.set_state(v1::CANCELLED);
         job.mutable_error()->set_code(1);
         job.mutable_error()->set_message("cancelled by request (its worker was lost)");
-        *job.mutable_end_time() = TimeUtil::GetCurrentTime();
+        *job.mutable_end_time() = NowTimestamp();
         AddStateEvent(job, v1::CANCELLED, &job.error());
         out.failed.push_back(id);
       } else if (job.attempts() >= max_attempts) {
@@ -345,7 +345,7 @@ class SqliteJobStore : public JobStore {
         job.mutable_error()->set_code(14);
         job.mutable_error()->set_message(absl::StrCat("the worker was lost ", job.attempts(),
                                                       " times (lease lapsed); giving up"));
-        *job.mutable_end_time() = TimeUtil::GetCurrentTime();
+        *job.mutable_end_time() = NowTimestamp();
         AddStateEvent(job, v1::FAILED, &job.error());
         out.failed.push_back(id);
       } else {
@@ -370,7 +370,7 @@ class SqliteJobStore : public JobStore {
       job->set_state(v1::CANCELLED);
       job->mutable_error()->set_code(1);
       job->mutable_error()->set_message("cancelled by request while queued");
-      *job->mutable_end_time() = TimeUtil::GetCurrentTime();
+      *job->mutable_end_time() = NowTimestamp();
       AddStateEvent(*job, v1::CANCELLED, &job->error());
       DECIMA_RETURN_IF_ERROR_LOCAL(SaveJob(*job, "", 0, 0));
     } else if (job->state() == v1::RUNNING) {
@@ -641,7 +641,7 @@ class SqliteJobStore : public JobStore {
   void AddEvent(v1::Job& job, v1::JobEvent ev) {
     job.set_last_sequence(job.last_sequence() + 1);
     ev.set_sequence(job.last_sequence());
-    *ev.mutable_time() = TimeUtil::GetCurrentTime();
+    *ev.mutable_time() = NowTimestamp();
     pending_.emplace_back(job.name().substr(5), std::move(ev));
   }
 
@@ -696,6 +696,16 @@ class SqliteJobStore : public JobStore {
 };
 
 }  // namespace
+
+google::protobuf::Timestamp NowTimestamp() {
+  auto ns = std::chrono::duration_cast<std::chrono::nanoseconds>(
+                std::chrono::system_clock::now().time_since_epoch())
+                .count();
+  google::protobuf::Timestamp t;
+  t.set_seconds(ns / 1000000000);
+  t.set_nanos(static_cast<int32_t>(ns % 1000000000));
+  return t;
+}
 
 bool IsFinal(v1::JobState state) {
   return state == v1::SUCCEEDED || state == v1::FAILED || state == v1::CANCELLED;
