@@ -25,11 +25,11 @@
 namespace decima {
 
 struct VtuWriteOptions {
-  // zlib-compress every array (vtkZLibDataCompressor blocks of 1 MiB). Compressed files are
-  // about 2-4x smaller on meshes of noisy volumes and take longer to write; raw files are
-  // written at disk speed. Both are read by VTK/ParaView and by ReadVtu.
+  // zlib-compress every array (vtkZLibDataCompressor blocks of 1 MiB). On the CT head
+  // (4.19 M tets) level 1 gives 26 MB instead of 112 MB raw and takes ~0.7 s instead of ~0.3 s
+  // to write; both are read by VTK/ParaView and by ReadVtu.
   bool compress = true;
-  // zlib level 1..9 (1 = fastest; higher levels gain a few percent at several times the time).
+  // zlib level 1..9 (1 = fastest; level 6 saves another ~5 % at ~8x the time).
   int level = 1;
   // Threads compressing blocks in parallel (0 = hardware concurrency). The file's bytes do not
   // depend on it.
@@ -39,8 +39,10 @@ struct VtuWriteOptions {
 // Writes `mesh` as a VTK XML UnstructuredGrid file (version 1.0, little endian, header_type
 // UInt64, one appended raw-binary block, connectivity Int32, offsets Int32 or Int64 when
 // 4 * tet_count() does not fit Int32). Arrays are written as listed at the top of this file.
-// Errors: InvalidArgument if the mesh's arrays have inconsistent sizes; Internal/Unavailable-
-// style errors from the file system (naming the path). Thread-safe for distinct paths.
+// Errors: InvalidArgument if the mesh's arrays have inconsistent sizes, a tet references a
+// missing vertex or the level is out of range; file-system failures map errno to a code
+// (NotFound for a missing directory, PermissionDenied, ResourceExhausted for a full disk,
+// otherwise Internal) with a message naming the path. Thread-safe for distinct paths.
 absl::Status WriteVtu(const TetMesh& mesh, const std::filesystem::path& path,
                       const VtuWriteOptions& options = {});
 
@@ -60,7 +62,10 @@ absl::Status WriteVtu(const TetMesh& mesh, const std::filesystem::path& path,
 absl::StatusOr<TetMesh> ReadVtu(const std::filesystem::path& path);
 
 struct GmshWriteOptions {
-  // Binary (the default: about 3x smaller and much faster to write and read) or ASCII.
+  // Binary (the default: coordinates as exact doubles, ~2x faster to write than ASCII) or
+  // ASCII (shortest round-trip decimals). Sizes are similar: binary spends 8 bytes per tag as
+  // Gmsh's format demands (195 MB for the 4.19 M-tet CT head, ASCII 163 MB there because grid
+  // coordinates are short decimals; ASCII grows once simplification moves vertices).
   bool binary = true;
 };
 

@@ -9,7 +9,6 @@
 #include <fstream>
 #include <limits>
 #include <map>
-#include <regex>
 #include <sstream>
 #include <string>
 #include <vector>
@@ -155,6 +154,13 @@ std::string GmshBinary() {
   return out;
 }
 
+// Any Python 3 for check_gmsh.py (it needs only the standard library), or "".
+std::string AnyPython() {
+  for (const char* py : {"/usr/bin/python3", "python3"})
+    if (RunCommand(std::string(py) + " -c 'pass' >/dev/null").first == 0) return py;
+  return "";
+}
+
 double AbsSum(const std::vector<float>& v) {
   double s = 0;
   for (float x : v) s += std::abs(x);
@@ -200,6 +206,20 @@ TEST(MeshIo, VtuRoundTripOfTinyMeshIsExactRawAndCompressed) {
     ASSERT_TRUE(back.ok()) << back.status();
     ExpectSameMesh(m, *back);
   }
+}
+
+TEST(MeshIo, EmptyMeshRoundTripsAndWritesEveryFormat) {
+  const TetMesh empty;
+  const fs::path dir = testing::MakeScratchDir("empty");
+  for (bool compress : {false, true}) {
+    const fs::path p = dir / (compress ? "z.vtu" : "raw.vtu");
+    ASSERT_TRUE(WriteVtu(empty, p, {.compress = compress}).ok());
+    auto back = ReadVtu(p);
+    ASSERT_TRUE(back.ok()) << back.status();
+    ExpectSameMesh(empty, *back);
+  }
+  EXPECT_TRUE(WriteGmsh(empty, dir / "e.msh").ok());
+  EXPECT_TRUE(WriteMedit(empty, dir / "e.mesh").ok());
 }
 
 TEST(MeshIo, VtuRoundTripOfPhantomMeshIsExact) {
@@ -390,6 +410,8 @@ GmshFacts RunGmsh(const std::string& python, const std::string& gmsh, const fs::
 TEST(MeshIo, GmshReadsOurMshWithRegionsAsPhysicalGroups) {
   const std::string gmsh = GmshBinary();
   if (gmsh.empty()) GTEST_SKIP() << "gmsh not found on PATH (Debian package gmsh)";
+  const std::string python = AnyPython();
+  if (python.empty()) GTEST_SKIP() << "no python3 to run check_gmsh.py";
   const fs::path dir = testing::MakeScratchDir("gmsh_msh");
   for (const TetMesh& m : {TwoTets(), PhantomMesh()}) {
     std::map<int, int64_t> per_region;
@@ -398,7 +420,7 @@ TEST(MeshIo, GmshReadsOurMshWithRegionsAsPhysicalGroups) {
       const fs::path p = dir / (binary ? "bin.msh" : "ascii.msh");
       ASSERT_TRUE(WriteGmsh(m, p, {.binary = binary}).ok());
       SCOPED_TRACE(p.string() + " with " + std::to_string(m.tet_count()) + " tets");
-      const GmshFacts f = RunGmsh("python3", gmsh, p);
+      const GmshFacts f = RunGmsh(python, gmsh, p);
       ExpectGmshSeesMesh(f, m);
       for (const auto& [r, n] : per_region) {
         EXPECT_EQ(f.Num("physical " + std::to_string(r + 1)), n) << "region " << r;
@@ -412,13 +434,15 @@ TEST(MeshIo, GmshReadsOurMshWithRegionsAsPhysicalGroups) {
 TEST(MeshIo, GmshReadsOurMeditFileWithRegionsAsReferences) {
   const std::string gmsh = GmshBinary();
   if (gmsh.empty()) GTEST_SKIP() << "gmsh not found on PATH (Debian package gmsh)";
+  const std::string python = AnyPython();
+  if (python.empty()) GTEST_SKIP() << "no python3 to run check_gmsh.py";
   const fs::path dir = testing::MakeScratchDir("gmsh_medit");
   for (const TetMesh& m : {TwoTets(), PhantomMesh()}) {
     std::map<int, int64_t> per_region;
     for (uint8_t r : m.cell_regions) ++per_region[r];
     const fs::path p = dir / "m.mesh";
     ASSERT_TRUE(WriteMedit(m, p).ok());
-    const GmshFacts f = RunGmsh("python3", gmsh, p);
+    const GmshFacts f = RunGmsh(python, gmsh, p);
     ExpectGmshSeesMesh(f, m);
     ASSERT_GE(per_region.size(), m.tet_count() > 2 ? 3u : 2u);
     // Gmsh turns MEDIT references into elementary entities: one per region, not all "1".
@@ -439,13 +463,17 @@ class BrokenVtu : public ::testing::Test {
     raw_ = ReadAll(dir_ / "raw.vtu");
     z_ = ReadAll(dir_ / "z.vtu");
   }
+  // The offset="..." attribute of array `name` in the XML of `file`.
+  static std::string OffsetAttr(const std::string& file, const std::string& name) {
+    const size_t at = file.find("Name=\"" + name + "\"");
+    EXPECT_NE(at, std::string::npos) << name;
+    const size_t b = file.find("offset=\"", at) + 8;
+    return file.substr(b, file.find('"', b) - b);
+  }
   // Byte position in `file` of the data (after the size header) of array `name`.
   static size_t DataPos(const std::string& file, const std::string& name, size_t header = 8) {
-    std::smatch match;
-    const std::regex re("Name=\"" + name + "\"[^>]*offset=\"([0-9]+)\"");
-    const std::string head = file.substr(0, file.find("<AppendedData"));
-    EXPECT_TRUE(std::regex_search(head, match, re)) << name;
-    return file.find('_', file.find("<AppendedData")) + 1 + std::stoul(match[1]) + header;
+    return file.find('_', file.find("<AppendedData")) + 1 + std::stoul(OffsetAttr(file, name)) +
+           header;
   }
   // Writes `bytes`, reads it back, expects failure with `code` and `needle` in the message.
   void ExpectError(const std::string& bytes, absl::StatusCode code, const std::string& needle) {
@@ -549,13 +577,9 @@ TEST_F(BrokenVtu, TruncatedFilesAndBadOffsetsAreRejected) {
   ExpectError(z_.substr(0, DataPos(z_, "Points", 0) + 30), kInvalid, "truncated");
   ExpectError(z_.substr(0, DataPos(z_, "Points", 0) + 40), kInvalid, "truncated");
   ExpectError(raw_.substr(0, raw_.find("<AppendedData")), kInvalid, "end of file inside <VTKFile>");
-  std::smatch match;
-  const std::string head = raw_.substr(0, raw_.find("<AppendedData"));
-  ASSERT_TRUE(std::regex_search(
-      head, match, std::regex("Name=\"types\" format=\"appended\" offset=\"([0-9]+)\"")));
-  ExpectError(Replace(raw_, "Name=\"types\" format=\"appended\" offset=\"" + match[1].str(),
-                      "Name=\"types\" format=\"appended\" offset=\"123456789"),
-              kInvalid, "beyond the end of the file");
+  const std::string types = "Name=\"types\" format=\"appended\" offset=\"";
+  ExpectError(Replace(raw_, types + OffsetAttr(raw_, "types"), types + "123456789"), kInvalid,
+              "beyond the end of the file");
   ExpectError(Replace(raw_, "encoding=\"raw\"", "encoding=\"hex\""), kInvalid, "'hex'");
   ExpectError(Replace(raw_, "   _", "   ~"), kInvalid, "'_' marker");
 }
