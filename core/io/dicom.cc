@@ -18,6 +18,7 @@
 #include <mutex>
 #include <optional>
 #include <sstream>
+#include <type_traits>
 #include <utility>
 
 #include <gdcmDataSet.h>
@@ -26,11 +27,13 @@
 #include <gdcmImageReader.h>
 #include <gdcmPixelFormat.h>
 #include <gdcmReader.h>
+#include <gdcmSequenceOfFragments.h>
 #include <gdcmTag.h>
 #include <gdcmTrace.h>
 #include <gdcmTransferSyntax.h>
 
 #include "absl/strings/ascii.h"
+#include "absl/strings/escaping.h"
 #include "absl/strings/numbers.h"
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_join.h"
@@ -57,6 +60,8 @@ const gdcm::Tag kRows(0x0028, 0x0010);
 const gdcm::Tag kColumns(0x0028, 0x0011);
 const gdcm::Tag kPixelSpacing(0x0028, 0x0030);
 const gdcm::Tag kBitsAllocated(0x0028, 0x0100);
+const gdcm::Tag kBitsStored(0x0028, 0x0101);
+const gdcm::Tag kHighBit(0x0028, 0x0102);
 const gdcm::Tag kPixelRepresentation(0x0028, 0x0103);
 const gdcm::Tag kRescaleIntercept(0x0028, 0x1052);
 const gdcm::Tag kRescaleSlope(0x0028, 0x1053);
@@ -86,7 +91,8 @@ struct SliceHeader {
   std::string modality;
   std::optional<std::string> photometric, number_of_frames, pixel_spacing, orientation, position,
       rescale_slope, rescale_intercept;
-  std::optional<uint16_t> rows, columns, samples_per_pixel, bits_allocated, pixel_representation;
+  std::optional<uint16_t> rows, columns, samples_per_pixel, bits_allocated, bits_stored, high_bit,
+      pixel_representation;
 };
 
 struct FolderScan {
@@ -232,6 +238,8 @@ absl::StatusOr<std::optional<SliceHeader>> ReadHeader(const fs::path& dir, const
   h.columns = GetUs(ds, kColumns, big_endian);
   h.samples_per_pixel = GetUs(ds, kSamplesPerPixel, big_endian);
   h.bits_allocated = GetUs(ds, kBitsAllocated, big_endian);
+  h.bits_stored = GetUs(ds, kBitsStored, big_endian);
+  h.high_bit = GetUs(ds, kHighBit, big_endian);
   h.pixel_representation = GetUs(ds, kPixelRepresentation, big_endian);
   return h;
 }
@@ -327,9 +335,10 @@ std::vector<DicomSeriesInfo> SeriesInfos(
 std::string ListForMessage(const std::vector<DicomSeriesInfo>& infos) {
   std::vector<std::string> parts;
   for (const DicomSeriesInfo& s : infos) {
-    parts.push_back(absl::StrCat("uid ", s.series_instance_uid, " (\"", s.series_description,
-                                 "\", modality ", s.modality.empty() ? "?" : s.modality, ", ",
-                                 s.file_count, " files)"));
+    parts.push_back(absl::StrCat("uid ", absl::CHexEscape(s.series_instance_uid), " (\"",
+                                 absl::CHexEscape(s.series_description), "\", modality ",
+                                 s.modality.empty() ? "?" : s.modality, ", ", s.file_count,
+                                 " files)"));
   }
   return absl::StrJoin(parts, "; ");
 }
@@ -338,6 +347,7 @@ std::string ListForMessage(const std::vector<DicomSeriesInfo>& infos) {
 struct Slice {
   const SliceHeader* header = nullptr;
   int rows = 0, columns = 0, bits_allocated = 0, pixel_representation = 0;
+  int bits_stored = 0, high_bit = 0;           // default BitsAllocated, BitsStored - 1
   double row_spacing = 0, column_spacing = 0;  // PixelSpacing[0], [1]
   std::array<double, 6> orientation{};
   Eigen::Vector3d position = Eigen::Vector3d::Zero();
@@ -355,15 +365,16 @@ absl::StatusOr<std::vector<double>> ParseDecimals(const fs::path& dir, const Sli
   for (absl::string_view part : absl::StrSplit(*text, '\\')) {
     double v;
     if (!absl::SimpleAtod(absl::StripAsciiWhitespace(part), &v) || !std::isfinite(v)) {
-      return absl::InvalidArgumentError(absl::StrCat(Prefix(dir, h.name), field, " '", *text,
+      return absl::InvalidArgumentError(absl::StrCat(Prefix(dir, h.name), field, " '",
+                                                     absl::CHexEscape(*text),
                                                      "' is not a list of finite numbers"));
     }
     values.push_back(v);
   }
   if (values.size() != count) {
-    return absl::InvalidArgumentError(absl::StrCat(Prefix(dir, h.name), field, " '", *text,
-                                                   "' has ", values.size(), " values, expected ",
-                                                   count));
+    return absl::InvalidArgumentError(absl::StrCat(Prefix(dir, h.name), field, " '",
+                                                   absl::CHexEscape(*text), "' has ", values.size(),
+                                                   " values, expected ", count));
   }
   return values;
 }
@@ -411,6 +422,14 @@ absl::StatusOr<Slice> ParseSlice(const fs::path& dir, const SliceHeader& h) {
   if (s.bits_allocated != 8 && s.bits_allocated != 16 && s.bits_allocated != 32) {
     return absl::InvalidArgumentError(
         absl::StrCat(prefix, "BitsAllocated is ", s.bits_allocated, ", expected 8, 16 or 32"));
+  }
+  s.bits_stored = h.bits_stored.value_or(s.bits_allocated);
+  s.high_bit = h.high_bit.value_or(s.bits_stored - 1);
+  if (s.bits_stored < 1 || s.bits_stored > s.bits_allocated || s.high_bit < s.bits_stored - 1 ||
+      s.high_bit >= s.bits_allocated) {
+    return absl::InvalidArgumentError(absl::StrCat(prefix, "BitsStored ", s.bits_stored,
+                                                   " / HighBit ", s.high_bit,
+                                                   " do not fit BitsAllocated ", s.bits_allocated));
   }
   DECIMA_ASSIGN_OR_RETURN(s.pixel_representation, RequireUs(dir, h, h.pixel_representation,
                                                             "PixelRepresentation (0028,0103)"));
@@ -497,63 +516,184 @@ VoxelType StoredType(int bits_allocated, int pixel_representation) {
   }
 }
 
-// Pass 2 for one slice: decodes its pixel data straight into `dest` (`bytes` long).
+// Decodes with gdcm::ImageReader, for the compressed syntaxes we do not decode ourselves (JPEG
+// family, JPEG-LS, JPEG 2000, big endian). GDCM masks unused high bits itself.
+absl::Status DecodeWithGdcm(std::istream& stream, const Slice& s, uint8_t* dest, size_t bytes,
+                            const std::string& prefix) {
+  gdcm::ImageReader reader;
+  reader.SetStream(stream);
+  if (!reader.Read()) {
+    return absl::InvalidArgumentError(
+        absl::StrCat(prefix, "GDCM cannot read the image (corrupt file or pixel data?)"));
+  }
+  const gdcm::Image& image = reader.GetImage();
+  const char* ts_uid = image.GetTransferSyntax().GetString();
+  const std::string ts = ts_uid ? ts_uid : "unknown";
+  const unsigned int* dims = image.GetDimensions();
+  const gdcm::PixelFormat& pf = image.GetPixelFormat();
+  if (dims[0] != static_cast<unsigned>(s.columns) || dims[1] != static_cast<unsigned>(s.rows) ||
+      (image.GetNumberOfDimensions() > 2 && dims[2] != 1)) {
+    return absl::InvalidArgumentError(absl::StrCat(prefix, "GDCM decodes an image of ", dims[0],
+                                                   " x ", dims[1], ", header says Columns ",
+                                                   s.columns, " x Rows ", s.rows));
+  }
+  if (pf.GetSamplesPerPixel() != 1 || pf.GetBitsAllocated() != s.bits_allocated ||
+      pf.GetPixelRepresentation() != s.pixel_representation) {
+    return absl::InvalidArgumentError(
+        absl::StrCat(prefix, "GDCM decodes pixel format ", pf.GetScalarTypeAsString(),
+                     ", header says BitsAllocated ", s.bits_allocated, " PixelRepresentation ",
+                     s.pixel_representation));
+  }
+  const unsigned long length = image.GetBufferLength();
+  if (length != bytes) {
+    return absl::InvalidArgumentError(
+        absl::StrCat(prefix, "decoded pixel data is ", length, " bytes, expected Rows * ",
+                     "Columns * BitsAllocated / 8 = ", bytes, " (transfer syntax ", ts, ")"));
+  }
+  if (!image.GetBuffer(reinterpret_cast<char*>(dest))) {
+    return absl::InvalidArgumentError(
+        absl::StrCat(prefix, "GDCM cannot decode the pixel data (transfer syntax ", ts, ")"));
+  }
+  return absl::OkStatus();
+}
+
+// RLE Lossless (PS3.5 Annex G): a 64-byte header (segment count, 15 offsets) and one PackBits
+// segment per byte plane, most significant plane first. Decoded here, bounds-checked, because
+// GDCM's RLE codec crashes on corrupt segments.
+absl::Status DecodeRle(absl::string_view frame, int64_t pixels, int bytes_per_sample, uint8_t* dest,
+                       const std::string& prefix) {
+  if (frame.size() < 64) {
+    return absl::InvalidArgumentError(
+        absl::StrCat(prefix, "RLE frame of ", frame.size(), " bytes has no 64-byte header"));
+  }
+  uint32_t header[16];
+  std::memcpy(header, frame.data(), sizeof(header));  // little endian, as the host
+  if (header[0] != static_cast<uint32_t>(bytes_per_sample)) {
+    return absl::InvalidArgumentError(absl::StrCat(prefix, "RLE frame has ", header[0],
+                                                   " segments, expected ", bytes_per_sample,
+                                                   " (one per byte of a sample)"));
+  }
+  for (int seg = 0; seg < bytes_per_sample; ++seg) {
+    const size_t begin = header[1 + seg];
+    const size_t end = seg + 1 < bytes_per_sample ? header[2 + seg] : frame.size();
+    if (begin < 64 || begin > end || end > frame.size()) {
+      return absl::InvalidArgumentError(
+          absl::StrCat(prefix, "RLE segment ", seg, " has invalid offsets ", begin, "..", end));
+    }
+    const int byte = bytes_per_sample - 1 - seg;  // little-endian position of this plane
+    int64_t p = 0;
+    size_t in = begin;
+    while (p < pixels && in < end) {
+      const int n = static_cast<int8_t>(frame[in++]);
+      if (n == -128) continue;
+      const int64_t count = n >= 0 ? n + 1 : 1 - n;
+      if (p + count > pixels || in + (n >= 0 ? count : 1) > end) {
+        return absl::InvalidArgumentError(
+            absl::StrCat(prefix, "RLE segment ", seg, " is corrupt (a run overflows)"));
+      }
+      for (int64_t c = 0; c < count; ++c) {
+        dest[(p + c) * bytes_per_sample + byte] = static_cast<uint8_t>(frame[n >= 0 ? in + c : in]);
+      }
+      in += n >= 0 ? count : 1;
+      p += count;
+    }
+    if (p < pixels) {
+      return absl::InvalidArgumentError(absl::StrCat(prefix, "RLE segment ", seg, " decodes to ", p,
+                                                     " bytes, expected Rows * Columns = ", pixels));
+    }
+  }
+  return absl::OkStatus();
+}
+
+// Keeps bits HighBit-BitsStored+1 .. HighBit and sign-extends signed samples (PS3.5 8.1.1), as
+// GDCM does for the data it decodes: 12-bit CT may carry overlay or garbage in the top bits.
+template <typename T>
+void CleanUnusedBits(T* data, int64_t n, int bits_stored, int high_bit, bool is_signed) {
+  using U = std::make_unsigned_t<T>;
+  const int shift = high_bit + 1 - bits_stored;
+  const U mask = bits_stored >= static_cast<int>(8 * sizeof(U))
+                     ? static_cast<U>(~U{0})
+                     : static_cast<U>((U{1} << bits_stored) - 1);
+  for (int64_t v = 0; v < n; ++v) {
+    U u = static_cast<U>(static_cast<U>(data[v]) >> shift) & mask;
+    if (is_signed && ((u >> (bits_stored - 1)) & 1)) u = static_cast<U>(u | ~mask);
+    data[v] = static_cast<T>(u);
+  }
+}
+
+// Pass 2 for one slice: decodes its pixel data straight into `dest` (`bytes` long). Native
+// little-endian and RLE data are decoded here; other syntaxes by GDCM.
 absl::Status ReadPixels(const fs::path& dir, const Slice& s, uint8_t* dest, size_t bytes) {
   const std::string prefix = Prefix(dir, s.header->name);
   // Re-checked: the file may have changed since pass 1.
   DECIMA_ASSIGN_OR_RETURN(std::string file_bytes,
                           LoadCheckedFile(dir, s.header->path, s.header->name));
   std::istringstream stream(std::move(file_bytes));
-  gdcm::ImageReader reader;
-  reader.SetStream(stream);
+  const int bytes_per_sample = s.bits_allocated / 8;
+  const int64_t pixels = int64_t{s.rows} * s.columns;
   try {
+    gdcm::Reader reader;
+    reader.SetStream(stream);
     if (!reader.Read()) {
-      return absl::InvalidArgumentError(
-          absl::StrCat(prefix, "GDCM cannot read the image (corrupt file or pixel data?)"));
+      return absl::InvalidArgumentError(absl::StrCat(prefix, "GDCM cannot parse the file"));
     }
-    const gdcm::Image& image = reader.GetImage();
-    const std::string ts =
-        image.GetTransferSyntax().GetString() ? image.GetTransferSyntax().GetString() : "unknown";
-    const unsigned int* dims = image.GetDimensions();
-    const gdcm::PixelFormat& pf = image.GetPixelFormat();
-    if (dims[0] != static_cast<unsigned>(s.columns) || dims[1] != static_cast<unsigned>(s.rows) ||
-        (image.GetNumberOfDimensions() > 2 && dims[2] != 1)) {
-      return absl::InvalidArgumentError(absl::StrCat(prefix, "GDCM decodes an image of ", dims[0],
-                                                     " x ", dims[1], ", header says Columns ",
-                                                     s.columns, " x Rows ", s.rows));
-    }
-    if (pf.GetSamplesPerPixel() != 1 || pf.GetBitsAllocated() != s.bits_allocated ||
-        pf.GetPixelRepresentation() != s.pixel_representation) {
-      return absl::InvalidArgumentError(
-          absl::StrCat(prefix, "GDCM decodes pixel format ", pf.GetScalarTypeAsString(),
-                       ", header says BitsAllocated ", s.bits_allocated, " PixelRepresentation ",
-                       s.pixel_representation));
-    }
-    // Native (uncompressed) pixel data must be complete; GDCM pads a short value silently.
+    const gdcm::TransferSyntax ts = reader.GetFile().GetHeader().GetDataSetTransferSyntax();
     const gdcm::DataSet& ds = reader.GetFile().GetDataSet();
-    if (ds.FindDataElement(kPixelData)) {
-      const gdcm::ByteValue* bv = ds.GetDataElement(kPixelData).GetByteValue();
-      if (bv != nullptr && bv->GetLength() < bytes) {
+    if (!ds.FindDataElement(kPixelData)) {
+      return absl::InvalidArgumentError(absl::StrCat(prefix, "PixelData (7FE0,0010) is missing"));
+    }
+    const gdcm::DataElement& pixel_data = ds.GetDataElement(kPixelData);
+    if (ts == gdcm::TransferSyntax::ImplicitVRLittleEndian ||
+        ts == gdcm::TransferSyntax::ExplicitVRLittleEndian) {
+      const gdcm::ByteValue* bv = pixel_data.GetByteValue();
+      if (bv == nullptr) {
         return absl::InvalidArgumentError(
-            absl::StrCat(prefix, "PixelData holds ", static_cast<uint32_t>(bv->GetLength()),
-                         " bytes, expected Rows * Columns * ", "BitsAllocated / 8 = ", bytes,
-                         " (truncated file?)"));
+            absl::StrCat(prefix, "PixelData is encapsulated in a native transfer syntax"));
       }
-    }
-    const unsigned long length = image.GetBufferLength();
-    if (length != bytes) {
-      return absl::InvalidArgumentError(
-          absl::StrCat(prefix, "decoded pixel data is ", length, " bytes, expected Rows * ",
-                       "Columns * BitsAllocated / 8 = ", bytes, " (transfer syntax ", ts, ")"));
-    }
-    if (!image.GetBuffer(reinterpret_cast<char*>(dest))) {
-      return absl::InvalidArgumentError(
-          absl::StrCat(prefix, "GDCM cannot decode the pixel data (transfer syntax ", ts, ")"));
+      if (bv->GetLength() < bytes) {
+        return absl::InvalidArgumentError(absl::StrCat(
+            prefix, "PixelData holds ", static_cast<uint32_t>(bv->GetLength()),
+            " bytes, expected Rows * Columns * BitsAllocated / 8 = ", bytes, " (truncated file?)"));
+      }
+      std::memcpy(dest, bv->GetPointer(), bytes);
+    } else if (ts == gdcm::TransferSyntax::RLELossless) {
+      const gdcm::SequenceOfFragments* fragments = pixel_data.GetSequenceOfFragments();
+      if (fragments == nullptr || fragments->GetNumberOfFragments() != 1) {
+        return absl::InvalidArgumentError(
+            absl::StrCat(prefix, "RLE PixelData must hold one fragment per frame, found ",
+                         fragments ? fragments->GetNumberOfFragments() : 0));
+      }
+      const gdcm::ByteValue* frame = fragments->GetFragment(0).GetByteValue();
+      if (frame == nullptr) {
+        return absl::InvalidArgumentError(absl::StrCat(prefix, "RLE fragment is empty"));
+      }
+      DECIMA_RETURN_IF_ERROR(DecodeRle(absl::string_view(frame->GetPointer(), frame->GetLength()),
+                                       pixels, bytes_per_sample, dest, prefix));
+    } else {
+      stream.clear();
+      stream.seekg(0);
+      return DecodeWithGdcm(stream, s, dest, bytes, prefix);
     }
   } catch (const std::exception& e) {
     return absl::InvalidArgumentError(absl::StrCat(prefix, "GDCM failed: ", e.what()));
   } catch (...) {
     return absl::InvalidArgumentError(absl::StrCat(prefix, "GDCM failed (unknown exception)"));
+  }
+  if (s.bits_stored < s.bits_allocated || s.high_bit != s.bits_stored - 1) {
+    const bool is_signed = s.pixel_representation == 1;
+    switch (s.bits_allocated) {
+      case 8:
+        CleanUnusedBits(dest, pixels, s.bits_stored, s.high_bit, is_signed);
+        break;
+      case 16:
+        CleanUnusedBits(reinterpret_cast<uint16_t*>(dest), pixels, s.bits_stored, s.high_bit,
+                        is_signed);
+        break;
+      default:
+        CleanUnusedBits(reinterpret_cast<uint32_t*>(dest), pixels, s.bits_stored, s.high_bit,
+                        is_signed);
+        break;
+    }
   }
   return absl::OkStatus();
 }

@@ -5,6 +5,8 @@
 
 #include <cstdint>
 #include <cstring>
+#include <optional>
+#include <string>
 
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_format.h"
@@ -190,6 +192,7 @@ absl::Status CheckDicomStructure(absl::string_view bytes) {
   // File meta information: group 0002, always explicit VR little endian.
   size_t pos = 132;
   std::string transfer_syntax;
+  std::optional<uint64_t> meta_end;  // from (0002,0000) FileMetaInformationGroupLength
   while (bytes.size() - pos >= 8) {
     uint16_t group, element;
     std::memcpy(&group, bytes.data() + pos, 2);
@@ -216,7 +219,24 @@ absl::Status CheckDicomStructure(absl::string_view bytes) {
           absl::StrFormat("at byte %u: file meta element (0002,%04X) is truncated", pos, element));
     }
     if (element == 0x0010) transfer_syntax = std::string(bytes.substr(pos + header, length));
+    if (element == 0x0000 && length == 4) {
+      uint32_t group_length;
+      std::memcpy(&group_length, bytes.data() + pos + header, 4);
+      meta_end = pos + header + 4 + uint64_t{group_length};  // counts the bytes after itself
+    }
     pos += header + length;
+  }
+  // GDCM reads the meta group up to the end its group length announces, past the end of the
+  // file if need be (and then asserts), so the announced end must be where the elements end.
+  if (meta_end && *meta_end != pos) {
+    return absl::InvalidArgumentError(absl::StrFormat(
+        "file meta information group length ends at byte %u but its elements end at byte %u "
+        "(truncated or corrupt file)",
+        *meta_end, pos));
+  }
+  // (GDCM also asserts on a file that ends right after its meta information.)
+  if (pos >= bytes.size()) {
+    return absl::InvalidArgumentError("file ends after the file meta information (no data set)");
   }
   while (!transfer_syntax.empty() &&
          (transfer_syntax.back() == '\0' || transfer_syntax.back() == ' ')) {
