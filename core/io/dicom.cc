@@ -1,7 +1,10 @@
-// DICOM series reader on GDCM 3.0: headers are parsed with gdcm::Reader stopped before the pixel
-// data (pass 1, every file of the folder), pixels decoded with gdcm::ImageReader (pass 2, only
-// the files of the chosen series), so a folder with many series costs little more than the one
-// that is read. Geometry is computed here from the raw attributes rather than taken from
+// DICOM series reader on GDCM 3.0, in two passes: headers of every file of the folder are
+// parsed with gdcm::Reader stopped before the pixel data (pass 1); pixels are decoded only for
+// the files of the chosen series (pass 2), so a folder with many series costs little more than
+// the one that is read. Every file is first walked by CheckDicomStructure (dicom_preflight.h)
+// because Debian's GDCM asserts or crashes on some malformed input; for the same reason native
+// little-endian and RLE pixel data are decoded here and only the other codecs go to
+// gdcm::ImageReader. Geometry is computed from the raw attributes rather than taken from
 // gdcm::ImageHelper, whose spacing rules (SpacingBetweenSlices, SliceThickness, vendor quirks)
 // differ from the "positions are the truth" rule of dicom.h.
 //

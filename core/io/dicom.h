@@ -37,7 +37,8 @@ struct DicomSeriesInfo {
 // subdirectories), sorted by SeriesInstanceUID. Reads headers only (no pixel data).
 // Errors: NotFound if `dir` does not exist; InvalidArgument if it is not a directory, holds no
 // DICOM image file (the message lists what was skipped and why), or holds a file with the
-// DICOM marker whose header cannot be parsed (named).
+// DICOM marker that is structurally corrupt (truncated, lengths past the end, unclosed
+// sequences) or whose header GDCM cannot parse (named).
 // Thread-safe (the first call silences GDCM's global warning and error trace once).
 absl::StatusOr<std::vector<DicomSeriesInfo>> ListDicomSeries(const std::filesystem::path& dir);
 
@@ -52,9 +53,12 @@ absl::StatusOr<std::vector<DicomSeriesInfo>> ListDicomSeries(const std::filesyst
 //    ImageOrientationPatient, BitsAllocated, PixelRepresentation, or SamplesPerPixel != 1;
 //    duplicate slice positions; a missing slice ("missing slice between <a> and <b>: gap X mm,
 //    expected Y mm"); uneven spacing (a gap deviating from the mean by more than 1% + 0.01 mm);
-//    slices not stacked along their normal (gantry tilt); pixel data that GDCM cannot decode or
-//    whose length is not Rows * Columns * BitsAllocated / 8; more than kMaxVoxels voxels
-//    (checked before any pixel buffer is allocated).
+//    slices not stacked along their normal (gantry tilt); corrupt files (as ListDicomSeries);
+//    pixel data that cannot be decoded or whose length is not Rows * Columns * BitsAllocated / 8;
+//    more than kMaxVoxels voxels (checked before any pixel buffer is allocated).
+// Files without the "DICM" marker, and DICOM objects without SeriesInstanceUID or Rows
+// (DICOMDIR, reports), are skipped. Bits outside BitsStored/HighBit are masked and signed
+// samples sign-extended. Cost: one read of every file's header, one full read of each slice.
 // The result passed Validate(). Thread-safe as ListDicomSeries.
 absl::StatusOr<Volume> ReadDicomSeries(const std::filesystem::path& dir,
                                        const std::string& series_instance_uid = "");

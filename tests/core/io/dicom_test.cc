@@ -45,6 +45,7 @@ struct SliceSpec {
   std::vector<double> orientation = {1, 0, 0, 0, 1, 0};
   Eigen::Vector3d position = Eigen::Vector3d::Zero();
   int bits_allocated = 16;
+  int bits_stored = 0;  // 0: BitsAllocated
   int pixel_representation = 0;
   int samples_per_pixel = 1;
   std::optional<double> slope, intercept, slice_thickness;
@@ -118,8 +119,9 @@ void WriteSlice(const fs::path& path, const SliceSpec& s) {
   PutUs(ds, 0x0028, 0x0011, static_cast<uint16_t>(s.columns));
   PutText(ds, 0x0028, 0x0030, gdcm::VR::DS, Decimals(s.pixel_spacing));
   PutUs(ds, 0x0028, 0x0100, static_cast<uint16_t>(s.bits_allocated));
-  PutUs(ds, 0x0028, 0x0101, static_cast<uint16_t>(s.bits_allocated));
-  PutUs(ds, 0x0028, 0x0102, static_cast<uint16_t>(s.bits_allocated - 1));
+  const int bits_stored = s.bits_stored ? s.bits_stored : s.bits_allocated;
+  PutUs(ds, 0x0028, 0x0101, static_cast<uint16_t>(bits_stored));
+  PutUs(ds, 0x0028, 0x0102, static_cast<uint16_t>(bits_stored - 1));
   PutUs(ds, 0x0028, 0x0103, static_cast<uint16_t>(s.pixel_representation));
   if (s.intercept) PutText(ds, 0x0028, 0x1052, gdcm::VR::DS, Decimals({*s.intercept}));
   if (s.slope) PutText(ds, 0x0028, 0x1053, gdcm::VR::DS, Decimals({*s.slope}));
@@ -319,6 +321,26 @@ TEST(DicomTest, IdentityRescaleKeepsStoredSignedAndByteTypes) {
     EXPECT_EQ(v->modality, "MR");
     EXPECT_EQ(v->ValueAt(v->Index(2, 3, 2)), 232);
   }
+}
+
+TEST(DicomTest, BitsAboveBitsStoredAreMaskedAndSignExtended) {
+  const fs::path dir = testing::MakeScratchDir("dicom-12bit");
+  SliceSpec base;
+  base.bits_stored = 12;
+  base.pixel_representation = 1;
+  // Stored 12-bit two's complement of (10j + i - 20) with junk (an overlay) in bits 12..15.
+  base.value = [](int i, int j) {
+    const int v = 10 * j + i - 20;
+    return static_cast<double>(static_cast<int16_t>((v & 0x0FFF) | 0xA000));
+  };
+  WriteSeries(dir, base, {1});
+  absl::StatusOr<Volume> v = ReadDicomSeries(dir);
+  ASSERT_TRUE(v.ok()) << v.status();
+  EXPECT_EQ(v->type, VoxelType::kInt16);
+  EXPECT_EQ(v->ValueAt(v->Index(0, 0, 0)), -20);
+  EXPECT_EQ(v->ValueAt(v->Index(2, 3, 0)), 12);
+  // Slice 1 adds 100 to the double before the cast: (v + 100) in the low bits.
+  EXPECT_EQ(v->ValueAt(v->Index(0, 0, 1)), 80);
 }
 
 TEST(DicomTest, ObliqueOrientationGivesDirectionAndPhysicalPoints) {
