@@ -4,8 +4,10 @@
 #include <cstring>
 
 #include "core/common/status.h"
+#include "core/io/dicom.h"
 #include "core/io/io_util.h"
 #include "core/io/volume_io.h"
+
 
 namespace decima::io {
 namespace {
@@ -87,8 +89,7 @@ absl::StatusOr<Volume> ReadVolume(const fs::path& path) {
     case VolumeFormat::kNrrd:
       return ReadNrrd(path);
     case VolumeFormat::kDirectory:
-      // Hook for DICOM: the lead wires ReadDicomSeries(path, series_uid) (core/io/dicom.h) here.
-      return internal::Invalid(path, "directory: use the DICOM reader (ReadDicomSeries)");
+      return ReadDicomSeries(path);
     case VolumeFormat::kUnknown:
       break;
   }

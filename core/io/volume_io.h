@@ -15,8 +15,8 @@
 //  - Writers go through a temporary file in the destination folder that is renamed into place
 //    only when complete, so a failed write leaves no partial file under the target name.
 //
-// DICOM series (folders) are read by ReadDicomSeries() in core/io/dicom.h, provided separately;
-// ReadVolume() answers a directory with InvalidArgument pointing there until it is wired in.
+// DICOM series (folders) are read by ReadDicomSeries() in core/io/dicom.h; ReadVolume() hands a
+// directory to it (the folder must then hold exactly one series).
 #pragma once
 
 #include <filesystem>
@@ -37,9 +37,9 @@ enum class VolumeFormat { kUnknown, kNifti, kMetaImage, kNrrd, kDirectory };
 // cannot be opened.
 VolumeFormat DetectVolumeFormat(const std::filesystem::path& path);
 
-// Reads any supported single-file format (dispatch by DetectVolumeFormat). A directory yields
-// InvalidArgument "directory: use the DICOM reader" (the DICOM hook, see above); an unknown
-// format yields InvalidArgument naming the extensions that are supported.
+// Reads any supported format (dispatch by DetectVolumeFormat). A directory is read as a DICOM
+// series (ReadDicomSeries with no series uid: several series give InvalidArgument listing them);
+// an unknown format yields InvalidArgument naming the extensions that are supported.
 absl::StatusOr<Volume> ReadVolume(const std::filesystem::path& path);
 
 // NIfTI-1 or NIfTI-2, single file (.nii, .nii.gz) or pair (.hdr + .img, either name may be

@@ -55,12 +55,38 @@ TEST(ReadVolume, SniffsMagicBytesWhenTheExtensionIsUnknown) {
   EXPECT_EQ(n->data<uint8_t>()[7], 'h');
 }
 
-TEST(ReadVolume, DirectoryPointsToTheDicomReader) {
+TEST(ReadVolume, EmptyDirectoryIsRejectedByTheDicomReader) {
   const fs::path dir = decima::testing::MakeScratchDir("dispatch");
   auto r = ReadVolume(dir);
   ASSERT_FALSE(r.ok());
   EXPECT_EQ(r.status().code(), absl::StatusCode::kInvalidArgument);
-  EXPECT_THAT(r.status().message(), HasSubstr("directory: use the DICOM reader"));
+  EXPECT_THAT(r.status().message(), HasSubstr(dir.string()));
+}
+
+// The DICOM series and the NIfTI file of the same CT hold the same voxels at the same patient
+// positions; the DICOM k axis runs upwards (increasing position), the NIfTI one downwards.
+TEST(ReadVolume, DicomSeriesMatchesTheNiftiCopyVoxelByVoxel) {
+  DECIMA_REQUIRE_SHARED_DATA(dicom_dir, "ct-head-256x256x113-dicom");
+  DECIMA_REQUIRE_SHARED_DATA(nifti, "ct-head-256x256x113.nii.gz");
+  auto d = ReadVolume(dicom_dir);
+  auto n = ReadVolume(nifti);
+  ASSERT_TRUE(d.ok()) << d.status();
+  ASSERT_TRUE(n.ok()) << n.status();
+  ASSERT_EQ(d->dims, n->dims);
+  ASSERT_EQ(d->type, n->type);
+  const int64_t nz = d->dims[2];
+  int64_t mismatches = 0;
+  for (int64_t k = 0; k < nz; ++k) {
+    for (int64_t j = 0; j < d->dims[1]; ++j) {
+      for (int64_t i = 0; i < d->dims[0]; ++i) {
+        mismatches += d->ValueAt(d->Index(i, j, nz - 1 - k)) != n->ValueAt(n->Index(i, j, k));
+      }
+    }
+  }
+  EXPECT_EQ(mismatches, 0);
+  for (const auto& [i, j, k] : {std::array<int64_t, 3>{0, 0, 0}, {100, 37, 50}, {255, 255, 112}}) {
+    EXPECT_TRUE(d->PhysicalPoint(i, j, nz - 1 - k).isApprox(n->PhysicalPoint(i, j, k), 1e-4));
+  }
 }
 
 TEST(ReadVolume, UnknownEmptyAndMissingFiles) {
