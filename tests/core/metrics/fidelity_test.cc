@@ -1,0 +1,2 @@
+#include "core/metrics/fidelity.h"
+#include <gtest/gtest.h>
