@@ -91,9 +91,7 @@ CollapseEngine::CollapseEngine(TetMesh mesh, const SimplifyOptions& options)
   if (!(voxel_ > 0)) voxel_ = 1;
   voxel_volume_ = voxel_ * voxel_ * voxel_;
   min_volume_ = options_.min_volume_fraction * voxel_volume_;
-  if (getenv("MINQ")) min_quality_ = atof(getenv("MINQ"));
-  if (getenv("R4ALL")) rule4b_all_ = true;
-  if (getenv("SACC")) smooth_accept_ = atof(getenv("SACC"));
+
 
   // Eq. (5): the distribution of every region, taken once from the input (the paper assumes
   // the region means do not change).
@@ -163,7 +161,11 @@ void CollapseEngine::BeginPass(int threads) {
   dead_.assign(nt, 0);
   locked_.assign(nt, 0);
   adjacency_ = BuildVertexTetAdjacency(mesh_);
-  if (getenv("SMOOTH")) for (int it = 0; it < atoi(getenv("SMOOTH")); ++it) SmoothVertices();
+  // Passes after the first start by relaxing the normal vertices (README: "un-jamming").
+  if (pass_ > 0) {
+    for (int it = 0; it < options_.smoothing_iterations; ++it) SmoothVertices();
+  }
+  ++pass_;
 
   const int64_t nv = mesh_.vertex_count();
   cell_volume_.resize(nt);
@@ -244,6 +246,7 @@ int64_t CollapseEngine::SmoothVertices() {
             l[k] = Orient6(rr[0], rr[1], rr[2], rr[3]) / all;
             inside = l[k] >= -1e-9;
           }
+          for (int k = 0; k < 4; ++k) inside &= mesh_.labels[t[k]] == mesh_.labels[v];
           if (inside) {
             located = true;
             for (int k = 0; k < 4; ++k) {
@@ -253,7 +256,7 @@ int64_t CollapseEngine::SmoothVertices() {
           }
         }
       }
-      if (!ok || !located || !(new_q > old_q * smooth_accept_)) continue;
+      if (!ok || !located || !(new_q > old_q)) continue;
       std::copy_n(p, 3, P + 3 * v);
       ++clock_;
       for (int64_t i = b; i < e; ++i) {
@@ -396,10 +399,13 @@ CellPlan CollapseEngine::PlanCell(int32_t cell) const {
   return plan;
 }
 
-void CollapseEngine::GatherNeighbours(int32_t cell) {
+bool CollapseEngine::GatherNeighbours(int32_t cell, int slot, const float* p) {
+  static constexpr uint8_t kBits[16] = {0, 1, 1, 2, 1, 2, 2, 3, 1, 2, 2, 3, 2, 3, 3, 4};
   a_set_.clear();
   d_set_.clear();
   const int32_t* tet = &mesh_.tets[4 * int64_t(cell)];
+  const float* P = mesh_.positions.data();
+  const double min6 = 6.0 * min_volume_;
   for (int k = 0; k < 4; ++k) {
     const int32_t v = tet[k];
     for (int64_t e = adjacency_.offsets[v]; e < adjacency_.offsets[v + 1]; ++e) {
@@ -412,9 +418,21 @@ void CollapseEngine::GatherNeighbours(int32_t cell) {
       }
       // A cell sharing several vertices is met once per shared vertex: keep the first.
       if (std::countr_zero(mask) != k) continue;
-      (std::popcount(mask) == 1 ? a_set_ : d_set_).push_back({n, uint8_t(mask)});
+      if (kBits[mask] > 1) {
+        d_set_.push_back({n, uint8_t(mask)});
+        continue;
+      }
+      a_set_.push_back({n, uint8_t(mask)});
+      // Rule 6 (when the collapse point is known): the moved vertex must stay on the same side
+      // of the opposite face, with at least the guard volume.
+      if (p != nullptr && k != slot) {
+        const float* q[4];
+        for (int j = 0; j < 4; ++j) q[j] = other[j] == v ? p : P + 3 * other[j];
+        if (!(Orient6(q[0], q[1], q[2], q[3]) >= min6)) return false;
+      }
     }
   }
+  return true;
 }
 
 CollapseResult CollapseEngine::TryCollapse(int32_t cell) {
@@ -443,7 +461,6 @@ CollapseResult CollapseEngine::TryCollapse(int32_t cell) {
     result.outcome = plan.outcome;
     return result;
   }
-  GatherNeighbours(cell);
 
   int slot = plan.target_slot;
   const bool paper = options_.policy == SimplifyPolicy::kPaper;
@@ -453,7 +470,13 @@ CollapseResult CollapseEngine::TryCollapse(int32_t cell) {
     any_feature |= IsFeature(tet[k]);
     if (IsBoundary(tet[k])) bslot = k;
   }
-  if (paper && !any_feature) {
+  // Rule 4 needs the whole neighbourhood first; cross-region cells are never created during a
+  // pass, so only cells with a vertex marked at the pass start can have one around them.
+  bool near_crossing = false;
+  for (int k = 0; k < 4; ++k) near_crossing |= cross_touch_[tet[k]] != 0;
+  const bool rule4 = paper && !any_feature && near_crossing;
+  if (rule4) {
+    GatherNeighbours(cell, -1, nullptr);
     // Rule 4 on the current neighbourhood. (a) Cross-region cells in A(τ) ∪ D(τ): collapse to
     // the vertex τ shares with them (with several, one common to all of them).
     int crossing = 0;
@@ -480,7 +503,7 @@ CollapseResult CollapseEngine::TryCollapse(int32_t cell) {
     // (b) More than one feature cell and more than one feature vertex in A(τ): keep τ. Cells of
     // D(τ) may hold any number of feature vertices.
     int feature_cells = 0;
-    if (crossing > 0 || rule4b_all_) {
+    if (crossing > 0) {
     int32_t first_feature = -1;
     bool two_features = false;
     for (const Neighbour& n : a_set_) {
@@ -519,30 +542,24 @@ CollapseResult CollapseEngine::TryCollapse(int32_t cell) {
     }
   }
   // Rule 6: every cell of A(τ) whose shared vertex moves must stay positive (and not a sliver).
-  const double min6 = 6.0 * min_volume_;
-  for (const Neighbour& n : a_set_) {
-    const int k = std::countr_zero(unsigned(n.shared_mask));
-    if (k == slot) continue;
-    const int32_t* other = &mesh_.tets[4 * int64_t(n.cell)];
-    const float* q[4];
-    for (int j = 0; j < 4; ++j) q[j] = other[j] == tet[k] ? p : P + 3 * other[j];
-    const double o6 = Orient6(q[0], q[1], q[2], q[3]);
-    if (!(o6 >= min6)) {
-      result.outcome = Outcome::kFlip;
-      rejected_at_[cell] = ++clock_;
-      return result;
+  bool unflipped = true;
+  if (rule4) {
+    const double min6 = 6.0 * min_volume_;
+    for (const Neighbour& n : a_set_) {
+      const int k = std::countr_zero(unsigned(n.shared_mask));
+      if (k == slot) continue;
+      const int32_t* other = &mesh_.tets[4 * int64_t(n.cell)];
+      const float* q[4];
+      for (int j = 0; j < 4; ++j) q[j] = other[j] == tet[k] ? p : P + 3 * other[j];
+      unflipped &= Orient6(q[0], q[1], q[2], q[3]) >= min6;
     }
-    if (min_quality_ > 0) {
-      double l2 = 0;
-      for (int i = 0; i < 4; ++i)
-        for (int j = i + 1; j < 4; ++j)
-          for (int c = 0; c < 3; ++c) l2 += double(q[i][c] - q[j][c]) * (q[i][c] - q[j][c]);
-      const double eta = 12.0 * std::cbrt(0.25 * o6 * o6) / l2;  // 12 (3V)^(2/3) / sum l^2
-      if (eta < min_quality_) {
-        result.outcome = Outcome::kFlip;
-        return result;
-      }
-    }
+  } else {
+    unflipped = GatherNeighbours(cell, slot, p);
+  }
+  if (!unflipped) {
+    result.outcome = Outcome::kFlip;
+    rejected_at_[cell] = ++clock_;
+    return result;
   }
 
   // Apply: the survivor takes the collapse point; the other vertices merge into it.

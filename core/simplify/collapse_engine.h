@@ -91,13 +91,19 @@ class CollapseEngine {
   float PlanError(const int32_t* tet, double volume, int slot) const;
   // Lowest ω_g ε_g + ω_s ε_s among the slots in `mask`, ties to the lower vertex id.
   int BestSlot(const int32_t* tet, unsigned mask) const;
-  void GatherNeighbours(int32_t cell);
+  // Fills a_set_ / d_set_. With a collapse point `p` (slot as in CellPlan) it also runs rule 6
+  // and stops early, returning false, at the first cell of A(τ) that would flip.
+  bool GatherNeighbours(int32_t cell, int slot, const float* p);
+  // One Gauss-Seidel sweep (vertex id order) moving every normal vertex whose star lies in one
+  // region towards the volume centroid of its star, if that raises the star's worst mean-ratio
+  // quality and keeps every cell above the volume guard; the value there is interpolated in the
+  // current mesh. Returns the number of vertices moved.
   int64_t SmoothVertices();
 
   TetMesh mesh_;
   SimplifyOptions options_;
-  double voxel_ = 1, voxel_volume_ = 1, min_volume_ = 0, min_quality_ = 0, smooth_accept_ = 1;
-  bool rule4b_all_ = false;
+  double voxel_ = 1, voxel_volume_ = 1, min_volume_ = 0;
+  int pass_ = 0;  // passes begun
   // Region statistics of the input (Eq. 5): mean and variance per label.
   double region_mean_[256] = {}, region_var_[256] = {}, region_std_[256] = {};
   double global_std_ = 1;  // of all input values: ε_g's unit for TetFusion

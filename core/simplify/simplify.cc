@@ -47,6 +47,10 @@ absl::Status ValidateOptions(const SimplifyOptions& o) {
     return bad(absl::StrCat("min_volume_fraction = ", o.min_volume_fraction,
                             ": expected a value in (0, 1) voxels^3"));
   }
+  if (o.smoothing_iterations < 0 || o.smoothing_iterations > 100) {
+    return bad(absl::StrCat("smoothing_iterations = ", o.smoothing_iterations,
+                            ": expected 0..100"));
+  }
   if (o.max_passes < 1 || o.max_passes > 10000) {
     return bad(absl::StrCat("max_passes = ", o.max_passes, ": expected 1..10000"));
   }

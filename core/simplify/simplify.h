@@ -67,6 +67,12 @@ struct SimplifyOptions {
   // A collapse is rejected if a moved cell would end with volume below this many voxels^3
   // (rule 6's sign test plus a guard against slivers). Must be > 0.
   double min_volume_fraction = 1e-3;
+  // Passes after the first begin with this many smoothing sweeps over the normal vertices
+  // (neither feature nor exterior-boundary, star inside one region): each moves towards the
+  // volume centroid of its star when that improves the star's worst cell, with its value
+  // interpolated in the current mesh. Not in the paper: without it the collapses jam after the
+  // first pass (README.md). 0..100; 0 = the paper's algorithm unchanged.
+  int smoothing_iterations = 2;
   int max_passes = 64;  // 1..10000
   int threads = 0;      // worker threads for the per-pass scoring; 0 = hardware concurrency
 };
