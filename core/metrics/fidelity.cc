@@ -36,10 +36,10 @@ absl::Status CheckMesh(const TetMesh& m, const char* what) {
   const int64_t nv = m.vertex_count();
   if (int64_t(m.positions.size()) != 3 * nv || int64_t(m.labels.size()) != nv ||
       m.tets.size() % 4 != 0) {
-    return absl::InvalidArgumentError(absl::StrCat(
-        "metrics: ", what, " mesh has inconsistent arrays (", m.scalars.size(), " scalars, ",
-        m.positions.size(), " position floats, ", m.labels.size(), " labels, ", m.tets.size(),
-        " tet indices)"));
+    return absl::InvalidArgumentError(
+        absl::StrCat("metrics: ", what, " mesh has inconsistent arrays (", m.scalars.size(),
+                     " scalars, ", m.positions.size(), " position floats, ", m.labels.size(),
+                     " labels, ", m.tets.size(), " tet indices)"));
   }
   for (int32_t v : m.tets) {
     if (v < 0 || v >= nv) {
@@ -214,9 +214,11 @@ absl::StatusOr<FidelityMetrics> MeasureFidelity(const Volume& image, const TetMe
     DECIMA_RETURN_IF_ERROR(CheckMesh(*options.original, "original"));
     if (int64_t(options.vertex_map->size()) != options.original->vertex_count() ||
         int64_t(options.original->vertex_flags.size()) != options.original->vertex_count()) {
-      return absl::InvalidArgumentError(absl::StrCat(
-          "metrics: vertex_map has ", options.vertex_map->size(), " entries, expected one per "
-          "original vertex (", options.original->vertex_count(), ")"));
+      return absl::InvalidArgumentError(absl::StrCat("metrics: vertex_map has ",
+                                                     options.vertex_map->size(),
+                                                     " entries, expected one per "
+                                                     "original vertex (",
+                                                     options.original->vertex_count(), ")"));
     }
   }
   if (!(options.degenerate_volume_fraction >= 0) || !(options.inside_tolerance >= 0)) {

@@ -22,9 +22,9 @@ namespace decima {
 
 // The simplified mesh resampled at every grid point (x fastest, the Volume's order).
 struct GridResample {
-  std::vector<float> values;      // interpolated field, 0 where not covered
-  std::vector<uint8_t> labels;    // resampled label, 0 where not covered
-  std::vector<int32_t> cell;      // containing cell, -1 where not covered
+  std::vector<float> values;    // interpolated field, 0 where not covered
+  std::vector<uint8_t> labels;  // resampled label, 0 where not covered
+  std::vector<int32_t> cell;    // containing cell, -1 where not covered
 };
 
 // Locates every grid point of `grid` (only its geometry is used) in `mesh`: each cell visits
@@ -54,38 +54,38 @@ struct FidelityOptions {
 
 struct RegionDice {
   int label = 0;
-  int64_t truth_points = 0;   // grid points with this ground-truth label
-  int64_t mesh_points = 0;    // grid points whose resampled label is this
+  int64_t truth_points = 0;  // grid points with this ground-truth label
+  int64_t mesh_points = 0;   // grid points whose resampled label is this
   int64_t both = 0;
-  double dice = 0;            // 2 both / (truth + mesh); 1 when both are 0
+  double dice = 0;  // 2 both / (truth + mesh); 1 when both are 0
 };
 
 struct FidelityMetrics {
   int64_t vertices = 0, cells = 0;
   // Field on the original grid, over the covered points.
   int64_t grid_points = 0, covered_points = 0;
-  double coverage = 0;        // covered / grid points
-  double rmse = 0;            // image units
+  double coverage = 0;  // covered / grid points
+  double rmse = 0;      // image units
   double max_abs_error = 0;
-  double value_range = 0;     // max - min of the image
-  double psnr_db = 0;         // 20 log10(range / rmse); +infinity when rmse == 0
+  double value_range = 0;  // max - min of the image
+  double psnr_db = 0;      // 20 log10(range / rmse); +infinity when rmse == 0
   // Labels (with FidelityOptions::labels); an uncovered point has no label.
-  std::vector<RegionDice> dice;     // every label present in truth or mesh, ascending
-  double mean_dice = 0;             // over the truth labels
-  double label_mismatch = 0;        // fraction of grid points whose label differs from truth
-  double interface_rmse = 0;        // field RMSE at covered points next to a truth interface
-  int64_t interface_points = 0;     //   (a 6-neighbour with another truth label)
+  std::vector<RegionDice> dice;  // every label present in truth or mesh, ascending
+  double mean_dice = 0;          // over the truth labels
+  double label_mismatch = 0;     // fraction of grid points whose label differs from truth
+  double interface_rmse = 0;     // field RMSE at covered points next to a truth interface
+  int64_t interface_points = 0;  //   (a 6-neighbour with another truth label)
   // Feature vertices (with original + vertex_map).
   int64_t feature_vertices = 0;          // kFeatureVertex in the original
   int64_t feature_vertices_moved = 0;    // survive at another position
   int64_t feature_vertices_removed = 0;  // gone, or merged with another feature vertex
   // Cell quality.
-  int64_t inverted_cells = 0;     // volume < 0
-  int64_t degenerate_cells = 0;   // 0 <= volume < degenerate_volume_fraction voxels^3
-  double min_dihedral_deg = 0;    // over all cells
+  int64_t inverted_cells = 0;    // volume < 0
+  int64_t degenerate_cells = 0;  // 0 <= volume < degenerate_volume_fraction voxels^3
+  double min_dihedral_deg = 0;   // over all cells
   // Size.
   int64_t mesh_bytes = 0, voxel_bytes = 0;
-  double bytes_ratio = 0;         // mesh_bytes / voxel_bytes (0 when mesh_bytes is unknown)
+  double bytes_ratio = 0;  // mesh_bytes / voxel_bytes (0 when mesh_bytes is unknown)
 };
 
 // Measures `simplified` against the original `image` (and options). Errors: InvalidArgument

@@ -20,7 +20,8 @@ namespace {
 
 template <typename Fn>
 void ParallelFor(int64_t n, int threads, Fn&& fn) {
-  threads = std::max(1, std::min<int>(threads, static_cast<int>(std::min<int64_t>(n / 4096 + 1, 64))));
+  threads =
+      std::max(1, std::min<int>(threads, static_cast<int>(std::min<int64_t>(n / 4096 + 1, 64))));
   if (threads == 1) {
     fn(int64_t{0}, n);
     return;
@@ -55,18 +56,30 @@ constexpr uint32_t kNotCandidate = 0xFFFFFFFFu;
 
 const char* OutcomeName(Outcome o) {
   switch (o) {
-    case Outcome::kCollapsed: return "collapsed";
-    case Outcome::kDead: return "deleted earlier";
-    case Outcome::kLocked: return "locked";
-    case Outcome::kUnchanged: return "rejected before, neighbourhood unchanged";
-    case Outcome::kTwoFeatureVertices: return "two or more feature vertices (rule 2)";
-    case Outcome::kCrossRegion: return "cross-region cell (rule 3)";
-    case Outcome::kTwoBoundaryVertices: return "two or more exterior-boundary vertices (rule 5)";
-    case Outcome::kBoundaryCell: return "touches the hull (TetFusion)";
-    case Outcome::kPinnedConflict: return "two different vertices must stay";
-    case Outcome::kCrossRegionNeighbours: return "no common vertex with the cross-region cells (rule 4)";
-    case Outcome::kFeatureNeighbourhood: return "A(cell) holds several feature cells (rule 4)";
-    case Outcome::kFlip: return "a neighbour would flip or become a sliver (rule 6)";
+    case Outcome::kCollapsed:
+      return "collapsed";
+    case Outcome::kDead:
+      return "deleted earlier";
+    case Outcome::kLocked:
+      return "locked";
+    case Outcome::kUnchanged:
+      return "rejected before, neighbourhood unchanged";
+    case Outcome::kTwoFeatureVertices:
+      return "two or more feature vertices (rule 2)";
+    case Outcome::kCrossRegion:
+      return "cross-region cell (rule 3)";
+    case Outcome::kTwoBoundaryVertices:
+      return "two or more exterior-boundary vertices (rule 5)";
+    case Outcome::kBoundaryCell:
+      return "touches the hull (TetFusion)";
+    case Outcome::kPinnedConflict:
+      return "two different vertices must stay";
+    case Outcome::kCrossRegionNeighbours:
+      return "no common vertex with the cross-region cells (rule 4)";
+    case Outcome::kFeatureNeighbourhood:
+      return "A(cell) holds several feature cells (rule 4)";
+    case Outcome::kFlip:
+      return "a neighbour would flip or become a sliver (rule 6)";
   }
   return "?";
 }
@@ -78,8 +91,8 @@ CollapseEngine::CollapseEngine(TetMesh mesh, const SimplifyOptions& options)
     for (int64_t v = 0; v < nv; ++v) {
       const bool feature =
           std::abs(mesh_.interface_distance[v]) <= options_.feature_threshold_voxels;
-      mesh_.vertex_flags[v] = (mesh_.vertex_flags[v] & ~kFeatureVertex) |
-                              (feature ? kFeatureVertex : 0);
+      mesh_.vertex_flags[v] =
+          (mesh_.vertex_flags[v] & ~kFeatureVertex) | (feature ? kFeatureVertex : 0);
     }
   }
   mesh_.cell_regions.clear();  // recomputed by Finish()
@@ -91,7 +104,6 @@ CollapseEngine::CollapseEngine(TetMesh mesh, const SimplifyOptions& options)
   if (!(voxel_ > 0)) voxel_ = 1;
   voxel_volume_ = voxel_ * voxel_ * voxel_;
   min_volume_ = options_.min_volume_fraction * voxel_volume_;
-
 
   // Eq. (5): the distribution of every region, taken once from the input (the paper assumes
   // the region means do not change).
@@ -221,7 +233,8 @@ int64_t CollapseEngine::SmoothVertices() {
     if (!pure || !(wsum > 0)) continue;
     cx /= wsum, cy /= wsum, cz /= wsum;
     for (double alpha : {1.0, 0.5}) {
-      float p[3] = {float(P[3 * v] + alpha * (cx - P[3 * v])), float(P[3 * v + 1] + alpha * (cy - P[3 * v + 1])),
+      float p[3] = {float(P[3 * v] + alpha * (cx - P[3 * v])),
+                    float(P[3 * v + 1] + alpha * (cy - P[3 * v + 1])),
                     float(P[3 * v + 2] + alpha * (cz - P[3 * v + 2]))};
       double new_q = 1;
       bool ok = true;
@@ -260,7 +273,8 @@ int64_t CollapseEngine::SmoothVertices() {
       std::copy_n(p, 3, P + 3 * v);
       ++clock_;
       for (int64_t i = b; i < e; ++i) {
-        for (int k = 0; k < 4; ++k) touched_[mesh_.tets[4 * int64_t(adjacency_.tet_ids[i]) + k]] = clock_;
+        for (int k = 0; k < 4; ++k)
+          touched_[mesh_.tets[4 * int64_t(adjacency_.tet_ids[i]) + k]] = clock_;
       }
       mesh_.scalars[v] = float(value);
       mesh_.interface_distance[v] = float(dist);
@@ -297,10 +311,10 @@ float CollapseEngine::PlanError(const int32_t* tet, double volume, int slot) con
     const double dx = P[3 * tet[k]] - px, dy = P[3 * tet[k] + 1] - py, dz = P[3 * tet[k] + 2] - pz;
     e_s += std::sqrt(dx * dx + dy * dy + dz * dz);
   }
-  e_r = paper ? 0.25 * e_r / region_var_[region] : 0;  // Eq. (5): δ_c / δ_N
+  e_r = paper ? 0.25 * e_r / region_var_[region] : 0;              // Eq. (5): δ_c / δ_N
   e_g = 0.25 * e_g / (paper ? region_std_[region] : global_std_);  // Eq. (6)
-  e_s = 0.25 * e_s / voxel_;                                        // Eq. (7), voxels
-  const double e_v = std::abs(volume) / voxel_volume_;              // Eq. (7), voxels^3
+  e_s = 0.25 * e_s / voxel_;                                       // Eq. (7), voxels
+  const double e_v = std::abs(volume) / voxel_volume_;             // Eq. (7), voxels^3
   // Eq. (7) ε_n: neighbourhood volume from the vertex stars (a cell sharing k vertices with τ
   // counts k times; τ itself is excluded).
   double neighbourhood = -4.0 * volume;
@@ -384,7 +398,8 @@ CellPlan CollapseEngine::PlanCell(int32_t cell) const {
   if (nf == 0) {
     // Rule 4, estimated from the pass-start marks: TryCollapse decides exactly.
     unsigned touch = 0;
-    for (int k = 0; k < 4; ++k) touch |= cross_touch_.empty() || !cross_touch_[tet[k]] ? 0u : 1u << k;
+    for (int k = 0; k < 4; ++k)
+      touch |= cross_touch_.empty() || !cross_touch_[tet[k]] ? 0u : 1u << k;
     if (touch != 0) {
       if (pinned >= 0) touch &= 1u << pinned;
       if (touch == 0) {
@@ -449,9 +464,8 @@ CollapseResult CollapseEngine::TryCollapse(int32_t cell) {
   std::copy_n(&mesh_.tets[4 * int64_t(cell)], 4, tet);
   // A cell rejected for its neighbourhood stays rejected until a collapse changes a cell
   // around one of its vertices (the decision depends on nothing else).
-  if (rejected_at_[cell] != 0 &&
-      std::max({touched_[tet[0]], touched_[tet[1]], touched_[tet[2]], touched_[tet[3]]}) <
-          rejected_at_[cell]) {
+  if (rejected_at_[cell] != 0 && std::max({touched_[tet[0]], touched_[tet[1]], touched_[tet[2]],
+                                           touched_[tet[3]]}) < rejected_at_[cell]) {
     result.outcome = Outcome::kUnchanged;
     return result;
   }
@@ -504,28 +518,28 @@ CollapseResult CollapseEngine::TryCollapse(int32_t cell) {
     // D(τ) may hold any number of feature vertices.
     int feature_cells = 0;
     if (crossing > 0) {
-    int32_t first_feature = -1;
-    bool two_features = false;
-    for (const Neighbour& n : a_set_) {
-      const int32_t* other = &mesh_.tets[4 * int64_t(n.cell)];
-      bool is_feature_cell = false;
-      for (int q = 0; q < 4; ++q) {
-        if (!IsFeature(other[q])) continue;
-        is_feature_cell = true;
-        if (first_feature < 0) first_feature = other[q];
-        two_features |= other[q] != first_feature;
+      int32_t first_feature = -1;
+      bool two_features = false;
+      for (const Neighbour& n : a_set_) {
+        const int32_t* other = &mesh_.tets[4 * int64_t(n.cell)];
+        bool is_feature_cell = false;
+        for (int q = 0; q < 4; ++q) {
+          if (!IsFeature(other[q])) continue;
+          is_feature_cell = true;
+          if (first_feature < 0) first_feature = other[q];
+          two_features |= other[q] != first_feature;
+        }
+        feature_cells += is_feature_cell;
       }
-      feature_cells += is_feature_cell;
-    }
-    if (feature_cells > 1 && two_features) {
-      result.outcome = Outcome::kFeatureNeighbourhood;
-      rejected_at_[cell] = ++clock_;
-      return result;
-    }
+      if (feature_cells > 1 && two_features) {
+        result.outcome = Outcome::kFeatureNeighbourhood;
+        rejected_at_[cell] = ++clock_;
+        return result;
+      }
     }
     if (slot != plan.target_slot) {
-      result.error = PlanError(tet, cell_volume_.empty() ? CellVolume(tet) : cell_volume_[cell],
-                               slot);
+      result.error =
+          PlanError(tet, cell_volume_.empty() ? CellVolume(tet) : cell_volume_[cell], slot);
     }
   }
 

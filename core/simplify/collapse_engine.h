@@ -21,17 +21,17 @@ namespace decima::simplify_internal {
 
 enum class Outcome : uint8_t {
   kCollapsed,
-  kDead,                  // the cell was deleted earlier in the pass
-  kLocked,                // the cell is in A(σ) of a collapse σ of this pass (§2.2.4 step 2g)
-  kUnchanged,             // rejected (rule 4 or 6) before, and nothing around it changed since
-  kTwoFeatureVertices,    // rule 2
-  kCrossRegion,           // rule 3
-  kTwoBoundaryVertices,   // rule 5
-  kBoundaryCell,          // TetFusion keeps every cell touching the hull
-  kPinnedConflict,        // two different vertices must stay (feature / boundary / rule 4)
-  kCrossRegionNeighbours, // rule 4: no common vertex with the cross-region neighbours
-  kFeatureNeighbourhood,  // rule 4: A(τ) holds > 1 feature cell and > 1 feature vertex
-  kFlip,                  // rule 6: a cell of A(τ) would flip or become a sliver
+  kDead,                   // the cell was deleted earlier in the pass
+  kLocked,                 // the cell is in A(σ) of a collapse σ of this pass (§2.2.4 step 2g)
+  kUnchanged,              // rejected (rule 4 or 6) before, and nothing around it changed since
+  kTwoFeatureVertices,     // rule 2
+  kCrossRegion,            // rule 3
+  kTwoBoundaryVertices,    // rule 5
+  kBoundaryCell,           // TetFusion keeps every cell touching the hull
+  kPinnedConflict,         // two different vertices must stay (feature / boundary / rule 4)
+  kCrossRegionNeighbours,  // rule 4: no common vertex with the cross-region neighbours
+  kFeatureNeighbourhood,   // rule 4: A(τ) holds > 1 feature cell and > 1 feature vertex
+  kFlip,                   // rule 6: a cell of A(τ) would flip or become a sliver
 };
 const char* OutcomeName(Outcome o);
 
@@ -106,9 +106,9 @@ class CollapseEngine {
   int pass_ = 0;  // passes begun
   // Region statistics of the input (Eq. 5): mean and variance per label.
   double region_mean_[256] = {}, region_var_[256] = {}, region_std_[256] = {};
-  double global_std_ = 1;  // of all input values: ε_g's unit for TetFusion
-  std::vector<int32_t> parent_;        // per vertex: itself, or the vertex it merged into
-  std::vector<uint8_t> dead_;          // per cell
+  double global_std_ = 1;        // of all input values: ε_g's unit for TetFusion
+  std::vector<int32_t> parent_;  // per vertex: itself, or the vertex it merged into
+  std::vector<uint8_t> dead_;    // per cell
   // Skipping hopeless retries: a cell rejected by rule 4 or 6 at clock value r is retried only
   // once a vertex of it has touched_ >= r (a collapse changed a cell around that vertex).
   uint64_t clock_ = 0;

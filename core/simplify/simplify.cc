@@ -48,8 +48,8 @@ absl::Status ValidateOptions(const SimplifyOptions& o) {
                             ": expected a value in (0, 1) voxels^3"));
   }
   if (o.smoothing_iterations < 0 || o.smoothing_iterations > 100) {
-    return bad(absl::StrCat("smoothing_iterations = ", o.smoothing_iterations,
-                            ": expected 0..100"));
+    return bad(
+        absl::StrCat("smoothing_iterations = ", o.smoothing_iterations, ": expected 0..100"));
   }
   if (o.max_passes < 1 || o.max_passes > 10000) {
     return bad(absl::StrCat("max_passes = ", o.max_passes, ": expected 1..10000"));
@@ -68,10 +68,10 @@ absl::Status ValidateMesh(const TetMesh& m) {
   if (nv > std::numeric_limits<int32_t>::max()) return bad("has more vertices than int32 indexes");
   if (int64_t(m.positions.size()) != 3 * nv || int64_t(m.labels.size()) != nv ||
       int64_t(m.interface_distance.size()) != nv || int64_t(m.vertex_flags.size()) != nv) {
-    return bad(absl::StrCat("has inconsistent per-vertex arrays: ", m.scalars.size(),
-                            " scalars, ", m.positions.size(), " position floats, ",
-                            m.labels.size(), " labels, ", m.interface_distance.size(),
-                            " interface distances, ", m.vertex_flags.size(), " flags"));
+    return bad(absl::StrCat("has inconsistent per-vertex arrays: ", m.scalars.size(), " scalars, ",
+                            m.positions.size(), " position floats, ", m.labels.size(), " labels, ",
+                            m.interface_distance.size(), " interface distances, ",
+                            m.vertex_flags.size(), " flags"));
   }
   if (m.tets.size() % 4 != 0) return bad("tets size is not a multiple of 4");
   for (float x : m.positions) {
@@ -91,8 +91,8 @@ absl::Status ValidateMesh(const TetMesh& m) {
       }
     }
     if (!(TetVolume(m, t) > 0)) {
-      return bad(absl::StrCat("cell ", t, " is not positively oriented (volume ",
-                              TetVolume(m, t), " mm^3)"));
+      return bad(absl::StrCat("cell ", t, " is not positively oriented (volume ", TetVolume(m, t),
+                              " mm^3)"));
     }
   }
   return absl::OkStatus();
@@ -102,10 +102,14 @@ absl::Status ValidateMesh(const TetMesh& m) {
 
 const char* StopReasonName(StopReason reason) {
   switch (reason) {
-    case StopReason::kTargetReached: return "target_reached";
-    case StopReason::kErrorTolerance: return "error_tolerance";
-    case StopReason::kNoValidCollapse: return "no_valid_collapse";
-    case StopReason::kMaxPasses: return "max_passes";
+    case StopReason::kTargetReached:
+      return "target_reached";
+    case StopReason::kErrorTolerance:
+      return "error_tolerance";
+    case StopReason::kNoValidCollapse:
+      return "no_valid_collapse";
+    case StopReason::kMaxPasses:
+      return "max_passes";
   }
   return "?";
 }
@@ -115,15 +119,15 @@ absl::StatusOr<SimplifyResult> Simplify(const TetMesh& mesh, const SimplifyOptio
   DECIMA_RETURN_IF_ERROR(ValidateOptions(options));
   DECIMA_RETURN_IF_ERROR(ValidateMesh(mesh));
   DECIMA_RETURN_IF_ERROR(CheckCancelled(cancel, "simplify"));
-  const int threads =
-      options.threads > 0 ? options.threads : int(std::max(1u, std::thread::hardware_concurrency()));
+  const int threads = options.threads > 0 ? options.threads
+                                          : int(std::max(1u, std::thread::hardware_concurrency()));
 
   SimplifyResult result;
   result.input_cells = mesh.tet_count();
   const bool has_target = options.target_reduction > 0;
-  const int64_t target = has_target ? int64_t(std::ceil(options.target_reduction *
-                                                         double(result.input_cells)))
-                                    : std::numeric_limits<int64_t>::max();
+  const int64_t target =
+      has_target ? int64_t(std::ceil(options.target_reduction * double(result.input_cells)))
+                 : std::numeric_limits<int64_t>::max();
   const bool has_tolerance = options.error_tolerance > 0;
 
   CollapseEngine engine(mesh, options);
@@ -162,15 +166,15 @@ absl::StatusOr<SimplifyResult> Simplify(const TetMesh& mesh, const SimplifyOptio
     result.passes = pass;
     result.collapses += stats.collapses;
     result.pass_stats.push_back(stats);
-    Report(progress,
-           {"simplify",
-            has_target ? std::min(1.0, double(removed) / double(target)) : 0.0,
-            absl::StrFormat("pass %d: %d collapses removed %d cells (%.1f%% so far)", pass,
-                            stats.collapses, stats.cells_removed,
-                            100.0 * double(removed) / double(std::max<int64_t>(1, result.input_cells))),
-            {{"pass", double(pass)},
-             {"cells_removed", double(removed)},
-             {"error", stats.last_error}}});
+    Report(progress, {"simplify",
+                      has_target ? std::min(1.0, double(removed) / double(target)) : 0.0,
+                      absl::StrFormat("pass %d: %d collapses removed %d cells (%.1f%% so far)",
+                                      pass, stats.collapses, stats.cells_removed,
+                                      100.0 * double(removed) /
+                                          double(std::max<int64_t>(1, result.input_cells))),
+                      {{"pass", double(pass)},
+                       {"cells_removed", double(removed)},
+                       {"error", stats.last_error}}});
     if (stats.collapses == 0) {
       stopped = true;
       result.stop_reason =
@@ -189,26 +193,24 @@ absl::StatusOr<SimplifyResult> Simplify(const TetMesh& mesh, const SimplifyOptio
       result.input_cells > 0 ? 1.0 - double(result.output_cells) / double(result.input_cells) : 0;
   result.reached_target = has_target && removed >= target;
   const std::string achieved =
-      absl::StrFormat("removed %d of %d cells (%.2f%%) in %d passes", removed,
-                      result.input_cells, 100 * result.achieved_reduction, result.passes);
+      absl::StrFormat("removed %d of %d cells (%.2f%%) in %d passes", removed, result.input_cells,
+                      100 * result.achieved_reduction, result.passes);
   switch (result.stop_reason) {
     case StopReason::kTargetReached:
       result.stop_message = absl::StrCat("target reached: ", achieved);
       break;
     case StopReason::kErrorTolerance:
-      result.stop_message =
-          absl::StrCat(has_target ? "target not reached: " : "", "every remaining collapse ",
-                       "predicts an error above the tolerance ", options.error_tolerance, "; ",
-                       achieved);
+      result.stop_message = absl::StrCat(
+          has_target ? "target not reached: " : "", "every remaining collapse ",
+          "predicts an error above the tolerance ", options.error_tolerance, "; ", achieved);
       break;
     case StopReason::kNoValidCollapse:
-      result.stop_message =
-          absl::StrCat(has_target ? "target not reached: " : "",
-                       "no collapse left that rules 1-6 allow; ", achieved);
+      result.stop_message = absl::StrCat(has_target ? "target not reached: " : "",
+                                         "no collapse left that rules 1-6 allow; ", achieved);
       break;
     case StopReason::kMaxPasses:
-      result.stop_message = absl::StrCat("target not reached: max_passes = ",
-                                         options.max_passes, " ran out; ", achieved);
+      result.stop_message = absl::StrCat("target not reached: max_passes = ", options.max_passes,
+                                         " ran out; ", achieved);
       break;
   }
   return result;

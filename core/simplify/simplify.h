@@ -42,11 +42,11 @@ enum class SimplifyPolicy : uint8_t {
 
 // Weights of Eq. (8); defaults are the paper's Table 2 (CT-head). Any value >= 0.
 struct ErrorWeights {
-  double regional = 10;   // ω_r: ε_r, cell variance about the region mean / region variance
-  double gradient = 2;    // ω_g: ε_g, mean |s_i - s'| / region standard deviation
-  double shape = 1;       // ω_s: ε_s, mean distance of the vertices to the collapse point, voxels
-  double volume = 1;      // ω_v: ε_v, cell volume, voxels^3
-  double neighbour = 0.5; // ω_n: ε_n, cell volume / volume of its neighbourhood
+  double regional = 10;  // ω_r: ε_r, cell variance about the region mean / region variance
+  double gradient = 2;   // ω_g: ε_g, mean |s_i - s'| / region standard deviation
+  double shape = 1;      // ω_s: ε_s, mean distance of the vertices to the collapse point, voxels
+  double volume = 1;     // ω_v: ε_v, cell volume, voxels^3
+  double neighbour = 0.5;  // ω_n: ε_n, cell volume / volume of its neighbourhood
 };
 
 struct SimplifyOptions {
@@ -78,20 +78,20 @@ struct SimplifyOptions {
 };
 
 enum class StopReason : uint8_t {
-  kTargetReached,     // removed >= target_reduction of the input cells
-  kErrorTolerance,    // every remaining collapsible cell predicts more than error_tolerance
-  kNoValidCollapse,   // a pass found no collapse the rules and the flip check allow
-  kMaxPasses,         // max_passes ran out first
+  kTargetReached,    // removed >= target_reduction of the input cells
+  kErrorTolerance,   // every remaining collapsible cell predicts more than error_tolerance
+  kNoValidCollapse,  // a pass found no collapse the rules and the flip check allow
+  kMaxPasses,        // max_passes ran out first
 };
 const char* StopReasonName(StopReason reason);
 
 struct SimplifyPassStats {
-  int64_t candidates = 0;     // cells the own-vertex rules allowed at the start of the pass
-  int64_t collapses = 0;      // collapses performed
-  int64_t cells_removed = 0;  // cells removed by them (τ plus D(τ))
-  int64_t rejected_flip = 0;  // rejected by rule 6 (sign or sliver)
-  int64_t rejected_rule4 = 0; // rejected by rule 4 (cross-region / feature neighbourhood)
-  double last_error = 0;      // Δε of the last collapse of the pass
+  int64_t candidates = 0;      // cells the own-vertex rules allowed at the start of the pass
+  int64_t collapses = 0;       // collapses performed
+  int64_t cells_removed = 0;   // cells removed by them (τ plus D(τ))
+  int64_t rejected_flip = 0;   // rejected by rule 6 (sign or sliver)
+  int64_t rejected_rule4 = 0;  // rejected by rule 4 (cross-region / feature neighbourhood)
+  double last_error = 0;       // Δε of the last collapse of the pass
 };
 
 struct SimplifyResult {

@@ -92,7 +92,6 @@ TEST(Simplify, NoisyPhantomSimplifiedToTheEndKeepsFeaturesHullAndConformity) {
   EXPECT_EQ(std::count(used.begin(), used.end(), 0), 0);
 }
 
-
 // A 6x6x6 grid mesh (one region, no features) whose cells the rule tests pick from. Interior
 // vertices are jittered by up to 0.15 voxel (fixed pattern): on the exact grid every collapse
 // onto a vertex flattens the cells lying in a grid plane through it, so rules 2, 4 and 5 could
@@ -395,8 +394,7 @@ TEST(Simplify, ReportsProgressPerPassAndHonoursCancellation) {
   EXPECT_EQ(seen.back().metrics[1].first, "cells_removed");
   CancelToken cancel;
   cancel.Cancel();
-  EXPECT_EQ(Simplify(pm.mesh, o, nullptr, &cancel).status().code(),
-            absl::StatusCode::kCancelled);
+  EXPECT_EQ(Simplify(pm.mesh, o, nullptr, &cancel).status().code(), absl::StatusCode::kCancelled);
 }
 
 TEST(Simplify, RejectsBadOptionsAndMeshes) {
