@@ -640,9 +640,11 @@ void CollapseEngine::SortedCandidates(int threads, std::vector<int32_t>* cells,
   const size_t n = cells->size();
   keys_tmp_.resize(n);
   ids_tmp_.resize(n);
-  std::vector<uint32_t> k0(n);
+  std::vector<uint32_t>& k0 = sort_keys_;
+  k0.resize(n);
   for (size_t i = 0; i < n; ++i) k0[i] = keys_[(*cells)[i]];
-  std::vector<uint32_t> count(65537);
+  std::vector<uint32_t>& count = sort_count_;
+  count.resize(65537);
   for (int shift = 0; shift < 32; shift += 16) {
     std::fill(count.begin(), count.end(), 0);
     for (size_t i = 0; i < n; ++i) ++count[((k0[i] >> shift) & 0xFFFF) + 1];

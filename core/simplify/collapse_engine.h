@@ -123,7 +123,7 @@ class CollapseEngine {
   // Scratch of TryCollapse, allocated once.
   std::vector<Neighbour> a_set_, d_set_;
   // Scratch of SortedCandidates.
-  std::vector<uint32_t> keys_, keys_tmp_;
+  std::vector<uint32_t> keys_, keys_tmp_, sort_keys_, sort_count_;
   std::vector<int32_t> ids_tmp_;
 };
 

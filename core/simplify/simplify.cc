@@ -51,6 +51,9 @@ absl::Status ValidateOptions(const SimplifyOptions& o) {
     return bad(
         absl::StrCat("smoothing_iterations = ", o.smoothing_iterations, ": expected 0..100"));
   }
+  if (!(o.min_pass_gain >= 0 && o.min_pass_gain <= 0.5)) {
+    return bad(absl::StrCat("min_pass_gain = ", o.min_pass_gain, ": expected [0, 0.5]"));
+  }
   if (o.max_passes < 1 || o.max_passes > 10000) {
     return bad(absl::StrCat("max_passes = ", o.max_passes, ": expected 1..10000"));
   }
@@ -110,6 +113,8 @@ const char* StopReasonName(StopReason reason) {
       return "no_valid_collapse";
     case StopReason::kMaxPasses:
       return "max_passes";
+    case StopReason::kStalled:
+      return "stalled";
   }
   return "?";
 }
@@ -179,6 +184,10 @@ absl::StatusOr<SimplifyResult> Simplify(const TetMesh& mesh, const SimplifyOptio
       stopped = true;
       result.stop_reason =
           tolerance_hit ? StopReason::kErrorTolerance : StopReason::kNoValidCollapse;
+    } else if (removed < target &&
+               double(stats.cells_removed) < options.min_pass_gain * double(result.input_cells)) {
+      stopped = true;
+      result.stop_reason = StopReason::kStalled;
     }
   }
   if (removed >= target) {
@@ -207,6 +216,12 @@ absl::StatusOr<SimplifyResult> Simplify(const TetMesh& mesh, const SimplifyOptio
     case StopReason::kNoValidCollapse:
       result.stop_message = absl::StrCat(has_target ? "target not reached: " : "",
                                          "no collapse left that rules 1-6 allow; ", achieved);
+      break;
+    case StopReason::kStalled:
+      result.stop_message = absl::StrCat("target not reached: pass ", result.passes,
+                                         " removed only ", result.pass_stats.back().cells_removed,
+                                         " cells (min_pass_gain = ", options.min_pass_gain,
+                                         " of the input); the mesh is jammed; ", achieved);
       break;
     case StopReason::kMaxPasses:
       result.stop_message = absl::StrCat("target not reached: max_passes = ", options.max_passes,

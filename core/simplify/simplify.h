@@ -74,7 +74,11 @@ struct SimplifyOptions {
   // first pass (README.md). 0..100; 0 = the paper's algorithm unchanged.
   int smoothing_iterations = 2;
   int max_passes = 64;  // 1..10000
-  int threads = 0;      // worker threads for the per-pass scoring; 0 = hardware concurrency
+  // A pass that removes fewer than this fraction of the input cells ends the loop (the mesh is
+  // jammed: later passes cost a full scoring each and gain almost nothing). 0 = run until a pass
+  // removes nothing. In [0, 0.5].
+  double min_pass_gain = 1e-3;
+  int threads = 0;  // worker threads for the per-pass scoring; 0 = hardware concurrency
 };
 
 enum class StopReason : uint8_t {
@@ -82,6 +86,7 @@ enum class StopReason : uint8_t {
   kErrorTolerance,   // every remaining collapsible cell predicts more than error_tolerance
   kNoValidCollapse,  // a pass found no collapse the rules and the flip check allow
   kMaxPasses,        // max_passes ran out first
+  kStalled,          // the last pass removed fewer than min_pass_gain of the input cells
 };
 const char* StopReasonName(StopReason reason);
 

@@ -45,6 +45,7 @@ TEST(Simplify, NoisyPhantomSimplifiedToTheEndKeepsFeaturesHullAndConformity) {
   const TetMesh& in = pm.mesh;
   SimplifyOptions o;
   o.target_reduction = 0.9;
+  o.min_pass_gain = 0;
   auto r = Simplify(in, o);
   ASSERT_TRUE(r.ok()) << r.status();
   EXPECT_FALSE(r->reached_target);
@@ -366,6 +367,20 @@ TEST(Simplify, PaperPolicyBeatsTetFusionOnFieldAndBoundaries) {
   EXPECT_LE(m[0].label_mismatch, m[1].label_mismatch);
   EXPECT_EQ(m[0].feature_vertices_moved + m[0].feature_vertices_removed, 0);
   EXPECT_GT(m[1].feature_vertices_moved + m[1].feature_vertices_removed, 0);
+}
+
+TEST(Simplify, StopsWhenAPassGainsTooLittleAndSaysSo) {
+  auto pm = MakePhantomMesh(20, 40);
+  SimplifyOptions o;
+  o.target_reduction = 0.9;
+  o.min_pass_gain = 0.05;
+  auto r = Simplify(pm.mesh, o);
+  ASSERT_TRUE(r.ok()) << r.status();
+  EXPECT_EQ(r->stop_reason, StopReason::kStalled);
+  EXPECT_LT(r->pass_stats.back().cells_removed, 0.05 * double(r->input_cells));
+  for (size_t i = 0; i + 1 < r->pass_stats.size(); ++i)
+    EXPECT_GE(r->pass_stats[i].cells_removed, 0.05 * double(r->input_cells));
+  EXPECT_NE(r->stop_message.find("jammed"), std::string::npos) << r->stop_message;
 }
 
 TEST(Simplify, ErrorToleranceStopsTheLoopAndSaysSo) {
