@@ -131,8 +131,8 @@ absl::Status ComputeInterfaceDistance(const Volume& labels, std::vector<float>* 
                                       const CancelToken* cancel) {
   DECIMA_RETURN_IF_ERROR(Validate(labels, "interface distance: labels"));
   if (labels.type != VoxelType::kUInt8) {
-    return absl::InvalidArgumentError(absl::StrCat("interface distance: labels must be uint8, got ",
-                                                   VoxelTypeName(labels.type)));
+    return absl::InvalidArgumentError(
+        absl::StrCat("interface distance: labels must be uint8, got ", VoxelTypeName(labels.type)));
   }
   const int nt = segment_internal::ResolveThreads(threads);
   const int64_t n = labels.voxel_count();

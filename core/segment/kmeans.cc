@@ -42,7 +42,9 @@ absl::StatusOr<KMeans1D> RunKMeans(const float* v, int64_t n, int k, bool intege
     count[b] += 1;
   }
   DECIMA_RETURN_IF_ERROR(CheckCancelled(cancel, "segment"));
-  auto centre = [&](int64_t b) { return exact ? lo + static_cast<double>(b) : lo + (b + 0.5) * width; };
+  auto centre = [&](int64_t b) {
+    return exact ? lo + static_cast<double>(b) : lo + (b + 0.5) * width;
+  };
   // Distinct occupied bins bound K.
   int64_t occupied = 0;
   for (double c : count) occupied += c > 0;
@@ -187,14 +189,16 @@ absl::StatusOr<KMeansResult> KMeansIntensities(const Volume& image, int k,
   }
   DECIMA_RETURN_IF_ERROR(Validate(image, "k-means: image"));
   const std::vector<float> v = image.ToFloat();
-  const bool integer_valued = image.type != VoxelType::kFloat32 && image.type != VoxelType::kFloat64;
-  DECIMA_ASSIGN_OR_RETURN(
-      auto km, segment_internal::RunKMeans(v.data(), image.voxel_count(), k, integer_valued, cancel));
+  const bool integer_valued =
+      image.type != VoxelType::kFloat32 && image.type != VoxelType::kFloat64;
+  DECIMA_ASSIGN_OR_RETURN(auto km, segment_internal::RunKMeans(v.data(), image.voxel_count(), k,
+                                                               integer_valued, cancel));
   DECIMA_ASSIGN_OR_RETURN(Volume labels, MakeVolume(image.dims, VoxelType::kUInt8, image.spacing));
   labels.origin = image.origin;
   labels.direction = image.direction;
   segment_internal::AssignNearest(v.data(), image.voxel_count(), km.means,
-                                  labels.mutable_data<uint8_t>(), segment_internal::ResolveThreads(0));
+                                  labels.mutable_data<uint8_t>(),
+                                  segment_internal::ResolveThreads(0));
   KMeansResult result;
   result.within_class_sigma = std::sqrt(segment_internal::PooledVariance(
       v.data(), image.voxel_count(), labels.data<uint8_t>(), km.means));

@@ -35,9 +35,9 @@ absl::StatusOr<SegmentResult> SegmentationFromLabelMap(const Volume& image,
     if (std::find(distinct.begin(), distinct.end(), v) == distinct.end()) {
       if (distinct.size() == 8) {
         std::sort(distinct.begin(), distinct.end());
-        return absl::InvalidArgumentError(absl::StrCat(
-            "label map: more than 8 distinct labels (", distinct.front(), "..", distinct.back(),
-            " and ", v, "); Decima supports 2 to 8 regions"));
+        return absl::InvalidArgumentError(
+            absl::StrCat("label map: more than 8 distinct labels (", distinct.front(), "..",
+                         distinct.back(), " and ", v, "); Decima supports 2 to 8 regions"));
       }
       distinct.push_back(v);
     }
@@ -46,8 +46,7 @@ absl::StatusOr<SegmentResult> SegmentationFromLabelMap(const Volume& image,
   const int k = static_cast<int>(distinct.size());
 
   SegmentResult result;
-  DECIMA_ASSIGN_OR_RETURN(result.labels,
-                          MakeVolume(image.dims, VoxelType::kUInt8, image.spacing));
+  DECIMA_ASSIGN_OR_RETURN(result.labels, MakeVolume(image.dims, VoxelType::kUInt8, image.spacing));
   result.labels.origin = image.origin;
   result.labels.direction = image.direction;
   result.labels.modality = "SEG";
@@ -55,8 +54,8 @@ absl::StatusOr<SegmentResult> SegmentationFromLabelMap(const Volume& image,
   std::vector<double> sum(k, 0.0);
   for (int64_t x = 0; x < n; ++x) {
     const double v = label_map.ValueAt(x);
-    const int r = static_cast<int>(std::lower_bound(distinct.begin(), distinct.end(), v) -
-                                   distinct.begin());
+    const int r =
+        static_cast<int>(std::lower_bound(distinct.begin(), distinct.end(), v) - distinct.begin());
     lab[x] = static_cast<uint8_t>(r);
     sum[r] += image.ValueAt(x);
   }

@@ -15,13 +15,13 @@
 // added in block order, so results do not depend on the thread count or schedule.
 #include <algorithm>
 #include <atomic>
+#include <chrono>
 #include <cmath>
+#include <cstdio>
+#include <cstdlib>
 #include <limits>
 #include <memory>
 #include <numeric>
-#include <cstdio>
-#include <chrono>
-#include <cstdlib>
 
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_format.h"
@@ -39,9 +39,9 @@ struct Grid {
   int64_t n[3];
   int64_t stride[3];
   int64_t count;
-  double h[3];      // spacing in voxel units (spacing / smallest spacing of a non-flat axis)
-  bool active[3];   // axis has more than one voxel
-  int64_t nb[3];    // blocks per axis
+  double h[3];     // spacing in voxel units (spacing / smallest spacing of a non-flat axis)
+  bool active[3];  // axis has more than one voxel
+  int64_t nb[3];   // blocks per axis
   int64_t block_count;
 };
 
@@ -295,8 +295,10 @@ void Reinitialize(Context& ctx, int i, bool from_labels) {
         }
         if (std::isfinite(t)) {
           any = true;
-          if (t <= 0) zero = true;
-          else inv += 1.0 / (t * t);
+          if (t <= 0)
+            zero = true;
+          else
+            inv += 1.0 / (t * t);
         }
       }
       if (!any) return;
@@ -507,23 +509,22 @@ absl::Status ValidateOptions(const SegmentOptions& o, const Volume& image) {
   DECIMA_RETURN_IF_ERROR(Validate(image, "segment: image"));
   const int k = o.regions;
   if (k < 2 || k > 8) {
-    return absl::InvalidArgumentError(
-        absl::StrCat("segment: regions = ", k, ", expected 2 to 8"));
+    return absl::InvalidArgumentError(absl::StrCat("segment: regions = ", k, ", expected 2 to 8"));
   }
   if (!o.class_means.empty()) {
     if (static_cast<int>(o.class_means.size()) != k) {
-      return absl::InvalidArgumentError(absl::StrCat("segment: class_means has ",
-                                                     o.class_means.size(),
-                                                     " values, expected regions = ", k));
+      return absl::InvalidArgumentError(absl::StrCat(
+          "segment: class_means has ", o.class_means.size(), " values, expected regions = ", k));
     }
     for (size_t a = 0; a < o.class_means.size(); ++a) {
       if (!std::isfinite(o.class_means[a])) {
-        return absl::InvalidArgumentError(absl::StrCat("segment: class_means[", a, "] is not finite"));
+        return absl::InvalidArgumentError(
+            absl::StrCat("segment: class_means[", a, "] is not finite"));
       }
       for (size_t b = 0; b < a; ++b)
         if (o.class_means[a] == o.class_means[b]) {
-          return absl::InvalidArgumentError(absl::StrCat(
-              "segment: class_means[", b, "] and [", a, "] are equal (", o.class_means[a], ")"));
+          return absl::InvalidArgumentError(absl::StrCat("segment: class_means[", b, "] and [", a,
+                                                         "] are equal (", o.class_means[a], ")"));
         }
     }
   }
@@ -597,8 +598,8 @@ absl::Status ValidateOptions(const SegmentOptions& o, const Volume& image) {
   }
   if (o.band_width != 0) {
     const Grid g = MakeGrid(image);
-    const double need = o.alpha + std::max({g.h[0] * g.active[0], g.h[1] * g.active[1],
-                                            g.h[2] * g.active[2], 1.0});
+    const double need =
+        o.alpha + std::max({g.h[0] * g.active[0], g.h[1] * g.active[1], g.h[2] * g.active[2], 1.0});
     if (!std::isfinite(o.band_width) || o.band_width < need) {
       return absl::InvalidArgumentError(absl::StrFormat(
           "segment: band_width = %g, expected 0 (automatic) or >= alpha + largest spacing ratio "
@@ -650,8 +651,8 @@ absl::StatusOr<SegmentResult> Segment(const Volume& image, const SegmentOptions&
   if (o.class_means.empty()) {
     const bool integer_valued =
         image.type != VoxelType::kFloat32 && image.type != VoxelType::kFloat64;
-    DECIMA_ASSIGN_OR_RETURN(auto km, segment_internal::RunKMeans(values.data(), n, k,
-                                                                 integer_valued, cancel));
+    DECIMA_ASSIGN_OR_RETURN(
+        auto km, segment_internal::RunKMeans(values.data(), n, k, integer_valued, cancel));
     ctx.c = km.means;
     fixed = o.fix_class_means;
   } else {
@@ -765,14 +766,14 @@ absl::StatusOr<SegmentResult> Segment(const Volume& image, const SegmentOptions&
       p.fraction = static_cast<double>(iteration) / o.max_iterations;
       p.message = absl::StrFormat("iteration %d: %d labels changed, energy %.6g", iteration,
                                   changed, energy);
-      p.metrics = {{"iteration", iteration},
-                   {"energy", energy},
-                   {"changed_fraction", changed_fraction}};
+      p.metrics = {
+          {"iteration", iteration}, {"energy", energy}, {"changed_fraction", changed_fraction}};
       Report(progress, p);
       if (std::getenv("DECIMA_SEGMENT_DEBUG")) {
         std::fprintf(stderr, "it %d changed %lld bands", iteration, (long long)changed);
         for (int i = 0; i < k; ++i) std::fprintf(stderr, " %zu", ctx.ls[i].band.size());
-        std::fprintf(stderr, " / %lld label_blocks %zu c", (long long)ctx.g.block_count, label_blocks.size());
+        std::fprintf(stderr, " / %lld label_blocks %zu c", (long long)ctx.g.block_count,
+                     label_blocks.size());
         for (int i = 0; i < k; ++i) std::fprintf(stderr, " %.1f", ctx.c[i]);
         std::fprintf(stderr, " E %.6g evolve %.3f relabel %.3f\n", energy,
                      std::chrono::duration<double>(t_lab - t_ev).count(),
@@ -792,7 +793,9 @@ absl::StatusOr<SegmentResult> Segment(const Volume& image, const SegmentOptions&
         // Voxels that left every band were clamped; relabel them once too.
         label_blocks = BandUnion(ctx, &old);
         if (std::getenv("DECIMA_SEGMENT_DEBUG"))
-          std::fprintf(stderr, "reinit %.3f\n", std::chrono::duration<double>(std::chrono::steady_clock::now() - t_re).count());
+          std::fprintf(
+              stderr, "reinit %.3f\n",
+              std::chrono::duration<double>(std::chrono::steady_clock::now() - t_re).count());
       } else if (iteration % o.reinit_interval == 1 || o.reinit_interval == 1) {
         label_blocks = BandUnion(ctx, nullptr);
       }

@@ -55,12 +55,12 @@ Panel MakePanel(const Volume& image, const std::vector<float>& values, const uin
     for (int c = 0; c < p.width; ++c) {
       int64_t idx[3];
       idx[fixed_axis] = fixed_index;
-      int64_t u = std::min<int64_t>(image.dims[horiz.axis] - 1,
-                                    static_cast<int64_t>((c + 0.5) * mm_per_pixel /
-                                                         image.spacing[horiz.axis]));
-      int64_t v = std::min<int64_t>(image.dims[vert.axis] - 1,
-                                    static_cast<int64_t>((r + 0.5) * mm_per_pixel /
-                                                         image.spacing[vert.axis]));
+      int64_t u = std::min<int64_t>(
+          image.dims[horiz.axis] - 1,
+          static_cast<int64_t>((c + 0.5) * mm_per_pixel / image.spacing[horiz.axis]));
+      int64_t v = std::min<int64_t>(
+          image.dims[vert.axis] - 1,
+          static_cast<int64_t>((r + 0.5) * mm_per_pixel / image.spacing[vert.axis]));
       if (horiz.flip) u = image.dims[horiz.axis] - 1 - u;
       if (vert.flip) v = image.dims[vert.axis] - 1 - v;
       idx[horiz.axis] = u;
@@ -140,20 +140,25 @@ absl::Status WriteSegmentationMontage(const Volume& image, const Volume& labels,
   const bool flip_k = d(2, 2) > 0;  // superior up
   double mmpp = image.spacing.minCoeff();
   double extent_px = 0;
-  for (int c = 0; c < 3; ++c) extent_px = std::max(extent_px, image.dims[c] * image.spacing[c] / mmpp);
+  for (int c = 0; c < 3; ++c)
+    extent_px = std::max(extent_px, image.dims[c] * image.spacing[c] / mmpp);
   if (extent_px < 256) mmpp /= std::ceil(256.0 / extent_px);
   const uint8_t* lab = labels.data<uint8_t>();
   // A panel is drawn unless one of its two axes is flat (a 2D image gets only the axial panel).
   std::vector<Panel> panels;
   const auto& n = image.dims;
   if (n[0] > 1 && n[1] > 1)
-    panels.push_back(MakePanel(image, values, lab, 2, n[2] / 2, {0, flip_i}, {1, flip_j}, mmpp, lo, hi));
+    panels.push_back(
+        MakePanel(image, values, lab, 2, n[2] / 2, {0, flip_i}, {1, flip_j}, mmpp, lo, hi));
   if (n[0] > 1 && n[2] > 1)
-    panels.push_back(MakePanel(image, values, lab, 1, n[1] / 2, {0, flip_i}, {2, flip_k}, mmpp, lo, hi));
+    panels.push_back(
+        MakePanel(image, values, lab, 1, n[1] / 2, {0, flip_i}, {2, flip_k}, mmpp, lo, hi));
   if (n[1] > 1 && n[2] > 1)
-    panels.push_back(MakePanel(image, values, lab, 0, n[0] / 2, {1, flip_j}, {2, flip_k}, mmpp, lo, hi));
+    panels.push_back(
+        MakePanel(image, values, lab, 0, n[0] / 2, {1, flip_j}, {2, flip_k}, mmpp, lo, hi));
   if (panels.empty())
-    panels.push_back(MakePanel(image, values, lab, 2, n[2] / 2, {0, flip_i}, {1, flip_j}, mmpp, lo, hi));
+    panels.push_back(
+        MakePanel(image, values, lab, 2, n[2] / 2, {0, flip_i}, {1, flip_j}, mmpp, lo, hi));
   int width = 0, height = 0;
   for (const Panel& p : panels) {
     width += p.width;

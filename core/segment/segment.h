@@ -122,7 +122,7 @@ absl::StatusOr<SegmentResult> SegmentationFromLabelMap(const Volume& image,
 // (i + 0.5) / K: deterministic. Means ascending; each voxel gets its nearest mean.
 struct KMeansResult {
   std::vector<double> means;
-  Volume labels;               // uint8, image grid
+  Volume labels;                  // uint8, image grid
   double within_class_sigma = 0;  // sqrt of the pooled within-class variance
 };
 absl::StatusOr<KMeansResult> KMeansIntensities(const Volume& image, int k,

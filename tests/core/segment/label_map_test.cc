@@ -9,7 +9,8 @@ namespace {
 Volume Image(std::array<int64_t, 3> dims) {
   auto v = MakeVolume(dims, VoxelType::kFloat32, Eigen::Vector3d(1, 1, 2));
   EXPECT_TRUE(v.ok());
-  for (int64_t x = 0; x < v->voxel_count(); ++x) v->mutable_data<float>()[x] = static_cast<float>(x % 7);
+  for (int64_t x = 0; x < v->voxel_count(); ++x)
+    v->mutable_data<float>()[x] = static_cast<float>(x % 7);
   return *std::move(v);
 }
 
