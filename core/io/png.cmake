@@ -1,0 +1,3 @@
+#PNG reading and writing(libpng stays inside core / io, see DESIGN.md).Included by
+#core / io / CMakeLists.txt so the io module's owner can add it beside the volume readers.
+decima_core_module(png SOURCES png.cc DEPS decima::common PRIVATE_DEPS PNG::PNG)
