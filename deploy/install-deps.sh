@@ -12,7 +12,7 @@ packages=(
   # core numerics and logging
   libeigen3-dev libspdlog-dev libfmt-dev
   # readers and writers of outside formats
-  zlib1g-dev libpng-dev libnifti2-dev libgdcm-dev
+  zlib1g-dev libpng-dev libgdcm-dev
   # job store, CLI parsing, JSON
   libsqlite3-dev libcli11-dev nlohmann-json3-dev
   # tests and benchmarks

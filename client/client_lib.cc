@@ -1,0 +1,332 @@
+#include "client/client_lib.h"
+
+#include <openssl/evp.h>
+
+#include <algorithm>
+#include <cstdio>
+#include <fstream>
+#include <sstream>
+#include <thread>
+
+namespace decima::client {
+namespace fs = std::filesystem;
+
+int ExitCodeFor(grpc::StatusCode code) {
+  switch (code) {
+    case grpc::StatusCode::OK:
+      return kOk;
+    case grpc::StatusCode::DEADLINE_EXCEEDED:
+      return kTimeout;
+    case grpc::StatusCode::NOT_FOUND:
+      return kNotFound;
+    case grpc::StatusCode::UNAUTHENTICATED:
+    case grpc::StatusCode::PERMISSION_DENIED:
+      return kUnauthenticated;
+    case grpc::StatusCode::UNAVAILABLE:
+      return kUnavailable;
+    default:
+      return kError;
+  }
+}
+
+int ExitCodeFor(v1::JobState state) {
+  switch (state) {
+    case v1::SUCCEEDED:
+      return kOk;
+    case v1::FAILED:
+      return kJobFailed;
+    case v1::CANCELLED:
+      return kJobCancelled;
+    default:
+      return kError;
+  }
+}
+
+std::string StatusCodeName(grpc::StatusCode code) {
+  static const char* kNames[] = {"OK",
+                                 "CANCELLED",
+                                 "UNKNOWN",
+                                 "INVALID_ARGUMENT",
+                                 "DEADLINE_EXCEEDED",
+                                 "NOT_FOUND",
+                                 "ALREADY_EXISTS",
+                                 "PERMISSION_DENIED",
+                                 "RESOURCE_EXHAUSTED",
+                                 "FAILED_PRECONDITION",
+                                 "ABORTED",
+                                 "OUT_OF_RANGE",
+                                 "UNIMPLEMENTED",
+                                 "INTERNAL",
+                                 "UNAVAILABLE",
+                                 "DATA_LOSS",
+                                 "UNAUTHENTICATED"};
+  int c = static_cast<int>(code);
+  return c >= 0 && c <= 16 ? kNames[c] : "CODE_" + std::to_string(c);
+}
+
+bool CollectInputs(const fs::path& input, std::vector<InputFile>* out, std::string* error) {
+  std::error_code ec;
+  out->clear();
+  if (fs::is_regular_file(input, ec)) {
+    InputFile f;
+    f.name = input.filename().string();
+    f.path = input;
+    f.size = static_cast<int64_t>(fs::file_size(input, ec));
+    out->push_back(std::move(f));
+    return true;
+  }
+  if (!fs::is_directory(input, ec)) {
+    *error = input.string() + ": no such file or folder";
+    return false;
+  }
+  for (auto it = fs::recursive_directory_iterator(input, ec);
+       !ec && it != fs::recursive_directory_iterator(); it.increment(ec)) {
+    const fs::path& p = it->path();
+    if (p.filename().string().rfind('.', 0) == 0) {
+      if (it->is_directory(ec)) it.disable_recursion_pending();
+      continue;
+    }
+    if (!it->is_regular_file(ec)) continue;
+    InputFile f;
+    f.name = fs::relative(p, input, ec).generic_string();
+    f.path = p;
+    f.size = static_cast<int64_t>(fs::file_size(p, ec));
+    out->push_back(std::move(f));
+  }
+  if (ec) {
+    *error = input.string() + ": " + ec.message();
+    return false;
+  }
+  if (out->empty()) {
+    *error = input.string() + ": the folder holds no files";
+    return false;
+  }
+  std::sort(out->begin(), out->end(),
+            [](const InputFile& a, const InputFile& b) { return a.name < b.name; });
+  return true;
+}
+
+bool HashInputs(std::vector<InputFile>* files, std::string* error) {
+  std::vector<char> buf(1 << 20);
+  for (auto& f : *files) {
+    std::ifstream in(f.path, std::ios::binary);
+    if (!in) {
+      *error = f.path.string() + ": cannot open";
+      return false;
+    }
+    EVP_MD_CTX* ctx = EVP_MD_CTX_new();
+    EVP_DigestInit_ex(ctx, EVP_sha256(), nullptr);
+    int64_t total = 0;
+    while (in) {
+      in.read(buf.data(), static_cast<std::streamsize>(buf.size()));
+      std::streamsize n = in.gcount();
+      if (n <= 0) break;
+      EVP_DigestUpdate(ctx, buf.data(), static_cast<size_t>(n));
+      total += n;
+    }
+    unsigned char md[EVP_MAX_MD_SIZE];
+    unsigned int len = 0;
+    EVP_DigestFinal_ex(ctx, md, &len);
+    EVP_MD_CTX_free(ctx);
+    static const char kHex[] = "0123456789abcdef";
+    f.sha256.clear();
+    for (unsigned int i = 0; i < len; ++i) {
+      f.sha256.push_back(kHex[md[i] >> 4]);
+      f.sha256.push_back(kHex[md[i] & 15]);
+    }
+    f.size = total;
+  }
+  return true;
+}
+
+std::unique_ptr<grpc::ClientContext> Connection::Context(bool deadline) const {
+  auto ctx = std::make_unique<grpc::ClientContext>();
+  if (!token.empty()) ctx->AddMetadata("authorization", "Bearer " + token);
+  if (deadline) ctx->set_deadline(std::chrono::system_clock::now() + timeout);
+  return ctx;
+}
+
+Connection Connect(const std::string& address, const std::string& token, bool tls,
+                   const std::string& ca_file, std::chrono::milliseconds timeout) {
+  std::shared_ptr<grpc::ChannelCredentials> creds = grpc::InsecureChannelCredentials();
+  if (tls || !ca_file.empty()) {
+    grpc::SslCredentialsOptions o;
+    if (!ca_file.empty()) {
+      std::ifstream in(ca_file);
+      std::stringstream ss;
+      ss << in.rdbuf();
+      o.pem_root_certs = ss.str();
+    }
+    creds = grpc::SslCredentials(o);
+  }
+  grpc::ChannelArguments args;
+  args.SetMaxReceiveMessageSize(8 << 20);
+  Connection c;
+  c.channel = grpc::CreateCustomChannel(address, creds, args);
+  c.token = token;
+  c.timeout = timeout;
+  return c;
+}
+
+grpc::Status UploadBlob(const Connection& c, const InputFile& file, const ByteProgress& progress,
+                        int attempts, int64_t* resumed_at) {
+  auto stub = v1::Uploads::NewStub(c.channel);
+  grpc::Status last;
+  for (int attempt = 0; attempt < std::max(1, attempts); ++attempt) {
+    if (attempt > 0) std::this_thread::sleep_for(std::chrono::milliseconds(200 << attempt));
+    v1::GetUploadStatusRequest sreq;
+    sreq.set_sha256(file.sha256);
+    sreq.set_size_bytes(file.size);
+    v1::UploadStatus st;
+    last = stub->GetUploadStatus(c.Context().get(), sreq, &st);
+    if (!last.ok()) {
+      if (last.error_code() == grpc::StatusCode::UNAVAILABLE) continue;
+      return last;
+    }
+    int64_t offset = st.complete() ? file.size : st.committed_size();
+    if (attempt == 0 && resumed_at != nullptr) *resumed_at = offset;
+    if (st.complete()) {
+      if (progress) progress(file.size, file.size);
+      return grpc::Status::OK;
+    }
+    std::ifstream in(file.path, std::ios::binary);
+    if (!in)
+      return grpc::Status(grpc::StatusCode::INVALID_ARGUMENT, file.path.string() + ": cannot open");
+    in.seekg(offset);
+    auto ctx = c.Context(/*deadline=*/false);
+    v1::Blob blob;
+    auto writer = stub->Upload(ctx.get(), &blob);
+    v1::UploadRequest req;
+    req.set_sha256(file.sha256);
+    req.set_size_bytes(file.size);
+    req.set_write_offset(offset);
+    std::string buf(1 << 20, '\0');
+    int64_t pos = offset;
+    bool first = true;
+    while (pos < file.size || first) {
+      size_t n = static_cast<size_t>(std::min<int64_t>(buf.size(), file.size - pos));
+      if (n > 0 && !in.read(buf.data(), static_cast<std::streamsize>(n))) {
+        ctx->TryCancel();
+        return grpc::Status(grpc::StatusCode::DATA_LOSS,
+                            file.path.string() + ": changed while uploading");
+      }
+      req.set_data(buf.data(), n);
+      if (!writer->Write(req)) break;  // the server answered early (dedup) or failed
+      req.clear_sha256();
+      req.clear_size_bytes();
+      req.clear_write_offset();
+      first = false;
+      pos += static_cast<int64_t>(n);
+      if (progress) progress(pos, file.size);
+    }
+    writer->WritesDone();
+    last = writer->Finish();
+    if (last.ok()) return last;
+    auto code = last.error_code();
+    if (code != grpc::StatusCode::UNAVAILABLE && code != grpc::StatusCode::ABORTED &&
+        code != grpc::StatusCode::FAILED_PRECONDITION) {
+      return last;
+    }
+  }
+  return last;
+}
+
+grpc::Status DownloadArtifact(const Connection& c, const v1::Artifact& artifact,
+                              const fs::path& dir, const ByteProgress& progress, fs::path* path) {
+  std::error_code ec;
+  fs::create_directories(dir, ec);
+  if (ec)
+    return grpc::Status(grpc::StatusCode::INVALID_ARGUMENT, dir.string() + ": " + ec.message());
+  const std::string file = artifact.file_name();
+  if (file.empty() || file.find('/') != std::string::npos || file[0] == '.') {
+    return grpc::Status(grpc::StatusCode::INTERNAL,
+                        "server sent a bad artifact name '" + file + "'");
+  }
+  fs::path final_path = dir / file;
+  fs::path part = dir / (file + ".part");
+  int64_t have = fs::exists(part, ec) ? static_cast<int64_t>(fs::file_size(part, ec)) : 0;
+  if (have > artifact.size_bytes()) {
+    fs::remove(part, ec);
+    have = 0;
+  }
+  auto stub = v1::Artifacts::NewStub(c.channel);
+  if (have < artifact.size_bytes()) {
+    std::ofstream out(part, std::ios::binary | std::ios::app);
+    if (!out)
+      return grpc::Status(grpc::StatusCode::INVALID_ARGUMENT, part.string() + ": cannot write");
+    v1::ReadArtifactRequest req;
+    req.set_name(artifact.name());
+    req.set_read_offset(have);
+    auto ctx = c.Context(false);
+    auto reader = stub->ReadArtifact(ctx.get(), req);
+    v1::ReadArtifactResponse chunk;
+    while (reader->Read(&chunk)) {
+      if (chunk.offset() != have) {
+        ctx->TryCancel();
+        reader->Finish();
+        return grpc::Status(grpc::StatusCode::DATA_LOSS, "artifact chunk out of order");
+      }
+      out.write(chunk.data().data(), static_cast<std::streamsize>(chunk.data().size()));
+      have += static_cast<int64_t>(chunk.data().size());
+      if (progress) progress(have, artifact.size_bytes());
+    }
+    grpc::Status s = reader->Finish();
+    out.close();
+    if (!s.ok()) return s;
+  }
+  InputFile check{file, part, 0, ""};
+  std::vector<InputFile> one{check};
+  std::string err;
+  if (!HashInputs(&one, &err)) return grpc::Status(grpc::StatusCode::INTERNAL, err);
+  if (one[0].size != artifact.size_bytes() ||
+      (!artifact.sha256().empty() && one[0].sha256 != artifact.sha256())) {
+    fs::remove(part, ec);
+    return grpc::Status(grpc::StatusCode::DATA_LOSS,
+                        file + ": downloaded bytes do not match the server's size/sha256");
+  }
+  fs::rename(part, final_path, ec);
+  if (ec)
+    return grpc::Status(grpc::StatusCode::INTERNAL, final_path.string() + ": " + ec.message());
+  if (path) *path = final_path;
+  return grpc::Status::OK;
+}
+
+std::string DescribeEvent(const std::string& job, const v1::JobEvent& ev) {
+  std::ostringstream s;
+  s << job << " #" << ev.sequence() << " ";
+  if (ev.has_snapshot()) {
+    const auto& j = ev.snapshot();
+    s << "snapshot " << v1::JobState_Name(j.state());
+    if (!j.progress().stage().empty()) {
+      s << " " << j.progress().stage() << " " << static_cast<int>(j.progress().fraction() * 100)
+        << "%";
+    }
+  } else if (ev.has_progress()) {
+    const auto& p = ev.progress();
+    s << p.stage() << " " << static_cast<int>(p.fraction() * 100) << "%";
+    if (!p.message().empty()) s << " " << p.message();
+  } else if (ev.has_state_change()) {
+    s << v1::JobState_Name(ev.state_change().state());
+    if (!ev.state_change().error().message().empty()) {
+      s << ": " << ev.state_change().error().message();
+    }
+  } else if (ev.has_heartbeat()) {
+    s << "heartbeat";
+  }
+  return s.str();
+}
+
+std::string ProgressBar(const v1::Progress& p, int width) {
+  double f = std::clamp(p.fraction(), 0.0, 1.0);
+  int filled = static_cast<int>(f * width + 0.5);
+  std::string bar(static_cast<size_t>(filled), '#');
+  bar.append(static_cast<size_t>(width - filled), '.');
+  char pct[8];
+  std::snprintf(pct, sizeof pct, "%3d%%", static_cast<int>(f * 100));
+  std::string stage = p.stage();
+  stage.resize(std::max<size_t>(stage.size(), 9), ' ');
+  std::string msg = p.message().substr(0, 40);
+  return stage + " [" + bar + "] " + pct + " " + msg;
+}
+
+}  // namespace decima::client

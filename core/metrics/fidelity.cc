@@ -1,0 +1,325 @@
+#include "core/metrics/fidelity.h"
+
+#include <algorithm>
+#include <atomic>
+#include <cmath>
+#include <limits>
+#include <map>
+#include <thread>
+
+#include "absl/strings/str_cat.h"
+#include "core/common/status.h"
+
+namespace decima {
+namespace {
+
+template <typename Fn>
+void ParallelFor(int64_t n, int threads, Fn&& fn) {
+  threads = std::max(1, std::min<int>(threads, int(std::min<int64_t>(n / 4096 + 1, 64))));
+  if (threads == 1) {
+    fn(int64_t{0}, n);
+    return;
+  }
+  std::vector<std::thread> pool;
+  for (int t = 0; t < threads; ++t) {
+    const int64_t begin = n * t / threads, end = n * (t + 1) / threads;
+    pool.emplace_back([&fn, begin, end] { fn(begin, end); });
+  }
+  for (auto& th : pool) th.join();
+}
+
+int Threads(int requested) {
+  return requested > 0 ? requested : int(std::max(1u, std::thread::hardware_concurrency()));
+}
+
+absl::Status CheckMesh(const TetMesh& m, const char* what) {
+  const int64_t nv = m.vertex_count();
+  if (int64_t(m.positions.size()) != 3 * nv || int64_t(m.labels.size()) != nv ||
+      m.tets.size() % 4 != 0) {
+    return absl::InvalidArgumentError(
+        absl::StrCat("metrics: ", what, " mesh has inconsistent arrays (", m.scalars.size(),
+                     " scalars, ", m.positions.size(), " position floats, ", m.labels.size(),
+                     " labels, ", m.tets.size(), " tet indices)"));
+  }
+  for (int32_t v : m.tets) {
+    if (v < 0 || v >= nv) {
+      return absl::InvalidArgumentError(
+          absl::StrCat("metrics: ", what, " mesh has vertex index ", v, " outside [0, ", nv, ")"));
+    }
+  }
+  return absl::OkStatus();
+}
+
+// Barycentric frame of a cell in grid index space: x = v0 + T * (l1, l2, l3).
+struct Frame {
+  Eigen::Vector3d v0;
+  Eigen::Matrix3d inverse;  // T^-1
+  bool ok = false;
+};
+
+Frame MakeFrame(const Eigen::Vector3d q[4]) {
+  Frame f;
+  f.v0 = q[0];
+  Eigen::Matrix3d t;
+  t.col(0) = q[1] - q[0];
+  t.col(1) = q[2] - q[0];
+  t.col(2) = q[3] - q[0];
+  const double det = t.determinant();
+  const double scale = t.col(0).norm() * t.col(1).norm() * t.col(2).norm();
+  if (!(std::abs(det) > 1e-12 * scale)) return f;
+  f.inverse = t.inverse();
+  f.ok = true;
+  return f;
+}
+
+inline void Barycentric(const Frame& f, const Eigen::Vector3d& x, double l[4]) {
+  const Eigen::Vector3d b = f.inverse * (x - f.v0);
+  l[1] = b[0], l[2] = b[1], l[3] = b[2];
+  l[0] = 1.0 - b[0] - b[1] - b[2];
+}
+
+}  // namespace
+
+absl::StatusOr<GridResample> ResampleOnGrid(const Volume& grid, const TetMesh& mesh, int threads,
+                                            double tolerance, const CancelToken* cancel) {
+  DECIMA_RETURN_IF_ERROR(CheckMesh(mesh, "simplified"));
+  const int64_t nx = grid.dims[0], ny = grid.dims[1], nz = grid.dims[2];
+  if (nx < 1 || ny < 1 || nz < 1 || grid.voxel_count() > kMaxVoxels ||
+      !(grid.spacing.minCoeff() > 0)) {
+    return absl::InvalidArgumentError("metrics: the grid has invalid dims or spacing");
+  }
+  const int64_t np = grid.voxel_count(), nt = mesh.tet_count();
+  threads = Threads(threads);
+  // Physical -> continuous index coordinates.
+  const Eigen::Matrix3d to_index = (grid.direction * grid.spacing.asDiagonal()).inverse();
+  std::vector<std::atomic<int32_t>> owner(np);
+  for (auto& o : owner) o.store(std::numeric_limits<int32_t>::max(), std::memory_order_relaxed);
+
+  auto index_point = [&](int32_t v) {
+    return Eigen::Vector3d(to_index * (mesh.Position(v) - grid.origin));
+  };
+  std::atomic<bool> cancelled{false};
+  ParallelFor(nt, threads, [&](int64_t b, int64_t e) {
+    for (int64_t t = b; t < e; ++t) {
+      if ((t & 0x3FFF) == 0 && cancel != nullptr && cancel->cancelled()) {
+        cancelled = true;
+        return;
+      }
+      Eigen::Vector3d q[4];
+      for (int k = 0; k < 4; ++k) q[k] = index_point(mesh.tets[4 * t + k]);
+      const Frame f = MakeFrame(q);
+      if (!f.ok) continue;
+      Eigen::Vector3d lo = q[0], hi = q[0];
+      for (int k = 1; k < 4; ++k) lo = lo.cwiseMin(q[k]), hi = hi.cwiseMax(q[k]);
+      int64_t r0[3], r1[3];
+      for (int c = 0; c < 3; ++c) {
+        r0[c] = std::max<int64_t>(0, int64_t(std::ceil(lo[c] - 1e-6)));
+        r1[c] = std::min<int64_t>(grid.dims[c] - 1, int64_t(std::floor(hi[c] + 1e-6)));
+      }
+      for (int64_t k = r0[2]; k <= r1[2]; ++k) {
+        for (int64_t j = r0[1]; j <= r1[1]; ++j) {
+          for (int64_t i = r0[0]; i <= r1[0]; ++i) {
+            double l[4];
+            Barycentric(f, Eigen::Vector3d(double(i), double(j), double(k)), l);
+            if (l[0] < -tolerance || l[1] < -tolerance || l[2] < -tolerance || l[3] < -tolerance)
+              continue;
+            std::atomic<int32_t>& o = owner[i + nx * (j + ny * k)];
+            int32_t cur = o.load(std::memory_order_relaxed);
+            while (int32_t(t) < cur &&
+                   !o.compare_exchange_weak(cur, int32_t(t), std::memory_order_relaxed)) {
+            }
+          }
+        }
+      }
+    }
+  });
+  if (cancelled) return absl::CancelledError("metrics: cancelled while resampling");
+
+  GridResample out;
+  out.values.assign(np, 0.f);
+  out.labels.assign(np, 0);
+  out.cell.assign(np, -1);
+  ParallelFor(nz, threads, [&](int64_t k0, int64_t k1) {
+    for (int64_t p = k0 * nx * ny; p < k1 * nx * ny; ++p) {
+      const int32_t t = owner[p].load(std::memory_order_relaxed);
+      if (t == std::numeric_limits<int32_t>::max()) continue;
+      const int64_t i = p % nx, j = (p / nx) % ny, k = p / (nx * ny);
+      Eigen::Vector3d q[4];
+      for (int c = 0; c < 4; ++c) q[c] = index_point(mesh.tets[4 * int64_t(t) + c]);
+      double l[4];
+      Barycentric(MakeFrame(q), Eigen::Vector3d(double(i), double(j), double(k)), l);
+      double value = 0;
+      int best = 0;
+      for (int c = 0; c < 4; ++c) {
+        value += l[c] * mesh.scalars[mesh.tets[4 * int64_t(t) + c]];
+        if (l[c] > l[best]) best = c;
+      }
+      out.values[p] = float(value);
+      out.labels[p] = mesh.labels[mesh.tets[4 * int64_t(t) + best]];
+      out.cell[p] = t;
+    }
+  });
+  (void)nz;
+  return out;
+}
+
+MeshQuality MeasureQuality(const TetMesh& mesh, double degenerate_volume_mm3) {
+  MeshQuality q;
+  double min_angle = 180;
+  for (int64_t t = 0; t < mesh.tet_count(); ++t) {
+    const double vol = TetVolume(mesh, t);
+    if (vol < 0) {
+      ++q.inverted_cells;
+    } else if (vol < degenerate_volume_mm3) {
+      ++q.degenerate_cells;
+    }
+    Eigen::Vector3d p[4];
+    for (int k = 0; k < 4; ++k) p[k] = mesh.Position(mesh.tets[4 * t + k]);
+    const Frame f = MakeFrame(p);
+    if (!f.ok) {
+      min_angle = 0;
+      continue;
+    }
+    // Gradients of the barycentric coordinates are inward face normals; the dihedral angle at
+    // the edge opposite faces i and j is acos(-g_i . g_j / |g_i||g_j|).
+    Eigen::Vector3d g[4];
+    for (int k = 0; k < 3; ++k) g[k + 1] = f.inverse.row(k).transpose();
+    g[0] = -(g[1] + g[2] + g[3]);
+    for (int i = 0; i < 4; ++i) {
+      for (int j = i + 1; j < 4; ++j) {
+        const double c = -g[i].dot(g[j]) / (g[i].norm() * g[j].norm());
+        min_angle = std::min(min_angle, std::acos(std::clamp(c, -1.0, 1.0)) * 180.0 / M_PI);
+      }
+    }
+  }
+  q.min_dihedral_deg = mesh.tet_count() > 0 ? min_angle : 0;
+  return q;
+}
+
+absl::StatusOr<FidelityMetrics> MeasureFidelity(const Volume& image, const TetMesh& simplified,
+                                                const FidelityOptions& options,
+                                                const CancelToken* cancel) {
+  DECIMA_RETURN_IF_ERROR(Validate(image, "metrics: image"));
+  DECIMA_RETURN_IF_ERROR(CheckMesh(simplified, "simplified"));
+  if (options.labels != nullptr &&
+      (!SameGrid(image, *options.labels) || options.labels->type != VoxelType::kUInt8)) {
+    return absl::InvalidArgumentError(
+        "metrics: the label volume must be uint8 on the same grid as the image");
+  }
+  if ((options.original == nullptr) != (options.vertex_map == nullptr)) {
+    return absl::InvalidArgumentError(
+        "metrics: the feature-vertex counts need both the original mesh and the vertex map");
+  }
+  if (options.original != nullptr) {
+    DECIMA_RETURN_IF_ERROR(CheckMesh(*options.original, "original"));
+    if (int64_t(options.vertex_map->size()) != options.original->vertex_count() ||
+        int64_t(options.original->vertex_flags.size()) != options.original->vertex_count()) {
+      return absl::InvalidArgumentError(absl::StrCat("metrics: vertex_map has ",
+                                                     options.vertex_map->size(),
+                                                     " entries, expected one per "
+                                                     "original vertex (",
+                                                     options.original->vertex_count(), ")"));
+    }
+  }
+  if (!(options.degenerate_volume_fraction >= 0) || !(options.inside_tolerance >= 0)) {
+    return absl::InvalidArgumentError(
+        "metrics: degenerate_volume_fraction and inside_tolerance must be >= 0");
+  }
+
+  FidelityMetrics m;
+  m.vertices = simplified.vertex_count();
+  m.cells = simplified.tet_count();
+  DECIMA_ASSIGN_OR_RETURN(GridResample r, ResampleOnGrid(image, simplified, options.threads,
+                                                         options.inside_tolerance, cancel));
+  const int64_t np = image.voxel_count();
+  const auto [lo, hi] = image.ValueRange();
+  m.value_range = hi - lo;
+  m.grid_points = np;
+  double sq = 0;
+  for (int64_t p = 0; p < np; ++p) {
+    if (r.cell[p] < 0) continue;
+    ++m.covered_points;
+    const double e = double(r.values[p]) - image.ValueAt(p);
+    sq += e * e;
+    m.max_abs_error = std::max(m.max_abs_error, std::abs(e));
+  }
+  m.coverage = np > 0 ? double(m.covered_points) / double(np) : 0;
+  m.rmse = m.covered_points > 0 ? std::sqrt(sq / double(m.covered_points)) : 0;
+  m.psnr_db = m.rmse > 0 ? 20.0 * std::log10(m.value_range / m.rmse)
+                         : std::numeric_limits<double>::infinity();
+
+  if (options.labels != nullptr) {
+    const uint8_t* truth = options.labels->data<uint8_t>();
+    int64_t truth_count[256] = {}, mesh_count[256] = {}, both[256] = {}, mismatch = 0;
+    const int64_t nx = image.dims[0], ny = image.dims[1], nz = image.dims[2];
+    double interface_sq = 0;
+    for (int64_t p = 0; p < np; ++p) {
+      ++truth_count[truth[p]];
+      const bool covered = r.cell[p] >= 0;
+      if (covered) ++mesh_count[r.labels[p]];
+      if (covered && r.labels[p] == truth[p]) {
+        ++both[truth[p]];
+      } else {
+        ++mismatch;
+      }
+      const int64_t i = p % nx, j = (p / nx) % ny, k = p / (nx * ny);
+      const bool at_interface =
+          (i > 0 && truth[p - 1] != truth[p]) || (i + 1 < nx && truth[p + 1] != truth[p]) ||
+          (j > 0 && truth[p - nx] != truth[p]) || (j + 1 < ny && truth[p + nx] != truth[p]) ||
+          (k > 0 && truth[p - nx * ny] != truth[p]) ||
+          (k + 1 < nz && truth[p + nx * ny] != truth[p]);
+      if (at_interface && covered) {
+        const double e = double(r.values[p]) - image.ValueAt(p);
+        interface_sq += e * e;
+        ++m.interface_points;
+      }
+    }
+    int truth_labels = 0;
+    double dice_sum = 0;
+    for (int l = 0; l < 256; ++l) {
+      if (truth_count[l] == 0 && mesh_count[l] == 0) continue;
+      RegionDice d{l, truth_count[l], mesh_count[l], both[l], 1.0};
+      d.dice = 2.0 * double(both[l]) / double(truth_count[l] + mesh_count[l]);
+      if (truth_count[l] > 0) ++truth_labels, dice_sum += d.dice;
+      m.dice.push_back(d);
+    }
+    m.mean_dice = truth_labels > 0 ? dice_sum / truth_labels : 0;
+    m.label_mismatch = np > 0 ? double(mismatch) / double(np) : 0;
+    m.interface_rmse =
+        m.interface_points > 0 ? std::sqrt(interface_sq / double(m.interface_points)) : 0;
+  }
+
+  if (options.original != nullptr) {
+    const TetMesh& o = *options.original;
+    std::vector<uint8_t> taken(simplified.vertex_count(), 0);
+    for (int64_t v = 0; v < o.vertex_count(); ++v) {
+      if (!(o.vertex_flags[v] & kFeatureVertex)) continue;
+      ++m.feature_vertices;
+      const int32_t n = (*options.vertex_map)[v];
+      if (n < 0 || n >= simplified.vertex_count() || taken[n]) {
+        ++m.feature_vertices_removed;
+        continue;
+      }
+      taken[n] = 1;
+      if (simplified.positions[3 * int64_t(n)] != o.positions[3 * v] ||
+          simplified.positions[3 * int64_t(n) + 1] != o.positions[3 * v + 1] ||
+          simplified.positions[3 * int64_t(n) + 2] != o.positions[3 * v + 2]) {
+        ++m.feature_vertices_moved;
+      }
+    }
+  }
+
+  const double voxel_volume = image.spacing.prod();
+  const MeshQuality q =
+      MeasureQuality(simplified, options.degenerate_volume_fraction * voxel_volume);
+  m.inverted_cells = q.inverted_cells;
+  m.degenerate_cells = q.degenerate_cells;
+  m.min_dihedral_deg = q.min_dihedral_deg;
+
+  m.mesh_bytes = options.mesh_bytes;
+  m.voxel_bytes = int64_t(image.bytes.size());
+  m.bytes_ratio = m.voxel_bytes > 0 ? double(m.mesh_bytes) / double(m.voxel_bytes) : 0;
+  return m;
+}
+
+}  // namespace decima

@@ -1,0 +1,234 @@
+#include "core/simplify/simplify.h"
+
+#include <algorithm>
+#include <cmath>
+#include <limits>
+#include <thread>
+
+#include "absl/strings/str_cat.h"
+#include "absl/strings/str_format.h"
+#include "core/common/status.h"
+#include "core/simplify/collapse_engine.h"
+
+namespace decima {
+namespace {
+
+using simplify_internal::CollapseEngine;
+using simplify_internal::Outcome;
+
+absl::Status ValidateOptions(const SimplifyOptions& o) {
+  auto bad = [](const std::string& what) {
+    return absl::InvalidArgumentError("simplify: option " + what);
+  };
+  if (!(o.target_reduction >= 0 && o.target_reduction <= 0.99)) {
+    return bad(absl::StrCat("target_reduction = ", o.target_reduction,
+                            ": expected a fraction of cells to remove in [0, 0.99]"));
+  }
+  if (!std::isfinite(o.error_tolerance)) {
+    return bad("error_tolerance must be finite (<= 0 for none)");
+  }
+  const std::pair<const char*, double> weights[] = {{"weights.regional", o.weights.regional},
+                                                    {"weights.gradient", o.weights.gradient},
+                                                    {"weights.shape", o.weights.shape},
+                                                    {"weights.volume", o.weights.volume},
+                                                    {"weights.neighbour", o.weights.neighbour}};
+  for (const auto& [name, w] : weights) {
+    if (!(w >= 0 && std::isfinite(w))) {
+      return bad(absl::StrCat(name, " = ", w, ": expected a finite weight >= 0"));
+    }
+  }
+  if (!std::isfinite(o.feature_threshold_voxels)) {
+    return bad("feature_threshold_voxels must be finite (< 0 to use the vertex flags)");
+  }
+  if (!(o.voxel_size_mm >= 0 && std::isfinite(o.voxel_size_mm))) {
+    return bad(absl::StrCat("voxel_size_mm = ", o.voxel_size_mm, ": expected >= 0 mm"));
+  }
+  if (!(o.min_volume_fraction > 0 && o.min_volume_fraction < 1)) {
+    return bad(absl::StrCat("min_volume_fraction = ", o.min_volume_fraction,
+                            ": expected a value in (0, 1) voxels^3"));
+  }
+  if (o.smoothing_iterations < 0 || o.smoothing_iterations > 100) {
+    return bad(
+        absl::StrCat("smoothing_iterations = ", o.smoothing_iterations, ": expected 0..100"));
+  }
+  if (!(o.min_pass_gain >= 0 && o.min_pass_gain <= 0.5)) {
+    return bad(absl::StrCat("min_pass_gain = ", o.min_pass_gain, ": expected [0, 0.5]"));
+  }
+  if (o.max_passes < 1 || o.max_passes > 10000) {
+    return bad(absl::StrCat("max_passes = ", o.max_passes, ": expected 1..10000"));
+  }
+  if (o.threads < 0 || o.threads > 1024) {
+    return bad(absl::StrCat("threads = ", o.threads, ": expected 0..1024"));
+  }
+  return absl::OkStatus();
+}
+
+absl::Status ValidateMesh(const TetMesh& m) {
+  const int64_t nv = m.vertex_count(), nt = m.tet_count();
+  auto bad = [](const std::string& what) {
+    return absl::InvalidArgumentError("simplify: input mesh " + what);
+  };
+  if (nv > std::numeric_limits<int32_t>::max()) return bad("has more vertices than int32 indexes");
+  if (int64_t(m.positions.size()) != 3 * nv || int64_t(m.labels.size()) != nv ||
+      int64_t(m.interface_distance.size()) != nv || int64_t(m.vertex_flags.size()) != nv) {
+    return bad(absl::StrCat("has inconsistent per-vertex arrays: ", m.scalars.size(), " scalars, ",
+                            m.positions.size(), " position floats, ", m.labels.size(), " labels, ",
+                            m.interface_distance.size(), " interface distances, ",
+                            m.vertex_flags.size(), " flags"));
+  }
+  if (m.tets.size() % 4 != 0) return bad("tets size is not a multiple of 4");
+  for (float x : m.positions) {
+    if (!std::isfinite(x)) return bad("has a non-finite vertex position");
+  }
+  for (float s : m.scalars) {
+    if (!std::isfinite(s)) return bad("has a non-finite scalar");
+  }
+  for (int64_t t = 0; t < nt; ++t) {
+    const int32_t* v = &m.tets[4 * t];
+    for (int k = 0; k < 4; ++k) {
+      if (v[k] < 0 || v[k] >= nv) {
+        return bad(absl::StrCat("cell ", t, " has vertex index ", v[k], " outside [0, ", nv, ")"));
+      }
+      for (int j = 0; j < k; ++j) {
+        if (v[j] == v[k]) return bad(absl::StrCat("cell ", t, " repeats vertex ", v[k]));
+      }
+    }
+    if (!(TetVolume(m, t) > 0)) {
+      return bad(absl::StrCat("cell ", t, " is not positively oriented (volume ", TetVolume(m, t),
+                              " mm^3)"));
+    }
+  }
+  return absl::OkStatus();
+}
+
+}  // namespace
+
+const char* StopReasonName(StopReason reason) {
+  switch (reason) {
+    case StopReason::kTargetReached:
+      return "target_reached";
+    case StopReason::kErrorTolerance:
+      return "error_tolerance";
+    case StopReason::kNoValidCollapse:
+      return "no_valid_collapse";
+    case StopReason::kMaxPasses:
+      return "max_passes";
+    case StopReason::kStalled:
+      return "stalled";
+  }
+  return "?";
+}
+
+absl::StatusOr<SimplifyResult> Simplify(const TetMesh& mesh, const SimplifyOptions& options,
+                                        const ProgressFn& progress, const CancelToken* cancel) {
+  DECIMA_RETURN_IF_ERROR(ValidateOptions(options));
+  DECIMA_RETURN_IF_ERROR(ValidateMesh(mesh));
+  DECIMA_RETURN_IF_ERROR(CheckCancelled(cancel, "simplify"));
+  const int threads = options.threads > 0 ? options.threads
+                                          : int(std::max(1u, std::thread::hardware_concurrency()));
+
+  SimplifyResult result;
+  result.input_cells = mesh.tet_count();
+  const bool has_target = options.target_reduction > 0;
+  const int64_t target =
+      has_target ? int64_t(std::ceil(options.target_reduction * double(result.input_cells)))
+                 : std::numeric_limits<int64_t>::max();
+  const bool has_tolerance = options.error_tolerance > 0;
+
+  CollapseEngine engine(mesh, options);
+  std::vector<int32_t> order;
+  std::vector<float> errors;
+  int64_t removed = 0;
+  bool stopped = false;
+  for (int pass = 1; pass <= options.max_passes && !stopped; ++pass) {
+    if (removed >= target) break;
+    DECIMA_RETURN_IF_ERROR(CheckCancelled(cancel, "simplify"));
+    engine.BeginPass(threads);
+    engine.SortedCandidates(threads, &order, &errors);
+    SimplifyPassStats stats;
+    stats.candidates = int64_t(order.size());
+    bool tolerance_hit = false;
+    for (size_t i = 0; i < order.size() && removed < target; ++i) {
+      if ((i & 0xFFFF) == 0xFFFF) DECIMA_RETURN_IF_ERROR(CheckCancelled(cancel, "simplify"));
+      if (has_tolerance && errors[i] > options.error_tolerance) {
+        tolerance_hit = true;
+        break;
+      }
+      const auto r = engine.TryCollapse(order[i]);
+      if (r.outcome == Outcome::kCollapsed) {
+        ++stats.collapses;
+        stats.cells_removed += r.cells_removed;
+        stats.last_error = r.error;
+        result.max_error = std::max(result.max_error, double(r.error));
+        removed += r.cells_removed;
+      } else if (r.outcome == Outcome::kFlip) {
+        ++stats.rejected_flip;
+      } else if (r.outcome == Outcome::kCrossRegionNeighbours ||
+                 r.outcome == Outcome::kFeatureNeighbourhood) {
+        ++stats.rejected_rule4;
+      }
+    }
+    result.passes = pass;
+    result.collapses += stats.collapses;
+    result.pass_stats.push_back(stats);
+    Report(progress, {"simplify",
+                      has_target ? std::min(1.0, double(removed) / double(target)) : 0.0,
+                      absl::StrFormat("pass %d: %d collapses removed %d cells (%.1f%% so far)",
+                                      pass, stats.collapses, stats.cells_removed,
+                                      100.0 * double(removed) /
+                                          double(std::max<int64_t>(1, result.input_cells))),
+                      {{"pass", double(pass)},
+                       {"cells_removed", double(removed)},
+                       {"error", stats.last_error}}});
+    if (stats.collapses == 0) {
+      stopped = true;
+      result.stop_reason =
+          tolerance_hit ? StopReason::kErrorTolerance : StopReason::kNoValidCollapse;
+    } else if (removed < target &&
+               double(stats.cells_removed) < options.min_pass_gain * double(result.input_cells)) {
+      stopped = true;
+      result.stop_reason = StopReason::kStalled;
+    }
+  }
+  if (removed >= target) {
+    result.stop_reason = StopReason::kTargetReached;
+  } else if (!stopped) {
+    result.stop_reason = StopReason::kMaxPasses;
+  }
+
+  engine.Finish(&result.mesh, &result.vertex_map);
+  result.output_cells = result.mesh.tet_count();
+  result.achieved_reduction =
+      result.input_cells > 0 ? 1.0 - double(result.output_cells) / double(result.input_cells) : 0;
+  result.reached_target = has_target && removed >= target;
+  const std::string achieved =
+      absl::StrFormat("removed %d of %d cells (%.2f%%) in %d passes", removed, result.input_cells,
+                      100 * result.achieved_reduction, result.passes);
+  switch (result.stop_reason) {
+    case StopReason::kTargetReached:
+      result.stop_message = absl::StrCat("target reached: ", achieved);
+      break;
+    case StopReason::kErrorTolerance:
+      result.stop_message = absl::StrCat(
+          has_target ? "target not reached: " : "", "every remaining collapse ",
+          "predicts an error above the tolerance ", options.error_tolerance, "; ", achieved);
+      break;
+    case StopReason::kNoValidCollapse:
+      result.stop_message = absl::StrCat(has_target ? "target not reached: " : "",
+                                         "no collapse left that rules 1-6 allow; ", achieved);
+      break;
+    case StopReason::kStalled:
+      result.stop_message = absl::StrCat("target not reached: pass ", result.passes,
+                                         " removed only ", result.pass_stats.back().cells_removed,
+                                         " cells (min_pass_gain = ", options.min_pass_gain,
+                                         " of the input); the mesh is jammed; ", achieved);
+      break;
+    case StopReason::kMaxPasses:
+      result.stop_message = absl::StrCat("target not reached: max_passes = ", options.max_passes,
+                                         " ran out; ", achieved);
+      break;
+  }
+  return result;
+}
+
+}  // namespace decima

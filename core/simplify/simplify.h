@@ -1,0 +1,129 @@
+// Feature-preserving decimation of a tetrahedral mesh by greedy cell collapse (paper §2.2) and
+// the TetFusion baseline (Chopra & Meyer 2002) on the same engine.
+//
+// A collapse merges the four vertices of a cell τ into one point: the centroid (rule 1), or a
+// vertex of τ that must not move (a feature vertex, rule 2; the vertex shared with a
+// cross-region cell, rule 4; an exterior-boundary vertex, rule 5). Every cell sharing two or
+// more vertices with τ (the set D(τ)) degenerates and is deleted; every cell sharing exactly one
+// (A(τ)) has that vertex moved to the collapse point and must keep a positive volume (rule 6).
+//
+// Guarantees of the result (kPaper policy), proved by tests/core/simplify:
+//  - feature vertices are never moved or removed, so interior boundaries stay exactly where the
+//    segmentation put them; exterior-boundary vertices are never moved or removed, so the hull
+//    (and the total volume) is unchanged;
+//  - every cell is positively oriented with volume >= min_volume_fraction voxels, and the mesh
+//    is conforming (each interior face shared by exactly two cells);
+//  - the output depends only on the input mesh and the options, never on `threads`.
+// core/simplify/README.md lists how the paper's ambiguous points were read.
+//
+// Greedy loop (§2.2.4), one pass:
+//   compute Δε (Eq. 8) for every collapsible cell; sort ascending (ties by cell id);
+//   for τ in that order, while removed < target and Δε(τ) <= tolerance:
+//     skip τ if it was deleted or locked;
+//     check rules 1-6 on the current mesh; if allowed: collapse, delete D(τ), lock A(τ).
+// Passes repeat on the surviving cells until the target, the tolerance, no collapsible cell,
+// or max_passes stops them.
+#pragma once
+
+#include <cstdint>
+#include <string>
+#include <vector>
+
+#include "absl/status/statusor.h"
+#include "core/common/progress.h"
+#include "core/mesh/tet_mesh.h"
+
+namespace decima {
+
+enum class SimplifyPolicy : uint8_t {
+  kPaper,      // rules 1-6 of §2.2.2 and the full error of Eq. (8)
+  kTetFusion,  // every interior cell to its centroid, local error only, rule 6, hull kept
+};
+
+// Weights of Eq. (8); defaults are the paper's Table 2 (CT-head). Any value >= 0.
+struct ErrorWeights {
+  double regional = 10;  // ω_r: ε_r, cell variance about the region mean / region variance
+  double gradient = 2;   // ω_g: ε_g, mean |s_i - s'| / region standard deviation
+  double shape = 1;      // ω_s: ε_s, mean distance of the vertices to the collapse point, voxels
+  double volume = 1;     // ω_v: ε_v, cell volume, voxels^3
+  double neighbour = 0.5;  // ω_n: ε_n, cell volume / volume of its neighbourhood
+};
+
+struct SimplifyOptions {
+  SimplifyPolicy policy = SimplifyPolicy::kPaper;
+  // Fraction of the input cells to remove, in [0, 0.99]. 0 = no target: run until the error
+  // tolerance or no collapsible cell remains.
+  double target_reduction = 0.5;
+  // Largest predicted error Δε (Eq. 8) a collapse may have; <= 0 means no tolerance.
+  double error_tolerance = 0;
+  ErrorWeights weights;
+  // Feature vertices (kPaper): < 0 uses the kFeatureVertex flags as Tetrahedralize set them;
+  // >= 0 re-derives them as |interface_distance| <= this many voxels.
+  float feature_threshold_voxels = -1;
+  // Grid spacing in mm that makes ε_s, ε_v and the volume guard unit-free ("voxel units": the
+  // mean of the three spacings). 0 = estimate as cbrt(5 * mean cell volume), exact for an
+  // unsimplified 5-tets-per-cube mesh of an isotropic grid.
+  double voxel_size_mm = 0;
+  // A collapse is rejected if a moved cell would end with volume below this many voxels^3
+  // (rule 6's sign test plus a guard against slivers). Must be > 0.
+  double min_volume_fraction = 1e-3;
+  // Passes after the first begin with this many smoothing sweeps over the normal vertices
+  // (neither feature nor exterior-boundary, star inside one region): each moves towards the
+  // volume centroid of its star when that improves the star's worst cell, with its value
+  // interpolated in the current mesh. Not in the paper: without it the collapses jam after the
+  // first pass (README.md). 0..100; 0 = the paper's algorithm unchanged.
+  int smoothing_iterations = 2;
+  int max_passes = 64;  // 1..10000
+  // A pass that removes fewer than this fraction of the input cells ends the loop (the mesh is
+  // jammed: later passes cost a full scoring each and gain almost nothing). 0 = run until a pass
+  // removes nothing. In [0, 0.5].
+  double min_pass_gain = 1e-3;
+  int threads = 0;  // worker threads for the per-pass scoring; 0 = hardware concurrency
+};
+
+enum class StopReason : uint8_t {
+  kTargetReached,    // removed >= target_reduction of the input cells
+  kErrorTolerance,   // every remaining collapsible cell predicts more than error_tolerance
+  kNoValidCollapse,  // a pass found no collapse the rules and the flip check allow
+  kMaxPasses,        // max_passes ran out first
+  kStalled,          // the last pass removed fewer than min_pass_gain of the input cells
+};
+const char* StopReasonName(StopReason reason);
+
+struct SimplifyPassStats {
+  int64_t candidates = 0;      // cells the own-vertex rules allowed at the start of the pass
+  int64_t collapses = 0;       // collapses performed
+  int64_t cells_removed = 0;   // cells removed by them (τ plus D(τ))
+  int64_t rejected_flip = 0;   // rejected by rule 6 (sign or sliver)
+  int64_t rejected_rule4 = 0;  // rejected by rule 4 (cross-region / feature neighbourhood)
+  double last_error = 0;       // Δε of the last collapse of the pass
+};
+
+struct SimplifyResult {
+  TetMesh mesh;  // compacted: no unreferenced vertex, no deleted cell
+  // vertex_map[v] for every input vertex v: index in `mesh` of the vertex it became (itself,
+  // or the vertex it was merged into), or -1 if it no longer exists.
+  std::vector<int32_t> vertex_map;
+  int64_t input_cells = 0;
+  int64_t output_cells = 0;
+  double achieved_reduction = 0;  // 1 - output_cells / input_cells
+  bool reached_target = false;
+  StopReason stop_reason = StopReason::kTargetReached;
+  std::string stop_message;  // one line: why the loop stopped, with the numbers
+  int passes = 0;
+  int64_t collapses = 0;
+  double max_error = 0;  // largest Δε of a performed collapse
+  std::vector<SimplifyPassStats> pass_stats;
+};
+
+// Simplifies `mesh` (a valid TetMesh, see tet_mesh.h; every cell positively oriented). Progress
+// stage "simplify": once per pass with metrics {"pass", "cells_removed", "error"}. Returns
+// InvalidArgument (naming the field) for an invalid mesh or options, Cancelled if `cancel`
+// fired (checked every pass and every 65536 queue entries). Not reaching the target is not an
+// error: the result says so (reached_target, stop_reason, stop_message). Thread-safe for
+// distinct arguments; uses up to options.threads threads it starts itself.
+absl::StatusOr<SimplifyResult> Simplify(const TetMesh& mesh, const SimplifyOptions& options,
+                                        const ProgressFn& progress = nullptr,
+                                        const CancelToken* cancel = nullptr);
+
+}  // namespace decima

@@ -1,0 +1,209 @@
+#include "server/blob_store.h"
+
+#include <fcntl.h>
+#include <unistd.h>
+
+#include <cerrno>
+#include <cstring>
+#include <system_error>
+
+#include "absl/strings/str_cat.h"
+#include "server/sha256.h"
+
+namespace decima::server {
+namespace fs = std::filesystem;
+
+class LocalBlobWriter : public BlobWriter {
+ public:
+  LocalBlobWriter(LocalBlobStore* store, std::string sha, int64_t size, fs::path partial, int fd,
+                  int64_t offset, std::unique_ptr<Sha256> hash)
+      : store_(store),
+        sha_(std::move(sha)),
+        size_(size),
+        partial_(std::move(partial)),
+        fd_(fd),
+        written_(offset),
+        hash_(std::move(hash)) {}
+
+  ~LocalBlobWriter() override {
+    if (fd_ >= 0) ::close(fd_);
+    store_->Release(sha_);
+  }
+
+  int64_t written() const override { return written_; }
+
+  absl::Status Append(const void* data, size_t size) override {
+    if (fd_ < 0) return absl::FailedPreconditionError("blob writer is closed");
+    if (written_ + static_cast<int64_t>(size) > size_) {
+      Discard();
+      return absl::InvalidArgumentError(
+          absl::StrCat("upload of ", sha_, ": more data than the ", size_, " bytes declared"));
+    }
+    const char* p = static_cast<const char*>(data);
+    size_t left = size;
+    while (left > 0) {
+      ssize_t n = ::write(fd_, p, left);
+      if (n < 0) {
+        if (errno == EINTR) continue;
+        return absl::InternalError(
+            absl::StrCat("writing ", partial_.string(), ": ", std::strerror(errno)));
+      }
+      p += n;
+      left -= static_cast<size_t>(n);
+    }
+    hash_->Update(data, size);
+    written_ += static_cast<int64_t>(size);
+    return absl::OkStatus();
+  }
+
+  absl::Status Commit() override {
+    if (fd_ < 0) return absl::FailedPreconditionError("blob writer is closed");
+    if (written_ != size_) {
+      return absl::FailedPreconditionError(
+          absl::StrCat("upload of ", sha_, " holds ", written_, " of ", size_, " bytes"));
+    }
+    std::string digest = hash_->HexDigest();
+    if (digest != sha_) {
+      Discard();
+      return absl::InvalidArgumentError(absl::StrCat("checksum mismatch: the data's sha256 is ",
+                                                     digest, ", the upload declared ", sha_,
+                                                     "; nothing was stored"));
+    }
+    if (store_->fsync_ && ::fdatasync(fd_) != 0) {
+      return absl::InternalError(
+          absl::StrCat("fdatasync ", partial_.string(), ": ", std::strerror(errno)));
+    }
+    ::close(fd_);
+    fd_ = -1;
+    fs::path final_path = store_->BlobPath(sha_);
+    std::error_code ec;
+    fs::create_directories(final_path.parent_path(), ec);
+    fs::rename(partial_, final_path, ec);
+    if (ec) {
+      return absl::InternalError(
+          absl::StrCat("committing ", final_path.string(), ": ", ec.message()));
+    }
+    return absl::OkStatus();
+  }
+
+  void Discard() override {
+    if (fd_ >= 0) ::close(fd_);
+    fd_ = -1;
+    std::error_code ec;
+    fs::remove(partial_, ec);
+  }
+
+ private:
+  LocalBlobStore* store_;
+  std::string sha_;
+  int64_t size_;
+  fs::path partial_;
+  int fd_;
+  int64_t written_;
+  std::unique_ptr<Sha256> hash_;
+};
+
+absl::StatusOr<std::unique_ptr<LocalBlobStore>> LocalBlobStore::Open(const fs::path& root,
+                                                                     bool fsync) {
+  std::error_code ec;
+  fs::create_directories(root / "sha256", ec);
+  if (!ec) fs::create_directories(root / "partial", ec);
+  if (ec) {
+    return absl::InternalError(
+        absl::StrCat("creating blob store ", root.string(), ": ", ec.message()));
+  }
+  return std::unique_ptr<LocalBlobStore>(new LocalBlobStore(root, fsync));
+}
+
+fs::path LocalBlobStore::BlobPath(const std::string& sha) const {
+  return root_ / "sha256" / sha.substr(0, 2) / sha;
+}
+
+fs::path LocalBlobStore::PartialPath(const std::string& sha, int64_t size) const {
+  return root_ / "partial" / absl::StrCat(sha, "-", size);
+}
+
+bool LocalBlobStore::Has(const std::string& sha) const {
+  std::error_code ec;
+  return IsSha256Hex(sha) && fs::is_regular_file(BlobPath(sha), ec);
+}
+
+BlobStatus LocalBlobStore::Status(const std::string& sha, int64_t size) const {
+  BlobStatus st;
+  if (!IsSha256Hex(sha)) return st;
+  std::error_code ec;
+  auto full = fs::file_size(BlobPath(sha), ec);
+  if (!ec) {
+    st.complete = true;
+    st.committed_size = static_cast<int64_t>(full);
+    return st;
+  }
+  auto part = fs::file_size(PartialPath(sha, size), ec);
+  if (!ec) st.committed_size = static_cast<int64_t>(part);
+  return st;
+}
+
+absl::StatusOr<std::unique_ptr<BlobWriter>> LocalBlobStore::OpenWriter(const std::string& sha,
+                                                                       int64_t size,
+                                                                       int64_t offset) {
+  if (!IsSha256Hex(sha)) {
+    return absl::InvalidArgumentError("sha256 must be 64 lower-case hex characters");
+  }
+  {
+    std::lock_guard<std::mutex> lock(mu_);
+    if (!writing_.insert(sha).second) {
+      return absl::AbortedError(
+          absl::StrCat("another upload of blob ", sha, " is in progress; retry later"));
+    }
+  }
+  auto fail = [&](absl::Status s) -> absl::StatusOr<std::unique_ptr<BlobWriter>> {
+    Release(sha);
+    return s;
+  };
+  fs::path partial = PartialPath(sha, size);
+  std::error_code ec;
+  int64_t held = 0;
+  if (fs::exists(partial, ec)) held = static_cast<int64_t>(fs::file_size(partial, ec));
+  if (offset != held) {
+    return fail(absl::FailedPreconditionError(
+        absl::StrCat("upload of ", sha, " starts at byte ", offset, " but the server holds ", held,
+                     " bytes; resume with write_offset=", held)));
+  }
+  int flags = O_WRONLY | O_CREAT | O_CLOEXEC | (offset == 0 ? O_TRUNC : O_APPEND);
+  int fd = ::open(partial.c_str(), flags, 0644);
+  if (fd < 0) {
+    return fail(absl::InternalError(
+        absl::StrCat("opening ", partial.string(), ": ", std::strerror(errno))));
+  }
+  auto hash = std::make_unique<Sha256>();
+  if (offset > 0) {
+    absl::Status s = HashFilePrefix(partial, offset, *hash);
+    if (!s.ok()) {
+      ::close(fd);
+      return fail(s);
+    }
+  }
+  // The writer releases the digest when destroyed.
+  return std::unique_ptr<BlobWriter>(
+      new LocalBlobWriter(this, sha, size, partial, fd, offset, std::move(hash)));
+}
+
+absl::StatusOr<fs::path> LocalBlobStore::LocalPath(const std::string& sha) const {
+  if (!Has(sha)) return absl::NotFoundError(absl::StrCat("blob ", sha, " was not uploaded"));
+  return BlobPath(sha);
+}
+
+absl::Status LocalBlobStore::Delete(const std::string& sha) {
+  if (!IsSha256Hex(sha)) return absl::InvalidArgumentError("bad sha256");
+  std::error_code ec;
+  fs::remove(BlobPath(sha), ec);
+  if (ec) return absl::InternalError(absl::StrCat("deleting blob ", sha, ": ", ec.message()));
+  return absl::OkStatus();
+}
+
+void LocalBlobStore::Release(const std::string& sha) {
+  std::lock_guard<std::mutex> lock(mu_);
+  writing_.erase(sha);
+}
+
+}  // namespace decima::server

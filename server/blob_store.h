@@ -1,0 +1,85 @@
+// Content-addressed blob storage. Blobs are named by the sha256 of their bytes and written
+// temp-then-rename, so a reader never sees a partial blob and the same scan is stored once.
+// Interrupted uploads keep their prefix ("partial") so the client can resume.
+//
+// Thread-safety: a BlobStore may be used from many threads. Writing the same digest from two
+// writers at once is refused (ABORTED) by OpenWriter.
+#pragma once
+
+#include <cstdint>
+#include <filesystem>
+#include <memory>
+#include <mutex>
+#include <set>
+#include <string>
+
+#include "absl/base/thread_annotations.h"
+#include "absl/status/statusor.h"
+
+namespace decima::server {
+
+// Writes one blob. Append() data in order; Commit() verifies size and digest and makes the blob
+// visible; destroying an uncommitted writer keeps the partial prefix for a later resume, unless
+// Discard() was called.
+class BlobWriter {
+ public:
+  virtual ~BlobWriter() = default;
+  virtual int64_t written() const = 0;  // bytes held, including a resumed prefix
+  // INVALID_ARGUMENT (and the partial is discarded) if the data would exceed the declared size.
+  virtual absl::Status Append(const void* data, size_t size) = 0;
+  // INVALID_ARGUMENT (and the partial is discarded) on a size or digest mismatch.
+  virtual absl::Status Commit() = 0;
+  virtual void Discard() = 0;
+};
+
+struct BlobStatus {
+  bool complete = false;
+  int64_t committed_size = 0;  // size when complete, else the partial prefix held
+};
+
+class BlobStore {
+ public:
+  virtual ~BlobStore() = default;
+  virtual bool Has(const std::string& sha256) const = 0;
+  virtual BlobStatus Status(const std::string& sha256, int64_t size_bytes) const = 0;
+  // Opens a writer that continues at `offset`, which must equal the partial prefix held
+  // (FAILED_PRECONDITION otherwise, naming the size held). ABORTED while another writer is open.
+  virtual absl::StatusOr<std::unique_ptr<BlobWriter>> OpenWriter(const std::string& sha256,
+                                                                 int64_t size_bytes,
+                                                                 int64_t offset) = 0;
+  // A local path holding the blob's bytes (NOT_FOUND if absent). Shared storage implementations
+  // materialize it into a cache first.
+  virtual absl::StatusOr<std::filesystem::path> LocalPath(const std::string& sha256) const = 0;
+  virtual absl::Status Delete(const std::string& sha256) = 0;
+};
+
+// Blobs under `root`: root/sha256/ab/abcdef... and partials under root/partial/.
+class LocalBlobStore : public BlobStore {
+ public:
+  // Creates the folders; `fsync` makes Commit() flush data before the rename (durable blobs).
+  static absl::StatusOr<std::unique_ptr<LocalBlobStore>> Open(const std::filesystem::path& root,
+                                                              bool fsync = true);
+
+  bool Has(const std::string& sha256) const override;
+  BlobStatus Status(const std::string& sha256, int64_t size_bytes) const override;
+  absl::StatusOr<std::unique_ptr<BlobWriter>> OpenWriter(const std::string& sha256,
+                                                         int64_t size_bytes,
+                                                         int64_t offset) override;
+  absl::StatusOr<std::filesystem::path> LocalPath(const std::string& sha256) const override;
+  absl::Status Delete(const std::string& sha256) override;
+
+  std::filesystem::path BlobPath(const std::string& sha256) const;
+  std::filesystem::path PartialPath(const std::string& sha256, int64_t size_bytes) const;
+
+ private:
+  friend class LocalBlobWriter;
+  LocalBlobStore(std::filesystem::path root, bool fsync) : root_(std::move(root)), fsync_(fsync) {}
+  void Release(const std::string& sha256);
+
+  const std::filesystem::path root_;
+  const bool fsync_;
+  std::mutex mu_;
+  std::set<std::string> writing_ ABSL_GUARDED_BY(mu_);
+};
+
+}  // namespace decima::server

@@ -1,0 +1,121 @@
+// The job store: jobs, their event logs and the volumes they read, behind one interface so that
+// the embedded SQLite store can be replaced by a PostgreSQL one shared by many replicas
+// (ClaimNext as `FOR UPDATE SKIP LOCKED`, leases, LISTEN/NOTIFY instead of the in-process
+// listener).
+//
+// Invariants kept by every implementation:
+//  - a job's events are numbered 1, 2, 3, ... without gaps; each state change writes its event
+//    in the same transaction as the state, so the log and the job never disagree;
+//  - a RUNNING job has exactly one lease owner; ClaimNext never hands a job to two owners;
+//  - the listener is called after commit, in sequence order per job.
+// Thread-safety: all methods may be called from any thread.
+#pragma once
+
+#include <cstdint>
+#include <functional>
+#include <memory>
+#include <optional>
+#include <string>
+#include <vector>
+
+#include <google/protobuf/timestamp.pb.h>
+#include "absl/status/statusor.h"
+
+#include "decima/v1/jobs.pb.h"
+#include "decima/v1/volumes.pb.h"
+
+namespace decima::server {
+
+using EventListener = std::function<void(const std::string& job_id, const v1::JobEvent& event)>;
+
+struct JobPage {
+  std::vector<v1::Job> jobs;
+  std::string next_page_token;
+};
+
+struct VolumePage {
+  std::vector<v1::Volume> volumes;
+  std::string next_page_token;
+};
+
+// What RecoverLeases did.
+struct Recovered {
+  std::vector<std::string> requeued;
+  std::vector<std::string> failed;
+};
+
+bool IsFinal(v1::JobState state);
+
+// The wall clock with nanoseconds (protobuf 3.21's TimeUtil::GetCurrentTime drops them here).
+google::protobuf::Timestamp NowTimestamp();
+
+class JobStore {
+ public:
+  virtual ~JobStore() = default;
+
+  // Called after every committed event. Set once, before serving.
+  virtual void SetListener(EventListener listener) = 0;
+
+  // Queues a job with `id`. With a non-empty `request_id` already used, returns the job created
+  // then and `*created` = false. RESOURCE_EXHAUSTED when `max_queued` jobs are already queued.
+  virtual absl::StatusOr<v1::Job> CreateJob(const std::string& id, const v1::JobSpec& spec,
+                                            const std::string& request_id, int max_queued,
+                                            bool* created) = 0;
+  virtual absl::StatusOr<v1::Job> GetJob(const std::string& id) = 0;
+  // Newest first. `states` empty = all. NOT_FOUND never; INVALID_ARGUMENT for a bad token.
+  virtual absl::StatusOr<JobPage> ListJobs(const std::vector<v1::JobState>& states, int page_size,
+                                           const std::string& page_token) = 0;
+  virtual absl::StatusOr<int64_t> CountJobs(v1::JobState state) = 0;
+
+  // Oldest queued job -> RUNNING with a lease for `owner` until now + lease_ms; nullopt if none.
+  virtual absl::StatusOr<std::optional<v1::Job>> ClaimNext(const std::string& owner,
+                                                           int64_t lease_ms) = 0;
+  // Extends the lease; FAILED_PRECONDITION if `owner` no longer holds it.
+  virtual absl::Status RenewLease(const std::string& id, const std::string& owner,
+                                  int64_t lease_ms) = 0;
+  // Appends a progress event of a RUNNING job held by `owner`.
+  virtual absl::Status AppendProgress(const std::string& id, const std::string& owner,
+                                      const v1::Progress& progress) = 0;
+  // RUNNING (held by `owner`) -> SUCCEEDED / FAILED / CANCELLED. `job` supplies error,
+  // artifacts and metrics_json.
+  virtual absl::StatusOr<v1::Job> Finish(const std::string& id, const std::string& owner,
+                                         v1::JobState state, const v1::Job& outcome) = 0;
+  // RUNNING (held by `owner`) -> QUEUED, giving back the attempt (graceful shutdown).
+  virtual absl::StatusOr<v1::Job> Requeue(const std::string& id, const std::string& owner,
+                                          const std::string& reason) = 0;
+  // RUNNING jobs whose lease lapsed (all RUNNING jobs when `all`) go back to QUEUED, or to
+  // FAILED once they were claimed `max_attempts` times.
+  virtual absl::StatusOr<Recovered> RecoverLeases(bool all, int max_attempts) = 0;
+
+  // QUEUED -> CANCELLED at once; RUNNING -> cancel requested (the worker finishes it).
+  // Final jobs are returned unchanged.
+  virtual absl::StatusOr<v1::Job> Cancel(const std::string& id) = 0;
+  virtual absl::StatusOr<bool> CancelRequested(const std::string& id) = 0;
+  // FAILED / CANCELLED -> QUEUED (attempts reset); FAILED_PRECONDITION otherwise.
+  virtual absl::StatusOr<v1::Job> Retry(const std::string& id, int max_queued) = 0;
+  // Final jobs only (FAILED_PRECONDITION otherwise); removes the events too.
+  virtual absl::Status DeleteJob(const std::string& id) = 0;
+
+  // Events with sequence > after, at most `limit`, in order.
+  virtual absl::StatusOr<std::vector<v1::JobEvent>> ListEvents(const std::string& id, int64_t after,
+                                                               int limit) = 0;
+
+  // Volumes. CreateVolume with a used non-empty request_id returns the first volume.
+  virtual absl::StatusOr<v1::Volume> CreateVolume(const std::string& id, const v1::Volume& volume,
+                                                  const std::string& request_id, bool* created) = 0;
+  virtual absl::StatusOr<v1::Volume> GetVolume(const std::string& id) = 0;
+  virtual absl::StatusOr<VolumePage> ListVolumes(int page_size, const std::string& page_token) = 0;
+  // FAILED_PRECONDITION while a QUEUED or RUNNING job reads it.
+  virtual absl::Status DeleteVolume(const std::string& id) = 0;
+  // True if any stored volume lists blob `sha256`.
+  virtual absl::StatusOr<bool> BlobInUse(const std::string& sha256) = 0;
+};
+
+// The embedded store: one SQLite database file in WAL mode.
+absl::StatusOr<std::unique_ptr<JobStore>> OpenSqliteJobStore(const std::string& path);
+
+// "jobs/{id}" -> id, INVALID_ARGUMENT naming `field` otherwise. Same for volumes and blobs.
+absl::StatusOr<std::string> ParseName(const std::string& name, const std::string& collection,
+                                      const std::string& field);
+
+}  // namespace decima::server

@@ -1,0 +1,283 @@
+// decima-server: the gRPC service. Flags (each also an environment variable):
+//   --listen ADDR         DECIMA_LISTEN          default 127.0.0.1:50051
+//   --data-dir DIR        DECIMA_DATA_DIR        default $XDG_DATA_HOME/decima or ./decima-data
+//   --workers N           DECIMA_WORKERS         default 1
+//   --max-queued N        DECIMA_MAX_QUEUED      default 1000
+//   --max-upload-mb N     DECIMA_MAX_UPLOAD_MB   default 2048
+//   --token-file F        DECIMA_TOKEN_FILE      bearer token required on every call
+//   --tls-cert F --tls-key F  DECIMA_TLS_CERT / DECIMA_TLS_KEY
+// `decima-server --run-job DIR --input PATH [--label-map PATH]` is the job child process.
+#include <fcntl.h>
+#include <signal.h>
+#include <sys/file.h>
+#include <unistd.h>
+
+#include <grpcpp/ext/proto_server_reflection_plugin.h>
+#include <grpcpp/grpcpp.h>
+#include <grpcpp/health_check_service_interface.h>
+#include <CLI/CLI.hpp>
+#include <cstdlib>
+#include <fstream>
+#include <sstream>
+#include <thread>
+
+#include "absl/strings/ascii.h"
+#include "absl/strings/str_cat.h"
+#include "server/service.h"
+#include "server/worker_process.h"
+#include "spdlog/spdlog.h"
+
+namespace fs = std::filesystem;
+using namespace decima::server;
+
+namespace {
+
+std::string DefaultDataDir() {
+  if (const char* x = std::getenv("XDG_DATA_HOME"); x != nullptr && *x != '\0') {
+    return (fs::path(x) / "decima").string();
+  }
+  return "./decima-data";
+}
+
+absl::StatusOr<std::string> ReadFileText(const std::string& path, const char* what) {
+  std::ifstream in(path, std::ios::binary);
+  if (!in) return absl::NotFoundError(absl::StrCat(what, " ", path, ": cannot open"));
+  std::stringstream ss;
+  ss << in.rdbuf();
+  return ss.str();
+}
+
+int RunJobMode(int argc, char** argv) {
+  fs::path dir, input, label_map;
+  for (int i = 1; i + 1 < argc; i += 2) {
+    std::string k = argv[i];
+    if (k == "--run-job") dir = argv[i + 1];
+    if (k == "--input") input = argv[i + 1];
+    if (k == "--label-map") label_map = argv[i + 1];
+  }
+  return RunJobProcess(dir, input, label_map, kWorkerFd);
+}
+
+}  // namespace
+
+int main(int argc, char** argv) {
+  if (argc >= 3 && std::string(argv[1]) == "--run-job") return RunJobMode(argc, argv);
+
+  CLI::App app{
+      "decima-server: turns uploaded medical volumes into simplified tetrahedral "
+      "meshes, as queued jobs (gRPC API decima.v1)"};
+  std::string listen = "127.0.0.1:50051", data_dir = DefaultDataDir(), token_file, tls_cert,
+              tls_key, port_file;
+  int workers = 1, max_queued = 1000, max_attempts = 3;
+  int64_t max_upload_mb = 2048, worker_memory_mb = 0;
+  double drain_seconds = 30, heartbeat_seconds = 5, lease_seconds = 15;
+  bool allow_faults = false, no_fsync = false;
+  app.add_option("--listen", listen, "address to serve on (host:port)")
+      ->envname("DECIMA_LISTEN")
+      ->capture_default_str();
+  app.add_option("--data-dir", data_dir, "folder of the job store, blobs and artifacts")
+      ->envname("DECIMA_DATA_DIR")
+      ->capture_default_str();
+  app.add_option("--workers", workers, "jobs run at once (one child process each)")
+      ->envname("DECIMA_WORKERS")
+      ->check(CLI::Range(1, 256))
+      ->capture_default_str();
+  app.add_option("--max-queued", max_queued, "queued jobs before CreateJob is refused")
+      ->envname("DECIMA_MAX_QUEUED")
+      ->check(CLI::Range(1, 10000000))
+      ->capture_default_str();
+  app.add_option("--max-upload-mb", max_upload_mb, "largest blob accepted, MiB")
+      ->envname("DECIMA_MAX_UPLOAD_MB")
+      ->check(CLI::Range(int64_t{1}, int64_t{1} << 30))
+      ->capture_default_str();
+  app.add_option("--token-file", token_file, "file holding the bearer token every call needs")
+      ->envname("DECIMA_TOKEN_FILE")
+      ->check(CLI::ExistingFile);
+  auto* cert = app.add_option("--tls-cert", tls_cert, "PEM certificate chain: serve TLS")
+                   ->envname("DECIMA_TLS_CERT")
+                   ->check(CLI::ExistingFile);
+  auto* key = app.add_option("--tls-key", tls_key, "PEM private key for --tls-cert")
+                  ->envname("DECIMA_TLS_KEY")
+                  ->check(CLI::ExistingFile);
+  cert->needs(key);
+  key->needs(cert);
+  app.add_option("--max-attempts", max_attempts,
+                 "claims of a job whose worker is lost before it fails")
+      ->envname("DECIMA_MAX_ATTEMPTS")
+      ->check(CLI::Range(1, 100))
+      ->capture_default_str();
+  app.add_option("--lease-seconds", lease_seconds, "job lease, renewed every third of it")
+      ->envname("DECIMA_LEASE_SECONDS")
+      ->check(CLI::Range(1.0, 3600.0))
+      ->capture_default_str();
+  app.add_option("--drain-seconds", drain_seconds,
+                 "on SIGTERM, how long running jobs may finish before they are requeued")
+      ->envname("DECIMA_DRAIN_SECONDS")
+      ->check(CLI::Range(0.0, 86400.0))
+      ->capture_default_str();
+  app.add_option("--heartbeat-seconds", heartbeat_seconds, "WatchJob heartbeat period")
+      ->envname("DECIMA_HEARTBEAT_SECONDS")
+      ->check(CLI::Range(0.05, 3600.0))
+      ->capture_default_str();
+  app.add_option("--worker-memory-mb", worker_memory_mb,
+                 "address-space limit of each job process, MiB (0: none)")
+      ->envname("DECIMA_WORKER_MEMORY_MB")
+      ->capture_default_str();
+  app.add_flag("--allow-faults", allow_faults, "accept JobSpec.fault (tests only)")
+      ->envname("DECIMA_ALLOW_FAULTS");
+  app.add_flag("--no-fsync", no_fsync, "do not fdatasync blobs before commit (benchmarks)")
+      ->envname("DECIMA_NO_FSYNC");
+  app.add_option("--port-file", port_file, "write the bound port here once serving (tests)")
+      ->envname("DECIMA_PORT_FILE");
+  CLI11_PARSE(app, argc, argv);
+
+  spdlog::set_pattern("%Y-%m-%dT%H:%M:%S.%e %^%l%$ %v");
+
+  // Block the shutdown signals in every thread; one thread waits for them below. The job
+  // children unblock them before exec.
+  sigset_t sigs;
+  sigemptyset(&sigs);
+  sigaddset(&sigs, SIGTERM);
+  sigaddset(&sigs, SIGINT);
+  pthread_sigmask(SIG_BLOCK, &sigs, nullptr);
+  signal(SIGPIPE, SIG_IGN);
+
+  std::error_code ec;
+  fs::create_directories(data_dir, ec);
+  if (ec) {
+    spdlog::error("--data-dir {}: {}", data_dir, ec.message());
+    return 1;
+  }
+  fs::path data = fs::absolute(data_dir);
+  // One server per data dir: the embedded store is not shared. The kernel drops the lock when
+  // the process dies, so after a crash every RUNNING job's owner is known to be gone.
+  int lock_fd = ::open((data / "LOCK").c_str(), O_RDWR | O_CREAT | O_CLOEXEC, 0644);
+  if (lock_fd < 0 || ::flock(lock_fd, LOCK_EX | LOCK_NB) != 0) {
+    spdlog::error("--data-dir {}: used by another decima-server (LOCK is held)", data.string());
+    return 1;
+  }
+
+  std::string token;
+  if (!token_file.empty()) {
+    auto t = ReadFileText(token_file, "--token-file");
+    if (!t.ok()) {
+      spdlog::error("{}", std::string(t.status().message()));
+      return 1;
+    }
+    token = std::string(absl::StripAsciiWhitespace(*t));
+    if (token.empty()) {
+      spdlog::error("--token-file {}: empty", token_file);
+      return 1;
+    }
+  }
+
+  auto store = OpenSqliteJobStore((data / "jobs.sqlite").string());
+  if (!store.ok()) {
+    spdlog::error("{}", store.status().ToString());
+    return 1;
+  }
+  auto blobs = LocalBlobStore::Open(data / "blobs", !no_fsync);
+  if (!blobs.ok()) {
+    spdlog::error("{}", blobs.status().ToString());
+    return 1;
+  }
+  EventBus bus;
+  (*store)->SetListener(
+      [&bus](const std::string& id, const decima::v1::JobEvent& ev) { bus.Publish(id, ev); });
+
+  auto recovered = (*store)->RecoverLeases(/*all=*/true, max_attempts);
+  if (!recovered.ok()) {
+    spdlog::error("recovering jobs: {}", recovered.status().ToString());
+    return 1;
+  }
+  for (const auto& id : recovered->requeued) {
+    spdlog::info("job {} QUEUED again (its worker was lost when the server stopped)", id);
+  }
+  for (const auto& id : recovered->failed) spdlog::info("job {} FAILED/CANCELLED on recovery", id);
+
+  WorkerPoolOptions wo;
+  wo.workers = workers;
+  wo.data_dir = data;
+  wo.worker_exe = fs::read_symlink("/proc/self/exe", ec);
+  wo.owner = absl::StrCat("pid", ::getpid(), "-", NewId());
+  wo.lease_ms = static_cast<int64_t>(lease_seconds * 1000);
+  wo.max_attempts = max_attempts;
+  wo.worker_memory_mb = worker_memory_mb;
+  WorkerPool pool(store->get(), wo);
+
+  ServiceOptions so;
+  so.data_dir = data;
+  so.token = token;
+  so.max_upload_bytes = max_upload_mb << 20;
+  so.max_queued = max_queued;
+  so.allow_faults = allow_faults;
+  so.heartbeat_ms = static_cast<int64_t>(heartbeat_seconds * 1000);
+  Services services(so, store->get(), blobs->get(), &bus, &pool);
+
+  grpc::EnableDefaultHealthCheckService(true);
+  grpc::reflection::InitProtoReflectionServerBuilderPlugin();
+  grpc::ServerBuilder builder;
+  std::shared_ptr<grpc::ServerCredentials> creds = grpc::InsecureServerCredentials();
+  if (!tls_cert.empty()) {
+    auto c = ReadFileText(tls_cert, "--tls-cert");
+    auto k = ReadFileText(tls_key, "--tls-key");
+    if (!c.ok() || !k.ok()) {
+      spdlog::error("{}", std::string((!c.ok() ? c.status() : k.status()).message()));
+      return 1;
+    }
+    grpc::SslServerCredentialsOptions ssl;
+    ssl.pem_key_cert_pairs.push_back({*k, *c});
+    creds = grpc::SslServerCredentials(ssl);
+  }
+  int port = 0;
+  builder.AddListeningPort(listen, creds, &port);
+  builder.RegisterService(services.uploads());
+  builder.RegisterService(services.volumes());
+  builder.RegisterService(services.jobs());
+  builder.RegisterService(services.artifacts());
+  builder.SetMaxReceiveMessageSize(4 << 20);
+  std::unique_ptr<grpc::Server> server = builder.BuildAndStart();
+  if (!server || port == 0) {
+    spdlog::error("--listen {}: cannot bind", listen);
+    return 1;
+  }
+  server->GetHealthCheckService()->SetServingStatus(true);
+  pool.Start();
+  spdlog::info("decima-server listening on {} (port {}), data {}, {} worker(s){}{}", listen, port,
+               data.string(), workers, token.empty() ? "" : ", token required",
+               tls_cert.empty() ? "" : ", TLS");
+  if (!port_file.empty()) {
+    std::string tmp = port_file + ".tmp";
+    std::ofstream(tmp) << port << "\n";
+    fs::rename(tmp, port_file, ec);
+  }
+
+  // Re-queue jobs whose lease lapsed (a worker thread lost in another replica, a stuck store).
+  std::atomic<bool> stop_reaper{false};
+  std::thread reaper([&] {
+    while (!stop_reaper.load()) {
+      for (int i = 0; i < 10 && !stop_reaper.load(); ++i) {
+        std::this_thread::sleep_for(std::chrono::milliseconds(wo.lease_ms / 20));
+      }
+      if (stop_reaper.load()) break;
+      auto r = (*store)->RecoverLeases(/*all=*/false, max_attempts);
+      if (r.ok() && !r->requeued.empty()) pool.Notify();
+    }
+  });
+
+  int sig = 0;
+  sigwait(&sigs, &sig);
+  spdlog::info(
+      "signal {}: draining (health NOT_SERVING, new calls UNAVAILABLE, running jobs "
+      "get {} s)",
+      sig, drain_seconds);
+  services.StartDraining();
+  server->GetHealthCheckService()->SetServingStatus(false);
+  bus.Close();
+  pool.Drain(std::chrono::milliseconds(static_cast<int64_t>(drain_seconds * 1000)));
+  stop_reaper = true;
+  reaper.join();
+  server->Shutdown(std::chrono::system_clock::now() + std::chrono::seconds(2));
+  spdlog::info("decima-server stopped");
+  return 0;
+}

@@ -1,0 +1,748 @@
+// The embedded JobStore: one SQLite database in WAL mode. Each job row keeps a few indexed
+// columns (state, lease, request id) beside the serialized decima.v1.Job, which is the source
+// of truth for everything else; events are rows keyed by (job, sequence). One connection
+// guarded by a mutex: the store serves one process (the data dir is locked by the server).
+#include <google/protobuf/util/time_util.h>
+#include <sqlite3.h>
+
+#include <chrono>
+#include <mutex>
+#include <utility>
+
+#include "absl/strings/numbers.h"
+#include "absl/strings/str_cat.h"
+#include "absl/strings/str_join.h"
+#include "server/job_store.h"
+
+// Commits `tx` or returns its error.
+#define DECIMA_TX_COMMIT(tx)                 \
+  do {                                       \
+    absl::Status tx_status_ = (tx).Commit(); \
+    if (!tx_status_.ok()) return tx_status_; \
+  } while (0)
+#define DECIMA_RETURN_IF_ERROR_LOCAL(expr) \
+  do {                                     \
+    absl::Status st_ = (expr);             \
+    if (!st_.ok()) return st_;             \
+  } while (0)
+
+namespace decima::server {
+namespace {
+
+using google::protobuf::util::TimeUtil;
+
+int64_t NowMs() {
+  return std::chrono::duration_cast<std::chrono::milliseconds>(
+             std::chrono::system_clock::now().time_since_epoch())
+      .count();
+}
+
+// A prepared statement; binds by 1-based index, resets on destruction.
+class Stmt {
+ public:
+  Stmt(sqlite3* db, const char* sql) : db_(db) {
+    rc_ = sqlite3_prepare_v2(db, sql, -1, &stmt_, nullptr);
+  }
+  ~Stmt() { sqlite3_finalize(stmt_); }
+  bool ok() const { return rc_ == SQLITE_OK; }
+  Stmt& Bind(int i, int64_t v) {
+    sqlite3_bind_int64(stmt_, i, v);
+    return *this;
+  }
+  Stmt& Bind(int i, const std::string& v) {
+    sqlite3_bind_text(stmt_, i, v.data(), static_cast<int>(v.size()), SQLITE_TRANSIENT);
+    return *this;
+  }
+  Stmt& BindBlob(int i, const std::string& v) {
+    sqlite3_bind_blob(stmt_, i, v.data(), static_cast<int>(v.size()), SQLITE_TRANSIENT);
+    return *this;
+  }
+  Stmt& BindNull(int i) {
+    sqlite3_bind_null(stmt_, i);
+    return *this;
+  }
+  // SQLITE_ROW, SQLITE_DONE or an error code.
+  int Step() { return sqlite3_step(stmt_); }
+  int64_t Int(int col) { return sqlite3_column_int64(stmt_, col); }
+  std::string Text(int col) {
+    const void* p = sqlite3_column_blob(stmt_, col);
+    int n = sqlite3_column_bytes(stmt_, col);
+    return p ? std::string(static_cast<const char*>(p), static_cast<size_t>(n)) : std::string();
+  }
+  absl::Status Error(const char* what) const {
+    return absl::InternalError(absl::StrCat("job store: ", what, ": ", sqlite3_errmsg(db_)));
+  }
+
+ private:
+  sqlite3* db_;
+  sqlite3_stmt* stmt_ = nullptr;
+  int rc_;
+};
+
+std::string EncodeToken(int64_t ord) { return absl::StrCat("o", ord); }
+
+absl::StatusOr<int64_t> DecodeToken(const std::string& token) {
+  if (token.empty()) return INT64_MAX;
+  int64_t v = 0;
+  if (token.size() < 2 || token[0] != 'o' || !absl::SimpleAtoi(token.substr(1), &v) || v < 0) {
+    return absl::InvalidArgumentError(
+        absl::StrCat("page_token '", token, "' is not a token this server returned"));
+  }
+  return v;
+}
+
+int ClampPageSize(int page_size) {
+  if (page_size <= 0) return 50;
+  return page_size > 1000 ? 1000 : page_size;
+}
+
+class SqliteJobStore : public JobStore {
+ public:
+  explicit SqliteJobStore(sqlite3* db) : db_(db) {}
+  ~SqliteJobStore() override { sqlite3_close(db_); }
+
+  absl::Status Init() {
+    const char* kSchema = R"sql(
+      PRAGMA journal_mode=WAL;
+      PRAGMA synchronous=NORMAL;
+      PRAGMA foreign_keys=ON;
+      CREATE TABLE IF NOT EXISTS jobs(
+        ord INTEGER PRIMARY KEY AUTOINCREMENT,
+        id TEXT UNIQUE NOT NULL,
+        request_id TEXT UNIQUE,
+        state INTEGER NOT NULL,
+        lease_owner TEXT,
+        lease_expiry INTEGER NOT NULL DEFAULT 0,
+        cancel_requested INTEGER NOT NULL DEFAULT 0,
+        volume TEXT NOT NULL,
+        job BLOB NOT NULL);
+      CREATE INDEX IF NOT EXISTS jobs_by_state ON jobs(state, ord);
+      CREATE TABLE IF NOT EXISTS events(
+        job_id TEXT NOT NULL, seq INTEGER NOT NULL, event BLOB NOT NULL,
+        PRIMARY KEY(job_id, seq)) WITHOUT ROWID;
+      CREATE TABLE IF NOT EXISTS volumes(
+        ord INTEGER PRIMARY KEY AUTOINCREMENT,
+        id TEXT UNIQUE NOT NULL,
+        request_id TEXT UNIQUE,
+        volume BLOB NOT NULL);
+      CREATE TABLE IF NOT EXISTS volume_blobs(
+        volume_id TEXT NOT NULL, sha256 TEXT NOT NULL,
+        PRIMARY KEY(volume_id, sha256)) WITHOUT ROWID;
+      CREATE INDEX IF NOT EXISTS volume_blobs_by_sha ON volume_blobs(sha256);
+    )sql";
+    return Exec(kSchema);
+  }
+
+  void SetListener(EventListener listener) override {
+    std::lock_guard<std::mutex> lock(mu_);
+    listener_ = std::move(listener);
+  }
+
+  absl::StatusOr<v1::Job> CreateJob(const std::string& id, const v1::JobSpec& spec,
+                                    const std::string& request_id, int max_queued,
+                                    bool* created) override {
+    std::lock_guard<std::mutex> lock(mu_);
+    *created = false;
+    if (!request_id.empty()) {
+      Stmt q(db_, "SELECT job FROM jobs WHERE request_id=?");
+      q.Bind(1, request_id);
+      if (q.Step() == SQLITE_ROW) return ParseJob(q.Text(0));
+    }
+    Tx tx(this);
+    if (!tx.ok()) return tx.status();
+    {
+      Stmt c(db_, "SELECT COUNT(*) FROM jobs WHERE state=?");
+      c.Bind(1, int64_t{v1::QUEUED});
+      if (c.Step() != SQLITE_ROW) return c.Error("counting queued jobs");
+      if (max_queued > 0 && c.Int(0) >= max_queued) {
+        return absl::ResourceExhaustedError(absl::StrCat("the queue is full (", c.Int(0),
+                                                         " jobs queued, --max-queued ", max_queued,
+                                                         "); retry later"));
+      }
+    }
+    v1::Job job;
+    job.set_name(absl::StrCat("jobs/", id));
+    *job.mutable_spec() = spec;
+    job.set_state(v1::QUEUED);
+    job.set_request_id(request_id);
+    *job.mutable_create_time() = NowTimestamp();
+    AddStateEvent(job, v1::QUEUED, nullptr);
+    Stmt ins(db_, "INSERT INTO jobs(id, request_id, state, volume, job) VALUES(?,?,?,?,?)");
+    ins.Bind(1, id);
+    if (request_id.empty()) {
+      ins.BindNull(2);
+    } else {
+      ins.Bind(2, request_id);
+    }
+    ins.Bind(3, int64_t{job.state()}).Bind(4, spec.volume()).BindBlob(5, job.SerializeAsString());
+    if (ins.Step() != SQLITE_DONE) return ins.Error("inserting job");
+    DECIMA_RETURN_IF_ERROR_LOCAL(SaveEvents());
+    DECIMA_TX_COMMIT(tx);
+    *created = true;
+    return job;
+  }
+
+  absl::StatusOr<v1::Job> GetJob(const std::string& id) override {
+    std::lock_guard<std::mutex> lock(mu_);
+    return LoadJob(id);
+  }
+
+  absl::StatusOr<JobPage> ListJobs(const std::vector<v1::JobState>& states, int page_size,
+                                   const std::string& page_token) override {
+    auto before = DecodeToken(page_token);
+    if (!before.ok()) return before.status();
+    int limit = ClampPageSize(page_size);
+    std::string sql = "SELECT ord, job FROM jobs WHERE ord < ?";
+    if (!states.empty()) {
+      std::vector<std::string> parts;
+      for (auto s : states) parts.push_back(absl::StrCat(static_cast<int>(s)));
+      absl::StrAppend(&sql, " AND state IN (", absl::StrJoin(parts, ","), ")");
+    }
+    absl::StrAppend(&sql, " ORDER BY ord DESC LIMIT ?");
+    std::lock_guard<std::mutex> lock(mu_);
+    Stmt q(db_, sql.c_str());
+    q.Bind(1, *before).Bind(2, int64_t{limit} + 1);
+    JobPage page;
+    int64_t last_ord = 0;
+    int rc;
+    while ((rc = q.Step()) == SQLITE_ROW) {
+      if (static_cast<int>(page.jobs.size()) == limit) {
+        page.next_page_token = EncodeToken(last_ord);
+        break;
+      }
+      last_ord = q.Int(0);
+      auto job = ParseJob(q.Text(1));
+      if (!job.ok()) return job.status();
+      page.jobs.push_back(std::move(*job));
+    }
+    if (rc != SQLITE_ROW && rc != SQLITE_DONE) return q.Error("listing jobs");
+    return page;
+  }
+
+  absl::StatusOr<int64_t> CountJobs(v1::JobState state) override {
+    std::lock_guard<std::mutex> lock(mu_);
+    Stmt c(db_, "SELECT COUNT(*) FROM jobs WHERE state=?");
+    c.Bind(1, int64_t{state});
+    if (c.Step() != SQLITE_ROW) return c.Error("counting jobs");
+    return c.Int(0);
+  }
+
+  absl::StatusOr<std::optional<v1::Job>> ClaimNext(const std::string& owner,
+                                                   int64_t lease_ms) override {
+    std::lock_guard<std::mutex> lock(mu_);
+    Tx tx(this);
+    if (!tx.ok()) return tx.status();
+    Stmt q(db_, "SELECT job FROM jobs WHERE state=? ORDER BY ord LIMIT 1");
+    q.Bind(1, int64_t{v1::QUEUED});
+    int rc = q.Step();
+    if (rc == SQLITE_DONE) return std::optional<v1::Job>();
+    if (rc != SQLITE_ROW) return q.Error("claiming a job");
+    auto job = ParseJob(q.Text(0));
+    if (!job.ok()) return job.status();
+    job->set_state(v1::RUNNING);
+    job->set_attempts(job->attempts() + 1);
+    *job->mutable_start_time() = NowTimestamp();
+    job->clear_end_time();
+    job->clear_error();
+    job->clear_progress();
+    AddStateEvent(*job, v1::RUNNING, nullptr);
+    DECIMA_RETURN_IF_ERROR_LOCAL(SaveJob(*job, owner, NowMs() + lease_ms, /*cancel=*/0));
+    DECIMA_TX_COMMIT(tx);
+    return std::optional<v1::Job>(std::move(*job));
+  }
+
+  absl::Status RenewLease(const std::string& id, const std::string& owner,
+                          int64_t lease_ms) override {
+    std::lock_guard<std::mutex> lock(mu_);
+    Stmt u(db_, "UPDATE jobs SET lease_expiry=? WHERE id=? AND state=? AND lease_owner=?");
+    u.Bind(1, NowMs() + lease_ms).Bind(2, id).Bind(3, int64_t{v1::RUNNING}).Bind(4, owner);
+    if (u.Step() != SQLITE_DONE) return u.Error("renewing a lease");
+    if (sqlite3_changes(db_) != 1) {
+      return absl::FailedPreconditionError(
+          absl::StrCat("job ", id, " is no longer leased to ", owner));
+    }
+    return absl::OkStatus();
+  }
+
+  absl::Status AppendProgress(const std::string& id, const std::string& owner,
+                              const v1::Progress& progress) override {
+    std::lock_guard<std::mutex> lock(mu_);
+    Tx tx(this);
+    if (!tx.ok()) return tx.status();
+    auto job = LoadHeld(id, owner);
+    if (!job.ok()) return job.status();
+    *job->mutable_progress() = progress;
+    v1::JobEvent ev;
+    *ev.mutable_progress() = progress;
+    AddEvent(*job, std::move(ev));
+    DECIMA_RETURN_IF_ERROR_LOCAL(SaveJobKeepLease(*job));
+    DECIMA_TX_COMMIT(tx);
+    return absl::OkStatus();
+  }
+
+  absl::StatusOr<v1::Job> Finish(const std::string& id, const std::string& owner,
+                                 v1::JobState state, const v1::Job& outcome) override {
+    std::lock_guard<std::mutex> lock(mu_);
+    Tx tx(this);
+    if (!tx.ok()) return tx.status();
+    auto job = LoadHeld(id, owner);
+    if (!job.ok()) return job.status();
+    job->set_state(state);
+    *job->mutable_end_time() = NowTimestamp();
+    if (outcome.has_error()) *job->mutable_error() = outcome.error();
+    *job->mutable_artifacts() = outcome.artifacts();
+    job->set_metrics_json(outcome.metrics_json());
+    AddStateEvent(*job, state, outcome.has_error() ? &outcome.error() : nullptr);
+    DECIMA_RETURN_IF_ERROR_LOCAL(SaveJob(*job, "", 0, 0));
+    DECIMA_TX_COMMIT(tx);
+    return *job;
+  }
+
+  absl::StatusOr<v1::Job> Requeue(const std::string& id, const std::string& owner,
+                                  const std::string& reason) override {
+    std::lock_guard<std::mutex> lock(mu_);
+    Tx tx(this);
+    if (!tx.ok()) return tx.status();
+    auto job = LoadHeld(id, owner);
+    if (!job.ok()) return job.status();
+    job->set_state(v1::QUEUED);
+    job->set_attempts(std::max(0, job->attempts() - 1));
+    job->mutable_progress()->set_message(reason);
+    AddStateEvent(*job, v1::QUEUED, nullptr);
+    DECIMA_RETURN_IF_ERROR_LOCAL(SaveJob(*job, "", 0, 0));
+    DECIMA_TX_COMMIT(tx);
+    return *job;
+  }
+
+  absl::StatusOr<Recovered> RecoverLeases(bool all, int max_attempts) override {
+    std::lock_guard<std::mutex> lock(mu_);
+    Tx tx(this);
+    if (!tx.ok()) return tx.status();
+    Stmt q(db_, all ? "SELECT job, cancel_requested FROM jobs WHERE state=?"
+                    : "SELECT job, cancel_requested FROM jobs WHERE state=? AND lease_expiry<?");
+    q.Bind(1, int64_t{v1::RUNNING});
+    if (!all) q.Bind(2, NowMs());
+    std::vector<std::pair<v1::Job, bool>> lapsed;
+    int rc;
+    while ((rc = q.Step()) == SQLITE_ROW) {
+      auto job = ParseJob(q.Text(0));
+      if (!job.ok()) return job.status();
+      lapsed.emplace_back(std::move(*job), q.Int(1) != 0);
+    }
+    if (rc != SQLITE_DONE) return q.Error("finding lapsed leases");
+    Recovered out;
+    for (auto& [job, cancel] : lapsed) {
+      std::string id = job.name().substr(5);
+      if (cancel) {
+        job.set_state(v1::CANCELLED);
+        job.mutable_error()->set_code(1);
+        job.mutable_error()->set_message("cancelled by request (its worker was lost)");
+        *job.mutable_end_time() = NowTimestamp();
+        AddStateEvent(job, v1::CANCELLED, &job.error());
+        out.failed.push_back(id);
+      } else if (job.attempts() >= max_attempts) {
+        job.set_state(v1::FAILED);
+        job.mutable_error()->set_code(14);
+        job.mutable_error()->set_message(absl::StrCat("the worker was lost ", job.attempts(),
+                                                      " times (lease lapsed); giving up"));
+        *job.mutable_end_time() = NowTimestamp();
+        AddStateEvent(job, v1::FAILED, &job.error());
+        out.failed.push_back(id);
+      } else {
+        job.set_state(v1::QUEUED);
+        job.mutable_progress()->set_message("requeued: the lease of its worker lapsed");
+        AddStateEvent(job, v1::QUEUED, nullptr);
+        out.requeued.push_back(id);
+      }
+      DECIMA_RETURN_IF_ERROR_LOCAL(SaveJob(job, "", 0, 0));
+    }
+    DECIMA_TX_COMMIT(tx);
+    return out;
+  }
+
+  absl::StatusOr<v1::Job> Cancel(const std::string& id) override {
+    std::lock_guard<std::mutex> lock(mu_);
+    Tx tx(this);
+    if (!tx.ok()) return tx.status();
+    auto job = LoadJob(id);
+    if (!job.ok()) return job.status();
+    if (job->state() == v1::QUEUED) {
+      job->set_state(v1::CANCELLED);
+      job->mutable_error()->set_code(1);
+      job->mutable_error()->set_message("cancelled by request while queued");
+      *job->mutable_end_time() = NowTimestamp();
+      AddStateEvent(*job, v1::CANCELLED, &job->error());
+      DECIMA_RETURN_IF_ERROR_LOCAL(SaveJob(*job, "", 0, 0));
+    } else if (job->state() == v1::RUNNING) {
+      Stmt u(db_, "UPDATE jobs SET cancel_requested=1 WHERE id=?");
+      u.Bind(1, id);
+      if (u.Step() != SQLITE_DONE) return u.Error("requesting cancel");
+    }
+    DECIMA_TX_COMMIT(tx);
+    return *job;
+  }
+
+  absl::StatusOr<bool> CancelRequested(const std::string& id) override {
+    std::lock_guard<std::mutex> lock(mu_);
+    Stmt q(db_, "SELECT cancel_requested FROM jobs WHERE id=?");
+    q.Bind(1, id);
+    if (q.Step() != SQLITE_ROW) return absl::NotFoundError(absl::StrCat("job ", id, " not found"));
+    return q.Int(0) != 0;
+  }
+
+  absl::StatusOr<v1::Job> Retry(const std::string& id, int max_queued) override {
+    std::lock_guard<std::mutex> lock(mu_);
+    Tx tx(this);
+    if (!tx.ok()) return tx.status();
+    auto job = LoadJob(id);
+    if (!job.ok()) return job.status();
+    if (job->state() != v1::FAILED && job->state() != v1::CANCELLED) {
+      return absl::FailedPreconditionError(
+          absl::StrCat("job ", id, " is ", v1::JobState_Name(job->state()),
+                       "; only FAILED or CANCELLED jobs can be retried"));
+    }
+    Stmt c(db_, "SELECT COUNT(*) FROM jobs WHERE state=?");
+    c.Bind(1, int64_t{v1::QUEUED});
+    if (c.Step() != SQLITE_ROW) return c.Error("counting queued jobs");
+    if (max_queued > 0 && c.Int(0) >= max_queued) {
+      return absl::ResourceExhaustedError(
+          absl::StrCat("the queue is full (--max-queued ", max_queued, "); retry later"));
+    }
+    job->set_state(v1::QUEUED);
+    job->set_attempts(0);
+    job->clear_error();
+    job->clear_artifacts();
+    job->clear_metrics_json();
+    job->clear_progress();
+    job->clear_start_time();
+    job->clear_end_time();
+    AddStateEvent(*job, v1::QUEUED, nullptr);
+    DECIMA_RETURN_IF_ERROR_LOCAL(SaveJob(*job, "", 0, 0));
+    DECIMA_TX_COMMIT(tx);
+    return *job;
+  }
+
+  absl::Status DeleteJob(const std::string& id) override {
+    std::lock_guard<std::mutex> lock(mu_);
+    Tx tx(this);
+    if (!tx.ok()) return tx.status();
+    auto job = LoadJob(id);
+    if (!job.ok()) return job.status();
+    if (!IsFinal(job->state())) {
+      return absl::FailedPreconditionError(absl::StrCat(
+          "job ", id, " is ", v1::JobState_Name(job->state()), "; cancel it before deleting"));
+    }
+    Stmt d1(db_, "DELETE FROM events WHERE job_id=?");
+    d1.Bind(1, id);
+    if (d1.Step() != SQLITE_DONE) return d1.Error("deleting events");
+    Stmt d2(db_, "DELETE FROM jobs WHERE id=?");
+    d2.Bind(1, id);
+    if (d2.Step() != SQLITE_DONE) return d2.Error("deleting job");
+    DECIMA_TX_COMMIT(tx);
+    return absl::OkStatus();
+  }
+
+  absl::StatusOr<std::vector<v1::JobEvent>> ListEvents(const std::string& id, int64_t after,
+                                                       int limit) override {
+    std::lock_guard<std::mutex> lock(mu_);
+    Stmt q(db_, "SELECT event FROM events WHERE job_id=? AND seq>? ORDER BY seq LIMIT ?");
+    q.Bind(1, id).Bind(2, after).Bind(3, int64_t{limit});
+    std::vector<v1::JobEvent> out;
+    int rc;
+    while ((rc = q.Step()) == SQLITE_ROW) {
+      v1::JobEvent ev;
+      if (!ev.ParseFromString(q.Text(0))) return absl::DataLossError("job store: bad event row");
+      out.push_back(std::move(ev));
+    }
+    if (rc != SQLITE_DONE) return q.Error("listing events");
+    return out;
+  }
+
+  absl::StatusOr<v1::Volume> CreateVolume(const std::string& id, const v1::Volume& volume,
+                                          const std::string& request_id, bool* created) override {
+    std::lock_guard<std::mutex> lock(mu_);
+    *created = false;
+    if (!request_id.empty()) {
+      Stmt q(db_, "SELECT volume FROM volumes WHERE request_id=?");
+      q.Bind(1, request_id);
+      if (q.Step() == SQLITE_ROW) return ParseVolume(q.Text(0));
+    }
+    Tx tx(this);
+    if (!tx.ok()) return tx.status();
+    Stmt ins(db_, "INSERT INTO volumes(id, request_id, volume) VALUES(?,?,?)");
+    ins.Bind(1, id);
+    if (request_id.empty()) {
+      ins.BindNull(2);
+    } else {
+      ins.Bind(2, request_id);
+    }
+    ins.BindBlob(3, volume.SerializeAsString());
+    if (ins.Step() != SQLITE_DONE) return ins.Error("inserting volume");
+    for (const auto& f : volume.files()) {
+      Stmt b(db_, "INSERT OR IGNORE INTO volume_blobs(volume_id, sha256) VALUES(?,?)");
+      b.Bind(1, id).Bind(2, f.blob().substr(6));
+      if (b.Step() != SQLITE_DONE) return b.Error("inserting volume blob");
+    }
+    DECIMA_TX_COMMIT(tx);
+    *created = true;
+    return volume;
+  }
+
+  absl::StatusOr<v1::Volume> GetVolume(const std::string& id) override {
+    std::lock_guard<std::mutex> lock(mu_);
+    Stmt q(db_, "SELECT volume FROM volumes WHERE id=?");
+    q.Bind(1, id);
+    int rc = q.Step();
+    if (rc == SQLITE_DONE) return absl::NotFoundError(absl::StrCat("volumes/", id, " not found"));
+    if (rc != SQLITE_ROW) return q.Error("reading volume");
+    return ParseVolume(q.Text(0));
+  }
+
+  absl::StatusOr<VolumePage> ListVolumes(int page_size, const std::string& page_token) override {
+    auto before = DecodeToken(page_token);
+    if (!before.ok()) return before.status();
+    int limit = ClampPageSize(page_size);
+    std::lock_guard<std::mutex> lock(mu_);
+    Stmt q(db_, "SELECT ord, volume FROM volumes WHERE ord < ? ORDER BY ord DESC LIMIT ?");
+    q.Bind(1, *before).Bind(2, int64_t{limit} + 1);
+    VolumePage page;
+    int64_t last_ord = 0;
+    int rc;
+    while ((rc = q.Step()) == SQLITE_ROW) {
+      if (static_cast<int>(page.volumes.size()) == limit) {
+        page.next_page_token = EncodeToken(last_ord);
+        break;
+      }
+      last_ord = q.Int(0);
+      auto v = ParseVolume(q.Text(1));
+      if (!v.ok()) return v.status();
+      page.volumes.push_back(std::move(*v));
+    }
+    if (rc != SQLITE_ROW && rc != SQLITE_DONE) return q.Error("listing volumes");
+    return page;
+  }
+
+  absl::Status DeleteVolume(const std::string& id) override {
+    std::lock_guard<std::mutex> lock(mu_);
+    Tx tx(this);
+    if (!tx.ok()) return tx.status();
+    Stmt q(db_, "SELECT COUNT(*) FROM volumes WHERE id=?");
+    q.Bind(1, id);
+    if (q.Step() != SQLITE_ROW || q.Int(0) == 0) {
+      return absl::NotFoundError(absl::StrCat("volumes/", id, " not found"));
+    }
+    Stmt u(db_, "SELECT COUNT(*) FROM jobs WHERE volume=? AND state IN (?,?)");
+    u.Bind(1, absl::StrCat("volumes/", id))
+        .Bind(2, int64_t{v1::QUEUED})
+        .Bind(3, int64_t{v1::RUNNING});
+    if (u.Step() != SQLITE_ROW) return u.Error("checking volume use");
+    if (u.Int(0) > 0) {
+      return absl::FailedPreconditionError(
+          absl::StrCat("volumes/", id, " is read by ", u.Int(0), " queued or running jobs"));
+    }
+    Stmt d(db_, "DELETE FROM volumes WHERE id=?");
+    d.Bind(1, id);
+    if (d.Step() != SQLITE_DONE) return d.Error("deleting volume");
+    Stmt d2(db_, "DELETE FROM volume_blobs WHERE volume_id=?");
+    d2.Bind(1, id);
+    if (d2.Step() != SQLITE_DONE) return d2.Error("deleting volume blobs");
+    DECIMA_TX_COMMIT(tx);
+    return absl::OkStatus();
+  }
+
+  absl::StatusOr<bool> BlobInUse(const std::string& sha256) override {
+    std::lock_guard<std::mutex> lock(mu_);
+    Stmt q(db_, "SELECT COUNT(*) FROM volume_blobs WHERE sha256=?");
+    q.Bind(1, sha256);
+    if (q.Step() != SQLITE_ROW) return q.Error("checking blob use");
+    return q.Int(0) > 0;
+  }
+
+ private:
+  // BEGIN IMMEDIATE on construction, ROLLBACK on destruction unless committed. Events added
+  // during the transaction are handed to the listener after COMMIT.
+  class Tx {
+   public:
+    explicit Tx(SqliteJobStore* s) : s_(s) {
+      status_ = s_->Exec("BEGIN IMMEDIATE");
+      s_->pending_.clear();
+      s_->saved_ = 0;
+    }
+    ~Tx() {
+      if (status_.ok() && !done_) {
+        (void)s_->Exec("ROLLBACK");
+        s_->pending_.clear();
+        s_->saved_ = 0;
+      }
+    }
+    bool ok() const { return status_.ok(); }
+    absl::Status status() const { return status_; }
+    absl::Status Commit() {
+      absl::Status st = s_->Exec("COMMIT");
+      if (!st.ok()) return st;
+      done_ = true;
+      if (s_->listener_) {
+        for (auto& [id, ev] : s_->pending_) s_->listener_(id, ev);
+      }
+      s_->pending_.clear();
+      return absl::OkStatus();
+    }
+
+   private:
+    SqliteJobStore* s_;
+    absl::Status status_;
+    bool done_ = false;
+  };
+
+  absl::Status Exec(const char* sql) {
+    char* err = nullptr;
+    if (sqlite3_exec(db_, sql, nullptr, nullptr, &err) != SQLITE_OK) {
+      std::string msg = err ? err : "unknown error";
+      sqlite3_free(err);
+      return absl::InternalError(absl::StrCat("job store: ", msg));
+    }
+    return absl::OkStatus();
+  }
+
+  static absl::StatusOr<v1::Job> ParseJob(const std::string& bytes) {
+    v1::Job job;
+    if (!job.ParseFromString(bytes)) return absl::DataLossError("job store: bad job row");
+    return job;
+  }
+  static absl::StatusOr<v1::Volume> ParseVolume(const std::string& bytes) {
+    v1::Volume v;
+    if (!v.ParseFromString(bytes)) return absl::DataLossError("job store: bad volume row");
+    return v;
+  }
+
+  absl::StatusOr<v1::Job> LoadJob(const std::string& id) {
+    Stmt q(db_, "SELECT job FROM jobs WHERE id=?");
+    q.Bind(1, id);
+    int rc = q.Step();
+    if (rc == SQLITE_DONE) return absl::NotFoundError(absl::StrCat("jobs/", id, " not found"));
+    if (rc != SQLITE_ROW) return q.Error("reading job");
+    return ParseJob(q.Text(0));
+  }
+
+  // The job, if RUNNING and leased to `owner`.
+  absl::StatusOr<v1::Job> LoadHeld(const std::string& id, const std::string& owner) {
+    Stmt q(db_, "SELECT job, state, lease_owner FROM jobs WHERE id=?");
+    q.Bind(1, id);
+    int rc = q.Step();
+    if (rc == SQLITE_DONE) return absl::NotFoundError(absl::StrCat("jobs/", id, " not found"));
+    if (rc != SQLITE_ROW) return q.Error("reading job");
+    if (q.Int(1) != v1::RUNNING || q.Text(2) != owner) {
+      return absl::FailedPreconditionError(
+          absl::StrCat("jobs/", id, " is not running under lease ", owner));
+    }
+    return ParseJob(q.Text(0));
+  }
+
+  void AddEvent(v1::Job& job, v1::JobEvent ev) {
+    job.set_last_sequence(job.last_sequence() + 1);
+    ev.set_sequence(job.last_sequence());
+    *ev.mutable_time() = NowTimestamp();
+    pending_.emplace_back(job.name().substr(5), std::move(ev));
+  }
+
+  void AddStateEvent(v1::Job& job, v1::JobState state, const v1::JobError* error) {
+    v1::JobEvent ev;
+    ev.mutable_state_change()->set_state(state);
+    if (error != nullptr) *ev.mutable_state_change()->mutable_error() = *error;
+    AddEvent(job, std::move(ev));
+  }
+
+  // Writes the job row and the events added since the transaction began.
+  absl::Status SaveJob(const v1::Job& job, const std::string& owner, int64_t expiry, int cancel) {
+    Stmt u(db_,
+           "UPDATE jobs SET state=?, lease_owner=?, lease_expiry=?, cancel_requested=?, job=? "
+           "WHERE id=?");
+    u.Bind(1, int64_t{job.state()});
+    if (owner.empty()) {
+      u.BindNull(2);
+    } else {
+      u.Bind(2, owner);
+    }
+    u.Bind(3, expiry).Bind(4, int64_t{cancel}).BindBlob(5, job.SerializeAsString());
+    u.Bind(6, job.name().substr(5));
+    if (u.Step() != SQLITE_DONE) return u.Error("updating job");
+    return SaveEvents();
+  }
+
+  absl::Status SaveJobKeepLease(const v1::Job& job) {
+    Stmt u(db_, "UPDATE jobs SET job=? WHERE id=?");
+    u.BindBlob(1, job.SerializeAsString()).Bind(2, job.name().substr(5));
+    if (u.Step() != SQLITE_DONE) return u.Error("updating job");
+    return SaveEvents();
+  }
+
+  absl::Status SaveEvents() {
+    for (size_t i = saved_; i < pending_.size(); ++i) {
+      Stmt ins(db_, "INSERT INTO events(job_id, seq, event) VALUES(?,?,?)");
+      ins.Bind(1, pending_[i].first)
+          .Bind(2, pending_[i].second.sequence())
+          .BindBlob(3, pending_[i].second.SerializeAsString());
+      if (ins.Step() != SQLITE_DONE) return ins.Error("inserting event");
+    }
+    saved_ = pending_.size();
+    return absl::OkStatus();
+  }
+
+  sqlite3* db_;
+  std::mutex mu_;  // guards the connection and everything below
+  EventListener listener_;
+  std::vector<std::pair<std::string, v1::JobEvent>> pending_;
+  size_t saved_ = 0;
+};
+
+}  // namespace
+
+google::protobuf::Timestamp NowTimestamp() {
+  auto ns = std::chrono::duration_cast<std::chrono::nanoseconds>(
+                std::chrono::system_clock::now().time_since_epoch())
+                .count();
+  google::protobuf::Timestamp t;
+  t.set_seconds(ns / 1000000000);
+  t.set_nanos(static_cast<int32_t>(ns % 1000000000));
+  return t;
+}
+
+bool IsFinal(v1::JobState state) {
+  return state == v1::SUCCEEDED || state == v1::FAILED || state == v1::CANCELLED;
+}
+
+absl::StatusOr<std::unique_ptr<JobStore>> OpenSqliteJobStore(const std::string& path) {
+  sqlite3* db = nullptr;
+  int rc = sqlite3_open_v2(
+      path.c_str(), &db, SQLITE_OPEN_READWRITE | SQLITE_OPEN_CREATE | SQLITE_OPEN_NOMUTEX, nullptr);
+  if (rc != SQLITE_OK) {
+    std::string msg = db ? sqlite3_errmsg(db) : "out of memory";
+    sqlite3_close(db);
+    return absl::InternalError(absl::StrCat("opening job store ", path, ": ", msg));
+  }
+  sqlite3_busy_timeout(db, 5000);
+  auto store = std::make_unique<SqliteJobStore>(db);
+  absl::Status s = store->Init();
+  if (!s.ok()) return s;
+  return std::unique_ptr<JobStore>(std::move(store));
+}
+
+absl::StatusOr<std::string> ParseName(const std::string& name, const std::string& collection,
+                                      const std::string& field) {
+  std::string prefix = collection + "/";
+  if (name.size() <= prefix.size() || name.compare(0, prefix.size(), prefix) != 0) {
+    return absl::InvalidArgumentError(
+        absl::StrCat(field, ": expected '", collection, "/{id}', got '", name, "'"));
+  }
+  std::string id = name.substr(prefix.size());
+  for (char c : id) {
+    bool ok = (c >= '0' && c <= '9') || (c >= 'a' && c <= 'z') || c == '-';
+    if (!ok) {
+      return absl::InvalidArgumentError(
+          absl::StrCat(field, ": '", name, "' is not a valid ", collection, " name"));
+    }
+  }
+  return id;
+}
+
+}  // namespace decima::server

@@ -1,0 +1,44 @@
+// Reads just enough of a volume's header at creation time to report dims, spacing, modality
+// and voxel type, and to refuse garbage before a job is queued. This is the single place to wire
+// the core reader (decima::ReadVolume in core/io) once it is on main: ProbeVolume keeps its
+// signature and the server does not change.
+#pragma once
+
+#include <array>
+#include <filesystem>
+#include <string>
+#include <vector>
+
+#include "absl/status/statusor.h"
+#include "decima/v1/volumes.pb.h"
+
+namespace decima::server {
+
+struct VolumeHeader {
+  v1::VolumeFormat format = v1::VOLUME_FORMAT_UNSPECIFIED;
+  // What the pipeline reads: the header file, or the folder of a DICOM series.
+  std::filesystem::path input;
+  bool parsed = false;  // false: dims etc. unknown here, the job's load stage will tell
+  std::array<int64_t, 3> dims{0, 0, 0};
+  std::array<double, 3> spacing{0, 0, 0};
+  std::string modality;
+  std::string scalar_type;
+};
+
+// `dir` holds the volume's files at their manifest paths `files`. `format` UNSPECIFIED detects
+// it from the names (.nii/.nii.gz, .mha/.mhd, .nrrd/.nhdr; several files or a "DICM" preamble:
+// DICOM). INVALID_ARGUMENT naming the file and the problem for an unknown format, a header
+// that does not parse, dims out of range, or data shorter than the header promises.
+absl::StatusOr<VolumeHeader> ProbeVolume(const std::filesystem::path& dir,
+                                         const std::vector<std::string>& files,
+                                         v1::VolumeFormat format);
+
+}  // namespace decima::server
+
+namespace decima::server {
+
+// The path the pipeline reads for a stored volume whose files are under `files_dir`: the folder
+// for DICOM, else its header file.
+std::filesystem::path VolumeInput(const std::filesystem::path& files_dir, const v1::Volume& volume);
+
+}  // namespace decima::server

@@ -1,0 +1,41 @@
+// Helpers for the core/io tests: tiny volumes with non-trivial geometry, raw file access, and
+// hand-built NIfTI headers so broken files can be produced byte by byte.
+#pragma once
+
+#include <cstdint>
+#include <cstring>
+#include <filesystem>
+#include <string>
+#include <vector>
+
+#include "core/volume/volume.h"
+
+namespace decima::io::testing {
+
+// A dims volume of `type` whose voxel v holds a distinct pattern value (within the type's range),
+// spacing (0.5, 1.25, 3), origin (-12.5, 40.25, 7), direction a rotation about an oblique axis.
+// `left_handed` negates the third direction column.
+Volume PatternVolume(std::array<int64_t, 3> dims, VoxelType type, bool left_handed = false);
+
+std::vector<uint8_t> ReadAll(const std::filesystem::path& path);
+void WriteAll(const std::filesystem::path& path, const std::vector<uint8_t>& bytes);
+void WriteText(const std::filesystem::path& path, const std::string& text);
+
+// gzip (gzip=true) or zlib stream of `bytes`.
+std::vector<uint8_t> Compress(const std::vector<uint8_t>& bytes, bool gzip);
+
+// Flips every bit of `count` bytes around the middle of the file region [begin, end).
+void CorruptMiddle(std::vector<uint8_t>& bytes, size_t begin, size_t count = 16);
+
+template <typename T>
+void Poke(std::vector<uint8_t>& bytes, size_t offset, T value) {
+  std::memcpy(bytes.data() + offset, &value, sizeof(T));
+}
+template <typename T>
+T Peek(const std::vector<uint8_t>& bytes, size_t offset) {
+  T v;
+  std::memcpy(&v, bytes.data() + offset, sizeof(T));
+  return v;
+}
+
+}  // namespace decima::io::testing

@@ -1,0 +1,119 @@
+#include <gmock/gmock.h>
+#include <gtest/gtest.h>
+
+#include "core/io/volume_io.h"
+#include "tests/core/io/io_test_util.h"
+#include "tests/testing/test_data.h"
+
+namespace decima::io {
+namespace {
+
+namespace fs = std::filesystem;
+using ::testing::HasSubstr;
+using testing::PatternVolume;
+using testing::WriteText;
+
+TEST(ReadVolume, DispatchesByExtensionCaseInsensitively) {
+  const fs::path dir = decima::testing::MakeScratchDir("dispatch");
+  const Volume v = PatternVolume({4, 3, 2}, VoxelType::kUInt16);
+  ASSERT_TRUE(WriteNifti(v, dir / "a.NII.GZ").ok());
+  ASSERT_TRUE(WriteMetaImage(v, dir / "b.mha").ok());
+  ASSERT_TRUE(WriteMetaImage(v, dir / "c.MHD", {.compress = false}).ok());
+  EXPECT_EQ(DetectVolumeFormat(dir / "a.NII.GZ"), VolumeFormat::kNifti);
+  EXPECT_EQ(DetectVolumeFormat(dir / "b.mha"), VolumeFormat::kMetaImage);
+  EXPECT_EQ(DetectVolumeFormat(dir / "x.nhdr"), VolumeFormat::kNrrd);
+  for (const char* name : {"a.NII.GZ", "b.mha", "c.MHD"}) {
+    auto r = ReadVolume(dir / name);
+    ASSERT_TRUE(r.ok()) << name << ": " << r.status();
+    EXPECT_EQ(r->bytes, v.bytes) << name;
+  }
+}
+
+TEST(ReadVolume, SniffsMagicBytesWhenTheExtensionIsUnknown) {
+  const fs::path dir = decima::testing::MakeScratchDir("dispatch");
+  const Volume v = PatternVolume({4, 3, 2}, VoxelType::kInt16);
+  ASSERT_TRUE(WriteNifti(v, dir / "a.nii.gz").ok());
+  ASSERT_TRUE(WriteNifti(v, dir / "a.nii").ok());
+  ASSERT_TRUE(WriteMetaImage(v, dir / "a.mha").ok());
+  fs::rename(dir / "a.nii.gz", dir / "blob1");
+  fs::rename(dir / "a.nii", dir / "blob2");
+  fs::rename(dir / "a.mha", dir / "blob3");
+  WriteText(dir / "blob4",
+            "NRRD0004\ntype: uchar\ndimension: 3\nsizes: 2 2 2\nencoding: raw\n\n"
+            "abcdefgh");
+  EXPECT_EQ(DetectVolumeFormat(dir / "blob1"), VolumeFormat::kNifti);
+  EXPECT_EQ(DetectVolumeFormat(dir / "blob2"), VolumeFormat::kNifti);
+  EXPECT_EQ(DetectVolumeFormat(dir / "blob3"), VolumeFormat::kMetaImage);
+  EXPECT_EQ(DetectVolumeFormat(dir / "blob4"), VolumeFormat::kNrrd);
+  for (const char* name : {"blob1", "blob2", "blob3"}) {
+    auto r = ReadVolume(dir / name);
+    ASSERT_TRUE(r.ok()) << name << ": " << r.status();
+    EXPECT_EQ(r->bytes, v.bytes) << name;
+  }
+  auto n = ReadVolume(dir / "blob4");
+  ASSERT_TRUE(n.ok()) << n.status();
+  EXPECT_EQ(n->data<uint8_t>()[7], 'h');
+}
+
+TEST(ReadVolume, EmptyDirectoryIsRejectedByTheDicomReader) {
+  const fs::path dir = decima::testing::MakeScratchDir("dispatch");
+  auto r = ReadVolume(dir);
+  ASSERT_FALSE(r.ok());
+  EXPECT_EQ(r.status().code(), absl::StatusCode::kInvalidArgument);
+  EXPECT_THAT(r.status().message(), HasSubstr(dir.string()));
+}
+
+// The DICOM series and the NIfTI file of the same CT hold the same voxels at the same patient
+// positions; the DICOM k axis runs upwards (increasing position), the NIfTI one downwards.
+TEST(ReadVolume, DicomSeriesMatchesTheNiftiCopyVoxelByVoxel) {
+  DECIMA_REQUIRE_SHARED_DATA(dicom_dir, "ct-head-256x256x113-dicom");
+  DECIMA_REQUIRE_SHARED_DATA(nifti, "ct-head-256x256x113.nii.gz");
+  auto d = ReadVolume(dicom_dir);
+  auto n = ReadVolume(nifti);
+  ASSERT_TRUE(d.ok()) << d.status();
+  ASSERT_TRUE(n.ok()) << n.status();
+  ASSERT_EQ(d->dims, n->dims);
+  ASSERT_EQ(d->type, n->type);
+  const int64_t nz = d->dims[2];
+  int64_t mismatches = 0;
+  for (int64_t k = 0; k < nz; ++k) {
+    for (int64_t j = 0; j < d->dims[1]; ++j) {
+      for (int64_t i = 0; i < d->dims[0]; ++i) {
+        mismatches += d->ValueAt(d->Index(i, j, nz - 1 - k)) != n->ValueAt(n->Index(i, j, k));
+      }
+    }
+  }
+  EXPECT_EQ(mismatches, 0);
+  for (const auto& [i, j, k] : {std::array<int64_t, 3>{0, 0, 0}, {100, 37, 50}, {255, 255, 112}}) {
+    EXPECT_TRUE(d->PhysicalPoint(i, j, nz - 1 - k).isApprox(n->PhysicalPoint(i, j, k), 1e-4));
+  }
+}
+
+TEST(ReadVolume, UnknownEmptyAndMissingFiles) {
+  const fs::path dir = decima::testing::MakeScratchDir("dispatch");
+  WriteText(dir / "notes.txt", "hello, not a volume");
+  auto r = ReadVolume(dir / "notes.txt");
+  EXPECT_EQ(r.status().code(), absl::StatusCode::kInvalidArgument);
+  EXPECT_THAT(r.status().message(), HasSubstr("unknown volume format"));
+  WriteText(dir / "empty", "");
+  EXPECT_THAT(ReadVolume(dir / "empty").status().message(), HasSubstr("unknown volume format"));
+  WriteText(dir / "empty.nii.gz", "");
+  EXPECT_THAT(ReadVolume(dir / "empty.nii.gz").status().message(), HasSubstr("empty"));
+  auto m = ReadVolume(dir / "missing.nrrd");
+  EXPECT_EQ(m.status().code(), absl::StatusCode::kNotFound);
+  EXPECT_THAT(m.status().message(), HasSubstr("missing.nrrd"));
+}
+
+TEST(ReadVolumeRealData, AllSharedFilesLoad) {
+  DECIMA_REQUIRE_SHARED_DATA(p, "ct-head-128x128x113.nii.gz");
+  auto r = ReadVolume(p);
+  ASSERT_TRUE(r.ok()) << r.status();
+  EXPECT_EQ(r->dims, (std::array<int64_t, 3>{128, 128, 113}));
+  DECIMA_REQUIRE_SHARED_DATA(m, "ct-headneck-64x64x93.mhd");
+  auto h = ReadVolume(m);
+  ASSERT_TRUE(h.ok()) << h.status();
+  EXPECT_EQ(h->voxel_count(), 64 * 64 * 93);
+}
+
+}  // namespace
+}  // namespace decima::io

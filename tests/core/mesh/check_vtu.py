@@ -1,0 +1,117 @@
+#!/usr/bin/env python3
+"""Independent check of Decima's .vtu files with VTK's own XML reader and writer.
+
+  check_vtu.py stats FILE
+      Reads FILE with vtkXMLUnstructuredGridReader and prints one "key value" line per fact:
+      counts, cell types, array types and sums, minimum signed tet volume.
+  check_vtu.py rewrite IN OUTDIR
+      Reads IN and writes it to OUTDIR with vtkXMLUnstructuredGridWriter in every data mode
+      (ascii, inline base64 "binary", appended raw, appended base64) x compressor (none, zlib)
+      x header type (UInt32, UInt64), printing "written PATH" per file, so the C++ test can
+      check that ReadVtu reads files written by VTK itself.
+
+Exits non-zero (printing the reason on stderr) if VTK reports any error.
+"""
+import sys
+
+import numpy as np
+import vtk
+from vtk.util.numpy_support import vtk_to_numpy
+
+
+class ErrorCatcher:
+    def __init__(self):
+        self.errors = []
+
+    def __call__(self, obj, event):
+        self.errors.append(event)
+
+
+def read(path):
+    catcher = ErrorCatcher()
+    reader = vtk.vtkXMLUnstructuredGridReader()
+    reader.AddObserver("ErrorEvent", catcher)
+    reader.SetFileName(path)
+    reader.Update()
+    if catcher.errors or reader.GetErrorCode() != 0:
+        sys.exit(f"VTK failed to read {path}: {catcher.errors} code {reader.GetErrorCode()}")
+    return reader.GetOutput()
+
+
+def stats(path):
+    grid = read(path)
+    print("points", grid.GetNumberOfPoints())
+    print("cells", grid.GetNumberOfCells())
+    types = vtk_to_numpy(grid.GetCellTypesArray())
+    print("cell_types", ",".join(str(t) for t in sorted(set(types.tolist()))))
+    pts = vtk_to_numpy(grid.GetPoints().GetData()).astype(np.float64)
+    print("points_type", grid.GetPoints().GetData().GetDataTypeAsString())
+    print("points_abs_sum", repr(float(np.abs(pts).sum())))
+    conn = vtk_to_numpy(grid.GetCells().GetConnectivityArray()).astype(np.int64)
+    print("connectivity_sum", int(conn.sum()))
+    if len(types):
+        tets = conn.reshape(-1, 4)
+        p = pts[tets]
+        vol = np.einsum("ij,ij->i", p[:, 1] - p[:, 0],
+                        np.cross(p[:, 2] - p[:, 0], p[:, 3] - p[:, 0])) / 6.0
+        print("min_volume", repr(float(vol.min())))
+        print("total_volume", repr(float(vol.sum())))
+    for data, kind in ((grid.GetPointData(), "point"), (grid.GetCellData(), "cell")):
+        for i in range(data.GetNumberOfArrays()):
+            arr = data.GetArray(i)
+            values = vtk_to_numpy(arr).astype(np.float64)
+            finite = values[np.isfinite(values)]
+            name = arr.GetName()
+            print(f"{kind}_array {name} {arr.GetDataTypeAsString()} {arr.GetNumberOfTuples()}")
+            print(f"sum_{name}", repr(float(finite.sum())))
+            print(f"nonfinite_{name}", int(values.size - finite.size))
+
+
+def rewrite(src, outdir):
+    grid = read(src)
+    for mode in ("ascii", "binary", "appended", "appended-base64"):
+        for compress in ("none", "zlib"):
+            if mode == "ascii" and compress == "zlib":
+                continue
+            for header in ("32", "64"):
+                dst = f"{outdir}/{mode}-{compress}-{header}.vtu"
+                write(grid, dst, mode, compress, header)
+                print("written", dst)
+
+
+def write(grid, dst, mode, compress, header):
+    writer = vtk.vtkXMLUnstructuredGridWriter()
+    catcher = ErrorCatcher()
+    writer.AddObserver("ErrorEvent", catcher)
+    writer.SetInputData(grid)
+    writer.SetFileName(dst)
+    if mode == "ascii":
+        writer.SetDataModeToAscii()
+    elif mode == "binary":
+        writer.SetDataModeToBinary()
+    else:
+        writer.SetDataModeToAppended()
+        writer.SetEncodeAppendedData(1 if mode == "appended-base64" else 0)
+    if compress == "zlib":
+        writer.SetCompressorTypeToZLib()
+    else:
+        writer.SetCompressorTypeToNone()
+    if header == "64":
+        writer.SetHeaderTypeToUInt64()
+    else:
+        writer.SetHeaderTypeToUInt32()
+    if writer.Write() != 1 or catcher.errors:
+        sys.exit(f"VTK failed to write {dst}")
+
+
+def main(argv):
+    if len(argv) >= 3 and argv[1] == "stats":
+        stats(argv[2])
+    elif len(argv) == 4 and argv[1] == "rewrite":
+        rewrite(*argv[2:])
+    else:
+        sys.exit(__doc__)
+
+
+if __name__ == "__main__":
+    main(sys.argv)

@@ -1,0 +1,87 @@
+// Helpers for the simplify tests: phantom meshes with labels and a stand-in interface distance,
+// and the conformity / hull checks.
+#pragma once
+
+#include <algorithm>
+#include <array>
+#include <cmath>
+#include <map>
+#include <vector>
+
+#include <gtest/gtest.h>
+
+#include "core/mesh/tetrahedralize.h"
+#include "core/volume/phantom.h"
+
+namespace decima::testing {
+
+// Stand-in for the segmentation's distance to the interface, in voxels: 0.5 for a voxel with a
+// 6-neighbour of another label (it touches the interface), 1.5 otherwise.
+inline std::vector<float> SimpleInterfaceDistance(const Volume& labels) {
+  const int64_t nx = labels.dims[0], ny = labels.dims[1], nz = labels.dims[2];
+  const uint8_t* l = labels.data<uint8_t>();
+  std::vector<float> d(labels.voxel_count(), 1.5f);
+  for (int64_t k = 0; k < nz; ++k) {
+    for (int64_t j = 0; j < ny; ++j) {
+      for (int64_t i = 0; i < nx; ++i) {
+        const int64_t p = i + nx * (j + ny * k);
+        const bool edge = (i > 0 && l[p - 1] != l[p]) || (i + 1 < nx && l[p + 1] != l[p]) ||
+                          (j > 0 && l[p - nx] != l[p]) || (j + 1 < ny && l[p + nx] != l[p]) ||
+                          (k > 0 && l[p - nx * ny] != l[p]) ||
+                          (k + 1 < nz && l[p + nx * ny] != l[p]);
+        if (edge) d[p] = 0.5f;
+      }
+    }
+  }
+  return d;
+}
+
+struct PhantomMesh {
+  Phantom phantom;
+  TetMesh mesh;
+};
+
+// The 3-region head phantom (air, shell, core) with Gaussian noise, meshed with its labels.
+inline PhantomMesh MakePhantomMesh(int64_t n, double noise_sigma, uint64_t seed = 7) {
+  HeadPhantomOptions o;
+  o.dims = {n, n, n};
+  o.region_means = {0, 1000, 400};
+  o.noise_sigma = noise_sigma;
+  o.seed = seed;
+  auto p = MakeHeadPhantom(o);
+  EXPECT_TRUE(p.ok()) << p.status();
+  PhantomMesh out{*std::move(p), {}};
+  const std::vector<float> dist = SimpleInterfaceDistance(out.phantom.labels);
+  TetrahedralizeOptions t;
+  t.labels = &out.phantom.labels;
+  t.interface_distance = dist.data();
+  auto m = Tetrahedralize(out.phantom.image, t);
+  EXPECT_TRUE(m.ok()) << m.status();
+  out.mesh = *std::move(m);
+  return out;
+}
+
+// Number of cells using each face (sorted vertex triple).
+inline std::map<std::array<int32_t, 3>, int> FaceUse(const TetMesh& m) {
+  std::map<std::array<int32_t, 3>, int> use;
+  for (int64_t t = 0; t < m.tet_count(); ++t) {
+    const int32_t* v = &m.tets[4 * t];
+    for (int skip = 0; skip < 4; ++skip) {
+      std::array<int32_t, 3> f;
+      int n = 0;
+      for (int q = 0; q < 4; ++q)
+        if (q != skip) f[n++] = v[q];
+      std::sort(f.begin(), f.end());
+      ++use[f];
+    }
+  }
+  return use;
+}
+
+inline double TotalVolume(const TetMesh& m) {
+  double total = 0;
+  for (int64_t t = 0; t < m.tet_count(); ++t) total += TetVolume(m, t);
+  return total;
+}
+
+}  // namespace decima::testing

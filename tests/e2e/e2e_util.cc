@@ -1,0 +1,172 @@
+#include "tests/e2e/e2e_util.h"
+
+#include <fcntl.h>
+#include <signal.h>
+#include <sys/wait.h>
+#include <unistd.h>
+
+#include <cstring>
+#include <fstream>
+#include <sstream>
+#include <thread>
+
+#include "gtest/gtest.h"
+
+namespace decima::e2e {
+namespace fs = std::filesystem;
+
+namespace {
+
+std::string ReadAll(const fs::path& p) {
+  std::ifstream in(p, std::ios::binary);
+  std::stringstream ss;
+  ss << in.rdbuf();
+  return ss.str();
+}
+
+pid_t Spawn(const std::vector<std::string>& args, const fs::path& out, const fs::path& err,
+            const std::map<std::string, std::string>& env) {
+  std::vector<std::string> a = args;
+  std::vector<char*> argv;
+  for (auto& s : a) argv.push_back(s.data());
+  argv.push_back(nullptr);
+  pid_t pid = fork();
+  if (pid == 0) {
+    int o = open(out.c_str(), O_WRONLY | O_CREAT | O_TRUNC, 0644);
+    int e = open(err.c_str(), O_WRONLY | O_CREAT | O_TRUNC, 0644);
+    int n = open("/dev/null", O_RDONLY);
+    dup2(n, 0);
+    dup2(o, 1);
+    dup2(e, 2);
+    for (const auto& [k, v] : env) setenv(k.c_str(), v.c_str(), 1);
+    execv(argv[0], argv.data());
+    _exit(127);
+  }
+  return pid;
+}
+
+int Reap(pid_t pid, std::chrono::seconds timeout) {
+  auto until = std::chrono::steady_clock::now() + timeout;
+  int status = 0;
+  for (;;) {
+    pid_t r = waitpid(pid, &status, WNOHANG);
+    if (r == pid) break;
+    if (std::chrono::steady_clock::now() > until) {
+      kill(pid, SIGKILL);
+      waitpid(pid, &status, 0);
+      ADD_FAILURE() << "process " << pid << " timed out after " << timeout.count() << " s";
+      break;
+    }
+    std::this_thread::sleep_for(std::chrono::milliseconds(5));
+  }
+  return WIFEXITED(status) ? WEXITSTATUS(status) : 128 + WTERMSIG(status);
+}
+
+}  // namespace
+
+fs::path ServerBinary() { return DECIMA_SERVER_BIN; }
+fs::path CliBinary() { return DECIMA_CLI_BIN; }
+
+ServerProcess::ServerProcess(fs::path data_dir, std::vector<std::string> extra)
+    : data_dir_(std::move(data_dir)) {
+  fs::create_directories(data_dir_);
+  static int counter = 0;
+  std::string tag = std::to_string(getpid()) + "-" + std::to_string(++counter);
+  fs::path port_file = data_dir_.parent_path() / ("port-" + tag);
+  log_ = data_dir_.parent_path() / ("server-" + tag + ".log");
+  fs::remove(port_file);
+  std::vector<std::string> args = {
+      ServerBinary().string(), "--listen",    "127.0.0.1:0",     "--data-dir",
+      data_dir_.string(),      "--port-file", port_file.string()};
+  args.insert(args.end(), extra.begin(), extra.end());
+  pid_ = Spawn(args, log_, log_.string() + ".err", {});
+  bool up = WaitFor(
+      [&] {
+        std::ifstream in(port_file);
+        return static_cast<bool>(in >> port_);
+      },
+      std::chrono::seconds(30));
+  if (!up) ADD_FAILURE() << "decima-server did not start: " << Log();
+}
+
+ServerProcess::~ServerProcess() {
+  if (pid_ > 0) Kill(SIGKILL);
+}
+
+void ServerProcess::Kill(int sig) {
+  if (pid_ <= 0) return;
+  kill(pid_, sig);
+  Reap(pid_, std::chrono::seconds(50));
+  pid_ = -1;
+}
+
+void ServerProcess::Signal(int sig) {
+  if (pid_ > 0) kill(pid_, sig);
+}
+
+std::string ServerProcess::Log() const { return ReadAll(log_) + ReadAll(log_.string() + ".err"); }
+
+CliResult RunCli(const std::string& address, const std::vector<std::string>& args,
+                 std::chrono::seconds timeout, const std::map<std::string, std::string>& env) {
+  static std::atomic<int> counter{0};
+  fs::path dir = fs::temp_directory_path() / ("decima-cli-" + std::to_string(getpid()));
+  fs::create_directories(dir);
+  std::string tag = std::to_string(++counter);
+  fs::path out = dir / (tag + ".out"), err = dir / (tag + ".err");
+  std::vector<std::string> a = {CliBinary().string(), "--server", address};
+  a.insert(a.end(), args.begin(), args.end());
+  pid_t pid = Spawn(a, out, err, env);
+  CliResult r;
+  r.rc = Reap(pid, timeout);
+  r.out = ReadAll(out);
+  r.err = ReadAll(err);
+  fs::remove(out);
+  fs::remove(err);
+  return r;
+}
+
+void WriteTinyNifti(const fs::path& path, int nx, int ny, int nz, int seed) {
+  char hdr[352] = {};
+  auto put32 = [&](int off, int32_t v) { std::memcpy(hdr + off, &v, 4); };
+  auto put16 = [&](int off, int16_t v) { std::memcpy(hdr + off, &v, 2); };
+  auto putf = [&](int off, float v) { std::memcpy(hdr + off, &v, 4); };
+  put32(0, 348);
+  put16(40, 3);
+  put16(42, static_cast<int16_t>(nx));
+  put16(44, static_cast<int16_t>(ny));
+  put16(46, static_cast<int16_t>(nz));
+  put16(48, 1);
+  put16(50, 1);
+  put16(52, 1);
+  put16(54, 1);
+  put16(70, 4);   // datatype int16
+  put16(72, 16);  // bitpix
+  putf(76, 1);    // qfac
+  putf(80, 2);
+  putf(84, 2);
+  putf(88, 2);
+  putf(108, 352);  // vox_offset
+  putf(112, 1);    // scl_slope
+  hdr[123] = 10;   // xyzt_units: mm, s
+  put16(252, 1);   // qform_code scanner
+  putf(256, 0);    // quatern b c d = identity
+  std::memcpy(hdr + 344, "n+1", 4);
+  std::vector<int16_t> v(static_cast<size_t>(nx) * ny * nz);
+  double cx = nx / 2.0, cy = ny / 2.0, cz = nz / 2.0, r = std::min({nx, ny, nz}) / 3.0;
+  for (int z = 0; z < nz; ++z) {
+    for (int y = 0; y < ny; ++y) {
+      for (int x = 0; x < nx; ++x) {
+        double d2 = (x - cx) * (x - cx) + (y - cy) * (y - cy) + (z - cz) * (z - cz);
+        v[(static_cast<size_t>(z) * ny + y) * nx + x] = d2 < r * r ? 1000 : 100;
+      }
+    }
+  }
+  v[0] = static_cast<int16_t>(seed);
+  std::ofstream out(path, std::ios::binary);
+  out.write(hdr, sizeof hdr);
+  out.write(reinterpret_cast<const char*>(v.data()), static_cast<std::streamsize>(v.size() * 2));
+}
+
+std::string FirstLine(const std::string& s) { return s.substr(0, s.find('\n')); }
+
+}  // namespace decima::e2e

@@ -1,0 +1,69 @@
+// Real processes on loopback for the end-to-end tests: start decima-server on a free port with
+// a scratch data dir, run the real `decima` binary, write tiny NIfTI volumes.
+#pragma once
+
+#include <sys/types.h>
+
+#include <chrono>
+#include <filesystem>
+#include <map>
+#include <string>
+#include <vector>
+
+namespace decima::e2e {
+
+struct CliResult {
+  int rc = -1;  // exit code; 128+signal if killed
+  std::string out, err;
+};
+
+class ServerProcess {
+ public:
+  // Starts decima-server with --data-dir `data_dir`, --listen 127.0.0.1:0, `extra` flags;
+  // waits until it wrote its port (fails the test after 30 s).
+  ServerProcess(std::filesystem::path data_dir, std::vector<std::string> extra = {});
+  ~ServerProcess();  // SIGKILL if still running
+
+  std::string address() const { return "127.0.0.1:" + std::to_string(port_); }
+  pid_t pid() const { return pid_; }
+  void Kill(int sig);    // sends `sig` and reaps the process
+  void Signal(int sig);  // sends `sig` only
+  std::string Log() const;
+  const std::filesystem::path& data_dir() const { return data_dir_; }
+
+ private:
+  std::filesystem::path data_dir_, log_;
+  pid_t pid_ = -1;
+  int port_ = 0;
+};
+
+// Runs `decima --server ADDR args...` and waits (killing it after `timeout`).
+CliResult RunCli(const std::string& address, const std::vector<std::string>& args,
+                 std::chrono::seconds timeout = std::chrono::seconds(60),
+                 const std::map<std::string, std::string>& env = {});
+
+// Polls `pred` every 20 ms until true or `timeout`; returns the last value.
+template <typename Pred>
+bool WaitFor(Pred pred, std::chrono::milliseconds timeout) {
+  auto until = std::chrono::steady_clock::now() + timeout;
+  for (;;) {
+    if (pred()) return true;
+    if (std::chrono::steady_clock::now() > until) return false;
+    struct timespec ts {
+      0, 20 * 1000 * 1000
+    };
+    nanosleep(&ts, nullptr);
+  }
+}
+
+// Writes a NIfTI-1 (.nii) int16 volume of `dims` with 2 mm voxels: a bright sphere in a darker
+// box, plus `seed` added to one voxel so different seeds give different blobs.
+void WriteTinyNifti(const std::filesystem::path& path, int nx, int ny, int nz, int seed = 0);
+
+// The first line of `s` ("jobs/abc").
+std::string FirstLine(const std::string& s);
+
+std::filesystem::path ServerBinary();
+std::filesystem::path CliBinary();
+
+}  // namespace decima::e2e

@@ -1,0 +1,193 @@
+// decima-service-bench: the service figures of issue 6, printed as one JSON object.
+//   submit_to_running_ms: CreateJob -> RUNNING event at the client, idle server (p50, p90)
+//   upload_mb_per_s:      one 256 MB blob over loopback (median of 3; fsync on and off)
+//   watchers:             job time (start -> end, server clock) with 0 and 100 watchers
+// Usage: decima-service-bench [--volume FILE] [--jobs N]
+#include <google/protobuf/util/time_util.h>
+#include <grpcpp/grpcpp.h>
+#include <signal.h>
+
+#include <algorithm>
+#include <atomic>
+#include <cstdio>
+#include <fstream>
+#include <nlohmann/json.hpp>
+#include <random>
+#include <thread>
+
+#include "client/client_lib.h"
+#include "tests/e2e/e2e_util.h"
+
+namespace fs = std::filesystem;
+using namespace decima;
+using namespace std::chrono_literals;
+using google::protobuf::util::TimeUtil;
+
+namespace {
+
+double Percentile(std::vector<double> v, double p) {
+  if (v.empty()) return 0;
+  std::sort(v.begin(), v.end());
+  return v[static_cast<size_t>(p * (v.size() - 1) + 0.5)];
+}
+
+double Median(std::vector<double> v) { return Percentile(std::move(v), 0.5); }
+
+std::string MakeVolume(const client::Connection& c, const fs::path& file) {
+  std::vector<client::InputFile> files;
+  std::string err;
+  client::CollectInputs(file, &files, &err);
+  client::HashInputs(&files, &err);
+  client::UploadBlob(c, files[0], nullptr, 3, nullptr);
+  v1::CreateVolumeRequest req;
+  auto* f = req.mutable_volume()->add_files();
+  f->set_path(files[0].name);
+  f->set_blob("blobs/" + files[0].sha256);
+  v1::Volume vol;
+  grpc::Status s = v1::Volumes::NewStub(c.channel)->CreateVolume(c.Context().get(), req, &vol);
+  if (!s.ok()) std::fprintf(stderr, "create volume: %s\n", s.error_message().c_str());
+  return vol.name();
+}
+
+// Creates a job and waits on a watch stream until it reaches `until_state` (RUNNING or final);
+// returns seconds from before CreateJob to that event, and the final job in *job.
+double SubmitAndWait(const client::Connection& c, const std::string& volume, bool until_final,
+                     v1::Job* job) {
+  auto stub = v1::Jobs::NewStub(c.channel);
+  v1::CreateJobRequest req;
+  req.mutable_spec()->set_volume(volume);
+  req.mutable_spec()->set_image_size(128);
+  auto t0 = std::chrono::steady_clock::now();
+  stub->CreateJob(c.Context().get(), req, job);
+  double t_running = -1;
+  v1::WatchJobRequest w;
+  w.set_name(job->name());
+  auto ctx = c.Context(false);
+  auto reader = stub->WatchJob(ctx.get(), w);
+  v1::JobEvent ev;
+  while (reader->Read(&ev)) {
+    if (ev.has_state_change() && ev.state_change().state() == v1::RUNNING && t_running < 0) {
+      t_running = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
+      if (!until_final) ctx->TryCancel();
+    }
+  }
+  reader->Finish();
+  v1::GetJobRequest g;
+  g.set_name(job->name());
+  // Wait for the job to end so the next one starts on an idle server.
+  for (;;) {
+    stub->GetJob(c.Context().get(), g, job);
+    if (job->state() >= v1::SUCCEEDED) break;
+    std::this_thread::sleep_for(10ms);
+  }
+  return t_running;
+}
+
+double JobSeconds(const v1::Job& j) {
+  return TimeUtil::DurationToNanoseconds(j.end_time() - j.start_time()) / 1e9;
+}
+
+}  // namespace
+
+int main(int argc, char** argv) {
+  fs::path volume;
+  int jobs = 20;
+  for (int i = 1; i + 1 < argc; i += 2) {
+    std::string k = argv[i];
+    if (k == "--volume") volume = argv[i + 1];
+    if (k == "--jobs") jobs = std::atoi(argv[i + 1]);
+  }
+  fs::path scratch = fs::temp_directory_path() / ("decima-bench-" + std::to_string(getpid()));
+  fs::create_directories(scratch);
+  if (volume.empty()) {
+    volume = scratch / "phantom.nii";
+    e2e::WriteTinyNifti(volume, 24, 24, 16);
+  }
+  nlohmann::json out;
+  out["volume"] = volume.string();
+
+  {
+    e2e::ServerProcess server(scratch / "data1", {"--workers", "1"});
+    auto c = client::Connect(server.address(), "", false, "", 30s);
+    std::string vol = MakeVolume(c, volume);
+    std::vector<double> lat, job_s;
+    for (int i = 0; i < jobs; ++i) {
+      v1::Job j;
+      lat.push_back(SubmitAndWait(c, vol, false, &j) * 1000);
+      job_s.push_back(JobSeconds(j));
+    }
+    out["submit_to_running_ms"] = {{"p50", Median(lat)}, {"p90", Percentile(lat, 0.9)},
+                                   {"n", jobs}};
+    out["job_seconds_idle_p50"] = Median(job_s);
+
+    // Watchers: 100 extra watch streams on each job vs none.
+    std::vector<double> with, without;
+    for (int i = 0; i < 3; ++i) {
+      v1::Job j;
+      SubmitAndWait(c, vol, true, &j);
+      without.push_back(JobSeconds(j));
+    }
+    for (int i = 0; i < 3; ++i) {
+      auto stub = v1::Jobs::NewStub(c.channel);
+      v1::CreateJobRequest req;
+      req.mutable_spec()->set_volume(vol);
+      req.mutable_spec()->set_image_size(128);
+      v1::Job j;
+      stub->CreateJob(c.Context().get(), req, &j);
+      std::vector<std::thread> watchers;
+      for (int k = 0; k < 100; ++k) {
+        watchers.emplace_back([&] {
+          v1::WatchJobRequest w;
+          w.set_name(j.name());
+          auto ctx = c.Context(false);
+          auto reader = stub->WatchJob(ctx.get(), w);
+          v1::JobEvent ev;
+          while (reader->Read(&ev)) {
+          }
+          reader->Finish();
+        });
+      }
+      for (auto& t : watchers) t.join();
+      v1::GetJobRequest g;
+      g.set_name(j.name());
+      stub->GetJob(c.Context().get(), g, &j);
+      with.push_back(JobSeconds(j));
+    }
+    out["watchers"] = {{"job_seconds_0_watchers_median", Median(without)},
+                       {"job_seconds_100_watchers_median", Median(with)}};
+  }
+
+  for (bool fsync : {true, false}) {
+    std::vector<std::string> extra = {"--max-upload-mb", "1024"};
+    if (!fsync) extra.push_back("--no-fsync");
+    e2e::ServerProcess server(scratch / (fsync ? "data2" : "data3"), extra);
+    auto c = client::Connect(server.address(), "", false, "", 60s);
+    std::vector<double> rates;
+    for (int rep = 0; rep < 3; ++rep) {
+      fs::path blob = scratch / "blob.bin";
+      {
+        std::mt19937_64 rng(rep + (fsync ? 0 : 100));
+        std::vector<uint64_t> buf(1 << 17);
+        std::ofstream f(blob, std::ios::binary | std::ios::trunc);
+        for (int m = 0; m < 256; ++m) {
+          for (auto& x : buf) x = rng();
+          f.write(reinterpret_cast<const char*>(buf.data()), 1 << 20);
+        }
+      }
+      std::vector<client::InputFile> files;
+      std::string err;
+      client::CollectInputs(blob, &files, &err);
+      client::HashInputs(&files, &err);
+      auto t0 = std::chrono::steady_clock::now();
+      grpc::Status s = client::UploadBlob(c, files[0], nullptr, 1, nullptr);
+      double secs = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
+      if (!s.ok()) std::fprintf(stderr, "upload: %s\n", s.error_message().c_str());
+      rates.push_back(files[0].size / 1e6 / secs);
+    }
+    out[fsync ? "upload_mb_per_s_fsync" : "upload_mb_per_s_no_fsync"] = {
+        {"median", Median(rates)}, {"runs", rates}};
+  }
+  fs::remove_all(scratch);
+  std::printf("%s\n", out.dump(2).c_str());
+  return 0;
+}

@@ -1,0 +1,200 @@
+#include <set>
+
+#include "gmock/gmock.h"
+#include "gtest/gtest.h"
+#include "server/job_store.h"
+#include "tests/testing/test_data.h"
+
+namespace decima::server {
+namespace {
+using ::testing::HasSubstr;
+
+class JobStoreTest : public ::testing::Test {
+ protected:
+  void SetUp() override {
+    path_ = (testing::MakeScratchDir("job_store") / "jobs.sqlite").string();
+    auto s = OpenSqliteJobStore(path_);
+    ASSERT_TRUE(s.ok()) << s.status();
+    store_ = std::move(*s);
+    store_->SetListener([this](const std::string& id, const v1::JobEvent& ev) {
+      published_.emplace_back(id, ev.sequence());
+    });
+  }
+  v1::Job Create(const std::string& id, const std::string& request_id = "", int max_queued = 100) {
+    v1::JobSpec spec;
+    spec.set_volume("volumes/v1");
+    bool created = false;
+    auto j = store_->CreateJob(id, spec, request_id, max_queued, &created);
+    EXPECT_TRUE(j.ok()) << j.status();
+    return j.ok() ? *j : v1::Job();
+  }
+  std::string path_;
+  std::unique_ptr<JobStore> store_;
+  std::vector<std::pair<std::string, int64_t>> published_;
+};
+
+TEST_F(JobStoreTest, CreateWithSameRequestIdReturnsTheFirstJob) {
+  v1::Job a = Create("a", "req-1");
+  v1::JobSpec spec;
+  bool created = true;
+  auto b = store_->CreateJob("b", spec, "req-1", 100, &created);
+  ASSERT_TRUE(b.ok());
+  EXPECT_FALSE(created);
+  EXPECT_EQ(b->name(), "jobs/a");
+  EXPECT_EQ(*store_->CountJobs(v1::QUEUED), 1);
+}
+
+TEST_F(JobStoreTest, FullQueueIsResourceExhausted) {
+  Create("a", "", 2);
+  Create("b", "", 2);
+  v1::JobSpec spec;
+  bool created = false;
+  auto c = store_->CreateJob("c", spec, "", 2, &created);
+  EXPECT_EQ(c.status().code(), absl::StatusCode::kResourceExhausted);
+}
+
+TEST_F(JobStoreTest, ClaimTakesOldestFirstAndNeverTwice) {
+  Create("a");
+  Create("b");
+  auto x = store_->ClaimNext("w1", 10000);
+  auto y = store_->ClaimNext("w2", 10000);
+  auto z = store_->ClaimNext("w3", 10000);
+  ASSERT_TRUE(x.ok() && y.ok() && z.ok());
+  ASSERT_TRUE(x->has_value() && y->has_value());
+  EXPECT_EQ((*x)->name(), "jobs/a");
+  EXPECT_EQ((*y)->name(), "jobs/b");
+  EXPECT_FALSE(z->has_value());
+  EXPECT_EQ((*x)->attempts(), 1);
+  // Only the lease owner may report on the job.
+  EXPECT_EQ(store_->AppendProgress("a", "w2", v1::Progress()).code(),
+            absl::StatusCode::kFailedPrecondition);
+  EXPECT_TRUE(store_->AppendProgress("a", "w1", v1::Progress()).ok());
+}
+
+TEST_F(JobStoreTest, EventsAreGaplessAndPublishedInOrder) {
+  Create("a");
+  ASSERT_TRUE(store_->ClaimNext("w", 10000).ok());
+  for (int i = 0; i < 5; ++i) {
+    v1::Progress p;
+    p.set_stage("segment");
+    p.set_fraction(i / 5.0);
+    ASSERT_TRUE(store_->AppendProgress("a", "w", p).ok());
+  }
+  v1::Job outcome;
+  auto done = store_->Finish("a", "w", v1::SUCCEEDED, outcome);
+  ASSERT_TRUE(done.ok());
+  EXPECT_EQ(done->last_sequence(), 8);  // QUEUED, RUNNING, 5 progress, SUCCEEDED
+  auto events = store_->ListEvents("a", 0, 100);
+  ASSERT_TRUE(events.ok());
+  ASSERT_EQ(events->size(), 8u);
+  for (size_t i = 0; i < events->size(); ++i) EXPECT_EQ((*events)[i].sequence(), int64_t(i + 1));
+  EXPECT_EQ(events->back().state_change().state(), v1::SUCCEEDED);
+  ASSERT_EQ(published_.size(), 8u);
+  for (size_t i = 0; i < published_.size(); ++i) EXPECT_EQ(published_[i].second, int64_t(i + 1));
+  auto tail = store_->ListEvents("a", 6, 100);
+  ASSERT_EQ(tail->size(), 2u);
+  EXPECT_EQ((*tail)[0].sequence(), 7);
+}
+
+TEST_F(JobStoreTest, RecoveryRequeuesRunningJobsThenFailsAfterMaxAttempts) {
+  Create("a");
+  for (int attempt = 1; attempt <= 2; ++attempt) {
+    auto c = store_->ClaimNext("dead-server", 10000);
+    ASSERT_TRUE(c.ok() && c->has_value());
+    auto r = store_->RecoverLeases(/*all=*/true, /*max_attempts=*/2);
+    ASSERT_TRUE(r.ok());
+    if (attempt == 1) {
+      EXPECT_EQ(r->requeued, std::vector<std::string>{"a"});
+      EXPECT_EQ(store_->GetJob("a")->state(), v1::QUEUED);
+    } else {
+      EXPECT_EQ(r->failed, std::vector<std::string>{"a"});
+      EXPECT_EQ(store_->GetJob("a")->state(), v1::FAILED);
+      EXPECT_THAT(store_->GetJob("a")->error().message(), HasSubstr("lost 2 times"));
+    }
+  }
+}
+
+TEST_F(JobStoreTest, OnlyLapsedLeasesAreRecoveredWhileServing) {
+  Create("a");
+  Create("b");
+  ASSERT_TRUE(store_->ClaimNext("w", -1000).ok());  // lease already lapsed
+  ASSERT_TRUE(store_->ClaimNext("w", 60000).ok());  // lease valid
+  auto r = store_->RecoverLeases(/*all=*/false, 3);
+  ASSERT_TRUE(r.ok());
+  EXPECT_EQ(r->requeued, std::vector<std::string>{"a"});
+  EXPECT_EQ(store_->GetJob("b")->state(), v1::RUNNING);
+}
+
+TEST_F(JobStoreTest, CancelQueuedIsImmediateCancelRunningIsARequest) {
+  Create("a");
+  Create("b");
+  ASSERT_TRUE(store_->ClaimNext("w", 10000).ok());  // a runs
+  auto ca = store_->Cancel("a");
+  ASSERT_TRUE(ca.ok());
+  EXPECT_EQ(ca->state(), v1::RUNNING);
+  EXPECT_TRUE(*store_->CancelRequested("a"));
+  auto cb = store_->Cancel("b");
+  EXPECT_EQ(cb->state(), v1::CANCELLED);
+  EXPECT_EQ(store_->Retry("a", 100).status().code(), absl::StatusCode::kFailedPrecondition);
+  auto rb = store_->Retry("b", 100);
+  ASSERT_TRUE(rb.ok());
+  EXPECT_EQ(rb->state(), v1::QUEUED);
+  EXPECT_EQ(store_->Cancel("zzz").status().code(), absl::StatusCode::kNotFound);
+}
+
+TEST_F(JobStoreTest, ListPagesNewestFirstWithStateFilterAndRejectsForeignTokens) {
+  for (int i = 0; i < 7; ++i) Create("j" + std::to_string(i));
+  ASSERT_TRUE(store_->ClaimNext("w", 10000).ok());  // j0 RUNNING
+  std::vector<std::string> names;
+  std::string token;
+  do {
+    auto page = store_->ListJobs({}, 3, token);
+    ASSERT_TRUE(page.ok());
+    EXPECT_LE(page->jobs.size(), 3u);
+    for (auto& j : page->jobs) names.push_back(j.name());
+    token = page->next_page_token;
+  } while (!token.empty());
+  ASSERT_EQ(names.size(), 7u);
+  EXPECT_EQ(names.front(), "jobs/j6");
+  EXPECT_EQ(names.back(), "jobs/j0");
+  auto running = store_->ListJobs({v1::RUNNING}, 10, "");
+  ASSERT_EQ(running->jobs.size(), 1u);
+  EXPECT_EQ(running->jobs[0].name(), "jobs/j0");
+  EXPECT_EQ(store_->ListJobs({}, 3, "garbage").status().code(), absl::StatusCode::kInvalidArgument);
+}
+
+TEST_F(JobStoreTest, JobsSurviveReopening) {
+  Create("a");
+  store_.reset();
+  auto s = OpenSqliteJobStore(path_);
+  ASSERT_TRUE(s.ok());
+  auto j = (*s)->GetJob("a");
+  ASSERT_TRUE(j.ok());
+  EXPECT_EQ(j->state(), v1::QUEUED);
+}
+
+TEST_F(JobStoreTest, VolumeInUseCannotBeDeleted) {
+  v1::Volume v;
+  v.add_files()->set_blob("blobs/" + std::string(64, 'a'));
+  bool created = false;
+  ASSERT_TRUE(store_->CreateVolume("v1", v, "", &created).ok());
+  EXPECT_TRUE(*store_->BlobInUse(std::string(64, 'a')));
+  Create("a");  // reads volumes/v1
+  EXPECT_EQ(store_->DeleteVolume("v1").code(), absl::StatusCode::kFailedPrecondition);
+  ASSERT_TRUE(store_->Cancel("a").ok());
+  EXPECT_TRUE(store_->DeleteVolume("v1").ok());
+  EXPECT_FALSE(*store_->BlobInUse(std::string(64, 'a')));
+  EXPECT_EQ(store_->GetVolume("v1").status().code(), absl::StatusCode::kNotFound);
+}
+
+TEST(ParseNameTest, AcceptsOnlyTheCollectionAndSafeIds) {
+  EXPECT_EQ(*ParseName("jobs/ab12", "jobs", "name"), "ab12");
+  EXPECT_FALSE(ParseName("jobs/", "jobs", "name").ok());
+  EXPECT_FALSE(ParseName("volumes/ab", "jobs", "name").ok());
+  EXPECT_FALSE(ParseName("jobs/../x", "jobs", "name").ok());
+  EXPECT_THAT(std::string(ParseName("x", "jobs", "spec.volume").status().message()),
+              HasSubstr("spec.volume"));
+}
+
+}  // namespace
+}  // namespace decima::server
