@@ -1,0 +1,740 @@
+// Ray casting through tetrahedral meshes by walking face-adjacent cells, with the exit face
+// chosen by 2D orientation tests in screen space (the screen-space form of the Plücker tests of
+// Platis & Theoharis 2003: for a ray through pixel point P, the ray passes through a projected
+// face iff P is inside the projected triangle). See renderer.h for the model.
+#include "core/render/renderer.h"
+
+#include <algorithm>
+#include <atomic>
+#include <chrono>
+#include <cmath>
+#include <limits>
+#include <mutex>
+#include <thread>
+
+#include "absl/strings/str_cat.h"
+#include "core/common/status.h"
+
+namespace decima {
+namespace {
+
+using Clock = std::chrono::steady_clock;
+double Since(Clock::time_point t0) {
+  return std::chrono::duration<double>(Clock::now() - t0).count();
+}
+
+int ThreadCount(int requested) {
+  if (requested > 0) return requested;
+  return static_cast<int>(std::max(1u, std::thread::hardware_concurrency()));
+}
+
+// Runs fn(thread_index, begin, end) over [0, n) split into `threads` contiguous ranges.
+template <typename Fn>
+void ParallelRanges(int64_t n, int threads, Fn&& fn) {
+  threads = static_cast<int>(std::max<int64_t>(1, std::min<int64_t>(threads, n)));
+  if (threads == 1) {
+    fn(0, int64_t{0}, n);
+    return;
+  }
+  std::vector<std::thread> pool;
+  for (int t = 0; t < threads; ++t) {
+    pool.emplace_back([&fn, t, n, threads] { fn(t, n * t / threads, n * (t + 1) / threads); });
+  }
+  for (auto& th : pool) th.join();
+}
+
+// Vertices of face q (opposite vertex q) of a positively oriented tet, wound outwards.
+constexpr int kFaceVerts[4][3] = {{1, 2, 3}, {0, 3, 2}, {0, 1, 3}, {0, 2, 1}};
+
+}  // namespace
+
+Bounds MeshBounds(const TetMesh& mesh) {
+  Bounds b;
+  if (mesh.vertex_count() == 0) return b;
+  b.min = b.max = mesh.Position(0);
+  for (int64_t v = 1; v < mesh.vertex_count(); ++v) {
+    const Eigen::Vector3d p = mesh.Position(v);
+    b.min = b.min.cwiseMin(p);
+    b.max = b.max.cwiseMax(p);
+  }
+  return b;
+}
+
+ScalarRange MeshScalarRange(const TetMesh& mesh) {
+  if (mesh.scalars.empty()) return {};
+  const auto [lo, hi] = std::minmax_element(mesh.scalars.begin(), mesh.scalars.end());
+  return {*lo, *hi};
+}
+
+absl::StatusOr<RenderableMesh> BuildRenderableMesh(const TetMesh& mesh,
+                                                   const RenderableMeshOptions& options,
+                                                   const CancelToken* cancel) {
+  const int64_t nv = mesh.vertex_count(), nt = mesh.tet_count();
+  if (nv < 4 || mesh.positions.size() != size_t(3 * nv) || mesh.tets.size() % 4 != 0 || nt < 1) {
+    return absl::InvalidArgumentError(
+        absl::StrCat("render mesh: ", nv, " scalars, ", mesh.positions.size(),
+                     " position floats and ", mesh.tets.size(),
+                     " tet indices are not a mesh (need >= 4 vertices, 3 floats each, and "
+                     "4 indices per tet)"));
+  }
+  if (nv > std::numeric_limits<int32_t>::max() || nt >= (int64_t{1} << 29)) {
+    return absl::InvalidArgumentError(
+        absl::StrCat("render mesh: ", nv, " vertices / ", nt, " tets exceed the 32-bit limits"));
+  }
+  for (int64_t i = 0; i < 3 * nv; ++i) {
+    if (!std::isfinite(mesh.positions[i])) {
+      return absl::InvalidArgumentError(
+          absl::StrCat("render mesh: vertex ", i / 3, " has a non-finite position"));
+    }
+  }
+  for (int64_t v = 0; v < nv; ++v) {
+    if (!std::isfinite(mesh.scalars[v])) {
+      return absl::InvalidArgumentError(
+          absl::StrCat("render mesh: vertex ", v, " has a non-finite scalar"));
+    }
+  }
+  for (int64_t t = 0; t < nt; ++t) {
+    const int32_t* q = &mesh.tets[4 * t];
+    for (int i = 0; i < 4; ++i) {
+      if (q[i] < 0 || q[i] >= nv) {
+        return absl::InvalidArgumentError(
+            absl::StrCat("render mesh: tet ", t, " refers to vertex ", q[i], " of ", nv));
+      }
+      for (int j = 0; j < i; ++j) {
+        if (q[i] == q[j]) {
+          return absl::InvalidArgumentError(
+              absl::StrCat("render mesh: tet ", t, " repeats vertex ", q[i]));
+        }
+      }
+    }
+  }
+  DECIMA_RETURN_IF_ERROR(CheckCancelled(cancel, "render"));
+
+  RenderableMesh out;
+  out.positions = mesh.positions;
+  out.scalars = mesh.scalars;
+  out.cells.resize(8 * nt);
+  for (int64_t t = 0; t < nt; ++t) {
+    std::copy_n(&mesh.tets[4 * t], 4, &out.cells[8 * t]);
+    std::fill_n(&out.cells[8 * t + 4], 4, -1);
+  }
+  const VertexTetAdjacency adj = BuildVertexTetAdjacency(mesh);
+
+  // Every face is matched around its smallest vertex v: both tets sharing it are incident to v,
+  // and each (tet, face) record is written by exactly one v, so threads never collide.
+  struct Record {
+    int32_t b, c, tet;
+    int8_t q;
+  };
+  const int threads = ThreadCount(options.threads);
+  std::vector<std::vector<int32_t>> boundary(threads);
+  std::vector<std::string> errors(threads);
+  ParallelRanges(nv, threads, [&](int th, int64_t v0, int64_t v1) {
+    std::vector<Record> recs;
+    for (int64_t v = v0; v < v1 && errors[th].empty(); ++v) {
+      recs.clear();
+      for (int64_t e = adj.offsets[v]; e < adj.offsets[v + 1]; ++e) {
+        const int32_t t = adj.tet_ids[e];
+        const int32_t* tv = &mesh.tets[4 * int64_t{t}];
+        for (int q = 0; q < 4; ++q) {
+          if (tv[q] == v) continue;  // face q does not contain v
+          int32_t o[3], n = 0;
+          for (int k = 0; k < 4; ++k)
+            if (k != q) o[n++] = tv[k];
+          if (std::min({o[0], o[1], o[2]}) != v) continue;
+          int32_t b = -1, c = -1;
+          for (int k = 0; k < 3; ++k) {
+            if (o[k] == v) continue;
+            if (b < 0)
+              b = o[k];
+            else
+              c = o[k];
+          }
+          if (b > c) std::swap(b, c);
+          recs.push_back({b, c, t, static_cast<int8_t>(q)});
+        }
+      }
+      std::sort(recs.begin(), recs.end(), [](const Record& x, const Record& y) {
+        return x.b != y.b ? x.b < y.b : x.c != y.c ? x.c < y.c : x.tet < y.tet;
+      });
+      for (size_t i = 0; i < recs.size();) {
+        size_t j = i + 1;
+        while (j < recs.size() && recs[j].b == recs[i].b && recs[j].c == recs[i].c) ++j;
+        if (j - i == 1) {
+          boundary[th].push_back(4 * recs[i].tet + recs[i].q);
+        } else if (j - i == 2) {
+          out.cells[8 * int64_t{recs[i].tet} + 4 + recs[i].q] = recs[i + 1].tet;
+          out.cells[8 * int64_t{recs[i + 1].tet} + 4 + recs[i + 1].q] = recs[i].tet;
+        } else {
+          errors[th] = absl::StrCat("render mesh: face (", v, ", ", recs[i].b, ", ", recs[i].c,
+                                    ") is shared by ", j - i, " tets (non-manifold)");
+          break;
+        }
+        i = j;
+      }
+    }
+  });
+  for (const std::string& e : errors) {
+    if (!e.empty()) return absl::InvalidArgumentError(e);
+  }
+  DECIMA_RETURN_IF_ERROR(CheckCancelled(cancel, "render"));
+
+  for (const auto& part : boundary) {
+    for (int32_t code : part) {
+      const int64_t t = code >> 2;
+      const int q = code & 3;
+      const int32_t* tv = &mesh.tets[4 * t];
+      int32_t a = tv[kFaceVerts[q][0]], b = tv[kFaceVerts[q][1]], c = tv[kFaceVerts[q][2]];
+      // Wind outwards from the actual geometry, so inverted tets do not flip their faces.
+      const Eigen::Vector3d pa = mesh.Position(a);
+      const Eigen::Vector3d n = (mesh.Position(b) - pa).cross(mesh.Position(c) - pa);
+      if (n.dot(mesh.Position(tv[q]) - pa) > 0) std::swap(b, c);
+      out.boundary_faces.push_back(code);
+      out.boundary_vertices.insert(out.boundary_vertices.end(), {a, b, c});
+    }
+  }
+  out.bounds = MeshBounds(mesh);
+  out.scalar_range = MeshScalarRange(mesh);
+  return out;
+}
+
+namespace {
+
+// A vertex in screen space. Orthographic: a = depth, b = scalar. Perspective: a = 1 / depth,
+// b = scalar / depth (perspective-correct interpolation is linear in these).
+struct ScreenVertex {
+  float x, y, a, b;
+};
+
+constexpr double kTiny = 1e-300;
+
+// Orientation of pixel point (px, py) against the projected edge x -> y: twice the signed
+// area of (x, y, P). Evaluated in the canonical order (smaller vertex id first) so every tet
+// sharing the edge gets the identical number; an exact zero is replaced by the sign the value
+// takes when P moves to (px + eps, py + eps^2) (simulation of simplicity), so P is never
+// exactly on an edge unless the edge projects to a point.
+inline double Orient(const ScreenVertex* sv, int32_t ix, int32_t iy, double px, double py) {
+  double sign = 1;
+  if (ix > iy) {
+    std::swap(ix, iy);
+    sign = -1;
+  }
+  const ScreenVertex& x = sv[ix];
+  const ScreenVertex& y = sv[iy];
+  const double det =
+      (double(x.x) - px) * (double(y.y) - py) - (double(x.y) - py) * (double(y.x) - px);
+  if (det != 0) return sign * det;
+  if (x.y != y.y) return sign * (x.y > y.y ? kTiny : -kTiny);
+  if (x.x != y.x) return sign * (y.x > x.x ? kTiny : -kTiny);
+  return 0;
+}
+
+// Transfer function prepared for fast lookups: a uniform bin table gives the segment of any
+// value in O(1), and a prefix count of segments with non-zero opacity lets whole tet segments
+// in transparent ranges (air) be skipped without sampling.
+class TfTable {
+ public:
+  explicit TfTable(const TransferFunction& tf) {
+    for (const TransferPoint& p : tf.points) {
+      v_.push_back(p.value);
+      r_.push_back(p.rgb[0]);
+      g_.push_back(p.rgb[1]);
+      b_.push_back(p.rgb[2]);
+      o_.push_back(p.opacity);
+    }
+    n_ = static_cast<int>(v_.size());
+    lo_ = v_.front();
+    hi_ = v_.back();
+    inv_bin_ = n_ > 1 ? kBins / (hi_ - lo_) : 0;
+    if (n_ > 1) {
+      bin_seg_.resize(kBins + 1);
+      int seg = 0;
+      for (int k = 0; k <= kBins; ++k) {
+        const double s = lo_ + (hi_ - lo_) * k / kBins;
+        while (seg < n_ - 2 && s >= v_[seg + 1]) ++seg;
+        bin_seg_[k] = seg;
+      }
+    }
+    // Segment ids: 0 = left clamp, 1..n-1 = [v[i-1], v[i]], n = right clamp.
+    nonzero_prefix_.assign(n_ + 2, 0);
+    for (int id = 0; id <= n_; ++id) {
+      bool nz;
+      if (id == 0)
+        nz = o_.front() > 0;
+      else if (id == n_)
+        nz = o_.back() > 0;
+      else
+        nz = o_[id - 1] > 0 || o_[id] > 0;
+      nonzero_prefix_[id + 1] = nonzero_prefix_[id] + (nz ? 1 : 0);
+    }
+  }
+
+  // Interior segment i with v[i] <= s < v[i + 1] (s strictly inside (lo, hi)).
+  int Segment(double s) const {
+    int k = static_cast<int>((s - lo_) * inv_bin_);
+    k = std::clamp(k, 0, kBins);
+    int seg = bin_seg_[k];
+    while (seg < n_ - 2 && s >= v_[seg + 1]) ++seg;
+    while (seg > 0 && s < v_[seg]) --seg;
+    return seg;
+  }
+  int SegmentId(double s) const {
+    if (s <= lo_ || n_ == 1) return s <= lo_ ? 0 : n_;
+    if (s >= hi_) return n_;
+    return Segment(s) + 1;
+  }
+  // True if the opacity is zero for every value between s0 and s1.
+  bool Transparent(double s0, double s1) const {
+    if (s0 > s1) std::swap(s0, s1);
+    return nonzero_prefix_[SegmentId(s1) + 1] == nonzero_prefix_[SegmentId(s0)];
+  }
+  void Eval(double s, float* r, float* g, float* b, float* o) const {
+    int i;
+    float f;
+    if (s <= lo_ || n_ == 1) {
+      i = s <= lo_ ? 0 : n_ - 1;
+      f = 0;
+    } else if (s >= hi_) {
+      i = n_ - 1;
+      f = 0;
+    } else {
+      i = Segment(s);
+      f = static_cast<float>((s - v_[i]) / (v_[i + 1] - v_[i]));
+    }
+    const int j = std::min(i + 1, n_ - 1);
+    *r = r_[i] + f * (r_[j] - r_[i]);
+    *g = g_[i] + f * (g_[j] - g_[i]);
+    *b = b_[i] + f * (b_[j] - b_[i]);
+    *o = o_[i] + f * (o_[j] - o_[i]);
+  }
+
+ private:
+  static constexpr int kBins = 1024;
+  int n_ = 0;
+  double lo_ = 0, hi_ = 0, inv_bin_ = 0;
+  std::vector<double> v_;
+  std::vector<float> r_, g_, b_, o_;
+  std::vector<int> bin_seg_;
+  std::vector<int> nonzero_prefix_;
+};
+
+// Colour and transmittance of one ray, front to back.
+struct Accum {
+  float r = 0, g = 0, b = 0, t = 1;
+};
+
+// Integrates the segment where the scalar goes linearly from s0 to s1 over `len` mm.
+inline void IntegrateSegment(const TfTable& tf, double s0, double s1, double len, double step,
+                             Accum& acc) {
+  if (!(len > 0) || tf.Transparent(s0, s1)) return;
+  const int n = static_cast<int>(std::min(65536.0, std::ceil(len / step)));
+  const double dl = len / std::max(n, 1);
+  for (int i = 0; i < std::max(n, 1); ++i) {
+    const double s = s0 + (s1 - s0) * (i + 0.5) / std::max(n, 1);
+    float r, g, b, o;
+    tf.Eval(s, &r, &g, &b, &o);
+    if (o <= 0) continue;
+    const float a = 1.0f - std::exp(-o * static_cast<float>(dl));
+    const float w = acc.t * a;
+    acc.r += w * r;
+    acc.g += w * g;
+    acc.b += w * b;
+    acc.t -= w;
+  }
+}
+
+struct Entry {
+  float depth;
+  int32_t code;  // 4 * tet + local face
+};
+
+struct Frame {
+  const RenderableMesh* mesh;
+  const ScreenVertex* sv;
+  const TfTable* tf;
+  const RenderOptions* options;
+  const Camera* camera;
+  std::vector<int64_t> entry_offsets;  // per pixel, CSR into entries
+  std::vector<Entry> entries;
+};
+
+// Depth and scalar at the point with screen barycentrics (la, lb, lc) of vertices a, b, c.
+template <bool kPersp>
+inline void Interpolate(const ScreenVertex* sv, int32_t a, int32_t b, int32_t c, double la,
+                        double lb, double lc, double* depth, double* scalar) {
+  const double sum = la + lb + lc;
+  if (!(sum > 0)) {
+    la = lb = lc = 1.0 / 3;
+  } else {
+    la /= sum;
+    lb /= sum;
+    lc /= sum;
+  }
+  const double A = la * sv[a].a + lb * sv[b].a + lc * sv[c].a;
+  const double B = la * sv[a].b + lb * sv[b].b + lc * sv[c].b;
+  if constexpr (kPersp) {
+    *depth = 1.0 / A;
+    *scalar = B / A;
+  } else {
+    *depth = A;
+    *scalar = B;
+  }
+}
+
+// Walks one ray from boundary entry `e` until it leaves the mesh or becomes opaque.
+// Returns the depth where it left.
+template <bool kPersp>
+double Walk(const Frame& f, Entry e, double px, double py, double len_per_depth, Accum& acc,
+            RenderStats& stats, bool* lost) {
+  const int32_t* cells = f.mesh->cells.data();
+  const ScreenVertex* sv = f.sv;
+  const double step = f.options->step_mm;
+  const float tmin = f.options->min_transmittance;
+
+  int32_t t = e.code >> 2;
+  const int eq = e.code & 3;
+  const int32_t* cell = &cells[8 * int64_t{t}];
+  int32_t a = cell[kFaceVerts[eq][0]], b = cell[kFaceVerts[eq][1]], c = cell[kFaceVerts[eq][2]];
+  double eab = Orient(sv, a, b, px, py), ebc = Orient(sv, b, c, px, py),
+         eca = Orient(sv, c, a, px, py);
+  // Orient all edge values so the current entry face's are positive; the walk keeps this.
+  const double sigma = (eab + ebc + eca) < 0 ? -1.0 : 1.0;
+  eab *= sigma;
+  ebc *= sigma;
+  eca *= sigma;
+  double depth, scalar;
+  Interpolate<kPersp>(sv, a, b, c, std::max(ebc, 0.0), std::max(eca, 0.0), std::max(eab, 0.0),
+                      &depth, &scalar);
+
+  int stuck = 0;
+  for (;;) {
+    cell = &cells[8 * int64_t{t}];
+    int qa = 0, qb = 0, qc = 0, qd = 0;
+    for (int q = 0; q < 4; ++q) {
+      const int32_t v = cell[q];
+      if (v == a)
+        qa = q;
+      else if (v == b)
+        qb = q;
+      else if (v == c)
+        qc = q;
+      else
+        qd = q;
+    }
+    const int32_t d = cell[qd];
+    const double ead = sigma * Orient(sv, a, d, px, py);
+    const double ebd = sigma * Orient(sv, b, d, px, py);
+    const double ecd = sigma * Orient(sv, c, d, px, py);
+    // The ray leaves through the face (among abd, bcd, cad) whose three edge values are all
+    // positive; the smallest of the three measures how far P is inside it. Exactly one face
+    // qualifies unless rounding made the signs inconsistent, then the best one is taken.
+    const double m_abd = std::min({eab, ebd, -ead});
+    const double m_bcd = std::min({ebc, ecd, -ebd});
+    const double m_cad = std::min({eca, ead, -ecd});
+    double next_depth, next_scalar;
+    int exit_q;
+    if (m_abd >= m_bcd && m_abd >= m_cad) {
+      if (!(m_abd > 0)) ++stats.fallback_steps;
+      Interpolate<kPersp>(sv, a, b, d, std::max(ebd, 0.0), std::max(-ead, 0.0), std::max(eab, 0.0),
+                          &next_depth, &next_scalar);
+      exit_q = qc;
+      c = d;
+      ebc = ebd;
+      eca = -ead;
+    } else if (m_bcd >= m_cad) {
+      if (!(m_bcd > 0)) ++stats.fallback_steps;
+      Interpolate<kPersp>(sv, b, c, d, std::max(ecd, 0.0), std::max(-ebd, 0.0), std::max(ebc, 0.0),
+                          &next_depth, &next_scalar);
+      exit_q = qa;
+      // New entry face (b, c, d) renamed to (a, b, c).
+      a = b;
+      b = c;
+      c = d;
+      eab = ebc;
+      ebc = ecd;
+      eca = -ebd;
+    } else {
+      if (!(m_cad > 0)) ++stats.fallback_steps;
+      Interpolate<kPersp>(sv, c, a, d, std::max(ead, 0.0), std::max(-ecd, 0.0), std::max(eca, 0.0),
+                          &next_depth, &next_scalar);
+      exit_q = qb;
+      // New entry face (c, a, d) renamed to (a, b, c).
+      const int32_t old_a = a;
+      a = c;
+      b = old_a;
+      c = d;
+      eab = eca;
+      ebc = ead;
+      eca = -ecd;
+    }
+    ++stats.steps;
+    if (next_depth > depth) {
+      IntegrateSegment(*f.tf, scalar, next_scalar, (next_depth - depth) * len_per_depth, step, acc);
+      depth = next_depth;
+      stuck = 0;
+    } else if (++stuck > 4096) {
+      *lost = true;
+      return depth;
+    }
+    scalar = next_scalar;
+    if (acc.t < tmin) return depth;
+    t = cell[4 + exit_q];
+    if (t < 0) return depth;
+  }
+}
+
+template <bool kPersp>
+void RenderTile(const Frame& f, int x0, int y0, int x1, int y1, RenderedImage& img,
+                RenderStats& stats) {
+  const Camera& cam = *f.camera;
+  const double s = cam.Scale();
+  const auto& bg = f.options->background;
+  for (int y = y0; y < y1; ++y) {
+    for (int x = x0; x < x1; ++x) {
+      const int64_t pix = int64_t{y} * img.width + x;
+      Accum acc;
+      const int64_t e0 = f.entry_offsets[pix], e1 = f.entry_offsets[pix + 1];
+      if (e1 > e0) {
+        ++stats.rays_hit;
+        double len_per_depth = 1;
+        if constexpr (kPersp) {
+          const double u = (x - 0.5 * (cam.width - 1)) / s, v = (0.5 * (cam.height - 1) - y) / s;
+          len_per_depth = std::sqrt(1 + u * u + v * v);
+        }
+        double depth = -std::numeric_limits<double>::infinity();
+        bool lost = false;
+        for (int64_t k = e0; k < e1 && acc.t >= f.options->min_transmittance && !lost; ++k) {
+          if (f.entries[k].depth < depth) continue;  // already inside when passing it
+          depth = Walk<kPersp>(f, f.entries[k], x, y, len_per_depth, acc, stats, &lost);
+        }
+        if (lost) ++stats.lost_rays;
+      }
+      img.rgb[3 * pix + 0] = acc.r + acc.t * bg[0];
+      img.rgb[3 * pix + 1] = acc.g + acc.t * bg[1];
+      img.rgb[3 * pix + 2] = acc.b + acc.t * bg[2];
+      img.alpha[pix] = 1 - acc.t;
+    }
+  }
+}
+
+absl::Status ValidateCamera(const Camera& c) {
+  if (c.width < 1 || c.width > 8192 || c.height < 1 || c.height > 8192) {
+    return absl::InvalidArgumentError(
+        absl::StrCat("camera: image size ", c.width, "x", c.height, " is not in 1..8192"));
+  }
+  const double tol = 1e-6;
+  if (!c.eye.allFinite() || !c.forward.allFinite() || !c.up.allFinite() || !c.right.allFinite() ||
+      std::abs(c.forward.norm() - 1) > tol || std::abs(c.up.norm() - 1) > tol ||
+      std::abs(c.forward.dot(c.up)) > tol || (c.forward.cross(c.up) - c.right).norm() > 1e-5) {
+    return absl::InvalidArgumentError(
+        "camera: forward and up must be finite orthonormal vectors and right = forward x up");
+  }
+  if (c.perspective && !(c.fov_y_deg > 0 && c.fov_y_deg < 180)) {
+    return absl::InvalidArgumentError(
+        absl::StrCat("camera: fov_y_deg ", c.fov_y_deg, " is not in (0, 180)"));
+  }
+  if (!c.perspective && !(c.ortho_width_mm > 0 && std::isfinite(c.ortho_width_mm))) {
+    return absl::InvalidArgumentError(
+        absl::StrCat("camera: ortho_width_mm ", c.ortho_width_mm, " must be finite and > 0"));
+  }
+  return absl::OkStatus();
+}
+
+}  // namespace
+
+Image RenderedImage::ToImage() const {
+  Image out;
+  out.width = width;
+  out.height = height;
+  out.channels = 3;
+  out.pixels.resize(rgb.size());
+  for (size_t i = 0; i < rgb.size(); ++i) {
+    out.pixels[i] = static_cast<uint8_t>(std::lround(std::clamp(rgb[i], 0.0f, 1.0f) * 255.0f));
+  }
+  return out;
+}
+
+absl::Status WriteRenderedPng(const RenderedImage& image, const std::filesystem::path& path) {
+  return WritePng(path, image.ToImage());
+}
+
+absl::StatusOr<RenderedImage> Render(const RenderableMesh& mesh, const Camera& camera,
+                                     const TransferFunction& tf, const RenderOptions& options,
+                                     const CancelToken* cancel) {
+  const auto start = Clock::now();
+  DECIMA_RETURN_IF_ERROR(ValidateCamera(camera));
+  DECIMA_RETURN_IF_ERROR(tf.Validate());
+  if (!(options.step_mm >= 1e-3 && std::isfinite(options.step_mm))) {
+    return absl::InvalidArgumentError(
+        absl::StrCat("render: step_mm ", options.step_mm, " must be finite and >= 0.001"));
+  }
+  for (float c : options.background) {
+    if (!(c >= 0 && c <= 1)) {
+      return absl::InvalidArgumentError("render: background components must be in 0..1");
+    }
+  }
+  if (!(options.min_transmittance >= 0 && options.min_transmittance < 1)) {
+    return absl::InvalidArgumentError("render: min_transmittance must be in [0, 1)");
+  }
+  if (mesh.tet_count() == 0) return absl::InvalidArgumentError("render: the mesh has no tets");
+
+  RenderedImage img;
+  img.width = camera.width;
+  img.height = camera.height;
+  const int64_t npix = int64_t{img.width} * img.height;
+  img.rgb.resize(3 * npix);
+  img.alpha.assign(npix, 0);
+  for (int64_t p = 0; p < npix; ++p) std::copy_n(options.background.begin(), 3, &img.rgb[3 * p]);
+  const int threads = ThreadCount(options.threads);
+
+  // Project every vertex; count those on or behind the camera plane.
+  const int64_t nv = mesh.vertex_count();
+  std::vector<ScreenVertex> sv(nv);
+  std::vector<int64_t> behind(threads, 0);
+  ParallelRanges(nv, threads, [&](int th, int64_t v0, int64_t v1) {
+    for (int64_t v = v0; v < v1; ++v) {
+      const Eigen::Vector3d p(mesh.positions[3 * v], mesh.positions[3 * v + 1],
+                              mesh.positions[3 * v + 2]);
+      const Eigen::Vector3d q = camera.Project(p);
+      if (!(q.z() > 0) || !q.allFinite()) {
+        ++behind[th];
+        sv[v] = {0, 0, 0, 0};
+        continue;
+      }
+      const double s = mesh.scalars[v];
+      if (camera.perspective) {
+        sv[v] = {float(q.x()), float(q.y()), float(1.0 / q.z()), float(s / q.z())};
+      } else {
+        sv[v] = {float(q.x()), float(q.y()), float(q.z()), float(s)};
+      }
+    }
+  });
+  int64_t n_behind = 0;
+  for (int64_t b : behind) n_behind += b;
+  if (n_behind == nv) {
+    img.stats.seconds = Since(start);
+    return img;  // looking away: empty image
+  }
+  if (n_behind > 0) {
+    return absl::InvalidArgumentError(absl::StrCat(
+        "render: ", n_behind, " of ", nv,
+        " vertices are on or behind the camera plane; move the camera out of the mesh"));
+  }
+  DECIMA_RETURN_IF_ERROR(CheckCancelled(cancel, "render"));
+
+  // Rasterize front-facing boundary faces: each pixel gets the faces where its ray enters.
+  Frame f;
+  f.mesh = &mesh;
+  f.sv = sv.data();
+  TfTable table(tf);
+  f.tf = &table;
+  f.options = &options;
+  f.camera = &camera;
+  struct PixelEntry {
+    int64_t pix;
+    Entry e;
+  };
+  std::vector<PixelEntry> raw;
+  const int64_t nb = static_cast<int64_t>(mesh.boundary_faces.size());
+  for (int64_t i = 0; i < nb; ++i) {
+    const int32_t* fv = &mesh.boundary_vertices[3 * i];
+    const ScreenVertex &A = sv[fv[0]], &B = sv[fv[1]], &C = sv[fv[2]];
+    const double area =
+        (double(B.x) - A.x) * (double(C.y) - A.y) - (double(B.y) - A.y) * (double(C.x) - A.x);
+    // Outward-wound faces facing the viewer have negative area in (x right, y down) pixels.
+    if (!(area < 0)) continue;
+    const double minx = std::min({A.x, B.x, C.x}), maxx = std::max({A.x, B.x, C.x});
+    const double miny = std::min({A.y, B.y, C.y}), maxy = std::max({A.y, B.y, C.y});
+    const int x0 = std::max(0, int(std::ceil(minx))),
+              x1 = std::min(img.width - 1, int(std::floor(maxx)));
+    const int y0 = std::max(0, int(std::ceil(miny))),
+              y1 = std::min(img.height - 1, int(std::floor(maxy)));
+    for (int y = y0; y <= y1; ++y) {
+      for (int x = x0; x <= x1; ++x) {
+        const double e0 = Orient(f.sv, fv[1], fv[2], x, y), e1 = Orient(f.sv, fv[2], fv[0], x, y),
+                     e2 = Orient(f.sv, fv[0], fv[1], x, y);
+        if (!((e0 < 0 && e1 < 0 && e2 < 0) || (e0 > 0 && e1 > 0 && e2 > 0))) continue;
+        double depth, scalar;
+        if (camera.perspective) {
+          Interpolate<true>(f.sv, fv[0], fv[1], fv[2], std::abs(e0), std::abs(e1), std::abs(e2),
+                            &depth, &scalar);
+        } else {
+          Interpolate<false>(f.sv, fv[0], fv[1], fv[2], std::abs(e0), std::abs(e1), std::abs(e2),
+                             &depth, &scalar);
+        }
+        raw.push_back({int64_t{y} * img.width + x, {float(depth), mesh.boundary_faces[i]}});
+      }
+    }
+  }
+  f.entry_offsets.assign(npix + 1, 0);
+  for (const PixelEntry& r : raw) ++f.entry_offsets[r.pix + 1];
+  for (int64_t p = 0; p < npix; ++p) f.entry_offsets[p + 1] += f.entry_offsets[p];
+  f.entries.resize(raw.size());
+  {
+    std::vector<int64_t> cursor(f.entry_offsets.begin(), f.entry_offsets.end() - 1);
+    for (const PixelEntry& r : raw) f.entries[cursor[r.pix]++] = r.e;
+  }
+  for (int64_t p = 0; p < npix; ++p) {
+    if (f.entry_offsets[p + 1] - f.entry_offsets[p] > 1) {
+      std::sort(f.entries.begin() + f.entry_offsets[p], f.entries.begin() + f.entry_offsets[p + 1],
+                [](const Entry& x, const Entry& y) {
+                  return x.depth != y.depth ? x.depth < y.depth : x.code < y.code;
+                });
+    }
+  }
+  raw.clear();
+  raw.shrink_to_fit();
+  img.stats.raster_seconds = Since(start);
+  img.empty = f.entries.empty();
+
+  // Tiles handed out dynamically; each writes only its own pixels.
+  constexpr int kTile = 16;
+  const int tiles_x = (img.width + kTile - 1) / kTile, tiles_y = (img.height + kTile - 1) / kTile;
+  const int ntiles = tiles_x * tiles_y;
+  std::atomic<int> next{0};
+  std::atomic<bool> cancelled{false};
+  std::mutex stats_mu;
+  RenderStats total = img.stats;
+  auto worker = [&] {
+    RenderStats local;
+    for (int tile; (tile = next.fetch_add(1)) < ntiles;) {
+      if (cancel != nullptr && cancel->cancelled()) {
+        cancelled = true;
+        break;
+      }
+      const int tx = tile % tiles_x, ty = tile / tiles_x;
+      const int x0 = tx * kTile, y0 = ty * kTile;
+      const int x1 = std::min(img.width, x0 + kTile), y1 = std::min(img.height, y0 + kTile);
+      if (camera.perspective) {
+        RenderTile<true>(f, x0, y0, x1, y1, img, local);
+      } else {
+        RenderTile<false>(f, x0, y0, x1, y1, img, local);
+      }
+    }
+    std::lock_guard<std::mutex> lock(stats_mu);
+    total.rays_hit += local.rays_hit;
+    total.steps += local.steps;
+    total.fallback_steps += local.fallback_steps;
+    total.lost_rays += local.lost_rays;
+  };
+  const int workers = std::max(1, std::min(threads, ntiles));
+  std::vector<std::thread> pool;
+  for (int i = 1; i < workers; ++i) pool.emplace_back(worker);
+  worker();
+  for (auto& th : pool) th.join();
+  if (cancelled) return absl::CancelledError("render: cancelled");
+  img.stats = total;
+  img.stats.seconds = Since(start);
+  return img;
+}
+
+absl::StatusOr<RenderedImage> Render(const TetMesh& mesh, const Camera& camera,
+                                     const TransferFunction& tf, const RenderOptions& options,
+                                     const CancelToken* cancel) {
+  RenderableMeshOptions build;
+  build.threads = options.threads;
+  DECIMA_ASSIGN_OR_RETURN(RenderableMesh rm, BuildRenderableMesh(mesh, build, cancel));
+  return Render(rm, camera, tf, options, cancel);
+}
+
+}  // namespace decima
