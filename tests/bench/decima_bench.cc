@@ -1,19 +1,22 @@
 // decima-bench: reproducible figures for the pipeline stages.
 //
-//   decima-bench --input PATH|phantom:NxNxN --stages load,tetra --repeat 3 --json
+//   decima-bench --input PATH|phantom:NxNxN --stages load,segment,tetra,simplify,render
+//                [--regions K] [--reduction F] [--policy paper|tetfusion] [--size W]
+//                [--view NAME] [--repeat N] --json
 //
 // Every stage runs --repeat times on the output of the previous stage; `seconds` is the median
 // and `seconds_all` every run. The process's peak resident memory after the stage is reported
 // as `peak_rss_mb` (peak over the process so far, so it grows monotonically across stages).
+// Without the segment stage, tetra uses the phantom's ground-truth labels (files: no labels).
 #include <sys/resource.h>
 
 #include <algorithm>
 #include <chrono>
-#include <cstdio>
+#include <cmath>
+#include <cstdlib>
 #include <functional>
 #include <iostream>
 #include <optional>
-#include <sstream>
 #include <string>
 #include <thread>
 #include <vector>
@@ -22,9 +25,17 @@
 #include <nlohmann/json.hpp>
 
 #include "absl/strings/numbers.h"
+#include "absl/strings/str_join.h"
 #include "absl/strings/str_split.h"
 #include "core/io/volume_io.h"
 #include "core/mesh/tetrahedralize.h"
+#include "core/metrics/fidelity.h"
+#include "core/render/camera.h"
+#include "core/render/diff.h"
+#include "core/render/renderer.h"
+#include "core/render/transfer_function.h"
+#include "core/segment/segment.h"
+#include "core/simplify/simplify.h"
 #include "core/volume/phantom.h"
 
 namespace decima {
@@ -42,6 +53,8 @@ double LoadAverage() {
   double load[1] = {0};
   return getloadavg(load, 1) == 1 ? load[0] : -1.0;
 }
+
+Json Finite(double v) { return std::isfinite(v) ? Json(v) : Json(nullptr); }
 
 // Runs `fn` `repeat` times and fills seconds (median) and seconds_all.
 absl::Status Time(int repeat, Json& out, const std::function<absl::Status()>& fn) {
@@ -77,41 +90,48 @@ absl::StatusOr<std::optional<std::array<int64_t, 3>>> ParsePhantom(const std::st
   return std::optional<std::array<int64_t, 3>>(dims);
 }
 
+struct BenchOptions {
+  std::string input;
+  int repeat = 3;
+  int regions = 3;
+  double reduction = 0.5;
+  std::string policy = "paper";
+  int size = 512;
+  std::string view = "anterior";
+};
+
+struct BenchState {
+  Volume image;
+  std::optional<Volume> labels;           // segmentation or phantom truth
+  std::vector<float> interface_distance;  // voxels, with labels
+  std::optional<TetMesh> mesh;
+  std::optional<SimplifyResult> simplified;
+};
+
 void DescribeVolume(const Volume& v, Json& out) {
   out["dims"] = v.dims;
   out["voxels"] = v.voxel_count();
   out["type"] = std::string(VoxelTypeName(v.type));
 }
 
-struct BenchState {
-  Volume image;
-  std::optional<Volume> labels;
-  std::optional<TetMesh> mesh;
-};
-
-absl::Status RunLoad(const std::string& input, int repeat, BenchState& state, Json& out) {
-  auto phantom_dims = ParsePhantom(input);
+absl::Status RunLoad(const BenchOptions& o, BenchState& state, Json& out) {
+  auto phantom_dims = ParsePhantom(o.input);
   if (!phantom_dims.ok()) return phantom_dims.status();
-  if (!phantom_dims->has_value()) {
-    absl::Status s = Time(repeat, out, [&]() -> absl::Status {
-      auto v = io::ReadVolume(input);
-      if (!v.ok()) return v.status();
-      state.image = *std::move(v);
-      return absl::OkStatus();
-    });
-    if (!s.ok()) return s;
-    DescribeVolume(state.image, out);
-    return absl::OkStatus();
-  }
-  HeadPhantomOptions o;
-  o.dims = **phantom_dims;
-  o.region_means = {0, 1000, 400};
-  o.noise_sigma = 50;
-  absl::Status s = Time(repeat, out, [&]() -> absl::Status {
-    auto p = MakeHeadPhantom(o);
-    if (!p.ok()) return p.status();
-    state.image = std::move(p->image);
-    state.labels = std::move(p->labels);
+  absl::Status s = Time(o.repeat, out, [&]() -> absl::Status {
+    if (phantom_dims->has_value()) {
+      HeadPhantomOptions p;
+      p.dims = **phantom_dims;
+      p.region_means = {0, 1000, 400};
+      p.noise_sigma = 50;
+      auto phantom = MakeHeadPhantom(p);
+      if (!phantom.ok()) return phantom.status();
+      state.image = std::move(phantom->image);
+      state.labels = std::move(phantom->labels);
+      return ComputeInterfaceDistance(*state.labels, &state.interface_distance, nullptr);
+    }
+    auto v = io::ReadVolume(o.input);
+    if (!v.ok()) return v.status();
+    state.image = *std::move(v);
     return absl::OkStatus();
   });
   if (!s.ok()) return s;
@@ -119,11 +139,38 @@ absl::Status RunLoad(const std::string& input, int repeat, BenchState& state, Js
   return absl::OkStatus();
 }
 
-absl::Status RunTetra(int repeat, BenchState& state, Json& out) {
+absl::Status RunSegment(const BenchOptions& o, BenchState& state, Json& out) {
+  SegmentOptions so;
+  so.regions = o.regions;
+  std::optional<SegmentResult> seg;
+  absl::Status s = Time(o.repeat, out, [&]() -> absl::Status {
+    seg.reset();
+    auto r = Segment(state.image, so, nullptr, nullptr);
+    if (!r.ok()) return r.status();
+    seg = *std::move(r);
+    return absl::OkStatus();
+  });
+  if (!s.ok()) return s;
+  out["regions"] = o.regions;
+  out["iterations"] = seg->iterations;
+  out["converged"] = seg->converged;
+  out["class_means"] = seg->class_means;
+  out["region_voxels"] = seg->region_voxels;
+  out["region_volumes_mm3"] = seg->region_volumes_mm3;
+  out["bytes_per_voxel_output"] = 1 + 2 * sizeof(float);
+  state.labels = std::move(seg->labels);
+  state.interface_distance = std::move(seg->interface_distance_voxels);
+  return absl::OkStatus();
+}
+
+absl::Status RunTetra(const BenchOptions& o, BenchState& state, Json& out) {
   TetrahedralizeOptions opts;
-  opts.labels = state.labels ? &*state.labels : nullptr;
-  absl::Status s = Time(repeat, out, [&]() -> absl::Status {
-    state.mesh.reset();  // measure one mesh alive at a time, as the pipeline holds it
+  if (state.labels) {
+    opts.labels = &*state.labels;
+    opts.interface_distance = state.interface_distance.data();
+  }
+  absl::Status s = Time(o.repeat, out, [&]() -> absl::Status {
+    state.mesh.reset();  // one mesh alive at a time, as the pipeline holds it
     auto m = Tetrahedralize(state.image, opts);
     if (!m.ok()) return m.status();
     state.mesh = *std::move(m);
@@ -132,53 +179,168 @@ absl::Status RunTetra(int repeat, BenchState& state, Json& out) {
   if (!s.ok()) return s;
   out["vertices"] = state.mesh->vertex_count();
   out["tets"] = state.mesh->tet_count();
+  int64_t features = 0;
+  for (uint8_t f : state.mesh->vertex_flags) features += (f & kFeatureVertex) != 0;
+  out["feature_vertices"] = features;
+  return absl::OkStatus();
+}
+
+absl::Status RunSimplify(const BenchOptions& o, BenchState& state, Json& out) {
+  SimplifyOptions so;
+  so.policy = o.policy == "tetfusion" ? SimplifyPolicy::kTetFusion : SimplifyPolicy::kPaper;
+  so.target_reduction = o.reduction;
+  absl::Status s = Time(o.repeat, out, [&]() -> absl::Status {
+    state.simplified.reset();
+    auto r = Simplify(*state.mesh, so);
+    if (!r.ok()) return r.status();
+    state.simplified = *std::move(r);
+    return absl::OkStatus();
+  });
+  if (!s.ok()) return s;
+  const SimplifyResult& r = *state.simplified;
+  out["policy"] = o.policy;
+  out["target_reduction"] = o.reduction;
+  out["achieved_reduction"] = r.achieved_reduction;
+  out["reached_target"] = r.reached_target;
+  out["stop_reason"] = StopReasonName(r.stop_reason);
+  out["stop_message"] = r.stop_message;
+  out["passes"] = r.passes;
+  out["cells_before"] = r.input_cells;
+  out["cells_after"] = r.output_cells;
+  out["vertices_before"] = state.mesh->vertex_count();
+  out["vertices_after"] = r.mesh.vertex_count();
+  out["cells_removed_per_second"] = (r.input_cells - r.output_cells) / out["seconds"].get<double>();
+
+  FidelityOptions fo;
+  fo.labels = state.labels ? &*state.labels : nullptr;
+  fo.original = &*state.mesh;
+  fo.vertex_map = &r.vertex_map;
+  auto f = MeasureFidelity(state.image, r.mesh, fo);
+  if (!f.ok()) return f.status();
+  Json m;
+  m["rmse"] = f->rmse;
+  m["psnr_db"] = Finite(f->psnr_db);
+  m["max_abs_error"] = f->max_abs_error;
+  m["coverage"] = f->coverage;
+  Json dice = Json::array();
+  for (const RegionDice& d : f->dice) dice.push_back({{"label", d.label}, {"dice", d.dice}});
+  m["dice"] = dice;
+  m["interface_rmse"] = f->interface_rmse;
+  m["feature_vertices"] = f->feature_vertices;
+  m["feature_vertices_moved"] = f->feature_vertices_moved;
+  m["feature_vertices_removed"] = f->feature_vertices_removed;
+  m["inverted_cells"] = f->inverted_cells;
+  m["degenerate_cells"] = f->degenerate_cells;
+  m["min_dihedral_deg"] = f->min_dihedral_deg;
+  out["fidelity"] = m;
+  return absl::OkStatus();
+}
+
+absl::Status RunRender(const BenchOptions& o, BenchState& state, Json& out) {
+  auto view = ParseView(o.view);
+  if (!view.ok()) return view.status();
+  auto original = BuildRenderableMesh(*state.mesh);
+  if (!original.ok()) return original.status();
+  ViewOptions vo;
+  vo.width = vo.height = o.size;
+  auto camera = MakeViewCamera(*view, original->bounds, vo);
+  if (!camera.ok()) return camera.status();
+  const bool ct = state.image.modality == "CT" || original->scalar_range.max > 1500;
+  auto tf = TransferFunctionPreset(ct ? "ct" : "mri-t1", original->scalar_range);
+  if (!tf.ok()) return tf.status();
+  std::optional<RenderedImage> image;
+  absl::Status s = Time(o.repeat, out, [&]() -> absl::Status {
+    auto r = Render(*original, *camera, *tf);
+    if (!r.ok()) return r.status();
+    image = *std::move(r);
+    return absl::OkStatus();
+  });
+  if (!s.ok()) return s;
+  out["size"] = o.size;
+  out["view"] = o.view;
+  out["tets"] = original->tet_count();
+  if (state.simplified) {
+    auto simplified = BuildRenderableMesh(state.simplified->mesh);
+    if (!simplified.ok()) return simplified.status();
+    auto b = Render(*simplified, *camera, *tf);
+    if (!b.ok()) return b.status();
+    auto diff = Diff(*image, *b);
+    if (!diff.ok()) return diff.status();
+    out["simplified_seconds"] = b->stats.seconds;
+    out["diff1"] = diff->diff1;
+    out["max_diff2"] = diff->max_diff2;
+  }
   return absl::OkStatus();
 }
 
 int Main(int argc, char** argv) {
   CLI::App app{"decima-bench: time Decima's pipeline stages on one input and print JSON"};
-  std::string input, stages_arg = "load,tetra";
-  int repeat = 3;
+  BenchOptions o;
+  std::string stages_arg = "load,tetra";
   bool json = false;
-  app.add_option("--input", input, "Volume file, DICOM folder, or phantom:NxNxN (synthetic head)")
+  app.add_option("--input", o.input, "Volume file, DICOM folder, or phantom:NxNxN (synthetic head)")
       ->required();
-  app.add_option("--stages", stages_arg, "Comma-separated stages, in pipeline order: load,tetra")
+  app.add_option("--stages", stages_arg,
+                 "Comma-separated stages: load,segment,tetra,simplify,render (load is implied)")
       ->capture_default_str();
-  app.add_option("--repeat", repeat, "Runs per stage; the median is reported")
+  app.add_option("--repeat", o.repeat, "Runs per stage; the median is reported")
       ->check(CLI::Range(1, 100))
+      ->capture_default_str();
+  app.add_option("--regions", o.regions, "segment: number of regions K")
+      ->check(CLI::Range(2, 8))
+      ->capture_default_str();
+  app.add_option("--reduction", o.reduction, "simplify: fraction of cells to remove")
+      ->check(CLI::Range(0.0, 0.95))
+      ->capture_default_str();
+  app.add_option("--policy", o.policy, "simplify: paper or tetfusion")
+      ->check(CLI::IsMember({"paper", "tetfusion"}))
+      ->capture_default_str();
+  app.add_option("--size", o.size, "render: image width and height in pixels")
+      ->check(CLI::Range(16, 4096))
+      ->capture_default_str();
+  app.add_option("--view", o.view,
+                 "render: view preset (anterior, lateral, superior, oblique, ...)")
       ->capture_default_str();
   app.add_flag("--json", json, "Print the JSON object (the only output format; kept for scripts)");
   CLI11_PARSE(app, argc, argv);
 
-  const std::vector<std::string> known = {"load", "tetra"};
-  std::vector<std::string> stages = absl::StrSplit(stages_arg, ',', absl::SkipEmpty());
-  for (const auto& s : stages) {
-    if (std::find(known.begin(), known.end(), s) == known.end()) {
-      std::cerr << "decima-bench: unknown stage '" << s << "' (known: load, tetra)\n";
+  const std::vector<std::string> order = {"load", "segment", "tetra", "simplify", "render"};
+  std::vector<std::string> requested = absl::StrSplit(stages_arg, ',', absl::SkipEmpty());
+  for (const auto& s : requested) {
+    if (std::find(order.begin(), order.end(), s) == order.end()) {
+      std::cerr << "decima-bench: unknown stage '" << s
+                << "' (known: " << absl::StrJoin(order, ", ") << ")\n";
       return 2;
     }
   }
-  if (stages.empty() || stages[0] != "load") stages.insert(stages.begin(), "load");
+  auto wants = [&](const std::string& s) {
+    return s == "load" || std::find(requested.begin(), requested.end(), s) != requested.end();
+  };
+  // Later stages need the earlier products: simplify and render need a mesh.
+  if ((wants("simplify") || wants("render")) && !wants("tetra")) requested.push_back("tetra");
 
   Json result;
-  result["input"] = input;
-  result["repeat"] = repeat;
+  result["input"] = o.input;
+  result["repeat"] = o.repeat;
   result["machine"] = {{"cores", std::thread::hardware_concurrency()},
-                       {"load_average_1m", LoadAverage()}};
+                       {"load_average_1m_at_start", LoadAverage()}};
   BenchState state;
-  for (const auto& stage : stages) {
+  for (const auto& stage : order) {
+    if (!wants(stage)) continue;
     Json out;
     absl::Status s;
-    if (stage == "load")
-      s = RunLoad(input, repeat, state, out);
-    else if (stage == "tetra")
-      s = RunTetra(repeat, state, out);
+    if (stage == "load") s = RunLoad(o, state, out);
+    if (stage == "segment") s = RunSegment(o, state, out);
+    if (stage == "tetra") s = RunTetra(o, state, out);
+    if (stage == "simplify") s = RunSimplify(o, state, out);
+    if (stage == "render") s = RunRender(o, state, out);
     if (!s.ok()) {
       std::cerr << "decima-bench: stage " << stage << ": " << s << "\n";
       return 1;
     }
     result["stages"][stage] = out;
   }
+  result["machine"]["load_average_1m_at_end"] = LoadAverage();
   result["peak_rss_mb"] = PeakRssMb();
   std::cout << result.dump(2) << std::endl;
   return 0;

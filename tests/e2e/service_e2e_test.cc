@@ -240,7 +240,9 @@ TEST_F(ServiceE2E, FourClientsTwentyJobsEachTwoWorkersAllSucceedOnceInOrder) {
   for (int c = 0; c < 4; ++c) {
     clients.emplace_back([&, c] {
       for (int i = 0; i < 20; ++i) {
-        CliResult r = RunCli(server.address(), {"-q", "submit", vols[c].string()});
+        // Small renders keep 80 real pipeline runs within the watchers' deadline on 2 cores.
+        CliResult r =
+            RunCli(server.address(), {"-q", "submit", vols[c].string(), "--image-size", "32"});
         if (r.rc != 0) {
           ADD_FAILURE() << r.err;
           return;
