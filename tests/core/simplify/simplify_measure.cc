@@ -27,6 +27,13 @@ namespace {
 
 using decima::Volume;
 
+double CpuSeconds() {
+  rusage u{};
+  getrusage(RUSAGE_SELF, &u);
+  return double(u.ru_utime.tv_sec + u.ru_stime.tv_sec) +
+         1e-6 * double(u.ru_utime.tv_usec + u.ru_stime.tv_usec);
+}
+
 double PeakRssGb() {
   rusage u{};
   getrusage(RUSAGE_SELF, &u);
@@ -143,26 +150,29 @@ int Run(int argc, char** argv) {
     o.threads = threads;
     if (lock >= 0) o.lock_neighbours = lock != 0;
     o.widen_collapse_point = widen != 0;
-    std::vector<double> secs;
+    std::vector<double> secs, cpu;
     absl::StatusOr<decima::SimplifyResult> r;
     for (int k = 0; k < repeat; ++k) {
       r = decima::SimplifyResult{};
       const auto t0 = std::chrono::steady_clock::now();
+      const double c0 = CpuSeconds();
       r = decima::Simplify(*mesh, o);
       secs.push_back(std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count());
+      cpu.push_back(CpuSeconds() - c0);
       if (!r.ok()) {
         std::fprintf(stderr, "%s\n", r.status().ToString().c_str());
         return 1;
       }
     }
     std::sort(secs.begin(), secs.end());
+    std::sort(cpu.begin(), cpu.end());
     const double median = secs[secs.size() / 2];
     const int64_t removed = r->input_cells - r->output_cells;
     std::printf(
         "%s target %.2f: reached %.4f (%s) passes %d, %.3f s (median of %d), "
-        "%.2f M cells/s, rss %.2f GB | %s\n",
+        "cpu %.3f s, %.2f M cells/s, rss %.2f GB | %s\n",
         policy_name.c_str(), reduction, r->achieved_reduction, r->reached_target ? "yes" : "no",
-        r->passes, median, repeat, double(removed) / median / 1e6, PeakRssGb(),
+        r->passes, median, repeat, cpu[cpu.size() / 2], double(removed) / median / 1e6, PeakRssGb(),
         r->stop_message.c_str());
     if (std::getenv("MEASURE_PASSES")) {
       for (const auto& ps : r->pass_stats) {
