@@ -2,7 +2,8 @@
 //   Feature Preserving Volumetric Data Simplification for Application in Medical Imaging,
 //   §2.2 (rules 1-6, Eq. 5-8, the greedy loop), and the baseline
 //   Chopra, Meyer: TetFusion, an algorithm for rapid tetrahedral mesh simplification (2002).
-// Interpretations of the paper are listed in README.md beside this file.
+// Interpretations of the paper and the departures from it are listed in README.md beside this
+// file.
 #include "core/simplify/collapse_engine.h"
 
 #include <algorithm>
@@ -42,15 +43,67 @@ inline double Orient6(const float* a, const float* b, const float* c, const floa
   return bx * (cy * dz - cz * dy) - by * (cx * dz - cz * dx) + bz * (cx * dy - cy * dx);
 }
 
+// Queue key of an error: non-negative floats order like their bit patterns.
 inline uint32_t FloatKey(float e) {
   if (!(e < FLT_MAX)) e = FLT_MAX;  // also NaN
   if (e < 0) e = 0;
   uint32_t bits;
   std::memcpy(&bits, &e, 4);
-  return bits;  // non-negative floats order like their bit patterns
+  return bits;
+}
+inline float KeyFloat(uint32_t key) {
+  float e;
+  std::memcpy(&e, &key, 4);
+  return e;
 }
 
 constexpr uint32_t kNotCandidate = 0xFFFFFFFFu;
+
+// A way to delete τ: merge the vertices of τ in `mask` (two or more) into one point with
+// barycentric weights `w` (zero outside the mask). Row 0 of the free merges is the paper's
+// rule 1: all four at the centroid. The others widen it (README): all four at a face centroid,
+// edge midpoint or vertex; three at their centroid, an edge midpoint or a vertex; two (an edge)
+// at its midpoint or an end.
+struct Merge {
+  uint8_t mask;
+  double w[4];
+};
+
+std::vector<Merge> BuildFreeMerges() {
+  std::vector<Merge> out;
+  auto add = [&](unsigned mask, std::initializer_list<int> at) {
+    Merge m{uint8_t(mask), {0, 0, 0, 0}};
+    for (int k : at) m.w[k] += 1.0 / double(at.size());
+    out.push_back(m);
+  };
+  for (unsigned mask : {0xFu, 0xEu, 0xDu, 0xBu, 0x7u, 0x3u, 0x5u, 0x9u, 0x6u, 0xAu, 0xCu}) {
+    int s[4], n = 0;
+    for (int k = 0; k < 4; ++k)
+      if (mask & (1u << k)) s[n++] = k;
+    if (n == 4) {
+      add(mask, {0, 1, 2, 3});
+      for (int k = 3; k >= 0; --k) add(mask, {(k + 1) % 4, (k + 2) % 4, (k + 3) % 4});
+    } else if (n == 3) {
+      add(mask, {s[0], s[1], s[2]});
+    }
+    if (n >= 3) {
+      for (int i = 0; i < n; ++i)
+        for (int j = i + 1; j < n; ++j) add(mask, {s[i], s[j]});
+    } else {
+      add(mask, {s[0], s[1]});
+    }
+    for (int i = 0; i < n; ++i) add(mask, {s[i]});
+  }
+  return out;
+}
+
+const std::vector<Merge>& FreeMerges() {
+  static const std::vector<Merge> merges = BuildFreeMerges();
+  return merges;
+}
+
+constexpr double kCentroid[4] = {0.25, 0.25, 0.25, 0.25};
+constexpr double kVertexWeights[4][4] = {{1, 0, 0, 0}, {0, 1, 0, 0}, {0, 0, 1, 0}, {0, 0, 0, 1}};
 
 }  // namespace
 
@@ -80,11 +133,19 @@ const char* OutcomeName(Outcome o) {
       return "A(cell) holds several feature cells (rule 4)";
     case Outcome::kFlip:
       return "a neighbour would flip or become a sliver (rule 6)";
+    case Outcome::kRequeued:
+      return "valid point costs more than the next queued cell";
   }
   return "?";
 }
 
-CollapseEngine::CollapseEngine(TetMesh mesh, const SimplifyOptions& options)
+bool IsPermanent(Outcome o) {
+  return o == Outcome::kTwoFeatureVertices || o == Outcome::kCrossRegion ||
+         o == Outcome::kTwoBoundaryVertices || o == Outcome::kBoundaryCell ||
+         o == Outcome::kPinnedConflict;
+}
+
+CollapseEngine::CollapseEngine(TetMesh mesh, const SimplifyOptions& options, int threads)
     : mesh_(std::move(mesh)), options_(options) {
   const int64_t nv = mesh_.vertex_count(), nt = mesh_.tet_count();
   if (options_.policy == SimplifyPolicy::kPaper && options_.feature_threshold_voxels >= 0) {
@@ -97,8 +158,12 @@ CollapseEngine::CollapseEngine(TetMesh mesh, const SimplifyOptions& options)
   }
   mesh_.cell_regions.clear();  // recomputed by Finish()
 
+  cell_volume_.resize(nt);
+  ParallelFor(nt, threads, [&](int64_t b, int64_t e) {
+    for (int64_t t = b; t < e; ++t) cell_volume_[t] = float(CellVolume(&mesh_.tets[4 * t]));
+  });
   double total = 0;
-  for (int64_t t = 0; t < nt; ++t) total += CellVolume(&mesh_.tets[4 * t]);
+  for (int64_t t = 0; t < nt; ++t) total += cell_volume_[t];
   voxel_ = options_.voxel_size_mm > 0 ? options_.voxel_size_mm
                                       : (nt > 0 ? std::cbrt(5.0 * total / double(nt)) : 1.0);
   if (!(voxel_ > 0)) voxel_ = 1;
@@ -132,11 +197,36 @@ CollapseEngine::CollapseEngine(TetMesh mesh, const SimplifyOptions& options)
     region_var_[r] = region_std_[r] * region_std_[r];
   }
 
+  // Adjacency rows (input CSR), star volumes and the cross-region marks.
+  VertexTetAdjacency adjacency = BuildVertexTetAdjacency(mesh_);
+  adj_ids_ = std::move(adjacency.tet_ids);
+  adj_begin_ = std::move(adjacency.offsets);
+  adj_count_.resize(nv);
+  for (int64_t v = 0; v < nv; ++v) adj_count_[v] = int32_t(adj_begin_[v + 1] - adj_begin_[v]);
+  star_volume_.assign(nv, 0.0);
+  valence_.resize(nv);
+  for (int64_t v = 0; v < nv; ++v) valence_[v] = adj_count_[v];
+  cross_touch_.assign(nv, 0);
+  const bool paper = options_.policy == SimplifyPolicy::kPaper;
+  for (int64_t t = 0; t < nt; ++t) {
+    const int32_t* tet = &mesh_.tets[4 * t];
+    for (int k = 0; k < 4; ++k) star_volume_[tet[k]] += cell_volume_[t];
+    if (paper && IsCrossRegionCell(tet)) {
+      for (int k = 0; k < 4; ++k) cross_touch_[tet[k]] = 1;
+    }
+  }
+
   parent_.resize(nv);
   std::iota(parent_.begin(), parent_.end(), 0);
+  class_next_.assign(nv, -1);
+  class_tail_.resize(nv);
+  std::iota(class_tail_.begin(), class_tail_.end(), 0);
   touched_.assign(nv, 0);
-  dead_.assign(nt, 0);
+  dead_bits_.assign((nt + 63) / 64, 0);
+  permanent_.assign(nt, 0);
+  scored_at_.assign(nt, 0);
   rejected_at_.assign(nt, 0);
+  locked_round_.assign(nt, 0);
   live_cells_ = nt;
 }
 
@@ -155,150 +245,21 @@ bool CollapseEngine::IsCrossRegionCell(const int32_t* tet) const {
   return mixed;
 }
 
-void CollapseEngine::BeginPass(int threads) {
-  // Drop the cells deleted in the previous pass (stable, so ids keep their relative order).
-  int64_t nt = mesh_.tet_count(), kept = 0;
-  for (int64_t t = 0; t < nt; ++t) {
-    if (dead_[t]) continue;
-    if (kept != t) {
-      std::copy_n(&mesh_.tets[4 * t], 4, &mesh_.tets[4 * kept]);
-      rejected_at_[kept] = rejected_at_[t];
-    }
-    ++kept;
-  }
-  mesh_.tets.resize(4 * kept);
-  rejected_at_.resize(kept);
-  nt = kept;
-  live_cells_ = nt;
-  dead_.assign(nt, 0);
-  locked_.assign(nt, 0);
-  adjacency_ = BuildVertexTetAdjacency(mesh_);
-  // Passes after the first start by relaxing the normal vertices (README: "un-jamming").
-  if (pass_ > 0) {
-    for (int it = 0; it < options_.smoothing_iterations; ++it) SmoothVertices();
-  }
-  ++pass_;
-
-  const int64_t nv = mesh_.vertex_count();
-  cell_volume_.resize(nt);
-  ParallelFor(nt, threads, [&](int64_t b, int64_t e) {
-    for (int64_t t = b; t < e; ++t) cell_volume_[t] = float(CellVolume(&mesh_.tets[4 * t]));
-  });
-  star_volume_.assign(nv, 0.0);
-  cross_touch_.assign(nv, 0);
-  const bool paper = options_.policy == SimplifyPolicy::kPaper;
-  for (int64_t t = 0; t < nt; ++t) {
-    const int32_t* tet = &mesh_.tets[4 * t];
-    for (int k = 0; k < 4; ++k) star_volume_[tet[k]] += cell_volume_[t];
-    if (paper && IsCrossRegionCell(tet)) {
-      for (int k = 0; k < 4; ++k) cross_touch_[tet[k]] = 1;
-    }
-  }
+uint32_t CollapseEngine::LastTouch(int32_t cell) const {
+  const int32_t* t = &mesh_.tets[4 * int64_t(cell)];
+  return std::max(std::max(touched_[t[0]], touched_[t[1]]),
+                  std::max(touched_[t[2]], touched_[t[3]]));
 }
 
-namespace {
-// Mean-ratio quality 12 (3V)^(2/3) / sum of squared edge lengths: 1 for the regular tet, 0 flat.
-double Quality(const float* q0, const float* q1, const float* q2, const float* q3, double o6) {
-  if (o6 <= 0) return 0;
-  const float* q[4] = {q0, q1, q2, q3};
-  double l2 = 0;
-  for (int i = 0; i < 4; ++i)
-    for (int j = i + 1; j < 4; ++j)
-      for (int c = 0; c < 3; ++c) l2 += (double(q[i][c]) - q[j][c]) * (double(q[i][c]) - q[j][c]);
-  return 12.0 * std::cbrt(0.25 * o6 * o6) / l2;
-}
-}  // namespace
-
-int64_t CollapseEngine::SmoothVertices() {
-  const int64_t nv = mesh_.vertex_count();
-  float* P = mesh_.positions.data();
-  int64_t moved = 0;
-  const double min6 = 6.0 * min_volume_;
-  for (int64_t v = 0; v < nv; ++v) {
-    if (mesh_.vertex_flags[v] & (kFeatureVertex | kExteriorBoundaryVertex)) continue;
-    const int64_t b = adjacency_.offsets[v], e = adjacency_.offsets[v + 1];
-    if (b == e) continue;
-    double cx = 0, cy = 0, cz = 0, wsum = 0, old_q = 1;
-    bool pure = true;
-    for (int64_t i = b; i < e; ++i) {
-      const int32_t* t = &mesh_.tets[4 * int64_t(adjacency_.tet_ids[i])];
-      const double o6 = Orient6(P + 3 * t[0], P + 3 * t[1], P + 3 * t[2], P + 3 * t[3]);
-      old_q = std::min(old_q, Quality(P + 3 * t[0], P + 3 * t[1], P + 3 * t[2], P + 3 * t[3], o6));
-      for (int k = 0; k < 4; ++k) {
-        cx += o6 * P[3 * t[k]], cy += o6 * P[3 * t[k] + 1], cz += o6 * P[3 * t[k] + 2];
-        pure &= mesh_.labels[t[k]] == mesh_.labels[v];
-      }
-      wsum += 4 * o6;
-    }
-    if (!pure || !(wsum > 0)) continue;
-    cx /= wsum, cy /= wsum, cz /= wsum;
-    for (double alpha : {1.0, 0.5}) {
-      float p[3] = {float(P[3 * v] + alpha * (cx - P[3 * v])),
-                    float(P[3 * v + 1] + alpha * (cy - P[3 * v + 1])),
-                    float(P[3 * v + 2] + alpha * (cz - P[3 * v + 2]))};
-      double new_q = 1;
-      bool ok = true;
-      double value = 0, dist = 0;
-      bool located = false;
-      for (int64_t i = b; i < e && ok; ++i) {
-        const int32_t* t = &mesh_.tets[4 * int64_t(adjacency_.tet_ids[i])];
-        const float* q[4];
-        for (int k = 0; k < 4; ++k) q[k] = t[k] == v ? p : P + 3 * t[k];
-        const double o6 = Orient6(q[0], q[1], q[2], q[3]);
-        ok = o6 >= min6;
-        new_q = std::min(new_q, Quality(q[0], q[1], q[2], q[3], o6));
-        if (!located) {
-          // Barycentric coordinates of p in the old cell.
-          const float* r[4] = {P + 3 * t[0], P + 3 * t[1], P + 3 * t[2], P + 3 * t[3]};
-          const double all = Orient6(r[0], r[1], r[2], r[3]);
-          double l[4];
-          bool inside = true;
-          for (int k = 0; k < 4 && inside; ++k) {
-            const float* rr[4] = {r[0], r[1], r[2], r[3]};
-            rr[k] = p;
-            l[k] = Orient6(rr[0], rr[1], rr[2], rr[3]) / all;
-            inside = l[k] >= -1e-9;
-          }
-          for (int k = 0; k < 4; ++k) inside &= mesh_.labels[t[k]] == mesh_.labels[v];
-          if (inside) {
-            located = true;
-            for (int k = 0; k < 4; ++k) {
-              value += l[k] * mesh_.scalars[t[k]];
-              dist += l[k] * mesh_.interface_distance[t[k]];
-            }
-          }
-        }
-      }
-      if (!ok || !located || !(new_q > old_q)) continue;
-      std::copy_n(p, 3, P + 3 * v);
-      ++clock_;
-      for (int64_t i = b; i < e; ++i) {
-        for (int k = 0; k < 4; ++k)
-          touched_[mesh_.tets[4 * int64_t(adjacency_.tet_ids[i]) + k]] = clock_;
-      }
-      mesh_.scalars[v] = float(value);
-      mesh_.interface_distance[v] = float(dist);
-      ++moved;
-      break;
-    }
-  }
-  return moved;
-}
-
-float CollapseEngine::PlanError(const int32_t* tet, double volume, int slot) const {
-  const ErrorWeights& w = options_.weights;
+float CollapseEngine::MergeError(const int32_t* tet, double volume, unsigned mask,
+                                 const double* w) const {
+  const ErrorWeights& ew = options_.weights;
   const float* P = mesh_.positions.data();
   double s[4], px = 0, py = 0, pz = 0, s_new = 0;
   for (int k = 0; k < 4; ++k) {
     s[k] = mesh_.scalars[tet[k]];
-    px += P[3 * tet[k]], py += P[3 * tet[k] + 1], pz += P[3 * tet[k] + 2];
-    s_new += s[k];
-  }
-  if (slot < 0) {
-    px *= 0.25, py *= 0.25, pz *= 0.25, s_new *= 0.25;
-  } else {
-    px = P[3 * tet[slot]], py = P[3 * tet[slot] + 1], pz = P[3 * tet[slot] + 2];
-    s_new = s[slot];
+    px += w[k] * P[3 * tet[k]], py += w[k] * P[3 * tet[k] + 1], pz += w[k] * P[3 * tet[k] + 2];
+    s_new += w[k] * s[k];  // the linear field of τ at the point (§2.2.3.2's s'_n)
   }
   const bool paper = options_.policy == SimplifyPolicy::kPaper;
   const uint8_t region = CellRegion(mesh_.labels[tet[0]], mesh_.labels[tet[1]],
@@ -307,6 +268,7 @@ float CollapseEngine::PlanError(const int32_t* tet, double volume, int slot) con
   for (int k = 0; k < 4; ++k) {
     const double d = s[k] - region_mean_[region];
     e_r += d * d;
+    if (!(mask & (1u << k))) continue;  // a vertex that is not merged keeps its value and place
     e_g += std::abs(s[k] - s_new);
     const double dx = P[3 * tet[k]] - px, dy = P[3 * tet[k] + 1] - py, dz = P[3 * tet[k] + 2] - pz;
     e_s += std::sqrt(dx * dx + dy * dy + dz * dz);
@@ -320,8 +282,8 @@ float CollapseEngine::PlanError(const int32_t* tet, double volume, int slot) con
   double neighbourhood = -4.0 * volume;
   for (int k = 0; k < 4; ++k) neighbourhood += star_volume_[tet[k]];
   const double e_n = neighbourhood > 1e-12 * voxel_volume_ ? std::abs(volume) / neighbourhood : 1;
-  return float(w.regional * e_r + w.gradient * e_g + w.shape * e_s + w.volume * e_v +
-               w.neighbour * e_n);
+  return float(ew.regional * e_r + ew.gradient * e_g + ew.shape * e_s + ew.volume * e_v +
+               ew.neighbour * e_n);
 }
 
 int CollapseEngine::BestSlot(const int32_t* tet, unsigned mask) const {
@@ -353,11 +315,11 @@ int CollapseEngine::BestSlot(const int32_t* tet, unsigned mask) const {
 CellPlan CollapseEngine::PlanCell(int32_t cell) const {
   const int32_t* tet = &mesh_.tets[4 * int64_t(cell)];
   CellPlan plan;
-  if (dead_[cell]) {
+  if (IsDead(cell)) {
     plan.outcome = Outcome::kDead;
     return plan;
   }
-  const double volume = cell_volume_.empty() ? CellVolume(tet) : cell_volume_[cell];
+  const double volume = cell_volume_[cell];
   int nf = 0, nb = 0, fslot = -1, bslot = -1;
   bool same_label = true;
   for (int k = 0; k < 4; ++k) {
@@ -371,7 +333,7 @@ CellPlan CollapseEngine::PlanCell(int32_t cell) const {
       plan.outcome = Outcome::kBoundaryCell;
       return plan;
     }
-    plan.error = PlanError(tet, volume, -1);
+    plan.error = MergeError(tet, volume, 0xF, kCentroid);
     return plan;
   }
   if (nf >= 2) {
@@ -396,10 +358,9 @@ CellPlan CollapseEngine::PlanCell(int32_t cell) const {
   }
   int slot = pinned;
   if (nf == 0) {
-    // Rule 4, estimated from the pass-start marks: TryCollapse decides exactly.
+    // Rule 4, estimated from the set-up marks: TryCollapse decides exactly.
     unsigned touch = 0;
-    for (int k = 0; k < 4; ++k)
-      touch |= cross_touch_.empty() || !cross_touch_[tet[k]] ? 0u : 1u << k;
+    for (int k = 0; k < 4; ++k) touch |= cross_touch_[tet[k]] ? 1u << k : 0u;
     if (touch != 0) {
       if (pinned >= 0) touch &= 1u << pinned;
       if (touch == 0) {
@@ -410,89 +371,215 @@ CellPlan CollapseEngine::PlanCell(int32_t cell) const {
     }
   }
   plan.target_slot = int8_t(slot);
-  plan.error = PlanError(tet, volume, slot);
+  plan.error = MergeError(tet, volume, 0xF, slot < 0 ? kCentroid : kVertexWeights[slot]);
   return plan;
 }
 
-bool CollapseEngine::GatherNeighbours(int32_t cell, int slot, const float* p) {
+void CollapseEngine::GatherNeighbours(int32_t cell) {
   static constexpr uint8_t kBits[16] = {0, 1, 1, 2, 1, 2, 2, 3, 1, 2, 2, 3, 2, 3, 3, 4};
   a_set_.clear();
   d_set_.clear();
   const int32_t* tet = &mesh_.tets[4 * int64_t(cell)];
   const float* P = mesh_.positions.data();
-  const double min6 = 6.0 * min_volume_;
+  // Three phases so that the cache misses of the cells (then of their vertices) overlap
+  // instead of being waited for one by one: this loop is memory bound.
+  // 1. The live cells around τ's vertices: walk the merge class of each vertex, dropping dead
+  //    cells from the rows (and emptied rows from the class) as we go.
+  gather_ids_.clear();
+  int32_t begin[5] = {0, 0, 0, 0, 0};
   for (int k = 0; k < 4; ++k) {
-    const int32_t v = tet[k];
-    for (int64_t e = adjacency_.offsets[v]; e < adjacency_.offsets[v + 1]; ++e) {
-      const int32_t n = adjacency_.tet_ids[e];
-      if (n == cell || dead_[n]) continue;
-      const int32_t* other = &mesh_.tets[4 * int64_t(n)];
-      unsigned mask = 0;
+    int32_t prev = -1;
+    for (int32_t m = tet[k]; m >= 0;) {
+      const int64_t b = adj_begin_[m];
+      int32_t n = adj_count_[m];
+      for (int32_t i = 0; i < n;) {
+        const int32_t c = adj_ids_[b + i];
+        if (IsDead(c)) {
+          adj_ids_[b + i] = adj_ids_[b + n - 1];
+          --n;
+          continue;
+        }
+        ++i;
+        if (c == cell) continue;
+        __builtin_prefetch(&mesh_.tets[4 * int64_t(c)]);
+        gather_ids_.push_back(c);
+      }
+      adj_count_[m] = n;
+      const int32_t next = class_next_[m];
+      if (n == 0 && prev >= 0) {
+        class_next_[prev] = next;  // unlink the emptied row (never the class root)
+        if (next < 0) class_tail_[tet[k]] = prev;
+      } else {
+        prev = m;
+      }
+      m = next;
+    }
+    begin[k + 1] = int32_t(gather_ids_.size());
+  }
+  // 2. Shared vertices: A(τ) (one) and D(τ) (two or more).
+  for (int k = 0; k < 4; ++k) {
+    for (int32_t i = begin[k]; i < begin[k + 1]; ++i) {
+      const int32_t c = gather_ids_[i];
+      const int32_t* other = &mesh_.tets[4 * int64_t(c)];
+      Neighbour nb{c, 0, {0, 0, 0, 0}, {0, 0, 0}, 0};
       for (int q = 0; q < 4; ++q) {
-        for (int j = 0; j < 4; ++j) mask |= other[q] == tet[j] ? 1u << j : 0u;
+        for (int j = 0; j < 4; ++j) {
+          if (other[q] == tet[j]) {
+            nb.shared_mask |= uint8_t(1u << j);
+            nb.pos[j] = uint8_t(q);
+          }
+        }
       }
       // A cell sharing several vertices is met once per shared vertex: keep the first.
-      if (std::countr_zero(mask) != k) continue;
-      if (kBits[mask] > 1) {
-        d_set_.push_back({n, uint8_t(mask)});
+      if (std::countr_zero(unsigned(nb.shared_mask)) != k) continue;
+      if (kBits[nb.shared_mask] > 1) {
+        d_set_.push_back(nb);
         continue;
       }
-      a_set_.push_back({n, uint8_t(mask)});
-      // Rule 6 (when the collapse point is known): the moved vertex must stay on the same side
-      // of the opposite face, with at least the guard volume.
-      if (p != nullptr && k != slot) {
-        const float* q[4];
-        for (int j = 0; j < 4; ++j) q[j] = other[j] == v ? p : P + 3 * other[j];
-        if (!(Orient6(q[0], q[1], q[2], q[3]) >= min6)) return false;
-      }
+      for (int q = 0; q < 4; ++q) __builtin_prefetch(P + 3 * other[q]);
+      a_set_.push_back(nb);
     }
   }
-  return true;
+  // 3. The plane of every cell of A(τ): 6 * volume with the shared vertex (at position `moved`)
+  //    at p is affine in p. Moving p from `moved` to the front is `moved` transpositions, and
+  //    Orient6(p, o0, o1, o2) = (o0 - p) . nrm with nrm = (o1 - o0) x (o2 - o0).
+  for (Neighbour& nb : a_set_) {
+    const int32_t* other = &mesh_.tets[4 * int64_t(nb.cell)];
+    const int moved = nb.pos[std::countr_zero(unsigned(nb.shared_mask))];
+    const float* o[3];
+    for (int q = 0, j = 0; q < 4; ++q)
+      if (q != moved) o[j++] = P + 3 * other[q];
+    const double ax = double(o[1][0]) - o[0][0], ay = double(o[1][1]) - o[0][1],
+                 az = double(o[1][2]) - o[0][2];
+    const double bx = double(o[2][0]) - o[0][0], by = double(o[2][1]) - o[0][1],
+                 bz = double(o[2][2]) - o[0][2];
+    const double nx = ay * bz - az * by, ny = az * bx - ax * bz, nz = ax * by - ay * bx;
+    const double sign = (moved & 1) ? -1.0 : 1.0;
+    nb.n[0] = -sign * nx, nb.n[1] = -sign * ny, nb.n[2] = -sign * nz;
+    nb.d = sign * (nx * o[0][0] + ny * o[0][1] + nz * o[0][2]);
+  }
 }
 
-CollapseResult CollapseEngine::TryCollapse(int32_t cell) {
+double CollapseEngine::MovedVolume6(const Neighbour& n, int slot, const float* p) const {
+  if ((n.shared_mask & (n.shared_mask - 1)) == 0) {
+    return n.n[0] * p[0] + n.n[1] * p[1] + n.n[2] * p[2] + n.d;  // A(τ): the stored plane
+  }
+  const int32_t* other = &mesh_.tets[4 * int64_t(n.cell)];
+  const float* q[4];
+  for (int j = 0; j < 4; ++j) q[j] = mesh_.positions.data() + 3 * other[j];
+  q[n.pos[slot]] = p;
+  return Orient6(q[0], q[1], q[2], q[3]);
+}
+
+bool CollapseEngine::MergeValid(unsigned mask, int fixed_slot, const float* p) const {
+  const double min6 = 6.0 * min_volume_;
+  for (const auto* set : {&a_set_, &d_set_}) {
+    for (const Neighbour& n : *set) {
+      const unsigned m = n.shared_mask & mask;
+      // Cells holding two merged vertices degenerate and are deleted; cells holding none, or
+      // only the vertex that stays, keep their shape.
+      if (m == 0 || (m & (m - 1)) != 0) continue;
+      const int slot = std::countr_zero(m);
+      if (slot == fixed_slot) continue;
+      if (!(MovedVolume6(n, slot, p) >= min6)) return false;
+    }
+  }
+  // A vertex that must stay (feature or exterior boundary) must keep a cell: deleting every
+  // cell around it would remove it from the mesh (the degenerate cells can be its whole star).
+  return !OrphansPinnedVertex(mask, fixed_slot);
+}
+
+bool CollapseEngine::OrphansPinnedVertex(unsigned mask, int fixed_slot) const {
+  const int32_t* tet = &mesh_.tets[4 * int64_t(current_)];
+  auto pinned = [&](int32_t v) {
+    return (mesh_.vertex_flags[v] & (kFeatureVertex | kExteriorBoundaryVertex)) != 0;
+  };
+  // The survivor keeps the cells that hold exactly one merged vertex.
+  if (fixed_slot >= 0) {
+    bool kept = false;
+    for (const auto* set : {&a_set_, &d_set_}) {
+      for (const Neighbour& n : *set) {
+        const unsigned m = n.shared_mask & mask;
+        kept |= m != 0 && (m & (m - 1)) == 0;
+      }
+    }
+    if (!kept) return true;
+  }
+  // Other pinned vertices: count the dying cells around them (τ too) against their valence.
+  int32_t ids[64];
+  int32_t counts[64];
+  int used = 0;
+  auto die = [&](const int32_t* cell_tet) {
+    for (int j = 0; j < 4; ++j) {
+      const int32_t v = cell_tet[j];
+      bool merged = false;
+      for (int k = 0; k < 4; ++k) merged |= tet[k] == v && (mask & (1u << k));
+      if (merged || !pinned(v)) continue;
+      int i = 0;
+      while (i < used && ids[i] != v) ++i;
+      if (i == used) {
+        if (used == 64) return true;  // too many to track: be conservative
+        ids[used] = v, counts[used++] = 0;
+      }
+      if (++counts[i] >= valence_[v]) return true;
+    }
+    return false;
+  };
+  if (die(tet)) return true;
+  for (const Neighbour& n : d_set_) {
+    const unsigned m = n.shared_mask & mask;
+    if ((m & (m - 1)) != 0 && die(&mesh_.tets[4 * int64_t(n.cell)])) return true;
+  }
+  return false;
+}
+
+CollapseResult CollapseEngine::TryCollapse(int32_t cell, float next_key) {
   CollapseResult result;
-  if (dead_[cell]) {
+  if (IsDead(cell)) {
     result.outcome = Outcome::kDead;
     return result;
   }
-  if (locked_[cell]) {
+  if (options_.lock_neighbours && locked_round_[cell] == round_) {
     result.outcome = Outcome::kLocked;
     return result;
   }
-  int32_t tet[4];
-  std::copy_n(&mesh_.tets[4 * int64_t(cell)], 4, tet);
   // A cell rejected for its neighbourhood stays rejected until a collapse changes a cell
   // around one of its vertices (the decision depends on nothing else).
-  if (rejected_at_[cell] != 0 && std::max({touched_[tet[0]], touched_[tet[1]], touched_[tet[2]],
-                                           touched_[tet[3]]}) < rejected_at_[cell]) {
+  if (rejected_at_[cell] != 0 && LastTouch(cell) <= rejected_at_[cell]) {
     result.outcome = Outcome::kUnchanged;
     return result;
   }
   const CellPlan plan = PlanCell(cell);
   result.error = plan.error;
   if (plan.outcome != Outcome::kCollapsed) {
+    if (IsPermanent(plan.outcome)) permanent_[cell] = 1;
     result.outcome = plan.outcome;
     return result;
   }
-
+  int32_t tet[4];
+  std::copy_n(&mesh_.tets[4 * int64_t(cell)], 4, tet);
+  const double volume = cell_volume_[cell];
   int slot = plan.target_slot;
   const bool paper = options_.policy == SimplifyPolicy::kPaper;
-  bool any_feature = false;
+  bool any_feature = false, near_crossing = false;
   int bslot = -1;
   for (int k = 0; k < 4; ++k) {
     any_feature |= IsFeature(tet[k]);
+    near_crossing |= cross_touch_[tet[k]] != 0;
     if (IsBoundary(tet[k])) bslot = k;
   }
-  // Rule 4 needs the whole neighbourhood first; cross-region cells are never created during a
-  // pass, so only cells with a vertex marked at the pass start can have one around them.
-  bool near_crossing = false;
-  for (int k = 0; k < 4; ++k) near_crossing |= cross_touch_[tet[k]] != 0;
-  const bool rule4 = paper && !any_feature && near_crossing;
-  if (rule4) {
-    GatherNeighbours(cell, -1, nullptr);
-    // Rule 4 on the current neighbourhood. (a) Cross-region cells in A(τ) ∪ D(τ): collapse to
-    // the vertex τ shares with them (with several, one common to all of them).
+  GatherNeighbours(cell);
+  current_ = cell;
+  auto reject = [&](Outcome o) {
+    result.outcome = o;
+    rejected_at_[cell] = clock_;
+    return result;
+  };
+  // Rule 4 on the current neighbourhood; cross-region cells are never created, so only cells
+  // with a vertex marked at set-up can have one around them.
+  if (paper && !any_feature && near_crossing) {
+    // (a) Cross-region cells in A(τ) ∪ D(τ): collapse to the vertex τ shares with them (with
+    // several, one common to all of them).
     int crossing = 0;
     unsigned common = 0xF;
     for (const auto* set : {&a_set_, &d_set_}) {
@@ -505,19 +592,11 @@ CollapseResult CollapseEngine::TryCollapse(int32_t cell) {
     }
     if (crossing > 0) {
       if (bslot >= 0) common &= 1u << bslot;
-      if (common == 0) {
-        result.outcome = Outcome::kCrossRegionNeighbours;
-        rejected_at_[cell] = ++clock_;
-        return result;
-      }
+      if (common == 0) return reject(Outcome::kCrossRegionNeighbours);
       slot = BestSlot(tet, common);
-    } else {
-      slot = bslot;
-    }
-    // (b) More than one feature cell and more than one feature vertex in A(τ): keep τ. Cells of
-    // D(τ) may hold any number of feature vertices.
-    int feature_cells = 0;
-    if (crossing > 0) {
+      // (b) More than one feature cell and more than one feature vertex in A(τ): keep τ.
+      // Cells of D(τ) may hold any number of feature vertices.
+      int feature_cells = 0;
       int32_t first_feature = -1;
       bool two_features = false;
       for (const Neighbour& n : a_set_) {
@@ -531,134 +610,278 @@ CollapseResult CollapseEngine::TryCollapse(int32_t cell) {
         }
         feature_cells += is_feature_cell;
       }
-      if (feature_cells > 1 && two_features) {
-        result.outcome = Outcome::kFeatureNeighbourhood;
-        rejected_at_[cell] = ++clock_;
-        return result;
-      }
+      if (feature_cells > 1 && two_features) return reject(Outcome::kFeatureNeighbourhood);
+    } else {
+      slot = bslot;
     }
     if (slot != plan.target_slot) {
-      result.error =
-          PlanError(tet, cell_volume_.empty() ? CellVolume(tet) : cell_volume_[cell], slot);
+      result.error = MergeError(tet, volume, 0xF, slot < 0 ? kCentroid : kVertexWeights[slot]);
     }
   }
 
   // The collapse point, rounded to the stored float precision before the flip check so the
   // check sees exactly the coordinates the mesh will hold.
-  float p[3];
   const float* P = mesh_.positions.data();
-  if (slot >= 0) {
-    std::copy_n(P + 3 * tet[slot], 3, p);
-  } else {
+  auto point = [&](const double* w, float* p) {
     for (int c = 0; c < 3; ++c) {
-      p[c] = float(0.25 * (double(P[3 * tet[0] + c]) + P[3 * tet[1] + c] + P[3 * tet[2] + c] +
-                           P[3 * tet[3] + c]));
+      p[c] = float(w[0] * P[3 * tet[0] + c] + w[1] * P[3 * tet[1] + c] + w[2] * P[3 * tet[2] + c] +
+                   w[3] * P[3 * tet[3] + c]);
     }
-  }
-  // Rule 6: every cell of A(τ) whose shared vertex moves must stay positive (and not a sliver).
-  bool unflipped = true;
-  if (rule4) {
-    const double min6 = 6.0 * min_volume_;
-    for (const Neighbour& n : a_set_) {
-      const int k = std::countr_zero(unsigned(n.shared_mask));
-      if (k == slot) continue;
-      const int32_t* other = &mesh_.tets[4 * int64_t(n.cell)];
-      const float* q[4];
-      for (int j = 0; j < 4; ++j) q[j] = other[j] == tet[k] ? p : P + 3 * other[j];
-      unflipped &= Orient6(q[0], q[1], q[2], q[3]) >= min6;
+  };
+  // The paper's collapse first: all four vertices to the centroid (rule 1) or onto the vertex
+  // that must stay (rules 2, 4, 5).
+  unsigned mask = 0xF;
+  const double* w = slot < 0 ? kCentroid : kVertexWeights[slot];
+  int row = slot < 0 ? 0 : -1;
+  float p[3];
+  point(w, p);
+  // Rule 6: every cell whose vertex moves must stay positive (and not a sliver).
+  if (!MergeValid(mask, slot, p)) {
+    // Departure (README): when the paper's collapse would flip a neighbour, delete τ by the
+    // cheapest valid merge of the widened set (Δε of Eq. 8 over the merged vertices). A vertex
+    // that must stay (feature, boundary, rule 4) stays: its merges all end on it.
+    if (!paper || !options_.widen_collapse_point) return reject(Outcome::kFlip);
+    const std::vector<Merge>& free = FreeMerges();
+    std::pair<float, int> alternatives[64];
+    int count = 0;
+    if (slot < 0) {
+      for (int i = 1; i < int(free.size()); ++i)
+        alternatives[count++] = {MergeError(tet, volume, free[i].mask, free[i].w), i};
+    } else {
+      for (unsigned m = 1; m < 0xF; ++m) {  // merges of 2 or 3 vertices holding `slot`
+        if (!(m & (1u << slot)) || std::popcount(m) < 2) continue;
+        alternatives[count++] = {MergeError(tet, volume, m, kVertexWeights[slot]), -int(m)};
+      }
     }
-  } else {
-    unflipped = GatherNeighbours(cell, slot, p);
-  }
-  if (!unflipped) {
-    result.outcome = Outcome::kFlip;
-    rejected_at_[cell] = ++clock_;
-    return result;
+    std::sort(alternatives, alternatives + count);
+    bool found = false;
+    for (int a = 0; a < count && !found; ++a) {
+      const int i = alternatives[a].second;
+      mask = i > 0 ? free[i].mask : unsigned(-i);
+      if (i > 0) w = free[i].w;
+      point(w, p);
+      if (MergeValid(mask, slot, p)) {
+        found = true;
+        row = i;
+        result.error = alternatives[a].first;
+      }
+    }
+    if (!found) return reject(Outcome::kFlip);
+    if (FloatKey(result.error) > FloatKey(next_key)) {
+      result.outcome = Outcome::kRequeued;
+      return result;
+    }
   }
 
-  // Apply: the survivor takes the collapse point; the other vertices merge into it.
-  int32_t survivor = slot >= 0 ? tet[slot] : *std::min_element(tet, tet + 4);
+  // Apply: the survivor takes the collapse point; the other merged vertices merge into it.
+  int32_t survivor = slot >= 0 ? tet[slot] : -1;
+  for (int k = 0; k < 4 && slot < 0; ++k) {
+    if ((mask & (1u << k)) && (survivor < 0 || tet[k] < survivor)) survivor = tet[k];
+  }
   if (slot < 0) {
     double s = 0, d = 0;
     for (int k = 0; k < 4; ++k) {
-      s += mesh_.scalars[tet[k]];
-      d += mesh_.interface_distance[tet[k]];
+      s += w[k] * mesh_.scalars[tet[k]];
+      d += w[k] * mesh_.interface_distance[tet[k]];
     }
-    // The centroid's value: the mean of the four, which is also the linear interpolation of
-    // the field at the centroid (§2.2.3.2's s'_n).
-    mesh_.scalars[survivor] = float(0.25 * s);
-    mesh_.interface_distance[survivor] = float(0.25 * d);
+    // The value at the point: the linear interpolation of τ's field (for the centroid, the
+    // mean of the four: §2.2.3.2's s'_n).
+    mesh_.scalars[survivor] = float(s);
+    mesh_.interface_distance[survivor] = float(d);
     mesh_.labels[survivor] = CellRegion(mesh_.labels[tet[0]], mesh_.labels[tet[1]],
                                         mesh_.labels[tet[2]], mesh_.labels[tet[3]]);
-    mesh_.vertex_flags[survivor] = 0;  // no feature or boundary vertex goes to a centroid
-    std::copy_n(p, 3, &mesh_.positions[3 * int64_t(survivor)]);
+    mesh_.vertex_flags[survivor] = 0;  // no feature or boundary vertex goes to a free point
   }
-  for (int k = 0; k < 4; ++k) {
-    if (tet[k] != survivor) parent_[tet[k]] = survivor;
-  }
-  for (const Neighbour& n : a_set_) {
-    const int k = std::countr_zero(unsigned(n.shared_mask));
-    int32_t* other = &mesh_.tets[4 * int64_t(n.cell)];
-    for (int j = 0; j < 4; ++j) {
-      if (other[j] == tet[k]) other[j] = survivor;
-    }
-    locked_[n.cell] = 1;  // §2.2.4 step 2g
-  }
-  for (const Neighbour& n : d_set_) dead_[n.cell] = 1;  // step 2f: degenerate
-  // Every vertex whose star changed: the vertices of the cells of A(τ) and D(τ).
   ++clock_;
+  double survivor_star = 0;
+  int32_t removed = 1, survivor_valence = 0;
+  auto is_merged = [&](int32_t v) {
+    for (int k = 0; k < 4; ++k)
+      if (tet[k] == v) return (mask & (1u << k)) != 0;
+    return false;
+  };
   for (const auto* set : {&a_set_, &d_set_}) {
     for (const Neighbour& n : *set) {
-      for (int j = 0; j < 4; ++j) touched_[mesh_.tets[4 * int64_t(n.cell) + j]] = clock_;
+      const unsigned m = n.shared_mask & mask;
+      if (m == 0) continue;
+      int32_t* other = &mesh_.tets[4 * int64_t(n.cell)];
+      if ((m & (m - 1)) != 0) {  // step 2f: degenerate
+        Kill(n.cell);
+        ++removed;
+        for (int j = 0; j < 4; ++j) {
+          if (is_merged(other[j])) continue;
+          --valence_[other[j]];
+          star_volume_[other[j]] -= cell_volume_[n.cell];
+          touched_[other[j]] = clock_;
+        }
+        continue;
+      }
+      const int k = std::countr_zero(m);
+      if (k != slot) {
+        const double before = cell_volume_[n.cell];
+        const double after = MovedVolume6(n, k, p) / 6.0;
+        other[n.pos[k]] = survivor;
+        cell_volume_[n.cell] = float(after);
+        for (int j = 0; j < 4; ++j) {
+          if (j != n.pos[k]) star_volume_[other[j]] += after - before;
+        }
+        if (options_.lock_neighbours) locked_round_[n.cell] = round_;  // §2.2.4 step 2g
+      }
+      survivor_star += cell_volume_[n.cell];
+      ++survivor_valence;
+      for (int j = 0; j < 4; ++j) touched_[other[j]] = clock_;
     }
   }
-  touched_[survivor] = clock_;
-  dead_[cell] = 1;
-  result.cells_removed = int32_t(1 + d_set_.size());
-  live_cells_ -= result.cells_removed;
+  if (slot < 0) std::copy_n(p, 3, &mesh_.positions[3 * int64_t(survivor)]);
+  star_volume_[survivor] = survivor_star;
+  valence_[survivor] = survivor_valence;
+  for (int k = 0; k < 4; ++k) {
+    const int32_t v = tet[k];
+    touched_[v] = clock_;
+    if (v == survivor || !(mask & (1u << k))) continue;
+    parent_[v] = survivor;
+    class_next_[class_tail_[survivor]] = v;
+    class_tail_[survivor] = class_tail_[v];
+  }
+  // Vertices of τ that were not merged lose τ from their stars.
+  for (int k = 0; k < 4; ++k) {
+    if (mask & (1u << k)) continue;
+    star_volume_[tet[k]] -= volume;
+    --valence_[tet[k]];
+  }
+  Kill(cell);
+  result.cells_removed = removed;
+  live_cells_ -= removed;
   result.survivor = survivor;
+  result.point = int8_t(row);
+  result.merged = int8_t(std::popcount(mask));
   result.outcome = Outcome::kCollapsed;
   return result;
 }
 
-void CollapseEngine::SortedCandidates(int threads, std::vector<int32_t>* cells,
-                                      std::vector<float>* errors) {
+int64_t CollapseEngine::BeginRound(int threads) {
+  ++round_;
+  heap_.clear();
   const int64_t nt = mesh_.tet_count();
   keys_.resize(nt);
   ParallelFor(nt, threads, [&](int64_t b, int64_t e) {
     for (int64_t t = b; t < e; ++t) {
+      keys_[t] = kNotCandidate;
+      if (IsDead(int32_t(t)) || permanent_[t]) continue;
+      if (rejected_at_[t] != 0 && LastTouch(int32_t(t)) <= rejected_at_[t]) continue;
       const CellPlan plan = PlanCell(int32_t(t));
-      keys_[t] = plan.outcome == Outcome::kCollapsed ? FloatKey(plan.error) : kNotCandidate;
+      scored_at_[t] = clock_;
+      if (plan.outcome == Outcome::kCollapsed) {
+        keys_[t] = FloatKey(plan.error);
+      } else if (IsPermanent(plan.outcome)) {
+        permanent_[t] = 1;
+      }
     }
   });
-  cells->clear();
+  order_.clear();
   for (int64_t t = 0; t < nt; ++t) {
-    if (keys_[t] != kNotCandidate) cells->push_back(int32_t(t));
+    if (keys_[t] != kNotCandidate) order_.push_back(int32_t(t));
   }
   // Stable LSD radix sort on the 32-bit error key, two 16-bit digits: ids enter in increasing
   // order, so ties stay ordered by cell id.
-  const size_t n = cells->size();
+  const size_t n = order_.size();
   keys_tmp_.resize(n);
   ids_tmp_.resize(n);
-  std::vector<uint32_t>& k0 = sort_keys_;
-  k0.resize(n);
-  for (size_t i = 0; i < n; ++i) k0[i] = keys_[(*cells)[i]];
-  std::vector<uint32_t>& count = sort_count_;
-  count.resize(65537);
+  order_keys_.resize(n);
+  for (size_t i = 0; i < n; ++i) order_keys_[i] = keys_[order_[i]];
+  sort_count_.resize(65537);
   for (int shift = 0; shift < 32; shift += 16) {
-    std::fill(count.begin(), count.end(), 0);
-    for (size_t i = 0; i < n; ++i) ++count[((k0[i] >> shift) & 0xFFFF) + 1];
-    for (int d = 0; d < 65536; ++d) count[d + 1] += count[d];
+    std::fill(sort_count_.begin(), sort_count_.end(), 0);
+    for (size_t i = 0; i < n; ++i) ++sort_count_[((order_keys_[i] >> shift) & 0xFFFF) + 1];
+    for (int d = 0; d < 65536; ++d) sort_count_[d + 1] += sort_count_[d];
     for (size_t i = 0; i < n; ++i) {
-      const uint32_t pos = count[(k0[i] >> shift) & 0xFFFF]++;
-      keys_tmp_[pos] = k0[i];
-      ids_tmp_[pos] = (*cells)[i];
+      const uint32_t pos = sort_count_[(order_keys_[i] >> shift) & 0xFFFF]++;
+      keys_tmp_[pos] = order_keys_[i];
+      ids_tmp_[pos] = order_[i];
     }
-    k0.swap(keys_tmp_);
-    cells->swap(ids_tmp_);
+    order_keys_.swap(keys_tmp_);
+    order_.swap(ids_tmp_);
   }
-  errors->resize(n);
-  for (size_t i = 0; i < n; ++i) std::memcpy(&(*errors)[i], &k0[i], 4);
+  return int64_t(n);
+}
+
+void CollapseEngine::PushKey(uint32_t key, int32_t cell) {
+  heap_.emplace_back(key, cell);
+  std::push_heap(heap_.begin(), heap_.end(), std::greater<>());
+}
+
+absl::Status CollapseEngine::RunRound(int64_t max_removed, double tolerance,
+                                      const CancelToken* cancel, RoundStats* stats) {
+  stats->candidates = int64_t(order_.size());
+  size_t i = 0;
+  const size_t n = order_.size();
+  for (int64_t pops = 1;; ++pops) {
+    if (removed_cells() >= max_removed) break;
+    if ((pops & 0xFFFF) == 0) {
+      if (absl::Status s = CheckCancelled(cancel, "simplify"); !s.ok()) return s;
+    }
+    // The smallest (key, id) of the sorted list and the heap of re-pushed cells.
+    uint32_t key;
+    int32_t cell;
+    if (i < n && (heap_.empty() || std::make_pair(order_keys_[i], order_[i]) < heap_.front())) {
+      key = order_keys_[i];
+      cell = order_[i++];
+    } else if (!heap_.empty()) {
+      std::pop_heap(heap_.begin(), heap_.end(), std::greater<>());
+      std::tie(key, cell) = heap_.back();
+      heap_.pop_back();
+    } else {
+      break;
+    }
+    if (IsDead(cell) || (options_.lock_neighbours && locked_round_[cell] == round_)) continue;
+    if (tolerance > 0 && KeyFloat(key) > tolerance) {
+      stats->tolerance_hit = true;
+      break;
+    }
+    uint32_t next = kNotCandidate;
+    if (i < n) next = order_keys_[i];
+    if (!heap_.empty()) next = std::min(next, heap_.front().first);
+    // Lazy update: a cell whose neighbourhood changed since it was scored is re-scored when it
+    // reaches the front, and pushed back if it no longer is the cheapest.
+    if (LastTouch(cell) > scored_at_[cell]) {
+      const CellPlan plan = PlanCell(cell);
+      scored_at_[cell] = clock_;
+      if (plan.outcome != Outcome::kCollapsed) {
+        if (IsPermanent(plan.outcome)) permanent_[cell] = 1;
+        continue;
+      }
+      const uint32_t fresh = FloatKey(plan.error);
+      if (fresh > next) {
+        PushKey(fresh, cell);
+        ++stats->requeued;
+        continue;
+      }
+    }
+    const CollapseResult r = TryCollapse(cell, KeyFloat(next));
+    switch (r.outcome) {
+      case Outcome::kCollapsed:
+        ++stats->collapses;
+        stats->cells_removed += r.cells_removed;
+        stats->last_error = r.error;
+        stats->max_error = std::max(stats->max_error, double(r.error));
+        stats->other_point += r.point > 0 || r.merged < 4;
+        break;
+      case Outcome::kRequeued:
+        PushKey(FloatKey(r.error), cell);
+        ++stats->requeued;
+        break;
+      case Outcome::kFlip:
+        ++stats->rejected_flip;
+        break;
+      case Outcome::kCrossRegionNeighbours:
+      case Outcome::kFeatureNeighbourhood:
+        ++stats->rejected_rule4;
+        break;
+      default:
+        break;
+    }
+  }
+  return absl::OkStatus();
 }
 
 void CollapseEngine::Finish(TetMesh* out, std::vector<int32_t>* vertex_map) {
@@ -666,7 +889,7 @@ void CollapseEngine::Finish(TetMesh* out, std::vector<int32_t>* vertex_map) {
   std::vector<int32_t> new_id(nv, -1);
   int64_t live = 0;
   for (int64_t t = 0; t < nt; ++t) {
-    if (dead_[t]) continue;
+    if (IsDead(int32_t(t))) continue;
     ++live;
     for (int k = 0; k < 4; ++k) new_id[mesh_.tets[4 * t + k]] = 0;
   }
@@ -692,7 +915,7 @@ void CollapseEngine::Finish(TetMesh* out, std::vector<int32_t>* vertex_map) {
   out->cell_regions.resize(live);
   int64_t c = 0;
   for (int64_t t = 0; t < nt; ++t) {
-    if (dead_[t]) continue;
+    if (IsDead(int32_t(t))) continue;
     int32_t* o = &out->tets[4 * c];
     for (int k = 0; k < 4; ++k) o[k] = new_id[mesh_.tets[4 * t + k]];
     out->cell_regions[c] =

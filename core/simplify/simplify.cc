@@ -47,10 +47,6 @@ absl::Status ValidateOptions(const SimplifyOptions& o) {
     return bad(absl::StrCat("min_volume_fraction = ", o.min_volume_fraction,
                             ": expected a value in (0, 1) voxels^3"));
   }
-  if (o.smoothing_iterations < 0 || o.smoothing_iterations > 100) {
-    return bad(
-        absl::StrCat("smoothing_iterations = ", o.smoothing_iterations, ": expected 0..100"));
-  }
   if (!(o.min_pass_gain >= 0 && o.min_pass_gain <= 0.5)) {
     return bad(absl::StrCat("min_pass_gain = ", o.min_pass_gain, ": expected [0, 0.5]"));
   }
@@ -93,9 +89,9 @@ absl::Status ValidateMesh(const TetMesh& m) {
         if (v[j] == v[k]) return bad(absl::StrCat("cell ", t, " repeats vertex ", v[k]));
       }
     }
-    if (!(TetVolume(m, t) > 0)) {
-      return bad(absl::StrCat("cell ", t, " is not positively oriented (volume ", TetVolume(m, t),
-                              " mm^3)"));
+    if (const double volume = TetVolume(m, t); !(volume > 0)) {
+      return bad(
+          absl::StrCat("cell ", t, " is not positively oriented (volume ", volume, " mm^3)"));
     }
   }
   return absl::OkStatus();
@@ -135,45 +131,32 @@ absl::StatusOr<SimplifyResult> Simplify(const TetMesh& mesh, const SimplifyOptio
                  : std::numeric_limits<int64_t>::max();
   const bool has_tolerance = options.error_tolerance > 0;
 
-  CollapseEngine engine(mesh, options);
-  std::vector<int32_t> order;
-  std::vector<float> errors;
-  int64_t removed = 0;
+  CollapseEngine engine(mesh, options, threads);
   bool stopped = false;
   for (int pass = 1; pass <= options.max_passes && !stopped; ++pass) {
-    if (removed >= target) break;
+    if (engine.removed_cells() >= target) break;
     DECIMA_RETURN_IF_ERROR(CheckCancelled(cancel, "simplify"));
-    engine.BeginPass(threads);
-    engine.SortedCandidates(threads, &order, &errors);
+    engine.BeginRound(threads);
+    simplify_internal::RoundStats round;
+    DECIMA_RETURN_IF_ERROR(
+        engine.RunRound(target, has_tolerance ? options.error_tolerance : 0, cancel, &round));
     SimplifyPassStats stats;
-    stats.candidates = int64_t(order.size());
-    bool tolerance_hit = false;
-    for (size_t i = 0; i < order.size() && removed < target; ++i) {
-      if ((i & 0xFFFF) == 0xFFFF) DECIMA_RETURN_IF_ERROR(CheckCancelled(cancel, "simplify"));
-      if (has_tolerance && errors[i] > options.error_tolerance) {
-        tolerance_hit = true;
-        break;
-      }
-      const auto r = engine.TryCollapse(order[i]);
-      if (r.outcome == Outcome::kCollapsed) {
-        ++stats.collapses;
-        stats.cells_removed += r.cells_removed;
-        stats.last_error = r.error;
-        result.max_error = std::max(result.max_error, double(r.error));
-        removed += r.cells_removed;
-      } else if (r.outcome == Outcome::kFlip) {
-        ++stats.rejected_flip;
-      } else if (r.outcome == Outcome::kCrossRegionNeighbours ||
-                 r.outcome == Outcome::kFeatureNeighbourhood) {
-        ++stats.rejected_rule4;
-      }
-    }
+    stats.candidates = round.candidates;
+    stats.collapses = round.collapses;
+    stats.cells_removed = round.cells_removed;
+    stats.rejected_flip = round.rejected_flip;
+    stats.rejected_rule4 = round.rejected_rule4;
+    stats.requeued = round.requeued;
+    stats.other_point = round.other_point;
+    stats.last_error = round.last_error;
+    result.max_error = std::max(result.max_error, round.max_error);
+    const int64_t removed = engine.removed_cells();
     result.passes = pass;
     result.collapses += stats.collapses;
     result.pass_stats.push_back(stats);
     Report(progress, {"simplify",
                       has_target ? std::min(1.0, double(removed) / double(target)) : 0.0,
-                      absl::StrFormat("pass %d: %d collapses removed %d cells (%.1f%% so far)",
+                      absl::StrFormat("round %d: %d collapses removed %d cells (%.1f%% so far)",
                                       pass, stats.collapses, stats.cells_removed,
                                       100.0 * double(removed) /
                                           double(std::max<int64_t>(1, result.input_cells))),
@@ -183,13 +166,17 @@ absl::StatusOr<SimplifyResult> Simplify(const TetMesh& mesh, const SimplifyOptio
     if (stats.collapses == 0) {
       stopped = true;
       result.stop_reason =
-          tolerance_hit ? StopReason::kErrorTolerance : StopReason::kNoValidCollapse;
+          round.tolerance_hit ? StopReason::kErrorTolerance : StopReason::kNoValidCollapse;
+    } else if (round.tolerance_hit) {
+      stopped = true;
+      result.stop_reason = StopReason::kErrorTolerance;
     } else if (removed < target &&
                double(stats.cells_removed) < options.min_pass_gain * double(result.input_cells)) {
       stopped = true;
       result.stop_reason = StopReason::kStalled;
     }
   }
+  const int64_t removed = engine.removed_cells();
   if (removed >= target) {
     result.stop_reason = StopReason::kTargetReached;
   } else if (!stopped) {

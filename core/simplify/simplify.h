@@ -67,16 +67,24 @@ struct SimplifyOptions {
   // A collapse is rejected if a moved cell would end with volume below this many voxels^3
   // (rule 6's sign test plus a guard against slivers). Must be > 0.
   double min_volume_fraction = 1e-3;
-  // Passes after the first begin with this many smoothing sweeps over the normal vertices
-  // (neither feature nor exterior-boundary, star inside one region): each moves towards the
-  // volume centroid of its star when that improves the star's worst cell, with its value
-  // interpolated in the current mesh. Not in the paper: without it the collapses jam after the
-  // first pass (README.md). 0..100; 0 = the paper's algorithm unchanged.
-  int smoothing_iterations = 2;
-  int max_passes = 64;  // 1..10000
-  // A pass that removes fewer than this fraction of the input cells ends the loop (the mesh is
-  // jammed: later passes cost a full scoring each and gain almost nothing). 0 = run until a pass
-  // removes nothing. In [0, 0.5].
+  // §2.2.4 step 2g (default): after a collapse, lock the cells it changed for the rest of the
+  // round (a round is then an independent set of collapses; rounds repeat). false: no lock;
+  // cells whose neighbourhood changed are re-scored when they reach the front of the queue and
+  // pushed back if no longer the cheapest, so one round follows the error order as far as it
+  // goes: better fidelity (CT head at 50 %: PSNR 43.0 instead of 37.1 dB), about 2x the time.
+  bool lock_neighbours = true;
+  // kPaper: when the paper's collapse of τ (all four vertices to the centroid, or onto the
+  // vertex that must stay) would flip a neighbour, delete τ by the valid merge with the lowest
+  // Δε among: all four at a face centroid, edge midpoint or vertex; three of them at their
+  // centroid, an edge midpoint or a vertex; two (an edge) at its midpoint or an end. A vertex
+  // that must stay never moves (its merges end on it). false = the paper's collapse only.
+  bool widen_collapse_point = true;
+  // Rounds: each re-queues the cells not collapsed yet whose neighbourhood changed since they
+  // were last rejected. 1..10000.
+  int max_passes = 64;
+  // A round that removes fewer than this fraction of the input cells ends the loop (the mesh is
+  // jammed: later rounds gain almost nothing). 0 = run until a round removes nothing.
+  // In [0, 0.5].
   double min_pass_gain = 1e-3;
   int threads = 0;  // worker threads for the per-pass scoring; 0 = hardware concurrency
 };
@@ -91,12 +99,14 @@ enum class StopReason : uint8_t {
 const char* StopReasonName(StopReason reason);
 
 struct SimplifyPassStats {
-  int64_t candidates = 0;      // cells the own-vertex rules allowed at the start of the pass
+  int64_t candidates = 0;      // cells the own-vertex rules allowed at the start of the round
   int64_t collapses = 0;       // collapses performed
   int64_t cells_removed = 0;   // cells removed by them (τ plus D(τ))
-  int64_t rejected_flip = 0;   // rejected by rule 6 (sign or sliver)
+  int64_t rejected_flip = 0;   // rejected by rule 6 (sign or sliver) at every point tried
   int64_t rejected_rule4 = 0;  // rejected by rule 4 (cross-region / feature neighbourhood)
-  double last_error = 0;       // Δε of the last collapse of the pass
+  int64_t requeued = 0;        // re-scored at the front of the queue and pushed back
+  int64_t other_point = 0;     // free collapses made at a point other than the centroid
+  double last_error = 0;       // Δε of the last collapse of the round
 };
 
 struct SimplifyResult {

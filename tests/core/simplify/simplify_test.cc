@@ -37,29 +37,17 @@ std::set<std::array<float, 9>> HullFaces(const TetMesh& m) {
   return faces;
 }
 
-// Runs to the end (no collapse left), the hardest case for the invariants. A 28^3 phantom has
-// too large a share of hull and interface cells to reach 50 % (see README.md); the CT head
-// figure is in the report.
-TEST(Simplify, NoisyPhantomSimplifiedToTheEndKeepsFeaturesHullAndConformity) {
-  auto pm = MakePhantomMesh(28, 40);
+// The invariants of the acceptance list: zero feature vertices moved or removed, no
+// inverted or degenerate cell, the exterior boundary unchanged (same hull faces and boundary
+// vertices, unmoved), conforming, the box volume kept, compacted.
+void ExpectInvariants(const testing::PhantomMesh& pm, const SimplifyResult& r) {
   const TetMesh& in = pm.mesh;
-  SimplifyOptions o;
-  o.target_reduction = 0.9;
-  o.min_pass_gain = 0;
-  auto r = Simplify(in, o);
-  ASSERT_TRUE(r.ok()) << r.status();
-  EXPECT_FALSE(r->reached_target);
-  EXPECT_EQ(r->stop_reason, StopReason::kNoValidCollapse);
-  EXPECT_NE(r->stop_message.find("target not reached"), std::string::npos) << r->stop_message;
-  EXPECT_GE(r->achieved_reduction, 0.25) << r->stop_message;
-  EXPECT_GE(r->passes, 2);
-  EXPECT_EQ(r->output_cells, r->mesh.tet_count());
-  const TetMesh& out = r->mesh;
-
+  const TetMesh& out = r.mesh;
+  EXPECT_EQ(r.output_cells, out.tet_count());
   FidelityOptions fo;
   fo.labels = &pm.phantom.labels;
   fo.original = &in;
-  fo.vertex_map = &r->vertex_map;
+  fo.vertex_map = &r.vertex_map;
   auto m = MeasureFidelity(pm.phantom.image, out, fo);
   ASSERT_TRUE(m.ok()) << m.status();
   EXPECT_GT(m->feature_vertices, 1000);
@@ -73,14 +61,14 @@ TEST(Simplify, NoisyPhantomSimplifiedToTheEndKeepsFeaturesHullAndConformity) {
   for (const auto& [face, count] : FaceUse(out)) ASSERT_LE(count, 2);
   // The hull is the same surface, and so the same volume.
   EXPECT_EQ(HullFaces(out), HullFaces(in));
-  const double box = 27.0 * 27.0 * 27.0;
+  const double side = double(pm.phantom.image.dims[0] - 1), box = side * side * side;
   EXPECT_NEAR(TotalVolume(out), box, 1e-9 * box);
   // Boundary vertices are all still there, unmoved.
   int64_t boundary_in = 0, boundary_out = 0;
   for (int64_t v = 0; v < in.vertex_count(); ++v) {
     if (!(in.vertex_flags[v] & kExteriorBoundaryVertex)) continue;
     ++boundary_in;
-    const int32_t n = r->vertex_map[v];
+    const int32_t n = r.vertex_map[v];
     ASSERT_GE(n, 0);
     EXPECT_EQ(out.Position(n), in.Position(v));
   }
@@ -91,6 +79,37 @@ TEST(Simplify, NoisyPhantomSimplifiedToTheEndKeepsFeaturesHullAndConformity) {
   std::vector<uint8_t> used(out.vertex_count(), 0);
   for (int32_t v : out.tets) used[v] = 1;
   EXPECT_EQ(std::count(used.begin(), used.end(), 0), 0);
+}
+
+// The acceptance case: a noisy 3-region phantom halved (default options).
+TEST(Simplify, NoisyPhantomHalvedKeepsFeaturesHullConformityAndVolume) {
+  auto pm = MakePhantomMesh(40, 40);
+  SimplifyOptions o;
+  o.target_reduction = 0.5;
+  auto r = Simplify(pm.mesh, o);
+  ASSERT_TRUE(r.ok()) << r.status();
+  EXPECT_TRUE(r->reached_target) << r->stop_message;
+  EXPECT_EQ(r->stop_reason, StopReason::kTargetReached);
+  EXPECT_NEAR(r->achieved_reduction, 0.5, 1e-4);
+  ExpectInvariants(pm, *r);
+}
+
+// Runs to the end (no collapse left), the hardest case for the invariants; in the other queue
+// mode (no lock, lazy re-scoring).
+TEST(Simplify, NoisyPhantomSimplifiedToTheEndKeepsFeaturesHullAndConformity) {
+  auto pm = MakePhantomMesh(28, 40);
+  SimplifyOptions o;
+  o.lock_neighbours = false;
+  o.target_reduction = 0.95;
+  o.min_pass_gain = 0;
+  auto r = Simplify(pm.mesh, o);
+  ASSERT_TRUE(r.ok()) << r.status();
+  EXPECT_FALSE(r->reached_target);
+  EXPECT_EQ(r->stop_reason, StopReason::kNoValidCollapse);
+  EXPECT_NE(r->stop_message.find("target not reached"), std::string::npos) << r->stop_message;
+  EXPECT_GE(r->achieved_reduction, 0.5) << r->stop_message;
+  EXPECT_GE(r->passes, 2);
+  ExpectInvariants(pm, *r);
 }
 
 // A 6x6x6 grid mesh (one region, no features) whose cells the rule tests pick from. Interior
@@ -143,30 +162,48 @@ TEST(CollapseRules, CellWithTwoFeatureVerticesIsNeverCollapsed) {
   m.vertex_flags[m.tets[4 * c]] |= kFeatureVertex;
   m.vertex_flags[m.tets[4 * c + 1]] |= kFeatureVertex;
   CollapseEngine e(m, {});
-  e.BeginPass(1);
+  e.BeginRound(1);
   EXPECT_EQ(e.TryCollapse(c).outcome, Outcome::kTwoFeatureVertices);
   EXPECT_EQ(Finish(e).mesh.tets, m.tets);
 }
 
 TEST(CollapseRules, CellWithOneFeatureVertexCollapsesOntoIt) {
-  int collapsed = 0;
-  for (int32_t c : InteriorCells(GridMesh())) {
-    TetMesh m = GridMesh();
-    const int32_t f = m.tets[4 * c + 2];
-    m.vertex_flags[f] |= kFeatureVertex;
-    CollapseEngine e(m, {});
-    e.BeginPass(1);
-    const auto r = e.TryCollapse(c);
-    if (r.outcome == Outcome::kFlip) continue;
-    ASSERT_EQ(r.outcome, Outcome::kCollapsed) << OutcomeName(r.outcome);
-    ++collapsed;
-    EXPECT_EQ(r.survivor, f);
-    const Finished out = Finish(e);
-    for (int k = 0; k < 4; ++k) EXPECT_EQ(out.map[m.tets[4 * c + k]], out.map[f]);
-    EXPECT_EQ(out.mesh.Position(out.map[f]), m.Position(f));
-    EXPECT_EQ(out.mesh.scalars[out.map[f]], m.scalars[f]);
+  for (bool widen : {false, true}) {
+    SimplifyOptions o;
+    o.widen_collapse_point = widen;
+    int collapsed = 0, partial = 0;
+    for (int32_t c : InteriorCells(GridMesh())) {
+      TetMesh m = GridMesh();
+      const int32_t f = m.tets[4 * c + 2];
+      m.vertex_flags[f] |= kFeatureVertex;
+      CollapseEngine e(m, o);
+      e.BeginRound(1);
+      const auto r = e.TryCollapse(c);
+      if (r.outcome == Outcome::kFlip) continue;
+      ASSERT_EQ(r.outcome, Outcome::kCollapsed) << OutcomeName(r.outcome);
+      ++collapsed;
+      EXPECT_EQ(r.survivor, f);
+      const Finished out = Finish(e);
+      // The paper's collapse merges all four onto v_f; a widened one merges two or three of
+      // them, always onto v_f. Either way τ is gone and v_f did not move.
+      int merged = 0;
+      for (int k = 0; k < 4; ++k) merged += out.map[m.tets[4 * c + k]] == out.map[f];
+      EXPECT_EQ(merged, r.merged);
+      if (!widen) {
+        EXPECT_EQ(merged, 4);
+      }
+      partial += merged < 4;
+      EXPECT_GE(merged, 2);
+      EXPECT_EQ(out.mesh.tet_count(), m.tet_count() - r.cells_removed);
+      EXPECT_EQ(out.mesh.Position(out.map[f]), m.Position(f));
+      EXPECT_EQ(out.mesh.scalars[out.map[f]], m.scalars[f]);
+      EXPECT_NEAR(TotalVolume(out.mesh), 125.0, 1e-9);
+    }
+    EXPECT_GT(collapsed, 0);
+    if (widen) {
+      EXPECT_GT(partial, 0);
+    }
   }
-  EXPECT_GT(collapsed, 0);
 }
 
 TEST(CollapseRules, CrossRegionCellIsNeverCollapsed) {
@@ -174,7 +211,7 @@ TEST(CollapseRules, CrossRegionCellIsNeverCollapsed) {
   const int32_t c = InteriorCells(m)[0];
   m.labels[m.tets[4 * c + 3]] = 1;  // two regions, no feature vertex
   CollapseEngine e(m, {});
-  e.BeginPass(1);
+  e.BeginRound(1);
   EXPECT_EQ(e.TryCollapse(c).outcome, Outcome::kCrossRegion);
   EXPECT_EQ(Finish(e).mesh.tets, m.tets);
 }
@@ -199,7 +236,7 @@ TEST(CollapseRules, NeighbourOfCrossRegionCellCollapsesOntoTheCommonVertex) {
     }
     if (crossing == 0) continue;
     CollapseEngine e(m, {});
-    e.BeginPass(1);
+    e.BeginRound(1);
     const auto r = e.TryCollapse(c);
     if (common == 0) {
       EXPECT_EQ(r.outcome, Outcome::kCrossRegionNeighbours);
@@ -217,37 +254,49 @@ TEST(CollapseRules, NeighbourOfCrossRegionCellCollapsesOntoTheCommonVertex) {
 
 TEST(CollapseRules, BoundaryCellNeverMovesItsBoundaryVertex) {
   const TetMesh m = GridMesh();
-  int two = 0, one = 0;
-  for (int64_t c = 0; c < m.tet_count(); ++c) {
-    const int32_t* t = &m.tets[4 * c];
-    int nb = 0, b = -1;
-    for (int k = 0; k < 4; ++k)
-      if (m.vertex_flags[t[k]] & kExteriorBoundaryVertex) ++nb, b = t[k];
-    if (nb == 0) continue;
-    CollapseEngine e(m, {});
-    e.BeginPass(1);
-    const auto r = e.TryCollapse(int32_t(c));
-    if (nb >= 2) {
-      ++two;
-      EXPECT_EQ(r.outcome, Outcome::kTwoBoundaryVertices);
-    } else if (r.outcome == Outcome::kCollapsed) {
-      ++one;
-      EXPECT_EQ(r.survivor, b);
+  for (bool widen : {false, true}) {
+    SimplifyOptions o;
+    o.widen_collapse_point = widen;
+    int two = 0, one = 0;
+    for (int64_t c = 0; c < m.tet_count(); ++c) {
+      const int32_t* t = &m.tets[4 * c];
+      int nb = 0, b = -1;
+      for (int k = 0; k < 4; ++k)
+        if (m.vertex_flags[t[k]] & kExteriorBoundaryVertex) ++nb, b = t[k];
+      if (nb == 0) continue;
+      CollapseEngine e(m, o);
+      e.BeginRound(1);
+      const auto r = e.TryCollapse(int32_t(c));
+      if (nb >= 2) {
+        ++two;
+        EXPECT_EQ(r.outcome, Outcome::kTwoBoundaryVertices);
+      } else if (r.outcome == Outcome::kCollapsed) {
+        ++one;
+        EXPECT_EQ(r.survivor, b);
+        const Finished out = Finish(e);
+        EXPECT_EQ(out.mesh.Position(out.map[b]), m.Position(b));
+        EXPECT_NEAR(TotalVolume(out.mesh), 125.0, 1e-9);
+      } else {
+        EXPECT_EQ(r.outcome, Outcome::kFlip);
+      }
+    }
+    EXPECT_GT(two, 0);
+    if (!widen) {
+      // On a flat hull pulling all three interior vertices onto v_b flattens the cells lying
+      // on the hull plane, so rule 6 rejects every paper collapse of such a cell.
+      EXPECT_EQ(one, 0);
     } else {
-      EXPECT_EQ(r.outcome, Outcome::kFlip);
+      // Merging only two of τ's vertices onto v_b (an edge along the grid) often is valid.
+      EXPECT_GT(one, 0);
     }
   }
-  EXPECT_GT(two, 0);
-  // On a flat hull pulling an interior vertex onto v_b flattens the cells lying on the hull
-  // plane, so rule 6 rejects every single-boundary-vertex collapse here; none may go elsewhere.
-  EXPECT_EQ(one, 0);
 }
 
 TEST(CollapseRules, NormalCellCollapsesToItsCentroidKeepingVolumeAndConformity) {
   const TetMesh m = GridMesh();
   const int32_t c = InteriorCells(m)[0];
   CollapseEngine e(m, {});
-  e.BeginPass(1);
+  e.BeginRound(1);
   const auto r = e.TryCollapse(c);
   ASSERT_EQ(r.outcome, Outcome::kCollapsed) << OutcomeName(r.outcome);
   EXPECT_GE(r.cells_removed, 5);
@@ -296,13 +345,28 @@ TEST(CollapseRules, CollapseThatWouldFlipANeighbourIsRejectedAndMeshUntouched) {
           TetMesh moved = m;  // the A cell with u at the centroid
           for (int a = 0; a < 3; ++a) moved.positions[3 * u + a] = float(centroid[a]);
           if (TetVolume(moved, n) >= 0) continue;
-          CollapseEngine e(m, {});
-          e.BeginPass(1);
+          SimplifyOptions paper_only;
+          paper_only.widen_collapse_point = false;
+          CollapseEngine e(m, paper_only);
+          e.BeginRound(1);
           EXPECT_EQ(e.TryCollapse(c).outcome, Outcome::kFlip);
           const Finished out = Finish(e);
           EXPECT_EQ(out.mesh.tets, m.tets);
           EXPECT_EQ(out.mesh.positions, m.positions);
           EXPECT_EQ(out.mesh.scalars, m.scalars);
+          // The widened set may delete τ another way; then every cell is still positive.
+          CollapseEngine wide(m, {});
+          wide.BeginRound(1);
+          const auto r = wide.TryCollapse(c);
+          const Finished w = Finish(wide);
+          if (r.outcome == Outcome::kCollapsed) {
+            EXPECT_NE(r.point, 0);
+            for (int64_t x = 0; x < w.mesh.tet_count(); ++x) EXPECT_GT(TetVolume(w.mesh, x), 0);
+            EXPECT_NEAR(TotalVolume(w.mesh), TotalVolume(m), 1e-9);
+          } else {
+            EXPECT_EQ(r.outcome, Outcome::kFlip);
+            EXPECT_EQ(w.mesh.tets, m.tets);
+          }
           return;
         }
       }
@@ -327,30 +391,36 @@ TEST(CollapseRules, SliverGuardRejectsCollapsesLeavingTinyCells) {
 
 TEST(Simplify, SameResultOnOneAndTwoThreads) {
   auto pm = MakePhantomMesh(20, 40);
-  SimplifyOptions o;
-  o.target_reduction = 0.3;
-  o.threads = 1;
-  auto a = Simplify(pm.mesh, o);
-  o.threads = 2;
-  auto b = Simplify(pm.mesh, o);
-  ASSERT_TRUE(a.ok() && b.ok());
-  EXPECT_EQ(a->mesh.tets, b->mesh.tets);
-  EXPECT_EQ(a->mesh.positions, b->mesh.positions);
-  EXPECT_EQ(a->mesh.scalars, b->mesh.scalars);
-  EXPECT_EQ(a->mesh.labels, b->mesh.labels);
-  EXPECT_EQ(a->mesh.vertex_flags, b->mesh.vertex_flags);
-  EXPECT_EQ(a->vertex_map, b->vertex_map);
-  EXPECT_EQ(a->passes, b->passes);
+  for (bool lock : {true, false}) {
+    SimplifyOptions o;
+    o.target_reduction = 0.5;
+    o.lock_neighbours = lock;
+    o.threads = 1;
+    auto a = Simplify(pm.mesh, o);
+    o.threads = 2;
+    auto b = Simplify(pm.mesh, o);
+    ASSERT_TRUE(a.ok() && b.ok());
+    EXPECT_GT(a->collapses, 0);
+    EXPECT_EQ(a->mesh.tets, b->mesh.tets);
+    EXPECT_EQ(a->mesh.positions, b->mesh.positions);
+    EXPECT_EQ(a->mesh.scalars, b->mesh.scalars);
+    EXPECT_EQ(a->mesh.labels, b->mesh.labels);
+    EXPECT_EQ(a->mesh.vertex_flags, b->mesh.vertex_flags);
+    EXPECT_EQ(a->vertex_map, b->vertex_map);
+    EXPECT_EQ(a->passes, b->passes);
+  }
 }
 
+// At 40 %: TetFusion (centroid collapses only, as its paper defines it) jams at ~47 % on this
+// phantom, so 50 % cannot be compared.
 TEST(Simplify, PaperPolicyBeatsTetFusionOnFieldAndBoundaries) {
-  auto pm = MakePhantomMesh(28, 40);
+  auto pm = MakePhantomMesh(40, 40);
   FidelityMetrics m[2];
   int i = 0;
   for (SimplifyPolicy policy : {SimplifyPolicy::kPaper, SimplifyPolicy::kTetFusion}) {
     SimplifyOptions o;
     o.policy = policy;
-    o.target_reduction = 0.25;
+    o.target_reduction = 0.4;
     auto r = Simplify(pm.mesh, o);
     ASSERT_TRUE(r.ok()) << r.status();
     ASSERT_TRUE(r->reached_target) << r->stop_message;
