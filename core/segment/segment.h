@@ -64,8 +64,10 @@ struct SegmentOptions {
   // Iteration cap. 0 returns the k-means (or nearest-class-mean) partition unchanged.
   int max_iterations = 300;
   // Converged when the fraction of all voxels whose label changed in an iteration stays below
-  // this for `convergence_window` consecutive iterations. In [0, 1).
-  double convergence_threshold = 1e-4;
+  // this for `convergence_window` consecutive iterations. In [0, 1). The default 0.1 % stops
+  // the CT head after ~5 and the Colin27 MRI after ~20 iterations; 1e-4 leaves the MRI drifting
+  // at 0.03 % per iteration past the 300 cap (see README.md).
+  double convergence_threshold = 1e-3;
   int convergence_window = 3;
   // Half width of the narrow band in voxel units: phi_i is kept as a signed distance only
   // within this distance of its zero level set and clamped to +-band_width beyond. 0 =
