@@ -1,0 +1,42 @@
+// Helpers shared by the files of core/segment; not part of the public API.
+#pragma once
+
+#include <algorithm>
+#include <cstdint>
+#include <thread>
+#include <vector>
+
+#include "absl/status/statusor.h"
+#include "core/common/progress.h"
+#include "core/common/status.h"
+#include "core/segment/segment.h"
+#include "core/volume/volume.h"
+
+namespace decima::segment_internal {
+
+// Number of worker threads for a `threads` option (0 = all hardware threads).
+inline int ResolveThreads(int threads) {
+  if (threads > 0) return threads;
+  return std::max(1u, std::thread::hardware_concurrency());
+}
+
+// 1D k-means on the float intensities `v` (n values). `integer_valued`: the values are integers
+// (the image type is an integer type), which allows the exact histogram.
+struct KMeans1D {
+  std::vector<double> means;  // ascending
+};
+absl::StatusOr<KMeans1D> RunKMeans(const float* v, int64_t n, int k, bool integer_valued,
+                                   const CancelToken* cancel);
+
+// labels[x] = index of the nearest of `means` (ties: lowest index). Parallel, deterministic.
+void AssignNearest(const float* v, int64_t n, const std::vector<double>& means, uint8_t* labels,
+                   int threads);
+
+// Pooled within-class variance sum_x (v_x - means[labels_x])^2 / n.
+double PooledVariance(const float* v, int64_t n, const uint8_t* labels,
+                      const std::vector<double>& means);
+
+// Fills region_voxels and region_volumes_mm3 of `result` from result->labels (K regions).
+void CountRegions(int k, SegmentResult* result);
+
+}  // namespace decima::segment_internal

@@ -1,0 +1,812 @@
+// Multiphase level-set segmentation: Samson, Blanc-Feraud, Aubert, Zerubia, "A level set model
+// for image classification" (IJCV 2000), as used in paper §2.1, Eqs. (3)-(4).
+//
+// Data layout and invariants (per level set phi_i, a dense float array over the grid):
+//  - phi_i is a signed distance (voxel units, positive inside region i) within the narrow band
+//    |phi_i| < W and exactly +-W beyond it;
+//  - `band` lists, ascending, the 8x8x8 blocks holding a voxel with |phi_i| < W: every loop
+//    over the interface visits only these blocks, so the cost follows the interface area;
+//  - only voxels with |phi_i| < alpha move (delta_alpha vanishes elsewhere), so between two
+//    re-initializations an interface moves at most about alpha and stays inside the band;
+//  - s0/s1/s2 hold sum_x H(phi_i) * (1, I, I^2) over the whole grid, updated incrementally by
+//    every write to phi_i; they give the class means c_i and the fitting energy without a pass
+//    over the volume.
+// Determinism: every parallel loop writes disjoint voxels and its per-block partial sums are
+// added in block order, so results do not depend on the thread count or schedule.
+#include <algorithm>
+#include <atomic>
+#include <cmath>
+#include <cstdio>
+#include <cstdlib>
+#include <limits>
+#include <memory>
+#include <numeric>
+
+#include "absl/strings/str_cat.h"
+#include "absl/strings/str_format.h"
+#include "core/segment/internal.h"
+#include "core/segment/segment.h"
+
+namespace decima {
+namespace {
+
+using segment_internal::ResolveThreads;
+
+constexpr int kBlock = 8;  // block edge in voxels (the unit of the narrow band lists)
+
+struct Grid {
+  int64_t n[3];
+  int64_t stride[3];
+  int64_t count;
+  double h[3];     // spacing in voxel units (spacing / smallest spacing of a non-flat axis)
+  bool active[3];  // axis has more than one voxel
+  int64_t nb[3];   // blocks per axis
+  int64_t block_count;
+};
+
+Grid MakeGrid(const Volume& image) {
+  Grid g;
+  double hmin = std::numeric_limits<double>::infinity();
+  for (int c = 0; c < 3; ++c) {
+    g.n[c] = image.dims[c];
+    g.active[c] = image.dims[c] > 1;
+    if (g.active[c]) hmin = std::min(hmin, image.spacing[c]);
+  }
+  if (!std::isfinite(hmin)) hmin = image.spacing.minCoeff();
+  for (int c = 0; c < 3; ++c) {
+    g.h[c] = image.spacing[c] / hmin;
+    g.nb[c] = (g.n[c] + kBlock - 1) / kBlock;
+  }
+  g.stride[0] = 1;
+  g.stride[1] = g.n[0];
+  g.stride[2] = g.n[0] * g.n[1];
+  g.count = g.n[0] * g.n[1] * g.n[2];
+  g.block_count = g.nb[0] * g.nb[1] * g.nb[2];
+  return g;
+}
+
+// Calls f(index, i, j, k) for every voxel of block `b`, x fastest.
+template <typename F>
+inline void ForBlock(const Grid& g, int64_t b, F&& f) {
+  const int64_t bi = b % g.nb[0], bj = (b / g.nb[0]) % g.nb[1], bk = b / (g.nb[0] * g.nb[1]);
+  const int64_t i0 = bi * kBlock, j0 = bj * kBlock, k0 = bk * kBlock;
+  const int64_t i1 = std::min(i0 + kBlock, g.n[0]), j1 = std::min(j0 + kBlock, g.n[1]),
+                k1 = std::min(k0 + kBlock, g.n[2]);
+  for (int64_t k = k0; k < k1; ++k)
+    for (int64_t j = j0; j < j1; ++j) {
+      int64_t idx = i0 + g.n[0] * (j + g.n[1] * k);
+      for (int64_t i = i0; i < i1; ++i, ++idx) f(idx, i, j, k);
+    }
+}
+
+inline int64_t BlockOf(const Grid& g, int64_t i, int64_t j, int64_t k) {
+  return i / kBlock + g.nb[0] * (j / kBlock + g.nb[1] * (k / kBlock));
+}
+
+// Samson's regularized Heaviside and Dirac of half width alpha:
+//   H(s) = (1 + s/alpha + sin(pi s/alpha)/pi) / 2,  delta(s) = (1 + cos(pi s/alpha)) / (2 alpha)
+// for |s| < alpha (0/1 and 0 beyond). They are evaluated for every band voxel and level set in
+// every iteration, so they come from a table with linear interpolation (error < 1e-6).
+class SmoothedStep {
+ public:
+  explicit SmoothedStep(double alpha) : alpha_(alpha), scale_(kSamples / (2 * alpha)) {
+    for (int q = 0; q <= kSamples + 1; ++q) {
+      const double s = std::min(alpha, -alpha + q / scale_);
+      h_[q] = 0.5 * (1.0 + s / alpha + std::sin(M_PI * s / alpha) / M_PI);
+      d_[q] = (1.0 + std::cos(M_PI * s / alpha)) / (2.0 * alpha);
+    }
+  }
+  double H(double s) const {
+    if (s >= alpha_) return 1.0;
+    if (s <= -alpha_) return 0.0;
+    return Lerp(h_, s);
+  }
+  double Delta(double s) const {
+    if (std::abs(s) >= alpha_) return 0.0;
+    return Lerp(d_, s);
+  }
+
+ private:
+  static constexpr int kSamples = 4096;
+  double Lerp(const double* t, double s) const {
+    const double u = (s + alpha_) * scale_;
+    const int q = std::min(kSamples - 1, static_cast<int>(u));
+    const double f = u - q;
+    return t[q] + f * (t[q + 1] - t[q]);
+  }
+  double alpha_, scale_;
+  double h_[kSamples + 2], d_[kSamples + 2];
+};
+
+// Neighbour offsets of a voxel with Neumann (clamp) boundaries: a missing neighbour is the
+// voxel itself, which makes the normal derivative zero on the border and a 1-voxel-thick axis
+// behave as 2D.
+struct Offsets {
+  int64_t m[3], p[3];
+};
+inline Offsets NeighbourOffsets(const Grid& g, int64_t i, int64_t j, int64_t k) {
+  const int64_t c[3] = {i, j, k};
+  Offsets o;
+  for (int a = 0; a < 3; ++a) {
+    o.m[a] = c[a] > 0 ? -g.stride[a] : 0;
+    o.p[a] = c[a] < g.n[a] - 1 ? g.stride[a] : 0;
+  }
+  return o;
+}
+
+// Curvature div(grad phi / |grad phi|) in conservative form: normals on the six faces of the
+// voxel (difference across the face, central differences averaged along the other axes), then
+// their divergence. Unlike the non-conservative formula this does not vanish at isolated
+// extrema (a one-voxel island has curvature -2 per axis), which is what removes noise specks.
+// Also returns |grad phi| by central differences at the voxel (for the length energy).
+inline double Curvature(const float* phi, const Grid& g, int64_t x, const Offsets& o,
+                        double* grad_norm) {
+  constexpr double kEps = 1e-6;
+  double kappa = 0.0, g2 = 0.0;
+  for (int a = 0; a < 3; ++a) {
+    if (!g.active[a]) continue;
+    const double ca = (phi[x + o.p[a]] - phi[x + o.m[a]]) / (2.0 * g.h[a]);
+    g2 += ca * ca;
+    double face_normal[2];
+    for (int side = 0; side < 2; ++side) {
+      const int64_t off = side ? o.p[a] : o.m[a];
+      if (off == 0) {  // border: no flux through it
+        face_normal[side] = 0.0;
+        continue;
+      }
+      const int64_t y = x + off;
+      const double ga = side ? (phi[y] - phi[x]) / g.h[a] : (phi[x] - phi[y]) / g.h[a];
+      double n2 = ga * ga;
+      for (int b = 0; b < 3; ++b) {
+        if (b == a || !g.active[b]) continue;
+        // Central difference along b averaged over the two voxels of the face (y differs from
+        // x only along a, so x's clamped offsets along b are y's too).
+        const double gb = (phi[x + o.p[b]] - phi[x + o.m[b]] + phi[y + o.p[b]] - phi[y + o.m[b]]) /
+                          (4.0 * g.h[b]);
+        n2 += gb * gb;
+      }
+      face_normal[side] = ga / (std::sqrt(n2) + kEps);
+    }
+    kappa += (face_normal[1] - face_normal[0]) / g.h[a];
+  }
+  *grad_norm = std::sqrt(g2);
+  return kappa;
+}
+
+struct LevelSet {
+  std::vector<float> phi;
+  std::vector<int64_t> band;  // ascending block indices with some |phi| < W
+  double s0 = 0, s1 = 0, s2 = 0;
+};
+
+struct Context {
+  Grid g;
+  int k = 0;
+  double alpha = 0, width = 0, dt = 0, beta = 0, inv_s2 = 0, voxel_volume = 1;
+  std::vector<double> nu, e, c;
+  const float* image = nullptr;
+  uint8_t* labels = nullptr;
+  std::vector<uint8_t> accepted;  // fast-marching "accepted" flag: bit i for level set i
+  std::vector<LevelSet> ls;
+  int threads = 1;
+  std::unique_ptr<SmoothedStep> step;
+};
+
+inline bool TestBit(const uint8_t& byte, uint8_t bit) {
+  return std::atomic_ref<const uint8_t>(byte).load(std::memory_order_relaxed) & bit;
+}
+inline void SetBit(uint8_t& byte, uint8_t bit) {
+  std::atomic_ref<uint8_t>(byte).fetch_or(bit, std::memory_order_relaxed);
+}
+inline void ClearBit(uint8_t& byte, uint8_t bit) {
+  std::atomic_ref<uint8_t>(byte).fetch_and(static_cast<uint8_t>(~bit), std::memory_order_relaxed);
+}
+
+// First-order upwind Eikonal update |grad u| = 1 at voxel x from its accepted neighbours
+// (anisotropic spacing h).
+inline double EikonalUpdate(const Context& ctx, const float* phi, int64_t x, const Offsets& o,
+                            uint8_t bit) {
+  const Grid& g = ctx.g;
+  double a[3], w[3];
+  int m = 0;
+  for (int c = 0; c < 3; ++c) {
+    if (!g.active[c]) continue;
+    double best = std::numeric_limits<double>::infinity();
+    if (o.m[c] != 0 && TestBit(ctx.accepted[x + o.m[c]], bit))
+      best = std::min<double>(best, std::abs(phi[x + o.m[c]]));
+    if (o.p[c] != 0 && TestBit(ctx.accepted[x + o.p[c]], bit))
+      best = std::min<double>(best, std::abs(phi[x + o.p[c]]));
+    if (std::isfinite(best)) {
+      a[m] = best;
+      w[m] = 1.0 / (g.h[c] * g.h[c]);
+      ++m;
+    }
+  }
+  if (m == 0) return std::numeric_limits<double>::infinity();
+  // Sort the (a, w) pairs by a.
+  for (int p = 1; p < m; ++p)
+    for (int q = p; q > 0 && a[q] < a[q - 1]; --q) {
+      std::swap(a[q], a[q - 1]);
+      std::swap(w[q], w[q - 1]);
+    }
+  double u = a[0] + 1.0 / std::sqrt(w[0]);
+  double sw = w[0], swa = w[0] * a[0], swa2 = w[0] * a[0] * a[0];
+  for (int p = 1; p < m && u > a[p]; ++p) {
+    sw += w[p];
+    swa += w[p] * a[p];
+    swa2 += w[p] * a[p] * a[p];
+    const double disc = swa * swa - sw * (swa2 - 1.0);
+    u = (swa + std::sqrt(std::max(0.0, disc))) / sw;
+  }
+  return u;
+}
+
+// Re-initializes phi_i to a signed distance within the band by fast marching (Sethian), from
+// sub-voxel interface estimates: for a voxel x whose 6-neighbour y has the opposite sign the
+// zero crossing lies at the fraction |phi_x| / (|phi_x| + |phi_y|) of the step, and the
+// distances t_c to the crossings along the axes combine as 1 / sqrt(sum_c t_c^-2) (the
+// distance to the plane through them). With `from_labels`, phi_i is +-W everywhere and the
+// interface is the voxel faces between labels == i and != i (t = h_c / 2). Keeps s0/s1/s2
+// exact by adding every change of H(phi_i). Runs on one thread; level sets run in parallel.
+void Reinitialize(Context& ctx, int i, bool from_labels) {
+  const Grid& g = ctx.g;
+  LevelSet& ls = ctx.ls[i];
+  float* phi = ls.phi.data();
+  const double W = ctx.width;
+  const uint8_t bit = static_cast<uint8_t>(1u << i);
+  const bool track = !from_labels;
+  auto add_h = [&](int64_t x, double before, double after) {
+    if (!track) return;
+    const double dh = ctx.step->H(after) - ctx.step->H(before);
+    if (dh == 0.0) return;
+    const double v = ctx.image[x];
+    ls.s0 += dh;
+    ls.s1 += dh * v;
+    ls.s2 += dh * v * v;
+  };
+
+  // 1. Interface voxels and their signed distance estimates, from the current phi.
+  // Voxel indices fit 32 bits (kMaxVoxels = 2^31): half the queue memory of int64.
+  std::vector<std::pair<uint32_t, float>> seeds;
+  auto scan_block = [&](int64_t b) {
+    ForBlock(g, b, [&](int64_t x, int64_t ii, int64_t jj, int64_t kk) {
+      const Offsets o = NeighbourOffsets(g, ii, jj, kk);
+      double px;
+      bool inside;
+      if (from_labels) {
+        inside = ctx.labels[x] == i;
+        px = inside ? 1.0 : -1.0;
+      } else {
+        px = phi[x];
+        inside = px >= 0;
+      }
+      double inv = 0.0;
+      bool any = false, zero = false;
+      for (int c = 0; c < 3; ++c) {
+        if (!g.active[c]) continue;
+        double t = std::numeric_limits<double>::infinity();
+        for (int side = 0; side < 2; ++side) {
+          const int64_t off = side ? o.p[c] : o.m[c];
+          if (off == 0) continue;
+          const double py = from_labels ? (ctx.labels[x + off] == i ? 1.0 : -1.0) : phi[x + off];
+          if ((py >= 0) == inside) continue;
+          const double frac = std::abs(px) / (std::abs(px) + std::abs(py));
+          t = std::min(t, frac * g.h[c]);
+        }
+        if (std::isfinite(t)) {
+          any = true;
+          if (t <= 0)
+            zero = true;
+          else
+            inv += 1.0 / (t * t);
+        }
+      }
+      if (!any) return;
+      const double d = zero ? 0.0 : 1.0 / std::sqrt(inv);
+      seeds.emplace_back(static_cast<uint32_t>(x), static_cast<float>(inside ? d : -d));
+    });
+  };
+  if (from_labels) {
+    for (int64_t b = 0; b < g.block_count; ++b) scan_block(b);
+  } else {
+    for (int64_t b : ls.band) scan_block(b);
+  }
+
+  // 2. Clear the old band to +-W (sign kept), then place the seeds.
+  if (!from_labels) {
+    for (int64_t b : ls.band) {
+      ForBlock(g, b, [&](int64_t x, int64_t, int64_t, int64_t) {
+        const float before = phi[x];
+        const float after = before >= 0 ? static_cast<float>(W) : static_cast<float>(-W);
+        if (before != after) {
+          add_h(x, before, after);
+          phi[x] = after;
+        }
+      });
+    }
+  }
+  // 3. Fast marching outwards on both sides until the distance reaches W, with an "untidy"
+  // priority queue (Yatziv, Bartesaghi, Sapiro 2006): buckets of width kBucket processed in
+  // order, FIFO inside a bucket. O(1) per operation instead of a heap's O(log n); the ordering
+  // error, and so the distance error, stays below kBucket voxels.
+  constexpr double kBucket = 0.02;
+  const int64_t bucket_count = static_cast<int64_t>(W / kBucket) + 2;
+  std::vector<std::vector<uint32_t>> buckets(bucket_count);
+  auto bucket_of = [&](double d) {
+    return std::min<int64_t>(bucket_count - 1, static_cast<int64_t>(d / kBucket));
+  };
+  for (const auto& [x, d] : seeds) {
+    add_h(x, phi[x], d);
+    phi[x] = d;
+    buckets[bucket_of(std::abs(d))].push_back(x);
+  }
+  seeds.clear();
+  seeds.shrink_to_fit();
+  std::vector<uint8_t> in_band(g.block_count, 0);
+  for (int64_t current = 0; current < bucket_count; ++current) {
+    // Index loop: the bucket may grow while it is processed.
+    for (size_t e = 0; e < buckets[current].size(); ++e) {
+      const int64_t x = buckets[current][e];
+      if (TestBit(ctx.accepted[x], bit)) continue;
+      SetBit(ctx.accepted[x], bit);
+      const int64_t xi = x % g.n[0], xj = (x / g.n[0]) % g.n[1], xk = x / g.stride[2];
+      in_band[BlockOf(g, xi, xj, xk)] = 1;
+      const Offsets o = NeighbourOffsets(g, xi, xj, xk);
+      for (int c = 0; c < 3; ++c) {
+        for (int side = 0; side < 2; ++side) {
+          const int64_t off = side ? o.p[c] : o.m[c];
+          if (off == 0) continue;
+          const int64_t y = x + off;
+          if (TestBit(ctx.accepted[y], bit)) continue;
+          const int64_t yi = y % g.n[0], yj = (y / g.n[0]) % g.n[1], yk = y / g.stride[2];
+          const double u = EikonalUpdate(ctx, phi, y, NeighbourOffsets(g, yi, yj, yk), bit);
+          if (u < W && u < std::abs(phi[y])) {
+            const float after = static_cast<float>(phi[y] >= 0 ? u : -u);
+            add_h(y, phi[y], after);
+            phi[y] = after;
+            buckets[std::max(current, bucket_of(u))].push_back(static_cast<uint32_t>(y));
+          }
+        }
+      }
+    }
+    std::vector<uint32_t>().swap(buckets[current]);
+  }
+
+  // 4. New band; reset the accepted flags (all accepted voxels lie in band blocks).
+  ls.band.clear();
+  for (int64_t b = 0; b < g.block_count; ++b) {
+    if (!in_band[b]) continue;
+    ls.band.push_back(b);
+    ForBlock(g, b, [&](int64_t x, int64_t, int64_t, int64_t) { ClearBit(ctx.accepted[x], bit); });
+  }
+}
+
+// Sorted union of the band lists (and `extra`, if given).
+std::vector<int64_t> BandUnion(const Context& ctx, const std::vector<int64_t>* extra) {
+  std::vector<uint8_t> mark(ctx.g.block_count, 0);
+  for (const LevelSet& ls : ctx.ls)
+    for (int64_t b : ls.band) mark[b] = 1;
+  if (extra)
+    for (int64_t b : *extra) mark[b] = 1;
+  std::vector<int64_t> out;
+  for (int64_t b = 0; b < ctx.g.block_count; ++b)
+    if (mark[b]) out.push_back(b);
+  return out;
+}
+
+// One explicit step of Eq. (4) for level set i (Jacobi within phi_i, using the current values
+// of the other level sets). Returns the length energy sum nu_i delta(phi_i) |grad phi_i|.
+// `next` is scratch for the new values of the band blocks only (kBlock^3 floats per band block,
+// in ForBlock order), so the Jacobi copy costs memory in proportion to the band, not the volume.
+double EvolveLevelSet(Context& ctx, int i, std::vector<float>& next) {
+  const Grid& g = ctx.g;
+  LevelSet& ls = ctx.ls[i];
+  const int64_t nb = static_cast<int64_t>(ls.band.size());
+  std::vector<double> length(nb, 0.0), ds(3 * nb, 0.0);
+  const double alpha = ctx.alpha, W = ctx.width;
+  const int k = ctx.k;
+  float* phi = ls.phi.data();
+  constexpr int64_t kBlockVoxels = int64_t{kBlock} * kBlock * kBlock;
+  if (static_cast<int64_t>(next.size()) < nb * kBlockVoxels) next.resize(nb * kBlockVoxels);
+
+#pragma omp parallel for schedule(dynamic, 4) num_threads(ctx.threads)
+  for (int64_t q = 0; q < nb; ++q) {
+    double len = 0.0;
+    float* out = next.data() + q * kBlockVoxels;
+    int64_t t = 0;
+    ForBlock(g, ls.band[q], [&](int64_t x, int64_t ii, int64_t jj, int64_t kk) {
+      const double p = phi[x];
+      if (std::abs(p) >= alpha) {
+        out[t++] = static_cast<float>(p);
+        return;
+      }
+      const Offsets o = NeighbourOffsets(g, ii, jj, kk);
+      double grad;
+      const double kappa = Curvature(phi, g, x, o, &grad);
+      const double delta = ctx.step->Delta(p);
+      // Fitting force relative to the best class at this voxel (see README: subtracting the
+      // per-voxel minimum leaves the partition-constrained energy unchanged).
+      const double v = ctx.image[x];
+      double fit_i = 0.0, fit_min = std::numeric_limits<double>::infinity();
+      double sum_h = 0.0;
+      for (int j = 0; j < k; ++j) {
+        const double r = v - ctx.c[j];
+        const double f = ctx.e[j] * r * r * ctx.inv_s2;
+        if (j == i) fit_i = f;
+        fit_min = std::min(fit_min, f);
+        sum_h += ctx.step->H(j == i ? p : ctx.ls[j].phi[x]);
+      }
+      const double force = ctx.nu[i] * kappa - (fit_i - fit_min) - ctx.beta * (sum_h - 1.0);
+      out[t++] = static_cast<float>(std::clamp(p + ctx.dt * delta * force, -W, W));
+      len += ctx.nu[i] * delta * grad;
+    });
+    length[q] = len;
+  }
+
+#pragma omp parallel for schedule(dynamic, 4) num_threads(ctx.threads)
+  for (int64_t q = 0; q < nb; ++q) {
+    double d0 = 0, d1 = 0, d2 = 0;
+    const float* out = next.data() + q * kBlockVoxels;
+    int64_t t = 0;
+    ForBlock(g, ls.band[q], [&](int64_t x, int64_t, int64_t, int64_t) {
+      const float before = phi[x], after = out[t++];
+      if (before == after) return;
+      const double dh = ctx.step->H(after) - ctx.step->H(before);
+      const double v = ctx.image[x];
+      d0 += dh;
+      d1 += dh * v;
+      d2 += dh * v * v;
+      phi[x] = after;
+    });
+    ds[3 * q] = d0;
+    ds[3 * q + 1] = d1;
+    ds[3 * q + 2] = d2;
+  }
+  double len = 0;
+  for (int64_t q = 0; q < nb; ++q) {
+    len += length[q];
+    ls.s0 += ds[3 * q];
+    ls.s1 += ds[3 * q + 1];
+    ls.s2 += ds[3 * q + 2];
+  }
+  return len;
+}
+
+// Relabels the voxels of `blocks` by argmax_i phi_i (ties: lowest i). Returns the number of
+// changed labels; adds sum (sum_i H(phi_i) - 1)^2 over those voxels to *overlap.
+int64_t Relabel(Context& ctx, const std::vector<int64_t>& blocks, double* overlap) {
+  const int64_t nb = static_cast<int64_t>(blocks.size());
+  std::vector<int64_t> changed(nb, 0);
+  std::vector<double> over(nb, 0.0);
+  const int k = ctx.k;
+#pragma omp parallel for schedule(dynamic, 4) num_threads(ctx.threads)
+  for (int64_t q = 0; q < nb; ++q) {
+    int64_t ch = 0;
+    double ov = 0;
+    ForBlock(ctx.g, blocks[q], [&](int64_t x, int64_t, int64_t, int64_t) {
+      int best = 0;
+      float best_v = ctx.ls[0].phi[x];
+      double sum_h = ctx.step->H(best_v);
+      for (int j = 1; j < k; ++j) {
+        const float v = ctx.ls[j].phi[x];
+        sum_h += ctx.step->H(v);
+        if (v > best_v) {
+          best_v = v;
+          best = j;
+        }
+      }
+      ov += (sum_h - 1.0) * (sum_h - 1.0);
+      if (ctx.labels[x] != best) {
+        ctx.labels[x] = static_cast<uint8_t>(best);
+        ++ch;
+      }
+    });
+    changed[q] = ch;
+    over[q] = ov;
+  }
+  int64_t total = 0;
+  for (int64_t q = 0; q < nb; ++q) {
+    total += changed[q];
+    *overlap += over[q];
+  }
+  return total;
+}
+
+absl::Status ValidateOptions(const SegmentOptions& o, const Volume& image) {
+  DECIMA_RETURN_IF_ERROR(Validate(image, "segment: image"));
+  const int k = o.regions;
+  if (k < 2 || k > 8) {
+    return absl::InvalidArgumentError(absl::StrCat("segment: regions = ", k, ", expected 2 to 8"));
+  }
+  if (!o.class_means.empty()) {
+    if (static_cast<int>(o.class_means.size()) != k) {
+      return absl::InvalidArgumentError(absl::StrCat(
+          "segment: class_means has ", o.class_means.size(), " values, expected regions = ", k));
+    }
+    for (size_t a = 0; a < o.class_means.size(); ++a) {
+      if (!std::isfinite(o.class_means[a])) {
+        return absl::InvalidArgumentError(
+            absl::StrCat("segment: class_means[", a, "] is not finite"));
+      }
+      for (size_t b = 0; b < a; ++b)
+        if (o.class_means[a] == o.class_means[b]) {
+          return absl::InvalidArgumentError(absl::StrCat("segment: class_means[", b, "] and [", a,
+                                                         "] are equal (", o.class_means[a], ")"));
+        }
+    }
+  }
+  auto nonneg = [](double v, const std::string& name) -> absl::Status {
+    if (!std::isfinite(v) || v < 0) {
+      return absl::InvalidArgumentError(
+          absl::StrCat("segment: ", name, " = ", v, ", expected a finite value >= 0"));
+    }
+    return absl::OkStatus();
+  };
+  DECIMA_RETURN_IF_ERROR(nonneg(o.curvature_weight, "curvature_weight (nu)"));
+  DECIMA_RETURN_IF_ERROR(nonneg(o.fitting_weight, "fitting_weight (e)"));
+  DECIMA_RETURN_IF_ERROR(nonneg(o.overlap_weight, "overlap_weight (beta)"));
+  for (const auto* vec : {&o.curvature_weights, &o.fitting_weights}) {
+    const bool nu = vec == &o.curvature_weights;
+    const std::string name = nu ? "curvature_weights" : "fitting_weights";
+    if (!vec->empty() && static_cast<int>(vec->size()) != k) {
+      return absl::InvalidArgumentError(absl::StrCat("segment: ", name, " has ", vec->size(),
+                                                     " values, expected 0 or regions = ", k));
+    }
+    for (size_t a = 0; a < vec->size(); ++a)
+      DECIMA_RETURN_IF_ERROR(nonneg((*vec)[a], absl::StrCat(name, "[", a, "]")));
+  }
+  {
+    double emax = o.fitting_weights.empty() ? o.fitting_weight : 0.0;
+    for (double v : o.fitting_weights) emax = std::max(emax, v);
+    if (!(emax > 0)) {
+      return absl::InvalidArgumentError(
+          "segment: fitting_weight (e) is 0 for every region; the segmentation would ignore the "
+          "image");
+    }
+  }
+  if (!std::isfinite(o.alpha) || o.alpha <= 0) {
+    return absl::InvalidArgumentError(
+        absl::StrCat("segment: alpha = ", o.alpha, ", expected a finite value > 0 (voxels)"));
+  }
+  if (!std::isfinite(o.dt) || o.dt < 0) {
+    return absl::InvalidArgumentError(
+        absl::StrCat("segment: dt = ", o.dt, ", expected >= 0 (0 = automatic)"));
+  }
+  const double dt_max = MaxStableTimeStep(o, image);
+  if (o.dt > dt_max) {
+    return absl::InvalidArgumentError(absl::StrFormat(
+        "segment: dt = %g breaks the stability bound dt <= %g (1 / (2 nu sum_c h_c^-2 / alpha + "
+        "beta / (2 alpha^2)) for nu = %g, beta = %g, alpha = %g); lower dt or use 0 (automatic)",
+        o.dt, dt_max,
+        o.curvature_weights.empty()
+            ? o.curvature_weight
+            : *std::max_element(o.curvature_weights.begin(), o.curvature_weights.end()),
+        o.overlap_weight, o.alpha));
+  }
+  if (o.reinit_interval < 1) {
+    return absl::InvalidArgumentError(
+        absl::StrCat("segment: reinit_interval = ", o.reinit_interval, ", expected >= 1"));
+  }
+  if (o.max_iterations < 0) {
+    return absl::InvalidArgumentError(
+        absl::StrCat("segment: max_iterations = ", o.max_iterations, ", expected >= 0"));
+  }
+  if (!(o.convergence_threshold >= 0 && o.convergence_threshold < 1)) {
+    return absl::InvalidArgumentError(absl::StrCat(
+        "segment: convergence_threshold = ", o.convergence_threshold, ", expected in [0, 1)"));
+  }
+  if (o.convergence_window < 1) {
+    return absl::InvalidArgumentError(
+        absl::StrCat("segment: convergence_window = ", o.convergence_window, ", expected >= 1"));
+  }
+  if (o.threads < 0) {
+    return absl::InvalidArgumentError(
+        absl::StrCat("segment: threads = ", o.threads, ", expected >= 0 (0 = all cores)"));
+  }
+  if (o.band_width != 0) {
+    const Grid g = MakeGrid(image);
+    const double need =
+        o.alpha + std::max({g.h[0] * g.active[0], g.h[1] * g.active[1], g.h[2] * g.active[2], 1.0});
+    if (!std::isfinite(o.band_width) || o.band_width < need) {
+      return absl::InvalidArgumentError(absl::StrFormat(
+          "segment: band_width = %g, expected 0 (automatic) or >= alpha + largest spacing ratio "
+          "= %g voxels",
+          o.band_width, need));
+    }
+  }
+  return absl::OkStatus();
+}
+
+}  // namespace
+
+double MaxStableTimeStep(const SegmentOptions& o, const Volume& image) {
+  const Grid g = MakeGrid(image);
+  double sum_inv = 0;
+  for (int c = 0; c < 3; ++c)
+    if (g.active[c]) sum_inv += 1.0 / (g.h[c] * g.h[c]);
+  double nu = o.curvature_weight;
+  if (!o.curvature_weights.empty())
+    nu = *std::max_element(o.curvature_weights.begin(), o.curvature_weights.end());
+  if (!(o.alpha > 0)) return 0.0;
+  const double rate = 2.0 * nu * sum_inv / o.alpha + o.overlap_weight / (2.0 * o.alpha * o.alpha);
+  return rate > 0 ? 1.0 / rate : std::numeric_limits<double>::infinity();
+}
+
+absl::StatusOr<SegmentResult> Segment(const Volume& image, const SegmentOptions& o,
+                                      const ProgressFn& progress, const CancelToken* cancel) {
+  DECIMA_RETURN_IF_ERROR(ValidateOptions(o, image));
+  DECIMA_RETURN_IF_ERROR(CheckCancelled(cancel, "segment"));
+  const int k = o.regions;
+  const int threads = ResolveThreads(o.threads);
+  Context ctx;
+  ctx.g = MakeGrid(image);
+  ctx.k = k;
+  ctx.threads = threads;
+  const int64_t n = ctx.g.count;
+
+  std::vector<float> values = image.ToFloat();
+  ctx.image = values.data();
+  SegmentResult result;
+  DECIMA_ASSIGN_OR_RETURN(result.labels, MakeVolume(image.dims, VoxelType::kUInt8, image.spacing));
+  result.labels.origin = image.origin;
+  result.labels.direction = image.direction;
+  result.labels.modality = "SEG";
+  ctx.labels = result.labels.mutable_data<uint8_t>();
+
+  // Class means: given (and fixed), or k-means (then updated unless fix_class_means).
+  bool fixed = true;
+  if (o.class_means.empty()) {
+    const bool integer_valued =
+        image.type != VoxelType::kFloat32 && image.type != VoxelType::kFloat64;
+    DECIMA_ASSIGN_OR_RETURN(
+        auto km, segment_internal::RunKMeans(values.data(), n, k, integer_valued, cancel));
+    ctx.c = km.means;
+    fixed = o.fix_class_means;
+  } else {
+    ctx.c = o.class_means;
+  }
+  segment_internal::AssignNearest(values.data(), n, ctx.c, ctx.labels, threads);
+  DECIMA_RETURN_IF_ERROR(CheckCancelled(cancel, "segment"));
+
+  // Noise normalization: the pooled within-class variance of the initial partition, floored
+  // at (5% of the smallest class-mean gap)^2 so noise-free images stay well scaled.
+  double min_gap = std::numeric_limits<double>::infinity();
+  for (int a = 0; a < k; ++a)
+    for (int b = 0; b < a; ++b) min_gap = std::min(min_gap, std::abs(ctx.c[a] - ctx.c[b]));
+  const double var = std::max(segment_internal::PooledVariance(values.data(), n, ctx.labels, ctx.c),
+                              std::pow(0.05 * min_gap, 2));
+  ctx.inv_s2 = 1.0 / var;
+  result.within_class_sigma = std::sqrt(var);
+
+  ctx.alpha = o.alpha;
+  ctx.step = std::make_unique<SmoothedStep>(o.alpha);
+  ctx.beta = o.overlap_weight;
+  {
+    const Grid& g = ctx.g;
+    double hmax = 1.0;
+    for (int c = 0; c < 3; ++c)
+      if (g.active[c]) hmax = std::max(hmax, g.h[c]);
+    ctx.width = o.band_width > 0 ? o.band_width : o.alpha + 1.5 * hmax;
+    ctx.voxel_volume = g.h[0] * g.h[1] * g.h[2];
+  }
+  ctx.dt = o.dt > 0 ? o.dt : 0.9 * MaxStableTimeStep(o, image);
+  ctx.nu.assign(k, o.curvature_weight);
+  ctx.e.assign(k, o.fitting_weight);
+  if (!o.curvature_weights.empty()) ctx.nu = o.curvature_weights;
+  if (!o.fitting_weights.empty()) ctx.e = o.fitting_weights;
+
+  int iteration = 0;
+  bool converged = false;
+  double energy = 0.0;
+  if (o.max_iterations > 0) {
+    // phi_i = signed distance to the k-means region i, clamped to +-W.
+    ctx.ls.resize(k);
+    const float W = static_cast<float>(ctx.width);
+    for (int i = 0; i < k; ++i) {
+      ctx.ls[i].phi.resize(n);
+      float* phi = ctx.ls[i].phi.data();
+#pragma omp parallel for schedule(static) num_threads(threads)
+      for (int64_t x = 0; x < n; ++x) phi[x] = ctx.labels[x] == i ? W : -W;
+    }
+    ctx.accepted.assign(n, 0);
+    DECIMA_RETURN_IF_ERROR(CheckCancelled(cancel, "segment"));
+#pragma omp parallel for schedule(dynamic, 1) num_threads(std::min(threads, k))
+    for (int i = 0; i < k; ++i) Reinitialize(ctx, i, /*from_labels=*/true);
+    DECIMA_RETURN_IF_ERROR(CheckCancelled(cancel, "segment"));
+    // Exact H sums once; afterwards they are maintained incrementally.
+    {
+      constexpr int64_t kChunk = 1 << 16;
+      const int64_t chunks = (n + kChunk - 1) / kChunk;
+      for (int i = 0; i < k; ++i) {
+        std::vector<double> part(3 * chunks, 0.0);
+        const float* phi = ctx.ls[i].phi.data();
+#pragma omp parallel for schedule(static) num_threads(threads)
+        for (int64_t q = 0; q < chunks; ++q) {
+          double a0 = 0, a1 = 0, a2 = 0;
+          for (int64_t x = q * kChunk; x < std::min(n, (q + 1) * kChunk); ++x) {
+            const double h = ctx.step->H(phi[x]);
+            if (h == 0.0) continue;
+            const double v = values[x];
+            a0 += h;
+            a1 += h * v;
+            a2 += h * v * v;
+          }
+          part[3 * q] = a0;
+          part[3 * q + 1] = a1;
+          part[3 * q + 2] = a2;
+        }
+        LevelSet& ls = ctx.ls[i];
+        ls.s0 = ls.s1 = ls.s2 = 0;
+        for (int64_t q = 0; q < chunks; ++q) {
+          ls.s0 += part[3 * q];
+          ls.s1 += part[3 * q + 1];
+          ls.s2 += part[3 * q + 2];
+        }
+      }
+    }
+    std::vector<float> next;  // band-sized scratch of EvolveLevelSet
+    std::vector<int64_t> label_blocks = BandUnion(ctx, nullptr);
+    int quiet = 0;
+    while (iteration < o.max_iterations) {
+      ++iteration;
+      double length = 0.0;
+      for (int i = 0; i < k; ++i) length += EvolveLevelSet(ctx, i, next);
+      if (!fixed) {
+        for (int i = 0; i < k; ++i)
+          if (ctx.ls[i].s0 > 0.5) ctx.c[i] = ctx.ls[i].s1 / ctx.ls[i].s0;
+      }
+      double overlap = 0.0;
+      const int64_t changed = Relabel(ctx, label_blocks, &overlap);
+      double fitting = 0.0;
+      for (int i = 0; i < k; ++i) {
+        const LevelSet& ls = ctx.ls[i];
+        fitting += ctx.e[i] * ctx.inv_s2 *
+                   std::max(0.0, ls.s2 - 2.0 * ctx.c[i] * ls.s1 + ctx.c[i] * ctx.c[i] * ls.s0);
+      }
+      energy = ctx.voxel_volume * (fitting + length + 0.5 * ctx.beta * overlap);
+      const double changed_fraction = static_cast<double>(changed) / static_cast<double>(n);
+      Progress p;
+      p.stage = "segment";
+      p.fraction = static_cast<double>(iteration) / o.max_iterations;
+      p.message = absl::StrFormat("iteration %d: %d labels changed, energy %.6g", iteration,
+                                  changed, energy);
+      p.metrics = {
+          {"iteration", iteration}, {"energy", energy}, {"changed_fraction", changed_fraction}};
+      Report(progress, p);
+      DECIMA_RETURN_IF_ERROR(CheckCancelled(cancel, "segment"));
+      quiet = changed_fraction < o.convergence_threshold ? quiet + 1 : 0;
+      if (quiet >= o.convergence_window) {
+        converged = true;
+        break;
+      }
+      if (iteration % o.reinit_interval == 0) {
+        std::vector<int64_t> old = BandUnion(ctx, nullptr);
+#pragma omp parallel for schedule(dynamic, 1) num_threads(std::min(threads, k))
+        for (int i = 0; i < k; ++i) Reinitialize(ctx, i, /*from_labels=*/false);
+        // Voxels that left every band were clamped; relabel them once too.
+        label_blocks = BandUnion(ctx, &old);
+      } else if (iteration % o.reinit_interval == 1 || o.reinit_interval == 1) {
+        label_blocks = BandUnion(ctx, nullptr);
+      }
+    }
+  } else {
+    converged = true;
+  }
+  result.iterations = iteration;
+  result.converged = converged;
+  result.energy = energy;
+  result.class_means = ctx.c;
+  // Free the level sets before the distance transform (peak memory).
+  ctx.ls.clear();
+  ctx.ls.shrink_to_fit();
+  ctx.accepted.clear();
+  ctx.accepted.shrink_to_fit();
+  values.clear();
+  values.shrink_to_fit();
+  segment_internal::CountRegions(k, &result);
+  DECIMA_RETURN_IF_ERROR(ComputeInterfaceDistance(result.labels, &result.interface_distance_voxels,
+                                                  &result.interface_distance_mm, threads, cancel));
+  return result;
+}
+
+}  // namespace decima
