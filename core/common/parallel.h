@@ -5,6 +5,7 @@
 #include <algorithm>
 #include <cstdint>
 #include <thread>
+#include <utility>
 #include <vector>
 
 namespace decima {
@@ -19,7 +20,7 @@ inline int ResolveThreads(int threads) {
 // joins them. Ranges are at least `min_chunk` items long (fewer threads for small n); with one
 // range fn runs on the calling thread.
 template <typename Fn>
-void ParallelFor(int64_t n, int threads, Fn&& fn, int64_t min_chunk = 1) {
+void ParallelFor(int64_t n, int threads, int64_t min_chunk, Fn&& fn) {
   const int64_t max_ranges = std::max<int64_t>(1, n / std::max<int64_t>(1, min_chunk));
   threads = static_cast<int>(std::clamp<int64_t>(std::min<int64_t>(threads, max_ranges), 1, 64));
   if (threads == 1) {
@@ -33,6 +34,12 @@ void ParallelFor(int64_t n, int threads, Fn&& fn, int64_t min_chunk = 1) {
     pool.emplace_back([&fn, begin, end] { fn(begin, end); });
   }
   for (auto& th : pool) th.join();
+}
+
+// As above with ranges of any length (coarse loops: slices, rows).
+template <typename Fn>
+void ParallelFor(int64_t n, int threads, Fn&& fn) {
+  ParallelFor(n, threads, 1, std::forward<Fn>(fn));
 }
 
 }  // namespace decima

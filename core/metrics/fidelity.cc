@@ -1,4 +1,5 @@
 #include "core/metrics/fidelity.h"
+#include "core/common/parallel.h"
 
 #include <algorithm>
 #include <atomic>
@@ -13,24 +14,8 @@
 namespace decima {
 namespace {
 
-template <typename Fn>
-void ParallelFor(int64_t n, int threads, Fn&& fn) {
-  threads = std::max(1, std::min<int>(threads, int(std::min<int64_t>(n / 4096 + 1, 64))));
-  if (threads == 1) {
-    fn(int64_t{0}, n);
-    return;
-  }
-  std::vector<std::thread> pool;
-  for (int t = 0; t < threads; ++t) {
-    const int64_t begin = n * t / threads, end = n * (t + 1) / threads;
-    pool.emplace_back([&fn, begin, end] { fn(begin, end); });
-  }
-  for (auto& th : pool) th.join();
-}
-
-int Threads(int requested) {
-  return requested > 0 ? requested : int(std::max(1u, std::thread::hardware_concurrency()));
-}
+// Cell loops run in ranges of at least this many cells (thread start-up is not free).
+constexpr int64_t kCellChunk = 4096;
 
 absl::Status CheckMesh(const TetMesh& m, const char* what) {
   const int64_t nv = m.vertex_count();
@@ -89,7 +74,7 @@ absl::StatusOr<GridResample> ResampleOnGrid(const Volume& grid, const TetMesh& m
     return absl::InvalidArgumentError("metrics: the grid has invalid dims or spacing");
   }
   const int64_t np = grid.voxel_count(), nt = mesh.tet_count();
-  threads = Threads(threads);
+  threads = ResolveThreads(threads);
   // Physical -> continuous index coordinates.
   const Eigen::Matrix3d to_index = (grid.direction * grid.spacing.asDiagonal()).inverse();
   std::vector<std::atomic<int32_t>> owner(np);
@@ -99,7 +84,7 @@ absl::StatusOr<GridResample> ResampleOnGrid(const Volume& grid, const TetMesh& m
     return Eigen::Vector3d(to_index * (mesh.Position(v) - grid.origin));
   };
   std::atomic<bool> cancelled{false};
-  ParallelFor(nt, threads, [&](int64_t b, int64_t e) {
+  ParallelFor(nt, threads, kCellChunk, [&](int64_t b, int64_t e) {
     for (int64_t t = b; t < e; ++t) {
       if ((t & 0x3FFF) == 0 && cancel != nullptr && cancel->cancelled()) {
         cancelled = true;

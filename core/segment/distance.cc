@@ -138,9 +138,21 @@ absl::Status ComputeInterfaceDistance(const Volume& labels, std::vector<float>* 
   const int64_t n = labels.voxel_count();
   const uint8_t* lab = labels.data<uint8_t>();
   std::vector<float> g;
+  // Isotropic spacing: the mm distance is the voxel distance times the spacing, one transform.
+  const Eigen::Vector3d& sp = labels.spacing;
+  const bool isotropic = voxels != nullptr && mm != nullptr && sp[0] == sp[1] && sp[1] == sp[2];
   for (int metric = 0; metric < 2; ++metric) {
     std::vector<float>* out = metric == 0 ? voxels : mm;
     if (out == nullptr) continue;
+    if (metric == 1 && isotropic) {
+      const float h = static_cast<float>(sp[0]);
+      out->resize(n);
+      const float* vin = voxels->data();
+      float* o = out->data();
+#pragma omp parallel for schedule(static) num_threads(nt)
+      for (int64_t x = 0; x < n; ++x) o[x] = vin[x] * h;
+      continue;
+    }
     out->assign(n, kInf);
     double w[3];
     for (int c = 0; c < 3; ++c) w[c] = metric == 0 ? 1.0 : labels.spacing[c] * labels.spacing[c];

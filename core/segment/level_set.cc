@@ -15,7 +15,6 @@
 // added in block order, so results do not depend on the thread count or schedule.
 #include <algorithm>
 #include <atomic>
-#include <chrono>
 #include <cmath>
 #include <cstdio>
 #include <cstdlib>
@@ -267,7 +266,8 @@ void Reinitialize(Context& ctx, int i, bool from_labels) {
   };
 
   // 1. Interface voxels and their signed distance estimates, from the current phi.
-  std::vector<std::pair<int64_t, float>> seeds;
+  // Voxel indices fit 32 bits (kMaxVoxels = 2^31): half the queue memory of int64.
+  std::vector<std::pair<uint32_t, float>> seeds;
   auto scan_block = [&](int64_t b) {
     ForBlock(g, b, [&](int64_t x, int64_t ii, int64_t jj, int64_t kk) {
       const Offsets o = NeighbourOffsets(g, ii, jj, kk);
@@ -303,7 +303,7 @@ void Reinitialize(Context& ctx, int i, bool from_labels) {
       }
       if (!any) return;
       const double d = zero ? 0.0 : 1.0 / std::sqrt(inv);
-      seeds.emplace_back(x, static_cast<float>(inside ? d : -d));
+      seeds.emplace_back(static_cast<uint32_t>(x), static_cast<float>(inside ? d : -d));
     });
   };
   if (from_labels) {
@@ -331,7 +331,7 @@ void Reinitialize(Context& ctx, int i, bool from_labels) {
   // error, and so the distance error, stays below kBucket voxels.
   constexpr double kBucket = 0.02;
   const int64_t bucket_count = static_cast<int64_t>(W / kBucket) + 2;
-  std::vector<std::vector<int64_t>> buckets(bucket_count);
+  std::vector<std::vector<uint32_t>> buckets(bucket_count);
   auto bucket_of = [&](double d) {
     return std::min<int64_t>(bucket_count - 1, static_cast<int64_t>(d / kBucket));
   };
@@ -364,12 +364,12 @@ void Reinitialize(Context& ctx, int i, bool from_labels) {
             const float after = static_cast<float>(phi[y] >= 0 ? u : -u);
             add_h(y, phi[y], after);
             phi[y] = after;
-            buckets[std::max(current, bucket_of(u))].push_back(y);
+            buckets[std::max(current, bucket_of(u))].push_back(static_cast<uint32_t>(y));
           }
         }
       }
     }
-    std::vector<int64_t>().swap(buckets[current]);
+    std::vector<uint32_t>().swap(buckets[current]);
   }
 
   // 4. New band; reset the accepted flags (all accepted voxels lie in band blocks).
@@ -396,6 +396,8 @@ std::vector<int64_t> BandUnion(const Context& ctx, const std::vector<int64_t>* e
 
 // One explicit step of Eq. (4) for level set i (Jacobi within phi_i, using the current values
 // of the other level sets). Returns the length energy sum nu_i delta(phi_i) |grad phi_i|.
+// `next` is scratch for the new values of the band blocks only (kBlock^3 floats per band block,
+// in ForBlock order), so the Jacobi copy costs memory in proportion to the band, not the volume.
 double EvolveLevelSet(Context& ctx, int i, std::vector<float>& next) {
   const Grid& g = ctx.g;
   LevelSet& ls = ctx.ls[i];
@@ -404,15 +406,18 @@ double EvolveLevelSet(Context& ctx, int i, std::vector<float>& next) {
   const double alpha = ctx.alpha, W = ctx.width;
   const int k = ctx.k;
   float* phi = ls.phi.data();
-  float* out = next.data();
+  constexpr int64_t kBlockVoxels = int64_t{kBlock} * kBlock * kBlock;
+  if (static_cast<int64_t>(next.size()) < nb * kBlockVoxels) next.resize(nb * kBlockVoxels);
 
 #pragma omp parallel for schedule(dynamic, 4) num_threads(ctx.threads)
   for (int64_t q = 0; q < nb; ++q) {
     double len = 0.0;
+    float* out = next.data() + q * kBlockVoxels;
+    int64_t t = 0;
     ForBlock(g, ls.band[q], [&](int64_t x, int64_t ii, int64_t jj, int64_t kk) {
       const double p = phi[x];
       if (std::abs(p) >= alpha) {
-        out[x] = static_cast<float>(p);
+        out[t++] = static_cast<float>(p);
         return;
       }
       const Offsets o = NeighbourOffsets(g, ii, jj, kk);
@@ -432,7 +437,7 @@ double EvolveLevelSet(Context& ctx, int i, std::vector<float>& next) {
         sum_h += ctx.step->H(j == i ? p : ctx.ls[j].phi[x]);
       }
       const double force = ctx.nu[i] * kappa - (fit_i - fit_min) - ctx.beta * (sum_h - 1.0);
-      out[x] = static_cast<float>(std::clamp(p + ctx.dt * delta * force, -W, W));
+      out[t++] = static_cast<float>(std::clamp(p + ctx.dt * delta * force, -W, W));
       len += ctx.nu[i] * delta * grad;
     });
     length[q] = len;
@@ -441,8 +446,10 @@ double EvolveLevelSet(Context& ctx, int i, std::vector<float>& next) {
 #pragma omp parallel for schedule(dynamic, 4) num_threads(ctx.threads)
   for (int64_t q = 0; q < nb; ++q) {
     double d0 = 0, d1 = 0, d2 = 0;
+    const float* out = next.data() + q * kBlockVoxels;
+    int64_t t = 0;
     ForBlock(g, ls.band[q], [&](int64_t x, int64_t, int64_t, int64_t) {
-      const float before = phi[x], after = out[x];
+      const float before = phi[x], after = out[t++];
       if (before == after) return;
       const double dh = ctx.step->H(after) - ctx.step->H(before);
       const double v = ctx.image[x];
@@ -737,22 +744,19 @@ absl::StatusOr<SegmentResult> Segment(const Volume& image, const SegmentOptions&
         }
       }
     }
-    std::vector<float> next(n);
+    std::vector<float> next;  // band-sized scratch of EvolveLevelSet
     std::vector<int64_t> label_blocks = BandUnion(ctx, nullptr);
     int quiet = 0;
     while (iteration < o.max_iterations) {
       ++iteration;
       double length = 0.0;
-      const auto t_ev = std::chrono::steady_clock::now();
       for (int i = 0; i < k; ++i) length += EvolveLevelSet(ctx, i, next);
-      const auto t_lab = std::chrono::steady_clock::now();
       if (!fixed) {
         for (int i = 0; i < k; ++i)
           if (ctx.ls[i].s0 > 0.5) ctx.c[i] = ctx.ls[i].s1 / ctx.ls[i].s0;
       }
       double overlap = 0.0;
       const int64_t changed = Relabel(ctx, label_blocks, &overlap);
-      const auto t_end = std::chrono::steady_clock::now();
       double fitting = 0.0;
       for (int i = 0; i < k; ++i) {
         const LevelSet& ls = ctx.ls[i];
@@ -769,16 +773,6 @@ absl::StatusOr<SegmentResult> Segment(const Volume& image, const SegmentOptions&
       p.metrics = {
           {"iteration", iteration}, {"energy", energy}, {"changed_fraction", changed_fraction}};
       Report(progress, p);
-      if (std::getenv("DECIMA_SEGMENT_DEBUG")) {
-        std::fprintf(stderr, "it %d changed %lld bands", iteration, (long long)changed);
-        for (int i = 0; i < k; ++i) std::fprintf(stderr, " %zu", ctx.ls[i].band.size());
-        std::fprintf(stderr, " / %lld label_blocks %zu c", (long long)ctx.g.block_count,
-                     label_blocks.size());
-        for (int i = 0; i < k; ++i) std::fprintf(stderr, " %.1f", ctx.c[i]);
-        std::fprintf(stderr, " E %.6g evolve %.3f relabel %.3f\n", energy,
-                     std::chrono::duration<double>(t_lab - t_ev).count(),
-                     std::chrono::duration<double>(t_end - t_lab).count());
-      }
       DECIMA_RETURN_IF_ERROR(CheckCancelled(cancel, "segment"));
       quiet = changed_fraction < o.convergence_threshold ? quiet + 1 : 0;
       if (quiet >= o.convergence_window) {
@@ -787,15 +781,10 @@ absl::StatusOr<SegmentResult> Segment(const Volume& image, const SegmentOptions&
       }
       if (iteration % o.reinit_interval == 0) {
         std::vector<int64_t> old = BandUnion(ctx, nullptr);
-        const auto t_re = std::chrono::steady_clock::now();
 #pragma omp parallel for schedule(dynamic, 1) num_threads(std::min(threads, k))
         for (int i = 0; i < k; ++i) Reinitialize(ctx, i, /*from_labels=*/false);
         // Voxels that left every band were clamped; relabel them once too.
         label_blocks = BandUnion(ctx, &old);
-        if (std::getenv("DECIMA_SEGMENT_DEBUG"))
-          std::fprintf(
-              stderr, "reinit %.3f\n",
-              std::chrono::duration<double>(std::chrono::steady_clock::now() - t_re).count());
       } else if (iteration % o.reinit_interval == 1 || o.reinit_interval == 1) {
         label_blocks = BandUnion(ctx, nullptr);
       }

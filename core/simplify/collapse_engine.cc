@@ -5,6 +5,7 @@
 // Interpretations of the paper and the departures from it are listed in README.md beside this
 // file.
 #include "core/simplify/collapse_engine.h"
+#include "core/common/parallel.h"
 
 #include <algorithm>
 #include <bit>
@@ -19,21 +20,8 @@
 namespace decima::simplify_internal {
 namespace {
 
-template <typename Fn>
-void ParallelFor(int64_t n, int threads, Fn&& fn) {
-  threads =
-      std::max(1, std::min<int>(threads, static_cast<int>(std::min<int64_t>(n / 4096 + 1, 64))));
-  if (threads == 1) {
-    fn(int64_t{0}, n);
-    return;
-  }
-  std::vector<std::thread> pool;
-  for (int t = 0; t < threads; ++t) {
-    const int64_t begin = n * t / threads, end = n * (t + 1) / threads;
-    pool.emplace_back([&fn, begin, end] { fn(begin, end); });
-  }
-  for (auto& th : pool) th.join();
-}
+// Cell loops run in ranges of at least this many cells (thread start-up is not free).
+constexpr int64_t kCellChunk = 4096;
 
 // 6 * signed volume of (a, b, c, d) from float coordinates, in double.
 inline double Orient6(const float* a, const float* b, const float* c, const float* d) {
@@ -159,7 +147,7 @@ CollapseEngine::CollapseEngine(TetMesh mesh, const SimplifyOptions& options, int
   mesh_.cell_regions.clear();  // recomputed by Finish()
 
   cell_volume_.resize(nt);
-  ParallelFor(nt, threads, [&](int64_t b, int64_t e) {
+  ParallelFor(nt, threads, kCellChunk, [&](int64_t b, int64_t e) {
     for (int64_t t = b; t < e; ++t) cell_volume_[t] = float(CellVolume(&mesh_.tets[4 * t]));
   });
   double total = 0;
@@ -764,7 +752,7 @@ int64_t CollapseEngine::BeginRound(int threads) {
   heap_.clear();
   const int64_t nt = mesh_.tet_count();
   keys_.resize(nt);
-  ParallelFor(nt, threads, [&](int64_t b, int64_t e) {
+  ParallelFor(nt, threads, kCellChunk, [&](int64_t b, int64_t e) {
     for (int64_t t = b; t < e; ++t) {
       keys_[t] = kNotCandidate;
       if (IsDead(int32_t(t)) || permanent_[t]) continue;

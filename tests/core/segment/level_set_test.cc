@@ -133,7 +133,8 @@ double BestGradientThresholdDice(const Phantom& p) {
 // length weight must be larger than the default tuned for CT/MRI tissue contrasts (nu = 4), and
 // the non-overlap weight must exceed the fitting force of a noisy voxel (beta = 5); with the
 // default beta = 1 the noise inside the weak disc opens vacuum holes that grow over a long run.
-// The Dice threshold of the level set is unchanged (>= 0.95 for both regions).
+// The Dice threshold of the level set is unchanged (>= 0.95 for both regions). The stop
+// criterion is tightened too (see below).
 TEST(SegmentAcceptance, Fig1LevelSetRecoversGaussianBlobsWhereGradientThresholdFails) {
   GaussianBlobsOptions o;  // 96x96x1, seed 1
   o.mean0 = 100;
@@ -146,6 +147,10 @@ TEST(SegmentAcceptance, Fig1LevelSetRecoversGaussianBlobsWhereGradientThresholdF
   so.curvature_weight = 4;
   so.overlap_weight = 5;
   so.max_iterations = 600;
+  // The default stop (0.1 % of the voxels per iteration) is 9 pixels on this 96x96 slice, which
+  // the slow low-contrast evolution undercuts after ~20 iterations while the disc is still
+  // ragged (Dice 0.89); 1e-4 means "no label changes", reached after ~220 iterations.
+  so.convergence_threshold = 1e-4;
   auto r = Segment(p->image, so, nullptr, nullptr);
   ASSERT_TRUE(r.ok()) << r.status();
   const std::vector<double> dice =

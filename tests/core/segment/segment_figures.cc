@@ -2,7 +2,8 @@
 // --repeat runs, peak RSS), and writes the montage. Not a test; decima-bench owns the product
 // benchmark.
 //
-//   segment_figures INPUT [--regions K] [--repeat N] [--threads T] [--nu V] [--png PATH]
+//   segment_figures INPUT [--regions K] [--repeat N] [--threads T] [--nu V] [--beta B]
+//                   [--alpha A] [--reinit N] [--max-iterations N] [--png PATH] [--verbose 1]
 //   INPUT: a volume file io::ReadVolume reads (NIfTI, MetaImage, NRRD,
 //   DICOM folder), "head:N" (N^3 noisy 3-region head phantom) or "fig1"
 #include <sys/resource.h>
@@ -32,12 +33,13 @@ int main(int argc, char** argv) {
   using namespace decima;
   if (argc < 2) {
     std::cerr << "usage: segment_figures INPUT [--regions K] [--repeat N] [--threads T] [--nu V] "
-                 "[--beta B] [--png PATH] [--max-iterations N]\n";
+                 "[--beta B] [--png PATH] [--max-iterations N] [--verbose 1]\n";
     return 2;
   }
   std::string input = argv[1], png;
   SegmentOptions o;
   int repeat = 3;
+  bool verbose = false;  // print (iteration, energy, changed fraction) of every iteration
   for (int a = 2; a + 1 < argc; a += 2) {
     const std::string k = argv[a];
     const char* v = argv[a + 1];
@@ -59,6 +61,8 @@ int main(int argc, char** argv) {
       o.max_iterations = std::atoi(v);
     else if (k == "--png")
       png = v;
+    else if (k == "--verbose")
+      verbose = std::atoi(v) != 0;
     else {
       std::cerr << "unknown option " << k << "\n";
       return 2;
@@ -99,7 +103,14 @@ int main(int argc, char** argv) {
   for (int i = 0; i < repeat; ++i) {
     r = absl::StatusOr<SegmentResult>();  // free the previous result first
     const auto t0 = std::chrono::steady_clock::now();
-    r = Segment(image, o, nullptr, nullptr);
+    r = Segment(
+        image, o,
+        [&](const Progress& p) {
+          if (verbose && i == 0)
+            std::printf("  iteration %g energy %.6g changed %.3g\n", p.metrics[0].second,
+                        p.metrics[1].second, p.metrics[2].second);
+        },
+        nullptr);
     seconds.push_back(std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count());
     if (!r.ok()) {
       std::cerr << r.status() << "\n";
