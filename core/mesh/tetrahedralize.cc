@@ -8,6 +8,7 @@
 #include <vector>
 
 #include "absl/strings/str_cat.h"
+#include "core/common/parallel.h"
 #include "core/common/status.h"
 
 namespace decima {
@@ -37,21 +38,6 @@ TetTemplate Oriented(TetTemplate t, bool flip) {
     if ((vol < 0) != flip) std::swap(tet[2], tet[3]);
   }
   return t;
-}
-
-template <typename Fn>
-void ParallelFor(int64_t n, int threads, Fn&& fn) {
-  threads = std::max(1, std::min<int>(threads, static_cast<int>(std::min<int64_t>(n, 64))));
-  if (threads == 1) {
-    fn(0, n);
-    return;
-  }
-  std::vector<std::thread> pool;
-  for (int t = 0; t < threads; ++t) {
-    const int64_t begin = n * t / threads, end = n * (t + 1) / threads;
-    pool.emplace_back([&fn, begin, end] { fn(begin, end); });
-  }
-  for (auto& th : pool) th.join();
 }
 
 }  // namespace
@@ -90,8 +76,7 @@ absl::StatusOr<TetMesh> Tetrahedralize(const Volume& image, const Tetrahedralize
         "tetrahedralize: ", Describe(image), " gives more cells than 32-bit indices address"));
   }
   const int64_t nv = image.voxel_count();
-  const int threads =
-      options.threads > 0 ? options.threads : std::max(1u, std::thread::hardware_concurrency());
+  const int threads = ResolveThreads(options.threads);
 
   TetMesh mesh;
   mesh.positions.resize(3 * nv);
