@@ -50,7 +50,8 @@ inline double Trilinear(const Volume& v, const Eigen::Vector3d& p) {
   int64_t i0[3];
   double f[3];
   for (int a = 0; a < 3; ++a) {
-    if (g[a] < -1e-9 || g[a] > v.dims[a] - 1 + 1e-9) return std::numeric_limits<double>::quiet_NaN();
+    if (g[a] < -1e-9 || g[a] > v.dims[a] - 1 + 1e-9)
+      return std::numeric_limits<double>::quiet_NaN();
     i0[a] = std::clamp<int64_t>(static_cast<int64_t>(std::floor(g[a])), 0, v.dims[a] - 2);
     f[a] = g[a] - i0[a];
   }
@@ -73,13 +74,14 @@ struct ReferencePixel {
 // the box [lo, hi] by the slab method, then integrated with `steps` midpoint samples of the
 // field `field(p)` (NaN = outside the domain, contributes nothing), using
 // TransferFunction::Evaluate.
-inline ReferencePixel ReferenceRay(const Camera& cam, double px, double py, const Eigen::Vector3d& lo,
-                                   const Eigen::Vector3d& hi,
+inline ReferencePixel ReferenceRay(const Camera& cam, double px, double py,
+                                   const Eigen::Vector3d& lo, const Eigen::Vector3d& hi,
                                    const std::function<double(const Eigen::Vector3d&)>& field,
                                    const TransferFunction& tf, int steps = 4000) {
   Eigen::Vector3d o, d;
   cam.Ray(px, py, &o, &d);
-  double t0 = -std::numeric_limits<double>::infinity(), t1 = std::numeric_limits<double>::infinity();
+  double t0 = -std::numeric_limits<double>::infinity(),
+         t1 = std::numeric_limits<double>::infinity();
   for (int a = 0; a < 3; ++a) {
     if (d[a] == 0) {
       if (o[a] < lo[a] || o[a] > hi[a]) return {};

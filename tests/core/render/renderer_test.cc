@@ -19,7 +19,8 @@ using testing::ReferenceRay;
 // shows in the colour), moderately transparent so the whole depth contributes.
 TransferFunction RampTf() {
   return {"ramp",
-          {{0, {0.1f, 0.2f, 0.9f}, 0.02f}, {50, {0.9f, 0.6f, 0.1f}, 0.08f},
+          {{0, {0.1f, 0.2f, 0.9f}, 0.02f},
+           {50, {0.9f, 0.6f, 0.1f}, 0.08f},
            {100, {1.0f, 1.0f, 1.0f}, 0.15f}}};
 }
 
@@ -95,7 +96,8 @@ TEST_P(RenderMatchesReference, RampPhantom) {
       }
       hits += ref.hit;
       const int64_t p = int64_t{y} * cam.width + x;
-      for (int c = 0; c < 3; ++c) worst = std::max(worst, std::abs(img->rgb[3 * p + c] - ref.rgb[c]));
+      for (int c = 0; c < 3; ++c)
+        worst = std::max(worst, std::abs(img->rgb[3 * p + c] - ref.rgb[c]));
       worst = std::max(worst, std::abs(img->alpha[p] - ref.alpha));
     }
   }
@@ -104,17 +106,18 @@ TEST_P(RenderMatchesReference, RampPhantom) {
   EXPECT_LT(worst, 2e-4) << "largest channel difference from the reference";
 }
 
-INSTANTIATE_TEST_SUITE_P(
-    Views, RenderMatchesReference,
-    ::testing::Values(ReferenceCase{"anterior", false}, ReferenceCase{"superior", false},
-                      ReferenceCase{"30,20", false}, ReferenceCase{"oblique", true},
-                      ReferenceCase{"-120,-35", true}),
-    [](const auto& info) {
-      std::string n = info.param.view;
-      for (char& c : n)
-        if (!std::isalnum(static_cast<unsigned char>(c))) c = '_';
-      return n + (info.param.perspective ? "_perspective" : "_orthographic");
-    });
+INSTANTIATE_TEST_SUITE_P(Views, RenderMatchesReference,
+                         ::testing::Values(ReferenceCase{"anterior", false},
+                                           ReferenceCase{"superior", false},
+                                           ReferenceCase{"30,20", false},
+                                           ReferenceCase{"oblique", true},
+                                           ReferenceCase{"-120,-35", true}),
+                         [](const auto& info) {
+                           std::string n = info.param.view;
+                           for (char& c : n)
+                             if (!std::isalnum(static_cast<unsigned char>(c))) c = '_';
+                           return n + (info.param.perspective ? "_perspective" : "_orthographic");
+                         });
 
 // A tunnel along x through the ramp block makes the mesh non-convex: rays along y leave the mesh
 // and re-enter it. The reference integrates the block minus the tunnel. Tolerance 1e-3
@@ -156,8 +159,9 @@ TEST(Render, NonConvexMeshRaysReenterAfterAGap) {
         bool edge = false;  // near the outer or the tunnel silhouette
         for (double dx : {-0.05, 0.05})
           for (double dy : {-0.05, 0.05})
-            edge |= std::abs(ReferenceRay(cam, x + dx, y + dy, b.min, b.max, field, tf, 3000).alpha -
-                             ref.alpha) > 5e-3;
+            edge |=
+                std::abs(ReferenceRay(cam, x + dx, y + dy, b.min, b.max, field, tf, 3000).alpha -
+                         ref.alpha) > 5e-3;
         if (edge) continue;
         ++checked;
         const int64_t p = int64_t{y} * cam.width + x;
@@ -168,6 +172,54 @@ TEST(Render, NonConvexMeshRaysReenterAfterAGap) {
     }
     EXPECT_GT(checked, 150);
     EXPECT_LT(worst, 1e-3);
+  }
+}
+
+// A transfer function that is transparent on the middle of the ramp: the tets there are
+// skipped (empty-space skipping), rays stop at the gap and continue behind it through a later
+// entry face; the image still matches the reference integral (same tolerance as above).
+TEST(Render, TransparentValueRangeIsSkippedAndRaysContinueBehindIt) {
+  const Volume vol = RampVolume({8, 7, 6}, {0, 3, 9, 2});
+  const TetMesh mesh = MeshOf(vol);
+  const Bounds b = MeshBounds(mesh);
+  const TransferFunction tf{"gap",
+                            {{0, {0.2f, 0.4f, 0.9f}, 0.05f},
+                             {15, {0.3f, 0.5f, 0.8f}, 0.05f},
+                             {25, {0, 0, 0}, 0},
+                             {45, {0, 0, 0}, 0},
+                             {55, {1, 0.8f, 0.2f}, 0.1f},
+                             {120, {1, 1, 1}, 0.2f}}};
+  for (const char* view : {"anterior", "oblique"}) {
+    SCOPED_TRACE(view);
+    const Camera cam = ViewCamera(view, b, 32, std::string(view) == "oblique");
+    RenderOptions opt;
+    opt.step_mm = 0.1;
+    opt.min_transmittance = 0;
+    auto img = Render(mesh, cam, tf, opt);
+    ASSERT_TRUE(img.ok()) << img.status();
+    EXPECT_GT(img->stats.visible_tets, 0);
+    EXPECT_LT(img->stats.visible_tets, mesh.tet_count());
+    EXPECT_EQ(img->stats.lost_rays, 0);
+    auto field = [&](const Eigen::Vector3d& p) { return testing::Trilinear(vol, p); };
+    double worst = 0;
+    int64_t checked = 0;
+    for (int y = 0; y < cam.height; ++y) {
+      for (int x = 0; x < cam.width; ++x) {
+        const auto ref = ReferenceRay(cam, x, y, b.min, b.max, field, tf);
+        bool edge = false;
+        for (double dx : {-0.02, 0.02})
+          for (double dy : {-0.02, 0.02})
+            edge |= ReferenceRay(cam, x + dx, y + dy, b.min, b.max, field, tf, 8).hit != ref.hit;
+        if (edge) continue;
+        ++checked;
+        const int64_t p = int64_t{y} * cam.width + x;
+        worst = std::max(worst, std::abs(img->alpha[p] - ref.alpha));
+        for (int c = 0; c < 3; ++c)
+          worst = std::max(worst, std::abs(img->rgb[3 * p + c] - ref.rgb[c]));
+      }
+    }
+    EXPECT_GT(checked, 300);
+    EXPECT_LT(worst, 2e-4);
   }
 }
 
@@ -252,8 +304,8 @@ TEST(Render, FullyTransparentTransferFunctionGivesBackground) {
     const Camera cam = ViewCamera("oblique", MeshBounds(mesh), 24, perspective);
     auto img = Render(mesh, cam, tf, opt);
     ASSERT_TRUE(img.ok()) << img.status();
-    EXPECT_FALSE(img->empty);  // rays did meet the mesh
-    EXPECT_GT(img->stats.rays_hit, 0);
+    EXPECT_TRUE(img->empty);  // nothing visible: flagged
+    EXPECT_EQ(img->stats.visible_tets, 0);
     for (int64_t p = 0; p < int64_t{cam.width} * cam.height; ++p) {
       ASSERT_EQ(img->alpha[p], 0.0f);
       ASSERT_EQ(img->rgb[3 * p + 0], 0.25f);
@@ -300,8 +352,7 @@ TEST(Render, CameraInsideTheMeshIsAClearError) {
   auto img = Render(mesh, cam, RampTf());
   ASSERT_FALSE(img.ok());
   EXPECT_EQ(img.status().code(), absl::StatusCode::kInvalidArgument);
-  EXPECT_NE(img.status().message().find("behind the camera"), std::string::npos)
-      << img.status();
+  EXPECT_NE(img.status().message().find("behind the camera"), std::string::npos) << img.status();
 }
 
 TEST(Render, BadCameraAndOptionsAreClearErrors) {
