@@ -1,6 +1,7 @@
 // render_figures: the renderer's figures on the CT head (not a ctest; run by hand).
 //
-//   render_figures OUT_DIR [--data FILE] [--size 512] [--view anterior] [--repeat 3]
+//   render_figures OUT_DIR [--data FILE] [--size 512] [--view anterior] [--tf ct|FILE.json]
+//                  [--repeat 3]
 //                  [--threads 2] [--fig5] [--perspective] [--render-only]
 //
 // Reads the volume, meshes it (labels: 3-class threshold < 500, < 1300, rest; feature flags
@@ -76,7 +77,7 @@ std::vector<float> InterfaceDistance(const Volume& labels) {
 int main(int argc, char** argv) {
   if (argc < 2) {
     std::fprintf(stderr,
-                 "usage: %s OUT_DIR [--data FILE] [--size N] [--view NAME] [--repeat N] "
+                 "usage: %s OUT_DIR [--data FILE] [--size N] [--view NAME] [--tf NAME|FILE.json] [--repeat N] "
                  "[--threads N] [--fig5] [--perspective] [--render-only]\n",
                  argv[0]);
     return 2;
@@ -86,7 +87,7 @@ int main(int argc, char** argv) {
   if (const char* d = std::getenv("DECIMA_SHARED_DATA")) data = std::string(d) + "/";
   data += "ct-head-128x128x53.nii.gz";
   int size = 512, repeat = 3, threads = 2;
-  std::string view = "anterior";
+  std::string view = "anterior", tf_name = "ct";
   bool fig5 = false, perspective = false, simplify = true;
   for (int i = 2; i < argc; ++i) {
     const std::string a = argv[i];
@@ -100,6 +101,8 @@ int main(int argc, char** argv) {
       size = std::stoi(next());
     else if (a == "--view")
       view = next();
+    else if (a == "--tf")
+      tf_name = next();
     else if (a == "--repeat")
       repeat = std::max(1, std::stoi(next()));
     else if (a == "--threads")
@@ -154,7 +157,11 @@ int main(int argc, char** argv) {
   vopt.width = vopt.height = size;
   vopt.perspective = perspective;
   const Camera cam = Must(MakeViewCamera(Must(ParseView(view)), original.bounds, vopt));
-  const TransferFunction tf = Must(TransferFunctionPreset("ct", original.scalar_range));
+  // A preset name, or a JSON file in the transfer_function.h format.
+  const TransferFunction tf =
+      tf_name.find(".json") != std::string::npos
+          ? Must(LoadTransferFunction(tf_name, original.scalar_range))
+          : Must(TransferFunctionPreset(tf_name, original.scalar_range));
   RenderOptions ropt;
   ropt.threads = threads;
   std::vector<double> render_s, render_cpu;
