@@ -219,92 +219,96 @@ inline double Orient(const ScreenVertex* sv, int32_t ix, int32_t iy, double px, 
   return 0;
 }
 
-// Transfer function prepared for fast lookups: a uniform bin table gives the segment of any
-// value in O(1), and a prefix count of segments with non-zero opacity lets whole tet segments
-// in transparent ranges (air) be skipped without sampling.
+// Transfer function prepared for fast lookups. [lo, hi] (first to last control point) is cut
+// into kBins uniform bins with the exact colour and opacity at their edges. In a bin without a
+// control point inside, the transfer function is linear, so interpolating the edge values is
+// exact (up to float rounding); the few bins holding a control point fall back to the exact
+// piecewise evaluation. A prefix count of bins with non-zero opacity answers "is the opacity
+// zero for every value between s0 and s1" in O(1) (conservatively), so tet segments in
+// transparent ranges are skipped without sampling.
 class TfTable {
  public:
-  explicit TfTable(const TransferFunction& tf) {
-    for (const TransferPoint& p : tf.points) {
-      v_.push_back(p.value);
-      r_.push_back(p.rgb[0]);
-      g_.push_back(p.rgb[1]);
-      b_.push_back(p.rgb[2]);
-      o_.push_back(p.opacity);
-    }
-    n_ = static_cast<int>(v_.size());
-    lo_ = v_.front();
-    hi_ = v_.back();
+  explicit TfTable(const TransferFunction& tf) : tf_(&tf) {
+    const auto& p = tf.points;
+    n_ = static_cast<int>(p.size());
+    lo_ = p.front().value;
+    hi_ = p.back().value;
+    first_ = {p.front().rgb[0], p.front().rgb[1], p.front().rgb[2], p.front().opacity};
+    last_ = {p.back().rgb[0], p.back().rgb[1], p.back().rgb[2], p.back().opacity};
     inv_bin_ = n_ > 1 ? kBins / (hi_ - lo_) : 0;
+    // Bin ids for the prefix: 0 = below lo, 1..kBins = the bins, kBins + 1 = above hi.
+    std::vector<uint8_t> nonzero(kBins + 2, 0);
+    nonzero[0] = first_[3] > 0;
+    nonzero[kBins + 1] = last_[3] > 0;
     if (n_ > 1) {
-      bin_seg_.resize(kBins + 1);
-      int seg = 0;
+      edges_.resize(kBins + 1);
+      kink_.assign(kBins, 0);
       for (int k = 0; k <= kBins; ++k) {
-        const double s = lo_ + (hi_ - lo_) * k / kBins;
-        while (seg < n_ - 2 && s >= v_[seg + 1]) ++seg;
-        bin_seg_[k] = seg;
+        float rgb[3], o;
+        tf.Evaluate(k == kBins ? hi_ : lo_ + (hi_ - lo_) * k / kBins, rgb, &o);
+        edges_[k] = {rgb[0], rgb[1], rgb[2], o};
+      }
+      for (int k = 0; k < kBins; ++k) nonzero[k + 1] = edges_[k][3] > 0 || edges_[k + 1][3] > 0;
+      for (int i = 1; i + 1 < n_; ++i) {
+        const int k = std::clamp(static_cast<int>((p[i].value - lo_) * inv_bin_), 0, kBins - 1);
+        kink_[k] = 1;
+        if (p[i].opacity > 0) nonzero[k + 1] = 1;
+        // A control point exactly on a bin edge leaves both bins linear; marking is harmless.
       }
     }
-    // Segment ids: 0 = left clamp, 1..n-1 = [v[i-1], v[i]], n = right clamp.
-    nonzero_prefix_.assign(n_ + 2, 0);
-    for (int id = 0; id <= n_; ++id) {
-      bool nz;
-      if (id == 0)
-        nz = o_.front() > 0;
-      else if (id == n_)
-        nz = o_.back() > 0;
-      else
-        nz = o_[id - 1] > 0 || o_[id] > 0;
-      nonzero_prefix_[id + 1] = nonzero_prefix_[id] + (nz ? 1 : 0);
-    }
+    nonzero_prefix_.assign(kBins + 3, 0);
+    for (int id = 0; id < kBins + 2; ++id)
+      nonzero_prefix_[id + 1] = nonzero_prefix_[id] + nonzero[id];
   }
 
-  // Interior segment i with v[i] <= s < v[i + 1] (s strictly inside (lo, hi)).
-  int Segment(double s) const {
-    int k = static_cast<int>((s - lo_) * inv_bin_);
-    k = std::clamp(k, 0, kBins);
-    int seg = bin_seg_[k];
-    while (seg < n_ - 2 && s >= v_[seg + 1]) ++seg;
-    while (seg > 0 && s < v_[seg]) --seg;
-    return seg;
-  }
-  int SegmentId(double s) const {
-    if (s <= lo_ || n_ == 1) return s <= lo_ ? 0 : n_;
-    if (s >= hi_) return n_;
-    return Segment(s) + 1;
-  }
-  // True if the opacity is zero for every value between s0 and s1.
+  // True if the opacity is zero for every value between s0 and s1 (false when unsure).
   bool Transparent(double s0, double s1) const {
     if (s0 > s1) std::swap(s0, s1);
-    return nonzero_prefix_[SegmentId(s1) + 1] == nonzero_prefix_[SegmentId(s0)];
+    return nonzero_prefix_[BinId(s1) + 1] == nonzero_prefix_[BinId(s0)];
   }
+
   void Eval(double s, float* r, float* g, float* b, float* o) const {
-    int i;
-    float f;
+    const std::array<float, 4>* v;
+    std::array<float, 4> tmp;
     if (s <= lo_ || n_ == 1) {
-      i = s <= lo_ ? 0 : n_ - 1;
-      f = 0;
+      v = s <= lo_ ? &first_ : &last_;
     } else if (s >= hi_) {
-      i = n_ - 1;
-      f = 0;
+      v = &last_;
     } else {
-      i = Segment(s);
-      f = static_cast<float>((s - v_[i]) / (v_[i + 1] - v_[i]));
+      const double u = (s - lo_) * inv_bin_;
+      const int k = std::min(static_cast<int>(u), kBins - 1);
+      if (kink_[k]) {
+        float rgb[3];
+        tf_->Evaluate(s, rgb, &tmp[3]);
+        std::copy_n(rgb, 3, tmp.begin());
+      } else {
+        const float f = static_cast<float>(u - k);
+        const auto& e0 = edges_[k];
+        const auto& e1 = edges_[k + 1];
+        for (int c = 0; c < 4; ++c) tmp[c] = e0[c] + f * (e1[c] - e0[c]);
+      }
+      v = &tmp;
     }
-    const int j = std::min(i + 1, n_ - 1);
-    *r = r_[i] + f * (r_[j] - r_[i]);
-    *g = g_[i] + f * (g_[j] - g_[i]);
-    *b = b_[i] + f * (b_[j] - b_[i]);
-    *o = o_[i] + f * (o_[j] - o_[i]);
+    *r = (*v)[0];
+    *g = (*v)[1];
+    *b = (*v)[2];
+    *o = (*v)[3];
   }
 
  private:
-  static constexpr int kBins = 1024;
+  static constexpr int kBins = 2048;
+  int BinId(double s) const {
+    if (s < lo_) return 0;
+    if (s > hi_ || n_ == 1) return kBins + 1;
+    return 1 + std::min(static_cast<int>((s - lo_) * inv_bin_), kBins - 1);
+  }
+
+  const TransferFunction* tf_;
   int n_ = 0;
   double lo_ = 0, hi_ = 0, inv_bin_ = 0;
-  std::vector<double> v_;
-  std::vector<float> r_, g_, b_, o_;
-  std::vector<int> bin_seg_;
+  std::array<float, 4> first_{}, last_{};
+  std::vector<std::array<float, 4>> edges_;
+  std::vector<uint8_t> kink_;
   std::vector<int> nonzero_prefix_;
 };
 
@@ -313,18 +317,21 @@ struct Accum {
   float r = 0, g = 0, b = 0, t = 1;
 };
 
-// Integrates the segment where the scalar goes linearly from s0 to s1 over `len` mm.
-inline void IntegrateSegment(const TfTable& tf, double s0, double s1, double len, double step,
+// Integrates the segment where the scalar goes linearly from s0 to s1 over `len` mm, with
+// n = floor(len / step) + 1 midpoint samples (so at most `step` apart; inv_step = 1 / step).
+inline void IntegrateSegment(const TfTable& tf, double s0, double s1, double len, double inv_step,
                              Accum& acc) {
   if (!(len > 0) || tf.Transparent(s0, s1)) return;
-  const int n = static_cast<int>(std::min(65536.0, std::ceil(len / step)));
-  const double dl = len / std::max(n, 1);
-  for (int i = 0; i < std::max(n, 1); ++i) {
-    const double s = s0 + (s1 - s0) * (i + 0.5) / std::max(n, 1);
+  const int n = static_cast<int>(std::min(65535.0, len * inv_step)) + 1;
+  const double inv_n = 1.0 / n;
+  const float dl = static_cast<float>(len * inv_n);
+  const double ds = (s1 - s0) * inv_n;
+  double s = s0 + 0.5 * ds;
+  for (int i = 0; i < n; ++i, s += ds) {
     float r, g, b, o;
     tf.Eval(s, &r, &g, &b, &o);
     if (o <= 0) continue;
-    const float a = 1.0f - std::exp(-o * static_cast<float>(dl));
+    const float a = 1.0f - std::exp(-o * dl);
     const float w = acc.t * a;
     acc.r += w * r;
     acc.g += w * g;
@@ -381,7 +388,7 @@ double Walk(const Frame& f, Entry e, double px, double py, double len_per_depth,
             RenderStats& stats, bool* lost) {
   const int32_t* cells = f.mesh->cells.data();
   const ScreenVertex* sv = f.sv;
-  const double step = f.options->step_mm;
+  const double inv_step = 1.0 / f.options->step_mm;
   const float tmin = f.options->min_transmittance;
 
   int32_t t = e.code >> 2;
@@ -462,7 +469,8 @@ double Walk(const Frame& f, Entry e, double px, double py, double len_per_depth,
     }
     ++stats.steps;
     if (next_depth > depth) {
-      IntegrateSegment(*f.tf, scalar, next_scalar, (next_depth - depth) * len_per_depth, step, acc);
+      IntegrateSegment(*f.tf, scalar, next_scalar, (next_depth - depth) * len_per_depth, inv_step,
+                       acc);
       depth = next_depth;
       stuck = 0;
     } else if (++stuck > 4096) {
