@@ -77,7 +77,8 @@ std::vector<float> InterfaceDistance(const Volume& labels) {
 int main(int argc, char** argv) {
   if (argc < 2) {
     std::fprintf(stderr,
-                 "usage: %s OUT_DIR [--data FILE] [--size N] [--view NAME] [--tf NAME|FILE.json] [--repeat N] "
+                 "usage: %s OUT_DIR [--data FILE] [--size N] [--view NAME] [--tf NAME|FILE.json] "
+                 "[--repeat N] "
                  "[--threads N] [--fig5] [--perspective] [--render-only]\n",
                  argv[0]);
     return 2;
@@ -158,10 +159,9 @@ int main(int argc, char** argv) {
   vopt.perspective = perspective;
   const Camera cam = Must(MakeViewCamera(Must(ParseView(view)), original.bounds, vopt));
   // A preset name, or a JSON file in the transfer_function.h format.
-  const TransferFunction tf =
-      tf_name.find(".json") != std::string::npos
-          ? Must(LoadTransferFunction(tf_name, original.scalar_range))
-          : Must(TransferFunctionPreset(tf_name, original.scalar_range));
+  const TransferFunction tf = tf_name.find(".json") != std::string::npos
+                                  ? Must(LoadTransferFunction(tf_name, original.scalar_range))
+                                  : Must(TransferFunctionPreset(tf_name, original.scalar_range));
   RenderOptions ropt;
   ropt.threads = threads;
   std::vector<double> render_s, render_cpu;
