@@ -112,7 +112,7 @@ struct ReferencePixel {
 inline ReferencePixel ReferenceRay(const Camera& cam, double px, double py,
                                    const Eigen::Vector3d& lo, const Eigen::Vector3d& hi,
                                    const std::function<double(const Eigen::Vector3d&)>& field,
-                                   const TransferFunction& tf, int steps = 4000) {
+                                   const TransferFunction& tf, int steps = 2000) {
   Eigen::Vector3d o, d;
   cam.Ray(px, py, &o, &d);
   double t0 = -std::numeric_limits<double>::infinity(),

@@ -59,7 +59,7 @@ TEST(Render, ConstantFieldCentrePixelFollowsBeerLambert) {
 // The unsimplified mesh of a ramp phantom against an independent slab integration of the voxel
 // field (trilinear, equal to the 5-tet linear interpolation for a linear field). Golden
 // tolerance: 2e-4 per colour channel and alpha (0..1), i.e. 1/20 of an 8-bit level; measured
-// 0.6e-5..2.6e-5 (renderer: midpoint sub-samples 0.1 mm apart, float; reference: 4000 samples).
+// 0.6e-5..2.6e-5 (renderer: midpoint sub-samples 0.1 mm apart, float; reference: 2000 samples).
 struct ReferenceCase {
   const char* view;
   bool perspective;
@@ -71,7 +71,7 @@ TEST_P(RenderMatchesReference, RampPhantom) {
   const Volume vol = RampVolume({7, 6, 5}, {5, 9, 4, 6});
   const TetMesh mesh = MeshOf(vol);
   const Bounds b = MeshBounds(mesh);
-  const Camera cam = ViewCamera(GetParam().view, b, 40, GetParam().perspective);
+  const Camera cam = ViewCamera(GetParam().view, b, 32, GetParam().perspective);
   const TransferFunction tf = RampTf();
   RenderOptions opt;
   opt.step_mm = 0.1;
@@ -99,7 +99,7 @@ TEST_P(RenderMatchesReference, RampPhantom) {
       worst = std::max(worst, std::abs(img->alpha[p] - ref.alpha));
     }
   }
-  EXPECT_GT(hits, 400);
+  EXPECT_GT(hits, 250);
   EXPECT_LT(skipped, hits / 10);
   EXPECT_LT(worst, 2e-4) << "largest channel difference from the reference";
 }
@@ -184,7 +184,7 @@ TEST(Render, TransparentValueRangeIsSkippedAndRaysContinueBehindIt) {
                              {120, {1, 1, 1}, 0.2f}}};
   for (const char* view : {"anterior", "oblique"}) {
     SCOPED_TRACE(view);
-    const Camera cam = ViewCamera(view, b, 32, std::string(view) == "oblique");
+    const Camera cam = ViewCamera(view, b, 24, std::string(view) == "oblique");
     RenderOptions opt;
     opt.step_mm = 0.1;
     opt.min_transmittance = 0;
@@ -207,7 +207,7 @@ TEST(Render, TransparentValueRangeIsSkippedAndRaysContinueBehindIt) {
           worst = std::max(worst, std::abs(img->rgb[3 * p + c] - ref.rgb[c]));
       }
     }
-    EXPECT_GT(checked, 300);
+    EXPECT_GT(checked, 150);
     EXPECT_LT(worst, 2e-4);
   }
 }
@@ -441,10 +441,11 @@ TEST(BuildRenderableMesh, RejectsBrokenMeshesWithClearErrors) {
   expect_error(m, "non-manifold");
 }
 
-// The real CT head: every ray is walked to the end (no lost rays), bone shows as bright pixels
+// A real CT head: every ray is walked to the end (no lost rays), bone shows as bright pixels
 // in the middle of an anterior view, and air around the head stays background.
 TEST(Render, CtHeadAnteriorShowsBoneAndNoLostRays) {
-  DECIMA_REQUIRE_SHARED_DATA(path, "ct-head-128x128x53.nii.gz");
+  // The small head-and-neck CT (64x64x93) keeps this fast under the sanitizers.
+  DECIMA_REQUIRE_SHARED_DATA(path, "ct-headneck-64x64x93.nii.gz");
   auto vol = io::ReadVolume(path);
   ASSERT_TRUE(vol.ok()) << vol.status();
   const TetMesh mesh = MeshOf(*vol);
