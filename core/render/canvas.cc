@@ -83,7 +83,8 @@ Canvas::Canvas(int width, int height, Rgb8 fill) {
   image_.height = std::max(1, height);
   image_.channels = 3;
   image_.pixels.resize(size_t(image_.width) * image_.height * 3);
-  for (size_t i = 0; i < image_.pixels.size(); i += 3) std::copy_n(fill.begin(), 3, &image_.pixels[i]);
+  for (size_t i = 0; i < image_.pixels.size(); i += 3)
+    std::copy_n(fill.begin(), 3, &image_.pixels[i]);
 }
 
 void Canvas::Set(int x, int y, Rgb8 c) {
@@ -132,7 +133,8 @@ int Canvas::Text(int x, int y, const std::string& text, Rgb8 c, int scale) {
     const Glyph& g = Find(ch);
     for (int row = 0; row < 7; ++row) {
       for (int col = 0; col < 5; ++col) {
-        if (g.rows[row] & (0x10 >> col)) FillRect(cx + col * scale, y + row * scale, scale, scale, c);
+        if (g.rows[row] & (0x10 >> col))
+          FillRect(cx + col * scale, y + row * scale, scale, scale, c);
       }
     }
     cx += 6 * scale;
@@ -149,8 +151,10 @@ Rgb8 HeatColor(double t) {
     double t;
     double r, g, b;
   };
-  static constexpr Stop kStops[] = {{0.00, 0, 0, 4},       {0.25, 87, 16, 110},
-                                    {0.50, 188, 55, 84},   {0.75, 249, 142, 9},
+  static constexpr Stop kStops[] = {{0.00, 0, 0, 4},
+                                    {0.25, 87, 16, 110},
+                                    {0.50, 188, 55, 84},
+                                    {0.75, 249, 142, 9},
                                     {1.00, 252, 255, 164}};
   if (!(t > 0)) t = 0;
   if (t > 1) t = 1;

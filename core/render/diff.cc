@@ -16,8 +16,8 @@ absl::Status CheckImage(const Image& im, const char* which) {
   if (im.width <= 0 || im.height <= 0 || (im.channels != 3 && im.channels != 4) ||
       im.pixels.size() != size_t(im.width) * im.height * im.channels) {
     return absl::InvalidArgumentError(absl::StrCat("diff: ", which, " image is malformed (",
-                                                   im.width, "x", im.height, "x", im.channels,
-                                                   ", ", im.pixels.size(), " bytes)"));
+                                                   im.width, "x", im.height, "x", im.channels, ", ",
+                                                   im.pixels.size(), " bytes)"));
   }
   return absl::OkStatus();
 }
@@ -120,15 +120,16 @@ Image DiffHeatMap(const DiffResult& diff, const DiffImageOptions& options) {
   c.Blit(HeatPixels(diff, top), 0, 0);
   DrawBar(c, diff.width + 4 * s, pad + 7 * s + 3 * s, diff.height - pad, s, top);
   c.Text(pad, diff.height + pad,
-         absl::StrCat("DIFF1 = ", FormatNumber(diff.diff1), "   MAX DIFF2 = ",
-                      FormatNumber(diff.max_diff2)),
+         absl::StrCat("DIFF1 = ", FormatNumber(diff.diff1),
+                      "   MAX DIFF2 = ", FormatNumber(diff.max_diff2)),
          kText, s);
   return c.Take();
 }
 
 absl::Status WriteDiffImage(const DiffResult& diff, const std::filesystem::path& path,
                             const DiffImageOptions& options) {
-  if (diff.width <= 0 || diff.height <= 0 || diff.diff2.size() != size_t(diff.width) * diff.height) {
+  if (diff.width <= 0 || diff.height <= 0 ||
+      diff.diff2.size() != size_t(diff.width) * diff.height) {
     return absl::InvalidArgumentError("WriteDiffImage: the diff result is empty or malformed");
   }
   return WritePng(path, DiffHeatMap(diff, options));

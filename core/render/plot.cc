@@ -12,7 +12,7 @@ namespace {
 constexpr Rgb8 kWhite{255, 255, 255};
 constexpr Rgb8 kInk{30, 30, 30};
 constexpr Rgb8 kGrid{225, 225, 225};
-constexpr Rgb8 kColors[] = {{31, 119, 180}, {214, 39, 40},  {44, 160, 44},
+constexpr Rgb8 kColors[] = {{31, 119, 180},  {214, 39, 40},  {44, 160, 44},
                             {148, 103, 189}, {255, 127, 14}, {23, 190, 207}};
 
 // Tick step 1, 2 or 5 x 10^k giving about `target` intervals up to `max`.
@@ -27,8 +27,7 @@ double NiceStep(double max, int target) {
 
 }  // namespace
 
-absl::StatusOr<Image> DiffPlotImage(const std::vector<PlotSeries>& series,
-                                    const PlotOptions& o) {
+absl::StatusOr<Image> DiffPlotImage(const std::vector<PlotSeries>& series, const PlotOptions& o) {
   if (series.empty() || series.size() > 6) {
     return absl::InvalidArgumentError(
         absl::StrCat("plot: ", series.size(), " series given, expected 1..6"));
@@ -44,8 +43,8 @@ absl::StatusOr<Image> DiffPlotImage(const std::vector<PlotSeries>& series,
     }
     for (const auto& [x, y] : s.points) {
       if (!std::isfinite(x) || !std::isfinite(y) || x < 0 || y < 0) {
-        return absl::InvalidArgumentError(absl::StrCat(
-            "plot: series '", s.name, "' has a point (", x, ", ", y, ") that is not finite >= 0"));
+        return absl::InvalidArgumentError(absl::StrCat("plot: series '", s.name, "' has a point (",
+                                                       x, ", ", y, ") that is not finite >= 0"));
       }
       xmax = std::max(xmax, x);
       ymax = std::max(ymax, y);
@@ -98,8 +97,8 @@ absl::StatusOr<Image> DiffPlotImage(const std::vector<PlotSeries>& series,
   c.FillRect(left, bottom, right - left + 1, 2, kInk);
   c.Text((left + right - Canvas::TextWidth(o.x_label, s)) / 2, bottom + 5 * s + th + 4 * s,
          o.x_label, kInk, s);
-  c.Text(std::max(2, left - Canvas::TextWidth(o.y_label, s) / 2), top - th - 4 * s, o.y_label,
-         kInk, s);
+  c.Text(std::max(2, left - Canvas::TextWidth(o.y_label, s) / 2), top - th - 4 * s, o.y_label, kInk,
+         s);
 
   // Series: lines through the points in x order, square markers.
   for (size_t k = 0; k < series.size(); ++k) {
@@ -134,8 +133,8 @@ absl::StatusOr<Image> DiffPlotImage(const std::vector<PlotSeries>& series,
   return c.Take();
 }
 
-absl::Status WriteDiffPlot(const std::vector<PlotSeries>& series,
-                           const std::filesystem::path& path, const PlotOptions& options) {
+absl::Status WriteDiffPlot(const std::vector<PlotSeries>& series, const std::filesystem::path& path,
+                           const PlotOptions& options) {
   absl::StatusOr<Image> im = DiffPlotImage(series, options);
   if (!im.ok()) return im.status();
   return WritePng(path, *im);

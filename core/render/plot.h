@@ -33,7 +33,7 @@ struct PlotOptions {
 // coordinate, more than 6 series, or a size outside 200..4096.
 absl::StatusOr<Image> DiffPlotImage(const std::vector<PlotSeries>& series,
                                     const PlotOptions& options = {});
-absl::Status WriteDiffPlot(const std::vector<PlotSeries>& series,
-                           const std::filesystem::path& path, const PlotOptions& options = {});
+absl::Status WriteDiffPlot(const std::vector<PlotSeries>& series, const std::filesystem::path& path,
+                           const PlotOptions& options = {});
 
 }  // namespace decima

@@ -10,9 +10,9 @@
 #include <cmath>
 #include <limits>
 #include <mutex>
-#include <thread>
 
 #include "absl/strings/str_cat.h"
+#include "core/common/parallel.h"
 #include "core/common/status.h"
 
 namespace decima {
@@ -23,24 +23,14 @@ double Since(Clock::time_point t0) {
   return std::chrono::duration<double>(Clock::now() - t0).count();
 }
 
-int ThreadCount(int requested) {
-  if (requested > 0) return requested;
-  return static_cast<int>(std::max(1u, std::thread::hardware_concurrency()));
-}
-
-// Runs fn(thread_index, begin, end) over [0, n) split into `threads` contiguous ranges.
+// Runs fn(range_index, begin, end) over [0, n) split into `ranges` contiguous ranges, one
+// thread each (core/common/parallel.h), so per-range outputs can be concatenated in order.
 template <typename Fn>
-void ParallelRanges(int64_t n, int threads, Fn&& fn) {
-  threads = static_cast<int>(std::max<int64_t>(1, std::min<int64_t>(threads, n)));
-  if (threads == 1) {
-    fn(0, int64_t{0}, n);
-    return;
-  }
-  std::vector<std::thread> pool;
-  for (int t = 0; t < threads; ++t) {
-    pool.emplace_back([&fn, t, n, threads] { fn(t, n * t / threads, n * (t + 1) / threads); });
-  }
-  for (auto& th : pool) th.join();
+void ParallelRanges(int64_t n, int ranges, Fn&& fn) {
+  ranges = static_cast<int>(std::max<int64_t>(1, std::min<int64_t>(ranges, n)));
+  ParallelFor(ranges, ranges, [&](int64_t r0, int64_t r1) {
+    for (int64_t r = r0; r < r1; ++r) fn(static_cast<int>(r), n * r / ranges, n * (r + 1) / ranges);
+  });
 }
 
 // Vertices of face q (opposite vertex q) of a positively oriented tet, wound outwards.
@@ -126,7 +116,7 @@ absl::StatusOr<RenderableMesh> BuildRenderableMesh(const TetMesh& mesh,
     int32_t b, c, tet;
     int8_t q;
   };
-  const int threads = ThreadCount(options.threads);
+  const int threads = ResolveThreads(options.threads);
   std::vector<std::vector<int32_t>> boundary(threads);
   std::vector<std::string> errors(threads);
   ParallelRanges(nv, threads, [&](int th, int64_t v0, int64_t v1) {
@@ -229,92 +219,96 @@ inline double Orient(const ScreenVertex* sv, int32_t ix, int32_t iy, double px, 
   return 0;
 }
 
-// Transfer function prepared for fast lookups: a uniform bin table gives the segment of any
-// value in O(1), and a prefix count of segments with non-zero opacity lets whole tet segments
-// in transparent ranges (air) be skipped without sampling.
+// Transfer function prepared for fast lookups. [lo, hi] (first to last control point) is cut
+// into kBins uniform bins with the exact colour and opacity at their edges. In a bin without a
+// control point inside, the transfer function is linear, so interpolating the edge values is
+// exact (up to float rounding); the few bins holding a control point fall back to the exact
+// piecewise evaluation. A prefix count of bins with non-zero opacity answers "is the opacity
+// zero for every value between s0 and s1" in O(1) (conservatively), so tet segments in
+// transparent ranges are skipped without sampling.
 class TfTable {
  public:
-  explicit TfTable(const TransferFunction& tf) {
-    for (const TransferPoint& p : tf.points) {
-      v_.push_back(p.value);
-      r_.push_back(p.rgb[0]);
-      g_.push_back(p.rgb[1]);
-      b_.push_back(p.rgb[2]);
-      o_.push_back(p.opacity);
-    }
-    n_ = static_cast<int>(v_.size());
-    lo_ = v_.front();
-    hi_ = v_.back();
+  explicit TfTable(const TransferFunction& tf) : tf_(&tf) {
+    const auto& p = tf.points;
+    n_ = static_cast<int>(p.size());
+    lo_ = p.front().value;
+    hi_ = p.back().value;
+    first_ = {p.front().rgb[0], p.front().rgb[1], p.front().rgb[2], p.front().opacity};
+    last_ = {p.back().rgb[0], p.back().rgb[1], p.back().rgb[2], p.back().opacity};
     inv_bin_ = n_ > 1 ? kBins / (hi_ - lo_) : 0;
+    // Bin ids for the prefix: 0 = below lo, 1..kBins = the bins, kBins + 1 = above hi.
+    std::vector<uint8_t> nonzero(kBins + 2, 0);
+    nonzero[0] = first_[3] > 0;
+    nonzero[kBins + 1] = last_[3] > 0;
     if (n_ > 1) {
-      bin_seg_.resize(kBins + 1);
-      int seg = 0;
+      edges_.resize(kBins + 1);
+      kink_.assign(kBins, 0);
       for (int k = 0; k <= kBins; ++k) {
-        const double s = lo_ + (hi_ - lo_) * k / kBins;
-        while (seg < n_ - 2 && s >= v_[seg + 1]) ++seg;
-        bin_seg_[k] = seg;
+        float rgb[3], o;
+        tf.Evaluate(k == kBins ? hi_ : lo_ + (hi_ - lo_) * k / kBins, rgb, &o);
+        edges_[k] = {rgb[0], rgb[1], rgb[2], o};
+      }
+      for (int k = 0; k < kBins; ++k) nonzero[k + 1] = edges_[k][3] > 0 || edges_[k + 1][3] > 0;
+      for (int i = 1; i + 1 < n_; ++i) {
+        const int k = std::clamp(static_cast<int>((p[i].value - lo_) * inv_bin_), 0, kBins - 1);
+        kink_[k] = 1;
+        if (p[i].opacity > 0) nonzero[k + 1] = 1;
+        // A control point exactly on a bin edge leaves both bins linear; marking is harmless.
       }
     }
-    // Segment ids: 0 = left clamp, 1..n-1 = [v[i-1], v[i]], n = right clamp.
-    nonzero_prefix_.assign(n_ + 2, 0);
-    for (int id = 0; id <= n_; ++id) {
-      bool nz;
-      if (id == 0)
-        nz = o_.front() > 0;
-      else if (id == n_)
-        nz = o_.back() > 0;
-      else
-        nz = o_[id - 1] > 0 || o_[id] > 0;
-      nonzero_prefix_[id + 1] = nonzero_prefix_[id] + (nz ? 1 : 0);
-    }
+    nonzero_prefix_.assign(kBins + 3, 0);
+    for (int id = 0; id < kBins + 2; ++id)
+      nonzero_prefix_[id + 1] = nonzero_prefix_[id] + nonzero[id];
   }
 
-  // Interior segment i with v[i] <= s < v[i + 1] (s strictly inside (lo, hi)).
-  int Segment(double s) const {
-    int k = static_cast<int>((s - lo_) * inv_bin_);
-    k = std::clamp(k, 0, kBins);
-    int seg = bin_seg_[k];
-    while (seg < n_ - 2 && s >= v_[seg + 1]) ++seg;
-    while (seg > 0 && s < v_[seg]) --seg;
-    return seg;
-  }
-  int SegmentId(double s) const {
-    if (s <= lo_ || n_ == 1) return s <= lo_ ? 0 : n_;
-    if (s >= hi_) return n_;
-    return Segment(s) + 1;
-  }
-  // True if the opacity is zero for every value between s0 and s1.
+  // True if the opacity is zero for every value between s0 and s1 (false when unsure).
   bool Transparent(double s0, double s1) const {
     if (s0 > s1) std::swap(s0, s1);
-    return nonzero_prefix_[SegmentId(s1) + 1] == nonzero_prefix_[SegmentId(s0)];
+    return nonzero_prefix_[BinId(s1) + 1] == nonzero_prefix_[BinId(s0)];
   }
+
   void Eval(double s, float* r, float* g, float* b, float* o) const {
-    int i;
-    float f;
+    const std::array<float, 4>* v;
+    std::array<float, 4> tmp;
     if (s <= lo_ || n_ == 1) {
-      i = s <= lo_ ? 0 : n_ - 1;
-      f = 0;
+      v = s <= lo_ ? &first_ : &last_;
     } else if (s >= hi_) {
-      i = n_ - 1;
-      f = 0;
+      v = &last_;
     } else {
-      i = Segment(s);
-      f = static_cast<float>((s - v_[i]) / (v_[i + 1] - v_[i]));
+      const double u = (s - lo_) * inv_bin_;
+      const int k = std::min(static_cast<int>(u), kBins - 1);
+      if (kink_[k]) {
+        float rgb[3];
+        tf_->Evaluate(s, rgb, &tmp[3]);
+        std::copy_n(rgb, 3, tmp.begin());
+      } else {
+        const float f = static_cast<float>(u - k);
+        const auto& e0 = edges_[k];
+        const auto& e1 = edges_[k + 1];
+        for (int c = 0; c < 4; ++c) tmp[c] = e0[c] + f * (e1[c] - e0[c]);
+      }
+      v = &tmp;
     }
-    const int j = std::min(i + 1, n_ - 1);
-    *r = r_[i] + f * (r_[j] - r_[i]);
-    *g = g_[i] + f * (g_[j] - g_[i]);
-    *b = b_[i] + f * (b_[j] - b_[i]);
-    *o = o_[i] + f * (o_[j] - o_[i]);
+    *r = (*v)[0];
+    *g = (*v)[1];
+    *b = (*v)[2];
+    *o = (*v)[3];
   }
 
  private:
-  static constexpr int kBins = 1024;
+  static constexpr int kBins = 2048;
+  int BinId(double s) const {
+    if (s < lo_) return 0;
+    if (s > hi_ || n_ == 1) return kBins + 1;
+    return 1 + std::min(static_cast<int>((s - lo_) * inv_bin_), kBins - 1);
+  }
+
+  const TransferFunction* tf_;
   int n_ = 0;
   double lo_ = 0, hi_ = 0, inv_bin_ = 0;
-  std::vector<double> v_;
-  std::vector<float> r_, g_, b_, o_;
-  std::vector<int> bin_seg_;
+  std::array<float, 4> first_{}, last_{};
+  std::vector<std::array<float, 4>> edges_;
+  std::vector<uint8_t> kink_;
   std::vector<int> nonzero_prefix_;
 };
 
@@ -323,18 +317,21 @@ struct Accum {
   float r = 0, g = 0, b = 0, t = 1;
 };
 
-// Integrates the segment where the scalar goes linearly from s0 to s1 over `len` mm.
-inline void IntegrateSegment(const TfTable& tf, double s0, double s1, double len, double step,
+// Integrates the segment where the scalar goes linearly from s0 to s1 over `len` mm, with
+// n = floor(len / step) + 1 midpoint samples (so at most `step` apart; inv_step = 1 / step).
+inline void IntegrateSegment(const TfTable& tf, double s0, double s1, double len, double inv_step,
                              Accum& acc) {
   if (!(len > 0) || tf.Transparent(s0, s1)) return;
-  const int n = static_cast<int>(std::min(65536.0, std::ceil(len / step)));
-  const double dl = len / std::max(n, 1);
-  for (int i = 0; i < std::max(n, 1); ++i) {
-    const double s = s0 + (s1 - s0) * (i + 0.5) / std::max(n, 1);
+  const int n = static_cast<int>(std::min(65535.0, len * inv_step)) + 1;
+  const double inv_n = 1.0 / n;
+  const float dl = static_cast<float>(len * inv_n);
+  const double ds = (s1 - s0) * inv_n;
+  double s = s0 + 0.5 * ds;
+  for (int i = 0; i < n; ++i, s += ds) {
     float r, g, b, o;
     tf.Eval(s, &r, &g, &b, &o);
     if (o <= 0) continue;
-    const float a = 1.0f - std::exp(-o * static_cast<float>(dl));
+    const float a = 1.0f - std::exp(-o * dl);
     const float w = acc.t * a;
     acc.r += w * r;
     acc.g += w * g;
@@ -354,6 +351,9 @@ struct Frame {
   const TfTable* tf;
   const RenderOptions* options;
   const Camera* camera;
+  // Per tet: 1 if the transfer function is non-zero somewhere on its scalar range; nullptr when
+  // every tet is.
+  const uint8_t* visible = nullptr;
   std::vector<int64_t> entry_offsets;  // per pixel, CSR into entries
   std::vector<Entry> entries;
 };
@@ -388,7 +388,7 @@ double Walk(const Frame& f, Entry e, double px, double py, double len_per_depth,
             RenderStats& stats, bool* lost) {
   const int32_t* cells = f.mesh->cells.data();
   const ScreenVertex* sv = f.sv;
-  const double step = f.options->step_mm;
+  const double inv_step = 1.0 / f.options->step_mm;
   const float tmin = f.options->min_transmittance;
 
   int32_t t = e.code >> 2;
@@ -469,7 +469,8 @@ double Walk(const Frame& f, Entry e, double px, double py, double len_per_depth,
     }
     ++stats.steps;
     if (next_depth > depth) {
-      IntegrateSegment(*f.tf, scalar, next_scalar, (next_depth - depth) * len_per_depth, step, acc);
+      IntegrateSegment(*f.tf, scalar, next_scalar, (next_depth - depth) * len_per_depth, inv_step,
+                       acc);
       depth = next_depth;
       stuck = 0;
     } else if (++stuck > 4096) {
@@ -479,7 +480,7 @@ double Walk(const Frame& f, Entry e, double px, double py, double len_per_depth,
     scalar = next_scalar;
     if (acc.t < tmin) return depth;
     t = cell[4 + exit_q];
-    if (t < 0) return depth;
+    if (t < 0 || (f.visible != nullptr && !f.visible[t])) return depth;
   }
 }
 
@@ -585,7 +586,7 @@ absl::StatusOr<RenderedImage> Render(const RenderableMesh& mesh, const Camera& c
   img.rgb.resize(3 * npix);
   img.alpha.assign(npix, 0);
   for (int64_t p = 0; p < npix; ++p) std::copy_n(options.background.begin(), 3, &img.rgb[3 * p]);
-  const int threads = ThreadCount(options.threads);
+  const int threads = ResolveThreads(options.threads);
 
   // Project every vertex; count those on or behind the camera plane.
   const int64_t nv = mesh.vertex_count();
@@ -622,7 +623,6 @@ absl::StatusOr<RenderedImage> Render(const RenderableMesh& mesh, const Camera& c
   }
   DECIMA_RETURN_IF_ERROR(CheckCancelled(cancel, "render"));
 
-  // Rasterize front-facing boundary faces: each pixel gets the faces where its ray enters.
   Frame f;
   f.mesh = &mesh;
   f.sv = sv.data();
@@ -630,60 +630,141 @@ absl::StatusOr<RenderedImage> Render(const RenderableMesh& mesh, const Camera& c
   f.tf = &table;
   f.options = &options;
   f.camera = &camera;
+
+  // Empty-space skipping: a tet whose scalar range the transfer function maps to zero opacity
+  // adds nothing to any ray, so rays only walk the visible tets. They enter through visible
+  // tets' faces on the hull or next to an invisible tet, and stop when the next tet is
+  // invisible; a later entry on the same pixel continues the ray behind the gap. The image is
+  // the same as walking every tet (the skipped segments integrate to zero).
+  const int64_t nt = mesh.tet_count();
+  const int32_t* cells = mesh.cells.data();
+  std::vector<uint8_t> visible(nt);
+  std::vector<int64_t> visible_count(threads, 0);
+  ParallelRanges(nt, threads, [&](int th, int64_t t0, int64_t t1) {
+    int64_t n = 0;
+    for (int64_t t = t0; t < t1; ++t) {
+      const int32_t* c = &cells[8 * t];
+      const float s0 = mesh.scalars[c[0]], s1 = mesh.scalars[c[1]], s2 = mesh.scalars[c[2]],
+                  s3 = mesh.scalars[c[3]];
+      const bool vis = !table.Transparent(std::min({s0, s1, s2, s3}), std::max({s0, s1, s2, s3}));
+      visible[t] = vis;
+      n += vis;
+    }
+    visible_count[th] = n;
+  });
+  int64_t n_visible = 0;
+  for (int64_t n : visible_count) n_visible += n;
+  img.stats.visible_tets = n_visible;
+  f.visible = n_visible == nt ? nullptr : visible.data();
+
+  // Entry faces (4 * tet + q) with their vertices wound outwards from the visible tet.
+  std::vector<std::vector<int32_t>> entry_parts(threads);
+  if (n_visible == nt) {
+    const int64_t nb = static_cast<int64_t>(mesh.boundary_faces.size());
+    for (int th = 0; th < threads; ++th) {
+      for (int64_t i = nb * th / threads; i < nb * (th + 1) / threads; ++i) {
+        entry_parts[th].push_back(int32_t(i));
+      }
+    }
+  } else if (n_visible > 0) {
+    ParallelRanges(nt, threads, [&](int th, int64_t t0, int64_t t1) {
+      for (int64_t t = t0; t < t1; ++t) {
+        if (!visible[t]) continue;
+        for (int q = 0; q < 4; ++q) {
+          const int32_t n = cells[8 * t + 4 + q];
+          if (n < 0 || !visible[n]) entry_parts[th].push_back(int32_t(4 * t + q));
+        }
+      }
+    });
+  }
+  DECIMA_RETURN_IF_ERROR(CheckCancelled(cancel, "render"));
+
+  // Rasterize the front-facing entry faces: each pixel gets the faces where its ray enters.
   struct PixelEntry {
     int64_t pix;
     Entry e;
   };
-  std::vector<PixelEntry> raw;
-  const int64_t nb = static_cast<int64_t>(mesh.boundary_faces.size());
-  for (int64_t i = 0; i < nb; ++i) {
-    const int32_t* fv = &mesh.boundary_vertices[3 * i];
-    const ScreenVertex &A = sv[fv[0]], &B = sv[fv[1]], &C = sv[fv[2]];
-    const double area =
-        (double(B.x) - A.x) * (double(C.y) - A.y) - (double(B.y) - A.y) * (double(C.x) - A.x);
-    // Outward-wound faces facing the viewer have negative area in (x right, y down) pixels.
-    if (!(area < 0)) continue;
-    const double minx = std::min({A.x, B.x, C.x}), maxx = std::max({A.x, B.x, C.x});
-    const double miny = std::min({A.y, B.y, C.y}), maxy = std::max({A.y, B.y, C.y});
-    const int x0 = std::max(0, int(std::ceil(minx))),
-              x1 = std::min(img.width - 1, int(std::floor(maxx)));
-    const int y0 = std::max(0, int(std::ceil(miny))),
-              y1 = std::min(img.height - 1, int(std::floor(maxy)));
-    for (int y = y0; y <= y1; ++y) {
-      for (int x = x0; x <= x1; ++x) {
-        const double e0 = Orient(f.sv, fv[1], fv[2], x, y), e1 = Orient(f.sv, fv[2], fv[0], x, y),
-                     e2 = Orient(f.sv, fv[0], fv[1], x, y);
-        if (!((e0 < 0 && e1 < 0 && e2 < 0) || (e0 > 0 && e1 > 0 && e2 > 0))) continue;
-        double depth, scalar;
-        if (camera.perspective) {
-          Interpolate<true>(f.sv, fv[0], fv[1], fv[2], std::abs(e0), std::abs(e1), std::abs(e2),
-                            &depth, &scalar);
-        } else {
-          Interpolate<false>(f.sv, fv[0], fv[1], fv[2], std::abs(e0), std::abs(e1), std::abs(e2),
-                             &depth, &scalar);
+  std::vector<std::vector<PixelEntry>> raw_parts(threads);
+  const bool hull_list = n_visible == nt;
+  ParallelRanges(threads, threads, [&](int th, int64_t, int64_t) {
+    std::vector<PixelEntry>& raw = raw_parts[th];
+    for (const int32_t item : entry_parts[th]) {
+      int32_t code, fv[3];
+      if (hull_list) {
+        code = mesh.boundary_faces[item];
+        std::copy_n(&mesh.boundary_vertices[3 * int64_t{item}], 3, fv);
+      } else {
+        code = item;
+        const int32_t* c = &cells[8 * int64_t{code >> 2}];
+        const int q = code & 3;
+        for (int k = 0; k < 3; ++k) fv[k] = c[kFaceVerts[q][k]];
+        // Wind outwards from the actual geometry, so inverted tets do not flip their faces.
+        const float* P = mesh.positions.data();
+        auto pos = [&](int32_t v) {
+          return Eigen::Vector3d(P[3 * int64_t{v}], P[3 * int64_t{v} + 1], P[3 * int64_t{v} + 2]);
+        };
+        const Eigen::Vector3d pa = pos(fv[0]);
+        const Eigen::Vector3d n = (pos(fv[1]) - pa).cross(pos(fv[2]) - pa);
+        if (n.dot(pos(c[q]) - pa) > 0) std::swap(fv[1], fv[2]);
+      }
+      const ScreenVertex &A = sv[fv[0]], &B = sv[fv[1]], &C = sv[fv[2]];
+      const double area =
+          (double(B.x) - A.x) * (double(C.y) - A.y) - (double(B.y) - A.y) * (double(C.x) - A.x);
+      // Outward-wound faces facing the viewer have negative area in (x right, y down) pixels.
+      if (!(area < 0)) continue;
+      const double minx = std::min({A.x, B.x, C.x}), maxx = std::max({A.x, B.x, C.x});
+      const double miny = std::min({A.y, B.y, C.y}), maxy = std::max({A.y, B.y, C.y});
+      const int x0 = std::max(0, int(std::ceil(std::max(minx, -1.0)))),
+                x1 = std::min(img.width - 1, int(std::floor(std::min(maxx, 1e9))));
+      const int y0 = std::max(0, int(std::ceil(std::max(miny, -1.0)))),
+                y1 = std::min(img.height - 1, int(std::floor(std::min(maxy, 1e9))));
+      for (int y = y0; y <= y1; ++y) {
+        for (int x = x0; x <= x1; ++x) {
+          const double e0 = Orient(f.sv, fv[1], fv[2], x, y), e1 = Orient(f.sv, fv[2], fv[0], x, y),
+                       e2 = Orient(f.sv, fv[0], fv[1], x, y);
+          if (!((e0 < 0 && e1 < 0 && e2 < 0) || (e0 > 0 && e1 > 0 && e2 > 0))) continue;
+          double depth, scalar;
+          if (camera.perspective) {
+            Interpolate<true>(f.sv, fv[0], fv[1], fv[2], std::abs(e0), std::abs(e1), std::abs(e2),
+                              &depth, &scalar);
+          } else {
+            Interpolate<false>(f.sv, fv[0], fv[1], fv[2], std::abs(e0), std::abs(e1), std::abs(e2),
+                               &depth, &scalar);
+          }
+          raw.push_back({int64_t{y} * img.width + x, {float(depth), code}});
         }
-        raw.push_back({int64_t{y} * img.width + x, {float(depth), mesh.boundary_faces[i]}});
       }
     }
-  }
+  });
+  entry_parts.clear();
+  entry_parts.shrink_to_fit();
   f.entry_offsets.assign(npix + 1, 0);
-  for (const PixelEntry& r : raw) ++f.entry_offsets[r.pix + 1];
+  int64_t n_raw = 0;
+  for (const auto& raw : raw_parts) {
+    n_raw += static_cast<int64_t>(raw.size());
+    for (const PixelEntry& r : raw) ++f.entry_offsets[r.pix + 1];
+  }
   for (int64_t p = 0; p < npix; ++p) f.entry_offsets[p + 1] += f.entry_offsets[p];
-  f.entries.resize(raw.size());
+  f.entries.resize(n_raw);
   {
     std::vector<int64_t> cursor(f.entry_offsets.begin(), f.entry_offsets.end() - 1);
-    for (const PixelEntry& r : raw) f.entries[cursor[r.pix]++] = r.e;
+    for (const auto& raw : raw_parts)
+      for (const PixelEntry& r : raw) f.entries[cursor[r.pix]++] = r.e;
   }
-  for (int64_t p = 0; p < npix; ++p) {
-    if (f.entry_offsets[p + 1] - f.entry_offsets[p] > 1) {
-      std::sort(f.entries.begin() + f.entry_offsets[p], f.entries.begin() + f.entry_offsets[p + 1],
-                [](const Entry& x, const Entry& y) {
-                  return x.depth != y.depth ? x.depth < y.depth : x.code < y.code;
-                });
+  raw_parts.clear();
+  raw_parts.shrink_to_fit();
+  // Entries of a pixel front to back (ties by code, so the order never depends on threads).
+  ParallelRanges(npix, threads, [&](int, int64_t p0, int64_t p1) {
+    for (int64_t p = p0; p < p1; ++p) {
+      if (f.entry_offsets[p + 1] - f.entry_offsets[p] > 1) {
+        std::sort(f.entries.begin() + f.entry_offsets[p],
+                  f.entries.begin() + f.entry_offsets[p + 1], [](const Entry& x, const Entry& y) {
+                    return x.depth != y.depth ? x.depth < y.depth : x.code < y.code;
+                  });
+      }
     }
-  }
-  raw.clear();
-  raw.shrink_to_fit();
+  });
+  img.stats.entry_faces = n_raw;
   img.stats.raster_seconds = Since(start);
   img.empty = f.entries.empty();
 
@@ -718,10 +799,9 @@ absl::StatusOr<RenderedImage> Render(const RenderableMesh& mesh, const Camera& c
     total.lost_rays += local.lost_rays;
   };
   const int workers = std::max(1, std::min(threads, ntiles));
-  std::vector<std::thread> pool;
-  for (int i = 1; i < workers; ++i) pool.emplace_back(worker);
-  worker();
-  for (auto& th : pool) th.join();
+  ParallelFor(workers, workers, [&](int64_t w0, int64_t w1) {
+    for (int64_t w = w0; w < w1; ++w) worker();
+  });
   if (cancelled) return absl::CancelledError("render: cancelled");
   img.stats = total;
   img.stats.seconds = Since(start);

@@ -13,9 +13,14 @@
 // against projected mesh edges, evaluated for each edge in one canonical vertex order, with
 // exact zeros resolved by a symbolic perturbation of the pixel point. Neighbouring tets
 // therefore always agree on where a ray crosses, so rays through vertices and edges (common
-// in axis-aligned views of grid meshes) neither leak nor loop. Rays enter the mesh through
-// front-facing boundary faces rasterized per image, so non-convex meshes (rays leaving and
-// re-entering) are handled.
+// in axis-aligned views of grid meshes) neither leak nor loop.
+//
+// Empty space: tets on whose scalar range the transfer function has zero opacity (air in CT)
+// contribute nothing, so rays only walk the "visible" tets. They enter through front-facing
+// faces of visible tets that lie on the hull or next to an invisible tet (rasterized per
+// image, sorted by depth per pixel), and leave when the next tet is invisible or absent; a
+// later entry of the same pixel continues the ray. So non-convex meshes and gaps are handled,
+// and the image equals that of walking every tet.
 #pragma once
 
 #include <array>
@@ -75,7 +80,9 @@ struct RenderOptions {
 };
 
 struct RenderStats {
-  int64_t rays_hit = 0;        // rays that entered the mesh
+  int64_t rays_hit = 0;        // rays that entered a visible tet
+  int64_t visible_tets = 0;    // tets the transfer function is not zero on (see Render)
+  int64_t entry_faces = 0;     // (pixel, entry face) pairs rasterized
   int64_t steps = 0;           // tet segments walked
   int64_t fallback_steps = 0;  // steps where rounding left no consistent exit face
   int64_t lost_rays = 0;       // rays abandoned (no progress in 4096 steps), should be 0
@@ -88,8 +95,9 @@ struct RenderedImage {
   int height = 0;
   std::vector<float> rgb;    // 3 per pixel, rows top to bottom, composited over the background
   std::vector<float> alpha;  // 1 - transmittance per pixel
-  // True when no ray met the mesh (camera looking away, mesh outside the view): the image is
-  // the background everywhere.
+  // True when no ray met a visible part of the mesh (camera looking away, mesh outside the
+  // view, or a transfer function that is transparent on all of the mesh's values): the image is
+  // exactly the background everywhere.
   bool empty = true;
   RenderStats stats;
 

@@ -77,17 +77,19 @@ absl::StatusOr<TransferFunction> TransferFunctionPreset(absl::string_view name,
                                                         const ScalarRange& data_range) {
   const std::string n = absl::AsciiStrToLower(name);
   if (n == "ct") {
-    // HU: air transparent; fat/skin faint orange; soft tissue and brain faint red so the skull
-    // stays visible through them; bone from ~250 HU opaque ivory.
+    // HU: air transparent; skin and fat (-250..-50) faint orange so the face's outline shows;
+    // soft tissue and brain faint red; bone from ~250 HU ivory with an extinction that keeps
+    // growing with density, so thin bone (orbits, sinus walls) stays translucent and thick
+    // bone (teeth, skull base) reads brighter - without shading this is what shows shape.
     return Shifted("ct",
                    {{-1024, {0, 0, 0}, 0},
-                    {-600, {0.80f, 0.55f, 0.45f}, 0},
-                    {-200, {0.90f, 0.65f, 0.50f}, 0.010f},
-                    {0, {0.80f, 0.40f, 0.35f}, 0.004f},
-                    {100, {0.75f, 0.35f, 0.30f}, 0.004f},
-                    {250, {0.90f, 0.80f, 0.70f}, 0.030f},
-                    {500, {1.00f, 0.96f, 0.88f}, 0.50f},
-                    {2000, {1.00f, 1.00f, 1.00f}, 1.00f}},
+                    {-500, {0.85f, 0.60f, 0.50f}, 0},
+                    {-250, {0.90f, 0.62f, 0.50f}, 0.030f},
+                    {-50, {0.85f, 0.50f, 0.42f}, 0.015f},
+                    {100, {0.75f, 0.35f, 0.30f}, 0.006f},
+                    {250, {0.90f, 0.85f, 0.75f}, 0.030f},
+                    {600, {1.00f, 0.97f, 0.90f}, 0.12f},
+                    {2000, {1.00f, 1.00f, 1.00f}, 0.30f}},
                    HuOffset(data_range));
   }
   if (n == "ct-bone") {

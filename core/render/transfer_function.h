@@ -50,10 +50,10 @@ struct ScalarRange {
 };
 
 // Presets:
-//  "ct": skin (faint orange), soft tissue (faint red) and bone (opaque ivory); defined in
-//        Hounsfield units. Data whose minimum is above -500 is taken to be stored as HU + 1024
-//        (no air at -1000 HU; the shared CT heads are stored so), and the preset is shifted by
-//        +1024 for it.
+//  "ct": skin (faint orange), soft tissue (faint red) and bone (ivory, extinction rising with
+//        density); defined in Hounsfield units. Data whose minimum is above -500 is taken to be
+//        stored as HU + 1024 (no air at -1000 HU; the shared CT heads are stored so), and the
+//        preset is shifted by +1024 for it.
 //  "ct-bone": only bone, opaque; same HU rule.
 //  "mri-t1": T1-weighted MRI, relative to the data range: background transparent, CSF dark,
 //        grey and white matter in increasing brightness, fat brightest.

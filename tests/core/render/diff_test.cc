@@ -95,8 +95,8 @@ TEST(DiffHeatMap, ShowsTheHeatMapAColourBarAndTheRange) {
   const DiffResult d = SomeDiff(64, 48);
   const Image im = DiffHeatMap(d);
   ASSERT_EQ(im.channels, 3);
-  EXPECT_GT(im.width, 64 + 20);   // the colour-bar panel on the right
-  EXPECT_GT(im.height, 48 + 7);   // the diff1 line under the map
+  EXPECT_GT(im.width, 64 + 20);  // the colour-bar panel on the right
+  EXPECT_GT(im.height, 48 + 7);  // the diff1 line under the map
   // The map itself is the heat colour of diff2 / max_diff2, pixel for pixel.
   for (int y = 0; y < 48; ++y) {
     for (int x = 0; x < 64; ++x) {

@@ -5,8 +5,10 @@
 #include <cmath>
 #include <string>
 
+#include "core/io/volume_io.h"
 #include "core/render/diff.h"
 #include "tests/core/render/render_test_util.h"
+#include "tests/testing/test_data.h"
 
 namespace decima {
 namespace {
@@ -19,7 +21,8 @@ using testing::ReferenceRay;
 // shows in the colour), moderately transparent so the whole depth contributes.
 TransferFunction RampTf() {
   return {"ramp",
-          {{0, {0.1f, 0.2f, 0.9f}, 0.02f}, {50, {0.9f, 0.6f, 0.1f}, 0.08f},
+          {{0, {0.1f, 0.2f, 0.9f}, 0.02f},
+           {50, {0.9f, 0.6f, 0.1f}, 0.08f},
            {100, {1.0f, 1.0f, 1.0f}, 0.15f}}};
 }
 
@@ -56,7 +59,7 @@ TEST(Render, ConstantFieldCentrePixelFollowsBeerLambert) {
 // The unsimplified mesh of a ramp phantom against an independent slab integration of the voxel
 // field (trilinear, equal to the 5-tet linear interpolation for a linear field). Golden
 // tolerance: 2e-4 per colour channel and alpha (0..1), i.e. 1/20 of an 8-bit level; measured
-// 0.6e-5..2.6e-5 (renderer: midpoint sub-samples 0.1 mm apart, float; reference: 4000 samples).
+// 0.6e-5..2.6e-5 (renderer: midpoint sub-samples 0.1 mm apart, float; reference: 2000 samples).
 struct ReferenceCase {
   const char* view;
   bool perspective;
@@ -68,7 +71,7 @@ TEST_P(RenderMatchesReference, RampPhantom) {
   const Volume vol = RampVolume({7, 6, 5}, {5, 9, 4, 6});
   const TetMesh mesh = MeshOf(vol);
   const Bounds b = MeshBounds(mesh);
-  const Camera cam = ViewCamera(GetParam().view, b, 40, GetParam().perspective);
+  const Camera cam = ViewCamera(GetParam().view, b, 32, GetParam().perspective);
   const TransferFunction tf = RampTf();
   RenderOptions opt;
   opt.step_mm = 0.1;
@@ -82,39 +85,37 @@ TEST_P(RenderMatchesReference, RampPhantom) {
   int hits = 0, skipped = 0;
   for (int y = 0; y < cam.height; ++y) {
     for (int x = 0; x < cam.width; ++x) {
-      const auto ref = ReferenceRay(cam, x, y, b.min, b.max, field, tf);
       // Rays grazing the silhouette (within 0.02 px) are decided by the renderer's tie-breaking;
       // skip them, and check that they are few.
-      bool edge = false;
-      for (double dx : {-0.02, 0.02})
-        for (double dy : {-0.02, 0.02})
-          edge |= ReferenceRay(cam, x + dx, y + dy, b.min, b.max, field, tf, 8).hit != ref.hit;
-      if (edge) {
+      if (testing::NearSilhouette(cam, x, y, {{b.min, b.max}})) {
         ++skipped;
         continue;
       }
+      const auto ref = ReferenceRay(cam, x, y, b.min, b.max, field, tf);
       hits += ref.hit;
       const int64_t p = int64_t{y} * cam.width + x;
-      for (int c = 0; c < 3; ++c) worst = std::max(worst, std::abs(img->rgb[3 * p + c] - ref.rgb[c]));
+      for (int c = 0; c < 3; ++c)
+        worst = std::max(worst, std::abs(img->rgb[3 * p + c] - ref.rgb[c]));
       worst = std::max(worst, std::abs(img->alpha[p] - ref.alpha));
     }
   }
-  EXPECT_GT(hits, 400);
+  EXPECT_GT(hits, 250);
   EXPECT_LT(skipped, hits / 10);
   EXPECT_LT(worst, 2e-4) << "largest channel difference from the reference";
 }
 
-INSTANTIATE_TEST_SUITE_P(
-    Views, RenderMatchesReference,
-    ::testing::Values(ReferenceCase{"anterior", false}, ReferenceCase{"superior", false},
-                      ReferenceCase{"30,20", false}, ReferenceCase{"oblique", true},
-                      ReferenceCase{"-120,-35", true}),
-    [](const auto& info) {
-      std::string n = info.param.view;
-      for (char& c : n)
-        if (!std::isalnum(static_cast<unsigned char>(c))) c = '_';
-      return n + (info.param.perspective ? "_perspective" : "_orthographic");
-    });
+INSTANTIATE_TEST_SUITE_P(Views, RenderMatchesReference,
+                         ::testing::Values(ReferenceCase{"anterior", false},
+                                           ReferenceCase{"superior", false},
+                                           ReferenceCase{"30,20", false},
+                                           ReferenceCase{"oblique", true},
+                                           ReferenceCase{"-120,-35", true}),
+                         [](const auto& info) {
+                           std::string n = info.param.view;
+                           for (char& c : n)
+                             if (!std::isalnum(static_cast<unsigned char>(c))) c = '_';
+                           return n + (info.param.perspective ? "_perspective" : "_orthographic");
+                         });
 
 // A tunnel along x through the ramp block makes the mesh non-convex: rays along y leave the mesh
 // and re-enter it. The reference integrates the block minus the tunnel. Tolerance 1e-3
@@ -152,13 +153,9 @@ TEST(Render, NonConvexMeshRaysReenterAfterAGap) {
     int64_t checked = 0;
     for (int y = 0; y < cam.height; ++y) {
       for (int x = 0; x < cam.width; ++x) {
+        // Skip rays near the outer or the tunnel silhouette.
+        if (testing::NearSilhouette(cam, x, y, {{b.min, b.max}, {tlo, thi}}, 0.05)) continue;
         const auto ref = ReferenceRay(cam, x, y, b.min, b.max, field, tf, 3000);
-        bool edge = false;  // near the outer or the tunnel silhouette
-        for (double dx : {-0.05, 0.05})
-          for (double dy : {-0.05, 0.05})
-            edge |= std::abs(ReferenceRay(cam, x + dx, y + dy, b.min, b.max, field, tf, 3000).alpha -
-                             ref.alpha) > 5e-3;
-        if (edge) continue;
         ++checked;
         const int64_t p = int64_t{y} * cam.width + x;
         worst = std::max(worst, std::abs(img->alpha[p] - ref.alpha));
@@ -168,6 +165,50 @@ TEST(Render, NonConvexMeshRaysReenterAfterAGap) {
     }
     EXPECT_GT(checked, 150);
     EXPECT_LT(worst, 1e-3);
+  }
+}
+
+// A transfer function that is transparent on the middle of the ramp: the tets there are
+// skipped (empty-space skipping), rays stop at the gap and continue behind it through a later
+// entry face; the image still matches the reference integral (same tolerance as above).
+TEST(Render, TransparentValueRangeIsSkippedAndRaysContinueBehindIt) {
+  const Volume vol = RampVolume({8, 7, 6}, {0, 3, 9, 2});
+  const TetMesh mesh = MeshOf(vol);
+  const Bounds b = MeshBounds(mesh);
+  const TransferFunction tf{"gap",
+                            {{0, {0.2f, 0.4f, 0.9f}, 0.05f},
+                             {15, {0.3f, 0.5f, 0.8f}, 0.05f},
+                             {25, {0, 0, 0}, 0},
+                             {45, {0, 0, 0}, 0},
+                             {55, {1, 0.8f, 0.2f}, 0.1f},
+                             {120, {1, 1, 1}, 0.2f}}};
+  for (const char* view : {"anterior", "oblique"}) {
+    SCOPED_TRACE(view);
+    const Camera cam = ViewCamera(view, b, 24, std::string(view) == "oblique");
+    RenderOptions opt;
+    opt.step_mm = 0.1;
+    opt.min_transmittance = 0;
+    auto img = Render(mesh, cam, tf, opt);
+    ASSERT_TRUE(img.ok()) << img.status();
+    EXPECT_GT(img->stats.visible_tets, 0);
+    EXPECT_LT(img->stats.visible_tets, mesh.tet_count());
+    EXPECT_EQ(img->stats.lost_rays, 0);
+    auto field = [&](const Eigen::Vector3d& p) { return testing::Trilinear(vol, p); };
+    double worst = 0;
+    int64_t checked = 0;
+    for (int y = 0; y < cam.height; ++y) {
+      for (int x = 0; x < cam.width; ++x) {
+        if (testing::NearSilhouette(cam, x, y, {{b.min, b.max}})) continue;
+        const auto ref = ReferenceRay(cam, x, y, b.min, b.max, field, tf);
+        ++checked;
+        const int64_t p = int64_t{y} * cam.width + x;
+        worst = std::max(worst, std::abs(img->alpha[p] - ref.alpha));
+        for (int c = 0; c < 3; ++c)
+          worst = std::max(worst, std::abs(img->rgb[3 * p + c] - ref.rgb[c]));
+      }
+    }
+    EXPECT_GT(checked, 150);
+    EXPECT_LT(worst, 2e-4);
   }
 }
 
@@ -252,8 +293,8 @@ TEST(Render, FullyTransparentTransferFunctionGivesBackground) {
     const Camera cam = ViewCamera("oblique", MeshBounds(mesh), 24, perspective);
     auto img = Render(mesh, cam, tf, opt);
     ASSERT_TRUE(img.ok()) << img.status();
-    EXPECT_FALSE(img->empty);  // rays did meet the mesh
-    EXPECT_GT(img->stats.rays_hit, 0);
+    EXPECT_TRUE(img->empty);  // nothing visible: flagged
+    EXPECT_EQ(img->stats.visible_tets, 0);
     for (int64_t p = 0; p < int64_t{cam.width} * cam.height; ++p) {
       ASSERT_EQ(img->alpha[p], 0.0f);
       ASSERT_EQ(img->rgb[3 * p + 0], 0.25f);
@@ -300,8 +341,7 @@ TEST(Render, CameraInsideTheMeshIsAClearError) {
   auto img = Render(mesh, cam, RampTf());
   ASSERT_FALSE(img.ok());
   EXPECT_EQ(img.status().code(), absl::StatusCode::kInvalidArgument);
-  EXPECT_NE(img.status().message().find("behind the camera"), std::string::npos)
-      << img.status();
+  EXPECT_NE(img.status().message().find("behind the camera"), std::string::npos) << img.status();
 }
 
 TEST(Render, BadCameraAndOptionsAreClearErrors) {
@@ -399,6 +439,31 @@ TEST(BuildRenderableMesh, RejectsBrokenMeshesWithClearErrors) {
   // A third tet on an interior face.
   m.tets.insert(m.tets.end(), {good.tets[0], good.tets[1], good.tets[2], good.tets[3]});
   expect_error(m, "non-manifold");
+}
+
+// A real CT head: every ray is walked to the end (no lost rays), bone shows as bright pixels
+// in the middle of an anterior view, and air around the head stays background.
+TEST(Render, CtHeadAnteriorShowsBoneAndNoLostRays) {
+  // The small head-and-neck CT (64x64x93) keeps this fast under the sanitizers.
+  DECIMA_REQUIRE_SHARED_DATA(path, "ct-headneck-64x64x93.nii.gz");
+  auto vol = io::ReadVolume(path);
+  ASSERT_TRUE(vol.ok()) << vol.status();
+  const TetMesh mesh = MeshOf(*vol);
+  auto rm = BuildRenderableMesh(mesh);
+  ASSERT_TRUE(rm.ok()) << rm.status();
+  auto cam = MakeViewCamera({0, 0}, rm->bounds, {.width = 96, .height = 96});
+  ASSERT_TRUE(cam.ok());
+  auto tf = TransferFunctionPreset("ct", rm->scalar_range);
+  ASSERT_TRUE(tf.ok());
+  auto img = Render(*rm, *cam, *tf);
+  ASSERT_TRUE(img.ok()) << img.status();
+  EXPECT_FALSE(img->empty);
+  EXPECT_EQ(img->stats.lost_rays, 0);
+  EXPECT_LT(img->stats.visible_tets, rm->tet_count());  // air is skipped
+  int64_t bright = 0;
+  for (int64_t p = 0; p < 96 * 96; ++p) bright += img->rgb[3 * p + 2] > 0.6f;
+  EXPECT_GT(bright, 96 * 96 / 20);
+  EXPECT_EQ(img->alpha[0], 0.0f);  // corner: outside the head's box
 }
 
 // --- cameras -------------------------------------------------------------------------------

@@ -49,7 +49,7 @@ TEST(TransferFunction, CtPresetMakesBoneOpaqueAndAirTransparent) {
     tf->Evaluate(offset + 1000, rgb, &bone);
     EXPECT_EQ(air, 0);
     EXPECT_GT(soft, 0);
-    EXPECT_GT(bone, 20 * soft);
+    EXPECT_GT(bone, 10 * soft);
     EXPECT_GT(rgb[0], 0.9f);  // bone is bright
   }
 }
