@@ -694,8 +694,12 @@ absl::StatusOr<SegmentResult> Segment(const Volume& image, const SegmentOptions&
   ctx.threads = threads;
   const int64_t n = ctx.g.count;
 
-  std::vector<float> values = image.ToFloat();
-  ctx.image = values.data();
+  // The float image the evolution reads: the input itself when it is float32 (one float per
+  // voxel less), else a converted copy.
+  std::vector<float> copy;
+  if (image.type != VoxelType::kFloat32) copy = image.ToFloat();
+  const float* values = image.type == VoxelType::kFloat32 ? image.data<float>() : copy.data();
+  ctx.image = values;
   SegmentResult result;
   DECIMA_ASSIGN_OR_RETURN(result.labels, MakeVolume(image.dims, VoxelType::kUInt8, image.spacing));
   result.labels.origin = image.origin;
@@ -708,14 +712,14 @@ absl::StatusOr<SegmentResult> Segment(const Volume& image, const SegmentOptions&
   if (o.class_means.empty()) {
     const bool integer_valued =
         image.type != VoxelType::kFloat32 && image.type != VoxelType::kFloat64;
-    DECIMA_ASSIGN_OR_RETURN(
-        auto km, segment_internal::RunKMeans(values.data(), n, k, integer_valued, cancel));
+    DECIMA_ASSIGN_OR_RETURN(auto km,
+                            segment_internal::RunKMeans(values, n, k, integer_valued, cancel));
     ctx.c = km.means;
     fixed = o.fix_class_means;
   } else {
     ctx.c = o.class_means;
   }
-  segment_internal::AssignNearest(values.data(), n, ctx.c, ctx.labels, threads);
+  segment_internal::AssignNearest(values, n, ctx.c, ctx.labels, threads);
   {
     // Per-label sums of the initial partition (then kept by Relabel), for the reported energy.
     constexpr int64_t kChunk = 1 << 16;
@@ -743,7 +747,7 @@ absl::StatusOr<SegmentResult> Segment(const Volume& image, const SegmentOptions&
   double min_gap = std::numeric_limits<double>::infinity();
   for (int a = 0; a < k; ++a)
     for (int b = 0; b < a; ++b) min_gap = std::min(min_gap, std::abs(ctx.c[a] - ctx.c[b]));
-  const double var = std::max(segment_internal::PooledVariance(values.data(), n, ctx.labels, ctx.c),
+  const double var = std::max(segment_internal::PooledVariance(values, n, ctx.labels, ctx.c),
                               std::pow(0.05 * min_gap, 2));
   ctx.inv_s2 = 1.0 / var;
   result.within_class_sigma = std::sqrt(var);
@@ -870,6 +874,9 @@ absl::StatusOr<SegmentResult> Segment(const Volume& image, const SegmentOptions&
         // phi or label changed since then.
         // Labels are unchanged, and every voxel outside the new bands is +-W with its label's
         // sign, so only the new bands need relabelling from now on.
+        // The Jacobi scratch is not needed during the re-initialization: freeing it keeps the
+        // fast-marching queues from adding to the peak memory.
+        std::vector<float>().swap(next);
         ReinitializeAll(ctx, label_blocks, /*from_labels=*/false);
         // Safety net and witness of that invariant: relabel by argmax once (reported).
         reinit_changed = Relabel(ctx, label_blocks);
@@ -888,8 +895,8 @@ absl::StatusOr<SegmentResult> Segment(const Volume& image, const SegmentOptions&
   ctx.ls.shrink_to_fit();
   ctx.accepted.clear();
   ctx.accepted.shrink_to_fit();
-  values.clear();
-  values.shrink_to_fit();
+  copy.clear();
+  copy.shrink_to_fit();
   segment_internal::CountRegions(k, &result);
   DECIMA_RETURN_IF_ERROR(ComputeInterfaceDistance(result.labels, &result.interface_distance_voxels,
                                                   &result.interface_distance_mm, threads, cancel));
