@@ -365,8 +365,11 @@ void Reinitialize(Context& ctx, int i, const std::vector<int64_t>& blocks,
           if (off == 0) continue;
           const int64_t y = x + off;
           if (TestBit(ctx.accepted[y], bit)) continue;
-          const int64_t yi = y % g.n[0], yj = (y / g.n[0]) % g.n[1], yk = y / g.stride[2];
-          const double u = EikonalUpdate(ctx, phi, y, NeighbourOffsets(g, yi, yj, yk), bit);
+          // y's coordinates from x's (no integer divisions in the hot loop).
+          int64_t yc[3] = {xi, xj, xk};
+          yc[c] += side ? 1 : -1;
+          const double u =
+              EikonalUpdate(ctx, phi, y, NeighbourOffsets(g, yc[0], yc[1], yc[2]), bit);
           if (u < W && u < std::abs(phi[y])) {
             const float after = static_cast<float>(labels[y] == i ? u : -u);
             add_h(y, phi[y], after);
