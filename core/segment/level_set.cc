@@ -138,15 +138,11 @@ inline Offsets NeighbourOffsets(const Grid& g, int64_t i, int64_t j, int64_t k) 
 // voxel (difference across the face, central differences averaged along the other axes), then
 // their divergence. Unlike the non-conservative formula this does not vanish at isolated
 // extrema (a one-voxel island has curvature -2 per axis), which is what removes noise specks.
-// Also returns |grad phi| by central differences at the voxel (for the length energy).
-inline double Curvature(const float* phi, const Grid& g, int64_t x, const Offsets& o,
-                        double* grad_norm) {
+inline double Curvature(const float* phi, const Grid& g, int64_t x, const Offsets& o) {
   constexpr double kEps = 1e-6;
-  double kappa = 0.0, g2 = 0.0;
+  double kappa = 0.0;
   for (int a = 0; a < 3; ++a) {
     if (!g.active[a]) continue;
-    const double ca = (phi[x + o.p[a]] - phi[x + o.m[a]]) / (2.0 * g.h[a]);
-    g2 += ca * ca;
     double face_normal[2];
     for (int side = 0; side < 2; ++side) {
       const int64_t off = side ? o.p[a] : o.m[a];
@@ -169,7 +165,6 @@ inline double Curvature(const float* phi, const Grid& g, int64_t x, const Offset
     }
     kappa += (face_normal[1] - face_normal[0]) / g.h[a];
   }
-  *grad_norm = std::sqrt(g2);
   return kappa;
 }
 
@@ -188,6 +183,7 @@ struct Context {
   uint8_t* labels = nullptr;
   std::vector<uint8_t> accepted;  // fast-marching "accepted" flag: bit i for level set i
   std::vector<LevelSet> ls;
+  std::vector<double> region_sums;  // per label: voxels, sum I, sum I^2 (3 K values)
   int threads = 1;
   std::unique_ptr<SmoothedStep> step;
 };
@@ -241,20 +237,80 @@ inline double EikonalUpdate(const Context& ctx, const float* phi, int64_t x, con
   return u;
 }
 
-// Re-initializes phi_i to a signed distance within the band by fast marching (Sethian), from
-// sub-voxel interface estimates: for a voxel x whose 6-neighbour y has the opposite sign the
-// zero crossing lies at the fraction |phi_x| / (|phi_x| + |phi_y|) of the step, and the
-// distances t_c to the crossings along the axes combine as 1 / sqrt(sum_c t_c^-2) (the
-// distance to the plane through them). With `from_labels`, phi_i is +-W everywhere and the
-// interface is the voxel faces between labels == i and != i (t = h_c / 2). Keeps s0/s1/s2
-// exact by adding every change of H(phi_i). Runs on one thread; level sets run in parallel.
-void Reinitialize(Context& ctx, int i, bool from_labels) {
+// Seeds of the re-initialization of phi_i: the voxels of `blocks` next to the boundary of the
+// current region {labels == i}, with their signed distance estimate to it (positive inside).
+// The boundary is the zero set of psi_i = phi_i - max_{j != i} phi_j, which is >= 0 exactly where
+// label == i (label = argmax): for a voxel x whose 6-neighbour y lies on the other side, the
+// crossing is at the fraction |psi_x| / (|psi_x| + |psi_y|) of the step (clamped to
+// [kMinFrac, 1 - kMinFrac], so no seed is 0 and every voxel keeps a strict sign), and the
+// distances t_c to the crossings along the axes combine as 1 / sqrt(sum_c t_c^-2) (the distance
+// to the plane through them). With `from_labels` (the k-means start, phi not yet defined) the
+// crossing is the voxel face (fraction 1/2). Reads every phi_j: run before any phi is rewritten.
+std::vector<std::pair<uint32_t, float>> ReinitSeeds(const Context& ctx, int i,
+                                                    const std::vector<int64_t>& blocks,
+                                                    bool from_labels) {
+  constexpr double kMinFrac = 0.02;
+  const Grid& g = ctx.g;
+  const int k = ctx.k;
+  const uint8_t* labels = ctx.labels;
+  // psi_i at voxel x (>= 0 iff labels[x] == i).
+  auto psi = [&](int64_t x) -> double {
+    if (from_labels) return labels[x] == i ? 1.0 : -1.0;
+    const double pi = ctx.ls[i].phi[x];
+    if (labels[x] != i) return std::min(0.0, pi - ctx.ls[labels[x]].phi[x]);
+    double other = -std::numeric_limits<double>::infinity();
+    for (int j = 0; j < k; ++j)
+      if (j != i) other = std::max<double>(other, ctx.ls[j].phi[x]);
+    return std::max(0.0, pi - other);
+  };
+  std::vector<std::pair<uint32_t, float>> seeds;
+  for (int64_t b : blocks) {
+    ForBlock(g, b, [&](int64_t x, int64_t ii, int64_t jj, int64_t kk) {
+      const Offsets o = NeighbourOffsets(g, ii, jj, kk);
+      const bool inside = labels[x] == i;
+      bool boundary = false;
+      for (int c = 0; c < 3 && !boundary; ++c)
+        boundary = (o.m[c] != 0 && (labels[x + o.m[c]] == i) != inside) ||
+                   (o.p[c] != 0 && (labels[x + o.p[c]] == i) != inside);
+      if (!boundary) return;
+      const double px = std::abs(psi(x));
+      double inv = 0.0;
+      for (int c = 0; c < 3; ++c) {
+        if (!g.active[c]) continue;
+        double t = std::numeric_limits<double>::infinity();
+        for (int side = 0; side < 2; ++side) {
+          const int64_t off = side ? o.p[c] : o.m[c];
+          if (off == 0 || (labels[x + off] == i) == inside) continue;
+          const double py = std::abs(psi(x + off));
+          const double frac = px + py > 0 ? px / (px + py) : 0.5;
+          t = std::min(t, std::clamp(frac, kMinFrac, 1.0 - kMinFrac) * g.h[c]);
+        }
+        if (std::isfinite(t)) inv += 1.0 / (t * t);
+      }
+      const double d = 1.0 / std::sqrt(inv);
+      seeds.emplace_back(static_cast<uint32_t>(x), static_cast<float>(inside ? d : -d));
+    });
+  }
+  return seeds;
+}
+
+// Re-initializes phi_i to the signed distance to the boundary of the current region
+// {labels == i} (positive inside) within the band, by fast marching (Sethian) from `seeds`
+// (ReinitSeeds). Every voxel of `blocks` is first reset to +-W by its label, and the march gives
+// voxels the sign of their label, so afterwards phi_i > 0 exactly on region i: the argmax labels
+// are unchanged (re-initialization preserves the partition; it only removes overlaps and vacuum
+// and restores |grad phi| = 1). `blocks` must hold every voxel whose label or phi_i changed since
+// the last re-initialization (the label blocks); voxels elsewhere are +-W with their label's sign
+// already. With `track`, keeps s0/s1/s2 exact by adding every change of H(phi_i). Runs on one
+// thread; level sets run in parallel.
+void Reinitialize(Context& ctx, int i, const std::vector<int64_t>& blocks,
+                  std::vector<std::pair<uint32_t, float>> seeds, bool track) {
   const Grid& g = ctx.g;
   LevelSet& ls = ctx.ls[i];
   float* phi = ls.phi.data();
   const double W = ctx.width;
   const uint8_t bit = static_cast<uint8_t>(1u << i);
-  const bool track = !from_labels;
+  const uint8_t* labels = ctx.labels;
   auto add_h = [&](int64_t x, double before, double after) {
     if (!track) return;
     const double dh = ctx.step->H(after) - ctx.step->H(before);
@@ -265,67 +321,18 @@ void Reinitialize(Context& ctx, int i, bool from_labels) {
     ls.s2 += dh * v * v;
   };
 
-  // 1. Interface voxels and their signed distance estimates, from the current phi.
-  // Voxel indices fit 32 bits (kMaxVoxels = 2^31): half the queue memory of int64.
-  std::vector<std::pair<uint32_t, float>> seeds;
-  auto scan_block = [&](int64_t b) {
-    ForBlock(g, b, [&](int64_t x, int64_t ii, int64_t jj, int64_t kk) {
-      const Offsets o = NeighbourOffsets(g, ii, jj, kk);
-      double px;
-      bool inside;
-      if (from_labels) {
-        inside = ctx.labels[x] == i;
-        px = inside ? 1.0 : -1.0;
-      } else {
-        px = phi[x];
-        inside = px >= 0;
+  // 1. Reset the blocks to +-W by label, then place the seeds.
+  for (int64_t b : blocks) {
+    ForBlock(g, b, [&](int64_t x, int64_t, int64_t, int64_t) {
+      const float before = phi[x];
+      const float after = labels[x] == i ? static_cast<float>(W) : static_cast<float>(-W);
+      if (before != after) {
+        add_h(x, before, after);
+        phi[x] = after;
       }
-      double inv = 0.0;
-      bool any = false, zero = false;
-      for (int c = 0; c < 3; ++c) {
-        if (!g.active[c]) continue;
-        double t = std::numeric_limits<double>::infinity();
-        for (int side = 0; side < 2; ++side) {
-          const int64_t off = side ? o.p[c] : o.m[c];
-          if (off == 0) continue;
-          const double py = from_labels ? (ctx.labels[x + off] == i ? 1.0 : -1.0) : phi[x + off];
-          if ((py >= 0) == inside) continue;
-          const double frac = std::abs(px) / (std::abs(px) + std::abs(py));
-          t = std::min(t, frac * g.h[c]);
-        }
-        if (std::isfinite(t)) {
-          any = true;
-          if (t <= 0)
-            zero = true;
-          else
-            inv += 1.0 / (t * t);
-        }
-      }
-      if (!any) return;
-      const double d = zero ? 0.0 : 1.0 / std::sqrt(inv);
-      seeds.emplace_back(static_cast<uint32_t>(x), static_cast<float>(inside ? d : -d));
     });
-  };
-  if (from_labels) {
-    for (int64_t b = 0; b < g.block_count; ++b) scan_block(b);
-  } else {
-    for (int64_t b : ls.band) scan_block(b);
   }
-
-  // 2. Clear the old band to +-W (sign kept), then place the seeds.
-  if (!from_labels) {
-    for (int64_t b : ls.band) {
-      ForBlock(g, b, [&](int64_t x, int64_t, int64_t, int64_t) {
-        const float before = phi[x];
-        const float after = before >= 0 ? static_cast<float>(W) : static_cast<float>(-W);
-        if (before != after) {
-          add_h(x, before, after);
-          phi[x] = after;
-        }
-      });
-    }
-  }
-  // 3. Fast marching outwards on both sides until the distance reaches W, with an "untidy"
+  // 2. Fast marching outwards on both sides until the distance reaches W, with an "untidy"
   // priority queue (Yatziv, Bartesaghi, Sapiro 2006): buckets of width kBucket processed in
   // order, FIFO inside a bucket. O(1) per operation instead of a heap's O(log n); the ordering
   // error, and so the distance error, stays below kBucket voxels.
@@ -358,10 +365,13 @@ void Reinitialize(Context& ctx, int i, bool from_labels) {
           if (off == 0) continue;
           const int64_t y = x + off;
           if (TestBit(ctx.accepted[y], bit)) continue;
-          const int64_t yi = y % g.n[0], yj = (y / g.n[0]) % g.n[1], yk = y / g.stride[2];
-          const double u = EikonalUpdate(ctx, phi, y, NeighbourOffsets(g, yi, yj, yk), bit);
+          // y's coordinates from x's (no integer divisions in the hot loop).
+          int64_t yc[3] = {xi, xj, xk};
+          yc[c] += side ? 1 : -1;
+          const double u =
+              EikonalUpdate(ctx, phi, y, NeighbourOffsets(g, yc[0], yc[1], yc[2]), bit);
           if (u < W && u < std::abs(phi[y])) {
-            const float after = static_cast<float>(phi[y] >= 0 ? u : -u);
+            const float after = static_cast<float>(labels[y] == i ? u : -u);
             add_h(y, phi[y], after);
             phi[y] = after;
             buckets[std::max(current, bucket_of(u))].push_back(static_cast<uint32_t>(y));
@@ -372,13 +382,25 @@ void Reinitialize(Context& ctx, int i, bool from_labels) {
     std::vector<uint32_t>().swap(buckets[current]);
   }
 
-  // 4. New band; reset the accepted flags (all accepted voxels lie in band blocks).
+  // 3. New band; reset the accepted flags (all accepted voxels lie in band blocks).
   ls.band.clear();
   for (int64_t b = 0; b < g.block_count; ++b) {
     if (!in_band[b]) continue;
     ls.band.push_back(b);
     ForBlock(g, b, [&](int64_t x, int64_t, int64_t, int64_t) { ClearBit(ctx.accepted[x], bit); });
   }
+}
+
+// Re-initializes every phi_i from the current labels (ReinitSeeds, then Reinitialize), the K
+// level sets in parallel. `blocks` as for Reinitialize.
+void ReinitializeAll(Context& ctx, const std::vector<int64_t>& blocks, bool from_labels) {
+  const int k = ctx.k;
+  std::vector<std::vector<std::pair<uint32_t, float>>> seeds(k);
+  // Seeds read every phi_j, so they are all computed before any phi is rewritten.
+#pragma omp parallel for schedule(dynamic, 1) num_threads(std::min(ctx.threads, k))
+  for (int i = 0; i < k; ++i) seeds[i] = ReinitSeeds(ctx, i, blocks, from_labels);
+#pragma omp parallel for schedule(dynamic, 1) num_threads(std::min(ctx.threads, k))
+  for (int i = 0; i < k; ++i) Reinitialize(ctx, i, blocks, std::move(seeds[i]), !from_labels);
 }
 
 // Sorted union of the band lists (and `extra`, if given).
@@ -395,14 +417,14 @@ std::vector<int64_t> BandUnion(const Context& ctx, const std::vector<int64_t>* e
 }
 
 // One explicit step of Eq. (4) for level set i (Jacobi within phi_i, using the current values
-// of the other level sets). Returns the length energy sum nu_i delta(phi_i) |grad phi_i|.
+// of the other level sets).
 // `next` is scratch for the new values of the band blocks only (kBlock^3 floats per band block,
 // in ForBlock order), so the Jacobi copy costs memory in proportion to the band, not the volume.
-double EvolveLevelSet(Context& ctx, int i, std::vector<float>& next) {
+void EvolveLevelSet(Context& ctx, int i, std::vector<float>& next) {
   const Grid& g = ctx.g;
   LevelSet& ls = ctx.ls[i];
   const int64_t nb = static_cast<int64_t>(ls.band.size());
-  std::vector<double> length(nb, 0.0), ds(3 * nb, 0.0);
+  std::vector<double> ds(3 * nb, 0.0);
   const double alpha = ctx.alpha, W = ctx.width;
   const int k = ctx.k;
   float* phi = ls.phi.data();
@@ -411,7 +433,6 @@ double EvolveLevelSet(Context& ctx, int i, std::vector<float>& next) {
 
 #pragma omp parallel for schedule(dynamic, 4) num_threads(ctx.threads)
   for (int64_t q = 0; q < nb; ++q) {
-    double len = 0.0;
     float* out = next.data() + q * kBlockVoxels;
     int64_t t = 0;
     ForBlock(g, ls.band[q], [&](int64_t x, int64_t ii, int64_t jj, int64_t kk) {
@@ -421,8 +442,7 @@ double EvolveLevelSet(Context& ctx, int i, std::vector<float>& next) {
         return;
       }
       const Offsets o = NeighbourOffsets(g, ii, jj, kk);
-      double grad;
-      const double kappa = Curvature(phi, g, x, o, &grad);
+      const double kappa = Curvature(phi, g, x, o);
       const double delta = ctx.step->Delta(p);
       // Fitting force relative to the best class at this voxel (see README: subtracting the
       // per-voxel minimum leaves the partition-constrained energy unchanged).
@@ -438,9 +458,7 @@ double EvolveLevelSet(Context& ctx, int i, std::vector<float>& next) {
       }
       const double force = ctx.nu[i] * kappa - (fit_i - fit_min) - ctx.beta * (sum_h - 1.0);
       out[t++] = static_cast<float>(std::clamp(p + ctx.dt * delta * force, -W, W));
-      len += ctx.nu[i] * delta * grad;
     });
-    length[q] = len;
   }
 
 #pragma omp parallel for schedule(dynamic, 4) num_threads(ctx.threads)
@@ -462,53 +480,88 @@ double EvolveLevelSet(Context& ctx, int i, std::vector<float>& next) {
     ds[3 * q + 1] = d1;
     ds[3 * q + 2] = d2;
   }
-  double len = 0;
   for (int64_t q = 0; q < nb; ++q) {
-    len += length[q];
     ls.s0 += ds[3 * q];
     ls.s1 += ds[3 * q + 1];
     ls.s2 += ds[3 * q + 2];
   }
-  return len;
 }
 
 // Relabels the voxels of `blocks` by argmax_i phi_i (ties: lowest i). Returns the number of
-// changed labels; adds sum (sum_i H(phi_i) - 1)^2 over those voxels to *overlap.
-int64_t Relabel(Context& ctx, const std::vector<int64_t>& blocks, double* overlap) {
+// changed labels and keeps ctx.region_sums (per label: voxels, sum I, sum I^2) exact.
+int64_t Relabel(Context& ctx, const std::vector<int64_t>& blocks) {
   const int64_t nb = static_cast<int64_t>(blocks.size());
-  std::vector<int64_t> changed(nb, 0);
-  std::vector<double> over(nb, 0.0);
   const int k = ctx.k;
+  std::vector<int64_t> changed(nb, 0);
+  std::vector<double> sums(nb * 3 * k, 0.0);  // per block: per label (d count, d I, d I^2)
 #pragma omp parallel for schedule(dynamic, 4) num_threads(ctx.threads)
   for (int64_t q = 0; q < nb; ++q) {
     int64_t ch = 0;
-    double ov = 0;
+    double* d = sums.data() + q * 3 * k;
     ForBlock(ctx.g, blocks[q], [&](int64_t x, int64_t, int64_t, int64_t) {
       int best = 0;
       float best_v = ctx.ls[0].phi[x];
-      double sum_h = ctx.step->H(best_v);
       for (int j = 1; j < k; ++j) {
         const float v = ctx.ls[j].phi[x];
-        sum_h += ctx.step->H(v);
         if (v > best_v) {
           best_v = v;
           best = j;
         }
       }
-      ov += (sum_h - 1.0) * (sum_h - 1.0);
-      if (ctx.labels[x] != best) {
+      const int old = ctx.labels[x];
+      if (old != best) {
+        const double v = ctx.image[x];
+        d[3 * old] -= 1;
+        d[3 * old + 1] -= v;
+        d[3 * old + 2] -= v * v;
+        d[3 * best] += 1;
+        d[3 * best + 1] += v;
+        d[3 * best + 2] += v * v;
         ctx.labels[x] = static_cast<uint8_t>(best);
         ++ch;
       }
     });
     changed[q] = ch;
-    over[q] = ov;
   }
   int64_t total = 0;
   for (int64_t q = 0; q < nb; ++q) {
     total += changed[q];
-    *overlap += over[q];
+    for (int t = 0; t < 3 * k; ++t) ctx.region_sums[t] += sums[q * 3 * k + t];
   }
+  return total;
+}
+
+// Interface of the current labels: the voxel faces between two different labels with the lower
+// voxel in `blocks` (every interface face lies there: labels differ only next to a band).
+// Returns the face count; *length gets the sum over faces of the face area (voxel units) x the
+// mean nu of its two regions, the length term of Eq. (3) for the partition.
+int64_t InterfaceFaces(const Context& ctx, const std::vector<int64_t>& blocks, double* length) {
+  const Grid& g = ctx.g;
+  const int64_t nb = static_cast<int64_t>(blocks.size());
+  const uint8_t* labels = ctx.labels;
+  const double area[3] = {g.h[1] * g.h[2], g.h[0] * g.h[2], g.h[0] * g.h[1]};
+  std::vector<double> len(nb, 0.0);
+  int64_t total = 0;
+#pragma omp parallel for schedule(dynamic, 4) num_threads(ctx.threads) reduction(+ : total)
+  for (int64_t q = 0; q < nb; ++q) {
+    int64_t f = 0;
+    double l = 0.0;
+    auto face = [&](uint8_t a, uint8_t b, int axis) {
+      if (a == b) return;
+      ++f;
+      l += 0.5 * (ctx.nu[a] + ctx.nu[b]) * area[axis];
+    };
+    ForBlock(g, blocks[q], [&](int64_t x, int64_t ii, int64_t jj, int64_t kk) {
+      const uint8_t lx = labels[x];
+      if (ii + 1 < g.n[0]) face(lx, labels[x + 1], 0);
+      if (jj + 1 < g.n[1]) face(lx, labels[x + g.stride[1]], 1);
+      if (kk + 1 < g.n[2]) face(lx, labels[x + g.stride[2]], 2);
+    });
+    total += f;
+    len[q] = l;
+  }
+  *length = 0.0;
+  for (double l : len) *length += l;
   return total;
 }
 
@@ -644,8 +697,12 @@ absl::StatusOr<SegmentResult> Segment(const Volume& image, const SegmentOptions&
   ctx.threads = threads;
   const int64_t n = ctx.g.count;
 
-  std::vector<float> values = image.ToFloat();
-  ctx.image = values.data();
+  // The float image the evolution reads: the input itself when it is float32 (one float per
+  // voxel less), else a converted copy.
+  std::vector<float> copy;
+  if (image.type != VoxelType::kFloat32) copy = image.ToFloat();
+  const float* values = image.type == VoxelType::kFloat32 ? image.data<float>() : copy.data();
+  ctx.image = values;
   SegmentResult result;
   DECIMA_ASSIGN_OR_RETURN(result.labels, MakeVolume(image.dims, VoxelType::kUInt8, image.spacing));
   result.labels.origin = image.origin;
@@ -658,14 +715,34 @@ absl::StatusOr<SegmentResult> Segment(const Volume& image, const SegmentOptions&
   if (o.class_means.empty()) {
     const bool integer_valued =
         image.type != VoxelType::kFloat32 && image.type != VoxelType::kFloat64;
-    DECIMA_ASSIGN_OR_RETURN(
-        auto km, segment_internal::RunKMeans(values.data(), n, k, integer_valued, cancel));
+    DECIMA_ASSIGN_OR_RETURN(auto km,
+                            segment_internal::RunKMeans(values, n, k, integer_valued, cancel));
     ctx.c = km.means;
     fixed = o.fix_class_means;
   } else {
     ctx.c = o.class_means;
   }
-  segment_internal::AssignNearest(values.data(), n, ctx.c, ctx.labels, threads);
+  segment_internal::AssignNearest(values, n, ctx.c, ctx.labels, threads);
+  {
+    // Per-label sums of the initial partition (then kept by Relabel), for the reported energy.
+    constexpr int64_t kChunk = 1 << 16;
+    const int64_t chunks = (n + kChunk - 1) / kChunk;
+    std::vector<double> part(chunks * 3 * k, 0.0);
+#pragma omp parallel for schedule(static) num_threads(threads)
+    for (int64_t q = 0; q < chunks; ++q) {
+      double* d = part.data() + q * 3 * k;
+      for (int64_t x = q * kChunk; x < std::min(n, (q + 1) * kChunk); ++x) {
+        const double v = values[x];
+        double* r = d + 3 * ctx.labels[x];
+        r[0] += 1;
+        r[1] += v;
+        r[2] += v * v;
+      }
+    }
+    ctx.region_sums.assign(3 * k, 0.0);
+    for (int64_t q = 0; q < chunks; ++q)
+      for (int t = 0; t < 3 * k; ++t) ctx.region_sums[t] += part[q * 3 * k + t];
+  }
   DECIMA_RETURN_IF_ERROR(CheckCancelled(cancel, "segment"));
 
   // Noise normalization: the pooled within-class variance of the initial partition, floored
@@ -673,7 +750,7 @@ absl::StatusOr<SegmentResult> Segment(const Volume& image, const SegmentOptions&
   double min_gap = std::numeric_limits<double>::infinity();
   for (int a = 0; a < k; ++a)
     for (int b = 0; b < a; ++b) min_gap = std::min(min_gap, std::abs(ctx.c[a] - ctx.c[b]));
-  const double var = std::max(segment_internal::PooledVariance(values.data(), n, ctx.labels, ctx.c),
+  const double var = std::max(segment_internal::PooledVariance(values, n, ctx.labels, ctx.c),
                               std::pow(0.05 * min_gap, 2));
   ctx.inv_s2 = 1.0 / var;
   result.within_class_sigma = std::sqrt(var);
@@ -710,8 +787,11 @@ absl::StatusOr<SegmentResult> Segment(const Volume& image, const SegmentOptions&
     }
     ctx.accepted.assign(n, 0);
     DECIMA_RETURN_IF_ERROR(CheckCancelled(cancel, "segment"));
-#pragma omp parallel for schedule(dynamic, 1) num_threads(std::min(threads, k))
-    for (int i = 0; i < k; ++i) Reinitialize(ctx, i, /*from_labels=*/true);
+    {
+      std::vector<int64_t> all(ctx.g.block_count);
+      std::iota(all.begin(), all.end(), int64_t{0});
+      ReinitializeAll(ctx, all, /*from_labels=*/true);
+    }
     DECIMA_RETURN_IF_ERROR(CheckCancelled(cancel, "segment"));
     // Exact H sums once; afterwards they are maintained incrementally.
     {
@@ -747,45 +827,62 @@ absl::StatusOr<SegmentResult> Segment(const Volume& image, const SegmentOptions&
     std::vector<float> next;  // band-sized scratch of EvolveLevelSet
     std::vector<int64_t> label_blocks = BandUnion(ctx, nullptr);
     int quiet = 0;
+    int64_t reinit_changed = 0;  // labels the last re-initialization changed (0 by design)
     while (iteration < o.max_iterations) {
       ++iteration;
-      double length = 0.0;
-      for (int i = 0; i < k; ++i) length += EvolveLevelSet(ctx, i, next);
+      for (int i = 0; i < k; ++i) EvolveLevelSet(ctx, i, next);
       if (!fixed) {
         for (int i = 0; i < k; ++i)
           if (ctx.ls[i].s0 > 0.5) ctx.c[i] = ctx.ls[i].s1 / ctx.ls[i].s0;
       }
-      double overlap = 0.0;
-      const int64_t changed = Relabel(ctx, label_blocks, &overlap);
+      const int64_t changed = Relabel(ctx, label_blocks);
+      // Reported energy: Eq. (3) of the current partition (sharp H, so no overlap term; the
+      // length is the voxel-face area of the interfaces). Unlike the smoothed energy of the phi_i
+      // it is not changed by a re-initialization, which keeps the partition.
+      double length = 0.0;
+      const int64_t faces = InterfaceFaces(ctx, label_blocks, &length);
       double fitting = 0.0;
       for (int i = 0; i < k; ++i) {
-        const LevelSet& ls = ctx.ls[i];
+        const double* r = &ctx.region_sums[3 * i];
         fitting += ctx.e[i] * ctx.inv_s2 *
-                   std::max(0.0, ls.s2 - 2.0 * ctx.c[i] * ls.s1 + ctx.c[i] * ctx.c[i] * ls.s0);
+                   std::max(0.0, r[2] - 2.0 * ctx.c[i] * r[1] + ctx.c[i] * ctx.c[i] * r[0]);
       }
-      energy = ctx.voxel_volume * (fitting + length + 0.5 * ctx.beta * overlap);
+      energy = ctx.voxel_volume * fitting + length;
       const double changed_fraction = static_cast<double>(changed) / static_cast<double>(n);
+      // Convergence is measured against the interface, not the volume: the changes happen only
+      // next to it, so a whole-volume fraction would need a different threshold per image size
+      // and shape.
+      const double interface_fraction =
+          static_cast<double>(changed) / static_cast<double>(std::max<int64_t>(1, faces));
       Progress p;
       p.stage = "segment";
       p.fraction = static_cast<double>(iteration) / o.max_iterations;
       p.message = absl::StrFormat("iteration %d: %d labels changed, energy %.6g", iteration,
                                   changed, energy);
-      p.metrics = {
-          {"iteration", iteration}, {"energy", energy}, {"changed_fraction", changed_fraction}};
+      p.metrics = {{"iteration", iteration},
+                   {"energy", energy},
+                   {"changed_fraction", changed_fraction},
+                   {"interface_changed_fraction", interface_fraction},
+                   {"reinit_changed_labels", static_cast<double>(reinit_changed)}};
+      reinit_changed = 0;
       Report(progress, p);
       DECIMA_RETURN_IF_ERROR(CheckCancelled(cancel, "segment"));
-      quiet = changed_fraction < o.convergence_threshold ? quiet + 1 : 0;
+      quiet = interface_fraction < o.convergence_threshold ? quiet + 1 : 0;
       if (quiet >= o.convergence_window) {
         converged = true;
         break;
       }
       if (iteration % o.reinit_interval == 0) {
-        std::vector<int64_t> old = BandUnion(ctx, nullptr);
-#pragma omp parallel for schedule(dynamic, 1) num_threads(std::min(threads, k))
-        for (int i = 0; i < k; ++i) Reinitialize(ctx, i, /*from_labels=*/false);
-        // Voxels that left every band were clamped; relabel them once too.
-        label_blocks = BandUnion(ctx, &old);
-      } else if (iteration % o.reinit_interval == 1 || o.reinit_interval == 1) {
+        // label_blocks holds every band since the last re-initialization, so every voxel whose
+        // phi or label changed since then.
+        // Labels are unchanged, and every voxel outside the new bands is +-W with its label's
+        // sign, so only the new bands need relabelling from now on.
+        // The Jacobi scratch is not needed during the re-initialization: freeing it keeps the
+        // fast-marching queues from adding to the peak memory.
+        std::vector<float>().swap(next);
+        ReinitializeAll(ctx, label_blocks, /*from_labels=*/false);
+        // Safety net and witness of that invariant: relabel by argmax once (reported).
+        reinit_changed = Relabel(ctx, label_blocks);
         label_blocks = BandUnion(ctx, nullptr);
       }
     }
@@ -801,8 +898,8 @@ absl::StatusOr<SegmentResult> Segment(const Volume& image, const SegmentOptions&
   ctx.ls.shrink_to_fit();
   ctx.accepted.clear();
   ctx.accepted.shrink_to_fit();
-  values.clear();
-  values.shrink_to_fit();
+  copy.clear();
+  copy.shrink_to_fit();
   segment_internal::CountRegions(k, &result);
   DECIMA_RETURN_IF_ERROR(ComputeInterfaceDistance(result.labels, &result.interface_distance_voxels,
                                                   &result.interface_distance_mm, threads, cancel));

@@ -33,7 +33,7 @@ int main(int argc, char** argv) {
   using namespace decima;
   if (argc < 2) {
     std::cerr << "usage: segment_figures INPUT [--regions K] [--repeat N] [--threads T] [--nu V] "
-                 "[--beta B] [--png PATH] [--max-iterations N] [--verbose 1]\n";
+                 "[--beta B] [--png PATH] [--max-iterations N] [--threshold T] [--verbose 1]\n";
     return 2;
   }
   std::string input = argv[1], png;
@@ -57,6 +57,8 @@ int main(int argc, char** argv) {
       o.alpha = std::atof(v);
     else if (k == "--reinit")
       o.reinit_interval = std::atoi(v);
+    else if (k == "--threshold")
+      o.convergence_threshold = std::atof(v);
     else if (k == "--max-iterations")
       o.max_iterations = std::atoi(v);
     else if (k == "--png")
@@ -107,8 +109,11 @@ int main(int argc, char** argv) {
         image, o,
         [&](const Progress& p) {
           if (verbose && i == 0)
-            std::printf("  iteration %g energy %.6g changed %.3g\n", p.metrics[0].second,
-                        p.metrics[1].second, p.metrics[2].second);
+            std::printf(
+                "  iteration %g energy %.6g changed %.3g of volume, %.3g of interface, "
+                "%g by the previous re-initialization\n",
+                p.metrics[0].second, p.metrics[1].second, p.metrics[2].second, p.metrics[3].second,
+                p.metrics[4].second);
         },
         nullptr);
     seconds.push_back(std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count());
