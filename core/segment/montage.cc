@@ -5,16 +5,12 @@
 // coronal and sagittal panels, anterior up in the axial panel, patient left on the right
 // (radiological convention). Each panel is resampled (nearest neighbour) to square pixels of
 // the smallest spacing, enlarged by an integer factor when the volume is small.
-#include <png.h>
 
 #include <algorithm>
-#include <cerrno>
 #include <cmath>
-#include <csetjmp>
-#include <cstdio>
-#include <cstring>
 
 #include "absl/strings/str_cat.h"
+#include "core/io/png.h"
 #include "core/segment/internal.h"
 #include "core/segment/segment.h"
 
@@ -72,39 +68,6 @@ Panel MakePanel(const Volume& image, const std::vector<float>& values, const uin
     }
   }
   return p;
-}
-
-absl::Status WritePng(const std::filesystem::path& path, int width, int height,
-                      const std::vector<uint8_t>& rgb) {
-  FILE* f = std::fopen(path.c_str(), "wb");
-  if (f == nullptr) {
-    return absl::ErrnoToStatus(errno, absl::StrCat("montage: cannot write ", path.string()));
-  }
-  png_structp png = png_create_write_struct(PNG_LIBPNG_VER_STRING, nullptr, nullptr, nullptr);
-  png_infop info = png ? png_create_info_struct(png) : nullptr;
-  if (png == nullptr || info == nullptr) {
-    png_destroy_write_struct(&png, nullptr);
-    std::fclose(f);
-    return absl::ResourceExhaustedError("montage: libpng could not allocate its state");
-  }
-  if (setjmp(png_jmpbuf(png))) {
-    png_destroy_write_struct(&png, &info);
-    std::fclose(f);
-    return absl::InternalError(absl::StrCat("montage: libpng failed writing ", path.string()));
-  }
-  png_init_io(png, f);
-  png_set_IHDR(png, info, width, height, 8, PNG_COLOR_TYPE_RGB, PNG_INTERLACE_NONE,
-               PNG_COMPRESSION_TYPE_DEFAULT, PNG_FILTER_TYPE_DEFAULT);
-  png_write_info(png, info);
-  for (int r = 0; r < height; ++r) {
-    png_write_row(png, const_cast<png_bytep>(rgb.data() + static_cast<size_t>(r) * width * 3));
-  }
-  png_write_end(png, nullptr);
-  png_destroy_write_struct(&png, &info);
-  if (std::fclose(f) != 0) {
-    return absl::ErrnoToStatus(errno, absl::StrCat("montage: cannot write ", path.string()));
-  }
-  return absl::OkStatus();
 }
 
 }  // namespace
@@ -185,7 +148,7 @@ absl::Status WriteSegmentationMontage(const Volume& image, const Volume& labels,
     }
     x0 += p.width + kGap;
   }
-  return WritePng(png, width, height, rgb);
+  return WritePng(png, width, height, 3, rgb.data());
 }
 
 }  // namespace decima
