@@ -8,7 +8,6 @@
 #include "core/io/io_util.h"
 #include "core/io/volume_io.h"
 
-
 namespace decima::io {
 namespace {
 

@@ -21,12 +21,12 @@ struct JobSpec {
   std::string series_instance_uid;  // DICOM: pick this series when the folder holds several
   // Segmentation: K regions (2..8) by the multiphase level set, or a label map on the same grid.
   int regions = 3;
-  std::vector<double> class_means;               // empty: estimated by k-means
+  std::vector<double> class_means;                 // empty: estimated by k-means
   std::optional<std::filesystem::path> label_map;  // replaces the level set when set
   // Simplification.
-  double target_reduction = 0.5;   // fraction of cells to remove, 0..0.95
-  std::string policy = "paper";    // "paper" or "tetfusion"
-  double error_tolerance = 0;      // 0 = no tolerance, stop on target only
+  double target_reduction = 0.5;          // fraction of cells to remove, 0..0.95
+  std::string policy = "paper";           // "paper" or "tetfusion"
+  double error_tolerance = 0;             // 0 = no tolerance, stop on target only
   std::map<std::string, double> weights;  // overrides of w_r, w_g, w_s, w_v, w_n by name
   // Rendering.
   std::vector<std::string> views{"anterior"};

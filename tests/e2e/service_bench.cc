@@ -116,8 +116,8 @@ int main(int argc, char** argv) {
       lat.push_back(SubmitAndWait(c, vol, false, &j) * 1000);
       job_s.push_back(JobSeconds(j));
     }
-    out["submit_to_running_ms"] = {{"p50", Median(lat)}, {"p90", Percentile(lat, 0.9)},
-                                   {"n", jobs}};
+    out["submit_to_running_ms"] = {
+        {"p50", Median(lat)}, {"p90", Percentile(lat, 0.9)}, {"n", jobs}};
     out["job_seconds_idle_p50"] = Median(job_s);
 
     // Watchers: 100 extra watch streams on each job vs none.
@@ -184,8 +184,8 @@ int main(int argc, char** argv) {
       if (!s.ok()) std::fprintf(stderr, "upload: %s\n", s.error_message().c_str());
       rates.push_back(files[0].size / 1e6 / secs);
     }
-    out[fsync ? "upload_mb_per_s_fsync" : "upload_mb_per_s_no_fsync"] = {
-        {"median", Median(rates)}, {"runs", rates}};
+    out[fsync ? "upload_mb_per_s_fsync" : "upload_mb_per_s_no_fsync"] = {{"median", Median(rates)},
+                                                                         {"runs", rates}};
   }
   fs::remove_all(scratch);
   std::printf("%s\n", out.dump(2).c_str());
