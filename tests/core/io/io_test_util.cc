@@ -1,5 +1,8 @@
 #include "tests/core/io/io_test_util.h"
 
+#include <gmock/gmock.h>
+#include <gtest/gtest.h>
+
 #include <zlib.h>
 
 #include <cmath>
@@ -10,6 +13,12 @@
 #include <Eigen/Geometry>
 
 namespace decima::io::testing {
+
+void ExpectError(const absl::Status& s, const std::filesystem::path& p, const std::string& what) {
+  ASSERT_FALSE(s.ok()) << "expected an error about " << what;
+  EXPECT_THAT(std::string(s.message()), ::testing::HasSubstr(p.string()));
+  EXPECT_THAT(std::string(s.message()), ::testing::HasSubstr(what));
+}
 
 namespace {
 template <typename T>

@@ -8,6 +8,7 @@
 #include <string>
 #include <vector>
 
+#include "absl/status/status.h"
 #include "core/volume/volume.h"
 
 namespace decima::io::testing {
@@ -16,6 +17,9 @@ namespace decima::io::testing {
 // spacing (0.5, 1.25, 3), origin (-12.5, 40.25, 7), direction a rotation about an oblique axis.
 // `left_handed` negates the third direction column.
 Volume PatternVolume(std::array<int64_t, 3> dims, VoxelType type, bool left_handed = false);
+
+// Asserts `s` is an error whose message names the file `p` and contains `what`.
+void ExpectError(const absl::Status& s, const std::filesystem::path& p, const std::string& what);
 
 std::vector<uint8_t> ReadAll(const std::filesystem::path& path);
 void WriteAll(const std::filesystem::path& path, const std::vector<uint8_t>& bytes);

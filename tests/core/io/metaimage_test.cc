@@ -15,17 +15,12 @@ namespace {
 namespace fs = std::filesystem;
 using testing::Compress;
 using testing::CorruptMiddle;
+using testing::ExpectError;
 using ::testing::HasSubstr;
 using testing::PatternVolume;
 using testing::ReadAll;
 using testing::WriteAll;
 using testing::WriteText;
-
-void ExpectError(const absl::Status& s, const fs::path& p, const std::string& what) {
-  ASSERT_FALSE(s.ok()) << "expected an error about " << what;
-  EXPECT_THAT(s.message(), HasSubstr(p.string()));
-  EXPECT_THAT(s.message(), HasSubstr(what));
-}
 
 std::vector<uint8_t> Bytes(const std::string& s) { return {s.begin(), s.end()}; }
 

@@ -15,6 +15,7 @@ namespace {
 namespace fs = std::filesystem;
 using testing::Compress;
 using testing::CorruptMiddle;
+using testing::ExpectError;
 using ::testing::HasSubstr;
 using testing::PatternVolume;
 using testing::Peek;
@@ -277,12 +278,6 @@ TEST(Nifti, WriterReplacesFilesAtomicallyAndRejectsBadNames) {
 }
 
 // ---- Broken input: each must fail with a message naming the file and the problem. ----
-
-void ExpectError(const absl::Status& s, const fs::path& p, const std::string& what) {
-  ASSERT_FALSE(s.ok()) << "expected an error about " << what;
-  EXPECT_THAT(s.message(), HasSubstr(p.string()));
-  EXPECT_THAT(s.message(), HasSubstr(what));
-}
 
 TEST(NiftiBroken, TruncatedData) {
   const fs::path dir = decima::testing::MakeScratchDir("nifti");

@@ -15,15 +15,10 @@ namespace {
 namespace fs = std::filesystem;
 using testing::Compress;
 using testing::CorruptMiddle;
+using testing::ExpectError;
 using ::testing::HasSubstr;
 using testing::WriteAll;
 using testing::WriteText;
-
-void ExpectError(const absl::Status& s, const fs::path& p, const std::string& what) {
-  ASSERT_FALSE(s.ok()) << "expected an error about " << what;
-  EXPECT_THAT(s.message(), HasSubstr(p.string()));
-  EXPECT_THAT(s.message(), HasSubstr(what));
-}
 
 // 12 int16 values -300, -200, ..., 800 in the given byte order.
 std::vector<uint8_t> ShortData(bool big_endian = false, int n = 12) {
