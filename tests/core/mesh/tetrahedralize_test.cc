@@ -1,4 +1,5 @@
 #include "core/mesh/tetrahedralize.h"
+#include "tests/testing/mesh_checks.h"
 
 #include <algorithm>
 #include <array>
@@ -20,22 +21,7 @@ Volume Ramp(std::array<int64_t, 3> dims, Eigen::Vector3d spacing = Eigen::Vector
   return *std::move(v);
 }
 
-// Counts how many tets use each face (vertex triple, sorted).
-std::map<std::array<int32_t, 3>, int> FaceUse(const TetMesh& m) {
-  std::map<std::array<int32_t, 3>, int> use;
-  for (int64_t t = 0; t < m.tet_count(); ++t) {
-    const int32_t* v = &m.tets[4 * t];
-    for (int skip = 0; skip < 4; ++skip) {
-      std::array<int32_t, 3> f;
-      int n = 0;
-      for (int q = 0; q < 4; ++q)
-        if (q != skip) f[n++] = v[q];
-      std::sort(f.begin(), f.end());
-      ++use[f];
-    }
-  }
-  return use;
-}
+using ::decima::testing::FaceUse;
 
 double BoxVolume(const Volume& v) {
   return (v.dims[0] - 1) * v.spacing[0] * (v.dims[1] - 1) * v.spacing[1] * (v.dims[2] - 1) *

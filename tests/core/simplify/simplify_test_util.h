@@ -12,6 +12,7 @@
 
 #include "core/mesh/tetrahedralize.h"
 #include "core/volume/phantom.h"
+#include "tests/testing/mesh_checks.h"
 
 namespace decima::testing {
 
@@ -61,22 +62,7 @@ inline PhantomMesh MakePhantomMesh(int64_t n, double noise_sigma, uint64_t seed 
   return out;
 }
 
-// Number of cells using each face (sorted vertex triple).
-inline std::map<std::array<int32_t, 3>, int> FaceUse(const TetMesh& m) {
-  std::map<std::array<int32_t, 3>, int> use;
-  for (int64_t t = 0; t < m.tet_count(); ++t) {
-    const int32_t* v = &m.tets[4 * t];
-    for (int skip = 0; skip < 4; ++skip) {
-      std::array<int32_t, 3> f;
-      int n = 0;
-      for (int q = 0; q < 4; ++q)
-        if (q != skip) f[n++] = v[q];
-      std::sort(f.begin(), f.end());
-      ++use[f];
-    }
-  }
-  return use;
-}
+using ::decima::testing::FaceUse;
 
 inline double TotalVolume(const TetMesh& m) {
   double total = 0;
