@@ -42,21 +42,6 @@ TetTemplate Oriented(TetTemplate t, bool flip) {
 
 }  // namespace
 
-uint8_t CellRegion(uint8_t a, uint8_t b, uint8_t c, uint8_t d) {
-  const uint8_t v[4] = {a, b, c, d};
-  uint8_t best = 255;
-  int best_count = 0;
-  for (int i = 0; i < 4; ++i) {
-    int count = 0;
-    for (int j = 0; j < 4; ++j) count += v[j] == v[i];
-    if (count > best_count || (count == best_count && v[i] < best)) {
-      best = v[i];
-      best_count = count;
-    }
-  }
-  return best;
-}
-
 absl::StatusOr<TetMesh> Tetrahedralize(const Volume& image, const TetrahedralizeOptions& options,
                                        const ProgressFn& progress, const CancelToken* cancel) {
   const int64_t nx = image.dims[0], ny = image.dims[1], nz = image.dims[2];

@@ -37,6 +37,21 @@ absl::StatusOr<TetMesh> Tetrahedralize(const Volume& image,
                                        const CancelToken* cancel = nullptr);
 
 // Region of a cell from its vertex labels: the most frequent label, ties to the smaller one.
-uint8_t CellRegion(uint8_t a, uint8_t b, uint8_t c, uint8_t d);
+// Inline: the simplifier's error terms ask for it for every scored cell.
+inline uint8_t CellRegion(uint8_t a, uint8_t b, uint8_t c, uint8_t d) {
+  if (a == b && b == c && c == d) return a;
+  const uint8_t v[4] = {a, b, c, d};
+  uint8_t best = 255;
+  int best_count = 0;
+  for (int i = 0; i < 4; ++i) {
+    int count = 0;
+    for (int j = 0; j < 4; ++j) count += v[j] == v[i];
+    if (count > best_count || (count == best_count && v[i] < best)) {
+      best = v[i];
+      best_count = count;
+    }
+  }
+  return best;
+}
 
 }  // namespace decima

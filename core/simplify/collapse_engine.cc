@@ -47,6 +47,9 @@ inline float KeyFloat(uint32_t key) {
 
 constexpr uint32_t kNotCandidate = 0xFFFFFFFFu;
 
+// Prefetch distances of the greedy loop, in queue entries.
+constexpr size_t kFarAhead = 16, kNearAhead = 8;
+
 // A way to delete τ: merge the vertices of τ in `mask` (two or more) into one point with
 // barycentric weights `w` (zero outside the mask). Row 0 of the free merges is the paper's
 // rule 1: all four at the centroid. The others widen it (README): all four at a face centroid,
@@ -188,17 +191,18 @@ CollapseEngine::CollapseEngine(TetMesh mesh, const SimplifyOptions& options, int
   // Adjacency rows (input CSR), star volumes and the cross-region marks.
   VertexTetAdjacency adjacency = BuildVertexTetAdjacency(mesh_);
   adj_ids_ = std::move(adjacency.tet_ids);
-  adj_begin_ = std::move(adjacency.offsets);
-  adj_count_.resize(nv);
-  for (int64_t v = 0; v < nv; ++v) adj_count_[v] = int32_t(adj_begin_[v + 1] - adj_begin_[v]);
-  star_volume_.assign(nv, 0.0);
-  valence_.resize(nv);
-  for (int64_t v = 0; v < nv; ++v) valence_[v] = adj_count_[v];
+  rows_.resize(nv);
+  star_.resize(nv);
+  for (int64_t v = 0; v < nv; ++v) {
+    const int64_t begin = adjacency.offsets[v], count = adjacency.offsets[v + 1] - begin;
+    rows_[v] = {int32_t(begin), int32_t(count), -1, int32_t(v)};
+    star_[v] = {0.0, int32_t(count), 0};
+  }
   cross_touch_.assign(nv, 0);
   const bool paper = options_.policy == SimplifyPolicy::kPaper;
   for (int64_t t = 0; t < nt; ++t) {
     const int32_t* tet = &mesh_.tets[4 * t];
-    for (int k = 0; k < 4; ++k) star_volume_[tet[k]] += cell_volume_[t];
+    for (int k = 0; k < 4; ++k) star_[tet[k]].star_volume += cell_volume_[t];
     if (paper && IsCrossRegionCell(tet)) {
       for (int k = 0; k < 4; ++k) cross_touch_[tet[k]] = 1;
     }
@@ -206,15 +210,11 @@ CollapseEngine::CollapseEngine(TetMesh mesh, const SimplifyOptions& options, int
 
   parent_.resize(nv);
   std::iota(parent_.begin(), parent_.end(), 0);
-  class_next_.assign(nv, -1);
-  class_tail_.resize(nv);
-  std::iota(class_tail_.begin(), class_tail_.end(), 0);
-  touched_.assign(nv, 0);
   dead_bits_.assign((nt + 63) / 64, 0);
   permanent_.assign(nt, 0);
   scored_at_.assign(nt, 0);
   rejected_at_.assign(nt, 0);
-  locked_round_.assign(nt, 0);
+  locked_bits_.assign((nt + 63) / 64, 0);
   live_cells_ = nt;
 }
 
@@ -235,11 +235,33 @@ bool CollapseEngine::IsCrossRegionCell(const int32_t* tet) const {
 
 uint32_t CollapseEngine::LastTouch(int32_t cell) const {
   const int32_t* t = &mesh_.tets[4 * int64_t(cell)];
-  return std::max(std::max(touched_[t[0]], touched_[t[1]]),
-                  std::max(touched_[t[2]], touched_[t[3]]));
+  return std::max(std::max(star_[t[0]].touched, star_[t[1]].touched),
+                  std::max(star_[t[2]].touched, star_[t[3]].touched));
 }
 
-float CollapseEngine::MergeError(const int32_t* tet, double volume, unsigned mask,
+CollapseEngine::PointFreeError CollapseEngine::PointFreeTerms(const int32_t* tet,
+                                                              double volume) const {
+  PointFreeError out;
+  out.region = CellRegion(mesh_.labels[tet[0]], mesh_.labels[tet[1]], mesh_.labels[tet[2]],
+                          mesh_.labels[tet[3]]);
+  out.e_r = 0;
+  if (options_.policy == SimplifyPolicy::kPaper) {
+    for (int k = 0; k < 4; ++k) {
+      const double d = mesh_.scalars[tet[k]] - region_mean_[out.region];
+      out.e_r += d * d;
+    }
+    out.e_r = 0.25 * out.e_r / region_var_[out.region];  // Eq. (5): δ_c / δ_N
+  }
+  out.e_v = std::abs(volume) / voxel_volume_;  // Eq. (7), voxels^3
+  // Eq. (7) ε_n: neighbourhood volume from the vertex stars (a cell sharing k vertices with τ
+  // counts k times; τ itself is excluded).
+  double neighbourhood = -4.0 * volume;
+  for (int k = 0; k < 4; ++k) neighbourhood += star_[tet[k]].star_volume;
+  out.e_n = neighbourhood > 1e-12 * voxel_volume_ ? std::abs(volume) / neighbourhood : 1;
+  return out;
+}
+
+float CollapseEngine::MergeError(const int32_t* tet, const PointFreeError& base, unsigned mask,
                                  const double* w) const {
   const ErrorWeights& ew = options_.weights;
   const float* P = mesh_.positions.data();
@@ -250,28 +272,17 @@ float CollapseEngine::MergeError(const int32_t* tet, double volume, unsigned mas
     s_new += w[k] * s[k];  // the linear field of τ at the point (§2.2.3.2's s'_n)
   }
   const bool paper = options_.policy == SimplifyPolicy::kPaper;
-  const uint8_t region = CellRegion(mesh_.labels[tet[0]], mesh_.labels[tet[1]],
-                                    mesh_.labels[tet[2]], mesh_.labels[tet[3]]);
-  double e_r = 0, e_g = 0, e_s = 0;
+  double e_g = 0, e_s = 0;
   for (int k = 0; k < 4; ++k) {
-    const double d = s[k] - region_mean_[region];
-    e_r += d * d;
     if (!(mask & (1u << k))) continue;  // a vertex that is not merged keeps its value and place
     e_g += std::abs(s[k] - s_new);
     const double dx = P[3 * tet[k]] - px, dy = P[3 * tet[k] + 1] - py, dz = P[3 * tet[k] + 2] - pz;
     e_s += std::sqrt(dx * dx + dy * dy + dz * dz);
   }
-  e_r = paper ? 0.25 * e_r / region_var_[region] : 0;              // Eq. (5): δ_c / δ_N
-  e_g = 0.25 * e_g / (paper ? region_std_[region] : global_std_);  // Eq. (6)
-  e_s = 0.25 * e_s / voxel_;                                       // Eq. (7), voxels
-  const double e_v = std::abs(volume) / voxel_volume_;             // Eq. (7), voxels^3
-  // Eq. (7) ε_n: neighbourhood volume from the vertex stars (a cell sharing k vertices with τ
-  // counts k times; τ itself is excluded).
-  double neighbourhood = -4.0 * volume;
-  for (int k = 0; k < 4; ++k) neighbourhood += star_volume_[tet[k]];
-  const double e_n = neighbourhood > 1e-12 * voxel_volume_ ? std::abs(volume) / neighbourhood : 1;
-  return float(ew.regional * e_r + ew.gradient * e_g + ew.shape * e_s + ew.volume * e_v +
-               ew.neighbour * e_n);
+  e_g = 0.25 * e_g / (paper ? region_std_[base.region] : global_std_);  // Eq. (6)
+  e_s = 0.25 * e_s / voxel_;                                            // Eq. (7), voxels
+  return float(ew.regional * base.e_r + ew.gradient * e_g + ew.shape * e_s + ew.volume * base.e_v +
+               ew.neighbour * base.e_n);
 }
 
 int CollapseEngine::BestSlot(const int32_t* tet, unsigned mask) const {
@@ -374,16 +385,20 @@ void CollapseEngine::GatherNeighbours(int32_t cell) {
   // 1. The live cells around τ's vertices: walk the merge class of each vertex, dropping dead
   //    cells from the rows (and emptied rows from the class) as we go.
   gather_ids_.clear();
+  for (int k = 0; k < 4; ++k) __builtin_prefetch(&rows_[tet[k]]);
+  for (int k = 0; k < 4; ++k) __builtin_prefetch(&adj_ids_[rows_[tet[k]].begin]);
   int32_t begin[5] = {0, 0, 0, 0, 0};
   for (int k = 0; k < 4; ++k) {
     int32_t prev = -1;
     for (int32_t m = tet[k]; m >= 0;) {
-      const int64_t b = adj_begin_[m];
-      int32_t n = adj_count_[m];
+      VertexRow& row = rows_[m];
+      if (row.class_next >= 0) __builtin_prefetch(&rows_[row.class_next]);
+      int32_t* ids = &adj_ids_[row.begin];
+      int32_t n = row.count;
       for (int32_t i = 0; i < n;) {
-        const int32_t c = adj_ids_[b + i];
+        const int32_t c = ids[i];
         if (IsDead(c)) {
-          adj_ids_[b + i] = adj_ids_[b + n - 1];
+          ids[i] = ids[n - 1];
           --n;
           continue;
         }
@@ -392,11 +407,11 @@ void CollapseEngine::GatherNeighbours(int32_t cell) {
         __builtin_prefetch(&mesh_.tets[4 * int64_t(c)]);
         gather_ids_.push_back(c);
       }
-      adj_count_[m] = n;
-      const int32_t next = class_next_[m];
+      row.count = n;
+      const int32_t next = row.class_next;
       if (n == 0 && prev >= 0) {
-        class_next_[prev] = next;  // unlink the emptied row (never the class root)
-        if (next < 0) class_tail_[tet[k]] = prev;
+        rows_[prev].class_next = next;  // unlink the emptied row (never the class root)
+        if (next < 0) rows_[tet[k]].class_tail = prev;
       } else {
         prev = m;
       }
@@ -509,7 +524,7 @@ bool CollapseEngine::OrphansPinnedVertex(unsigned mask, int fixed_slot) const {
         if (used == 64) return true;  // too many to track: be conservative
         ids[used] = v, counts[used++] = 0;
       }
-      if (++counts[i] >= valence_[v]) return true;
+      if (++counts[i] >= star_[v].valence) return true;
     }
     return false;
   };
@@ -527,7 +542,7 @@ CollapseResult CollapseEngine::TryCollapse(int32_t cell, float next_key) {
     result.outcome = Outcome::kDead;
     return result;
   }
-  if (options_.lock_neighbours && locked_round_[cell] == round_) {
+  if (options_.lock_neighbours && IsLocked(cell)) {
     result.outcome = Outcome::kLocked;
     return result;
   }
@@ -632,13 +647,14 @@ CollapseResult CollapseEngine::TryCollapse(int32_t cell, float next_key) {
     const std::vector<Merge>& free = FreeMerges();
     std::pair<float, int> alternatives[64];
     int count = 0;
+    const PointFreeError base = PointFreeTerms(tet, volume);
     if (slot < 0) {
       for (int i = 1; i < int(free.size()); ++i)
-        alternatives[count++] = {MergeError(tet, volume, free[i].mask, free[i].w), i};
+        alternatives[count++] = {MergeError(tet, base, free[i].mask, free[i].w), i};
     } else {
       for (unsigned m = 1; m < 0xF; ++m) {  // merges of 2 or 3 vertices holding `slot`
         if (!(m & (1u << slot)) || std::popcount(m) < 2) continue;
-        alternatives[count++] = {MergeError(tet, volume, m, kVertexWeights[slot]), -int(m)};
+        alternatives[count++] = {MergeError(tet, base, m, kVertexWeights[slot]), -int(m)};
       }
     }
     std::sort(alternatives, alternatives + count);
@@ -698,9 +714,9 @@ CollapseResult CollapseEngine::TryCollapse(int32_t cell, float next_key) {
         ++removed;
         for (int j = 0; j < 4; ++j) {
           if (is_merged(other[j])) continue;
-          --valence_[other[j]];
-          star_volume_[other[j]] -= cell_volume_[n.cell];
-          touched_[other[j]] = clock_;
+          --star_[other[j]].valence;
+          star_[other[j]].star_volume -= cell_volume_[n.cell];
+          star_[other[j]].touched = clock_;
         }
         continue;
       }
@@ -711,31 +727,31 @@ CollapseResult CollapseEngine::TryCollapse(int32_t cell, float next_key) {
         other[n.pos[k]] = survivor;
         cell_volume_[n.cell] = float(after);
         for (int j = 0; j < 4; ++j) {
-          if (j != n.pos[k]) star_volume_[other[j]] += after - before;
+          if (j != n.pos[k]) star_[other[j]].star_volume += after - before;
         }
-        if (options_.lock_neighbours) locked_round_[n.cell] = round_;  // §2.2.4 step 2g
+        if (options_.lock_neighbours) Lock(n.cell);  // §2.2.4 step 2g
       }
       survivor_star += cell_volume_[n.cell];
       ++survivor_valence;
-      for (int j = 0; j < 4; ++j) touched_[other[j]] = clock_;
+      for (int j = 0; j < 4; ++j) star_[other[j]].touched = clock_;
     }
   }
   if (slot < 0) std::copy_n(p, 3, &mesh_.positions[3 * int64_t(survivor)]);
-  star_volume_[survivor] = survivor_star;
-  valence_[survivor] = survivor_valence;
+  star_[survivor].star_volume = survivor_star;
+  star_[survivor].valence = survivor_valence;
   for (int k = 0; k < 4; ++k) {
     const int32_t v = tet[k];
-    touched_[v] = clock_;
+    star_[v].touched = clock_;
     if (v == survivor || !(mask & (1u << k))) continue;
     parent_[v] = survivor;
-    class_next_[class_tail_[survivor]] = v;
-    class_tail_[survivor] = class_tail_[v];
+    rows_[rows_[survivor].class_tail].class_next = v;
+    rows_[survivor].class_tail = rows_[v].class_tail;
   }
   // Vertices of τ that were not merged lose τ from their stars.
   for (int k = 0; k < 4; ++k) {
     if (mask & (1u << k)) continue;
-    star_volume_[tet[k]] -= volume;
-    --valence_[tet[k]];
+    star_[tet[k]].star_volume -= volume;
+    --star_[tet[k]].valence;
   }
   Kill(cell);
   result.cells_removed = removed;
@@ -748,8 +764,8 @@ CollapseResult CollapseEngine::TryCollapse(int32_t cell, float next_key) {
 }
 
 int64_t CollapseEngine::BeginRound(int threads) {
-  ++round_;
   heap_.clear();
+  std::fill(locked_bits_.begin(), locked_bits_.end(), 0);
   const int64_t nt = mesh_.tet_count();
   keys_.resize(nt);
   ParallelFor(nt, threads, kCellChunk, [&](int64_t b, int64_t e) {
@@ -814,6 +830,23 @@ absl::Status CollapseEngine::RunRound(int64_t max_removed, double tolerance,
     if (i < n && (heap_.empty() || std::make_pair(order_keys_[i], order_[i]) < heap_.front())) {
       key = order_keys_[i];
       cell = order_[i++];
+      // The queue is in error order, so its cells are scattered in memory: fetch the cells a
+      // few places ahead, then their vertices, while this one is worked on.
+      if (i + kFarAhead < n) {
+        const int32_t far = order_[i + kFarAhead];
+        if (!IsDead(far)) __builtin_prefetch(&mesh_.tets[4 * int64_t(far)]);
+      }
+      if (i + kNearAhead < n) {
+        const int32_t near = order_[i + kNearAhead];
+        if (!IsDead(near) && !IsLocked(near)) {
+          const int32_t* t = &mesh_.tets[4 * int64_t(near)];
+          for (int k = 0; k < 4; ++k) {
+            __builtin_prefetch(&star_[t[k]]);
+            __builtin_prefetch(&rows_[t[k]]);
+          }
+          __builtin_prefetch(&scored_at_[near]);
+        }
+      }
     } else if (!heap_.empty()) {
       std::pop_heap(heap_.begin(), heap_.end(), std::greater<>());
       std::tie(key, cell) = heap_.back();
@@ -821,7 +854,7 @@ absl::Status CollapseEngine::RunRound(int64_t max_removed, double tolerance,
     } else {
       break;
     }
-    if (IsDead(cell) || (options_.lock_neighbours && locked_round_[cell] == round_)) continue;
+    if (IsDead(cell) || (options_.lock_neighbours && IsLocked(cell))) continue;
     if (tolerance > 0 && KeyFloat(key) > tolerance) {
       stats->tolerance_hit = true;
       break;

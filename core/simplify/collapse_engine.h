@@ -8,12 +8,12 @@
 //    the vertex it merged into).
 //  - The cells around a live vertex v are the live cells among the adjacency rows of every
 //    vertex of v's merge class (v itself and the vertices merged into it, linked by
-//    class_next_). Rows are compacted lazily: a walk drops the dead cells it meets. A live cell
-//    appears exactly once among them (a cell holding two members of one class would be
+//    VertexRow::class_next). Rows are compacted lazily: a walk drops the dead cells it meets. A
+//    live cell appears exactly once among them (a cell holding two members of one class would be
 //    degenerate, and those are deleted).
-//  - cell_volume_ holds the current volume of every live cell, star_volume_ the sum over the
-//    live cells around every live vertex (both updated by each collapse).
-//  - touched_[v] is the clock value of the last collapse that changed a cell around v;
+//  - cell_volume_ holds the current volume of every live cell, VertexStar::star_volume the
+//    sum over the live cells around every live vertex (both updated by each collapse).
+//  - star_[v].touched is the clock value of the last collapse that changed a cell around v;
 //    scored_at_[c] / rejected_at_[c] the clock when c's error was computed / c was rejected.
 #pragma once
 
@@ -120,13 +120,25 @@ class CollapseEngine {
   }
   bool IsDead(int32_t c) const { return (dead_bits_[c >> 6] >> (c & 63)) & 1; }
   void Kill(int32_t c) { dead_bits_[c >> 6] |= uint64_t{1} << (c & 63); }
+  bool IsLocked(int32_t c) const { return (locked_bits_[c >> 6] >> (c & 63)) & 1; }
+  void Lock(int32_t c) { locked_bits_[c >> 6] |= uint64_t{1} << (c & 63); }
   bool IsCrossRegionCell(const int32_t* tet) const;
   double CellVolume(const int32_t* tet) const;
   uint32_t LastTouch(int32_t cell) const;
+  // The terms of Eq. (8) that do not depend on the collapse point (ε_r, ε_v, ε_n).
+  struct PointFreeError {
+    uint8_t region;
+    double e_r, e_v, e_n;
+  };
+  PointFreeError PointFreeTerms(const int32_t* tet, double volume) const;
   // Δε (Eq. 8) of deleting `tet` (of signed volume `volume`) by merging its vertices in `mask`
   // into the point with barycentric weights `w` (sum 1, zero outside the mask). ε_g and ε_s
   // sum over the merged vertices only (the others keep their value and place).
-  float MergeError(const int32_t* tet, double volume, unsigned mask, const double* w) const;
+  float MergeError(const int32_t* tet, const PointFreeError& base, unsigned mask,
+                   const double* w) const;
+  float MergeError(const int32_t* tet, double volume, unsigned mask, const double* w) const {
+    return MergeError(tet, PointFreeTerms(tet, volume), mask, w);
+  }
   // Lowest ω_g ε_g + ω_s ε_s among the slots in `mask`, ties to the lower vertex id.
   int BestSlot(const int32_t* tet, unsigned mask) const;
   // Fills a_set_ / d_set_ with the live cells around τ's vertices.
@@ -143,7 +155,6 @@ class CollapseEngine {
   TetMesh mesh_;
   SimplifyOptions options_;
   double voxel_ = 1, voxel_volume_ = 1, min_volume_ = 0;
-  int round_ = 0;
   // Region statistics of the input (Eq. 5): mean and variance per label.
   double region_mean_[256] = {}, region_var_[256] = {}, region_std_[256] = {};
   double global_std_ = 1;  // of all input values: ε_g's unit for TetFusion
@@ -151,22 +162,31 @@ class CollapseEngine {
   uint32_t clock_ = 1;  // collapses made + 1
 
   // Per vertex.
-  std::vector<int32_t> parent_;      // itself, or the vertex it merged into
-  std::vector<int32_t> class_next_;  // next member of the merge class, -1 at the end
-  std::vector<int32_t> class_tail_;  // last member (valid for live vertices)
-  std::vector<int64_t> adj_begin_;   // adjacency row start (input CSR)
-  std::vector<int32_t> adj_count_;   // live prefix length of the row after compaction
+  std::vector<int32_t> parent_;  // itself, or the vertex it merged into
+  // Per-vertex state in two 16-byte records, each read together: collapses and the walks of
+  // the cells around a vertex are bound by memory latency.
+  struct VertexRow {     // what a walk of the cells around a vertex reads
+    int32_t begin;       // adjacency row start in adj_ids_ (input CSR; 4 * cells fits int32)
+    int32_t count;       // live prefix length of the row after compaction
+    int32_t class_next;  // next member of the merge class, -1 at the end
+    int32_t class_tail;  // last member (valid for live vertices)
+  };
+  struct VertexStar {    // what a collapse updates around the vertices it changes
+    double star_volume;  // sum of the volumes of the live cells around the vertex
+    int32_t valence;     // live cells around the vertex
+    uint32_t touched;    // clock of the last collapse that changed a cell around the vertex
+  };
+  std::vector<VertexRow> rows_;
+  std::vector<VertexStar> star_;
   std::vector<int32_t> adj_ids_;
-  std::vector<double> star_volume_;
-  std::vector<int32_t> valence_;      // live cells around the vertex
   std::vector<uint8_t> cross_touch_;  // in a cross-region cell at set-up (a superset later)
-  std::vector<uint32_t> touched_;
   // Per cell.
   std::vector<uint64_t> dead_bits_;  // a bit set: 1/8 of the memory, so it stays in cache
   std::vector<uint8_t> permanent_;   // an IsPermanent outcome: never queued again
   std::vector<float> cell_volume_;
   std::vector<uint32_t> scored_at_, rejected_at_;
-  std::vector<int32_t> locked_round_;  // paper mode: round in which the cell was locked
+  std::vector<uint64_t>
+      locked_bits_;  // paper mode: locked in this round (a bit set, as dead_bits_)
 
   // The round's queue: cells sorted by (key, id), then a min-heap of re-pushed (key, id).
   std::vector<int32_t> order_;

@@ -73,6 +73,10 @@ absl::Status ValidateMesh(const TetMesh& m) {
                             m.vertex_flags.size(), " flags"));
   }
   if (m.tets.size() % 4 != 0) return bad("tets size is not a multiple of 4");
+  if (m.tets.size() > size_t(std::numeric_limits<int32_t>::max())) {
+    return bad(absl::StrCat("has ", nt, " cells; at most ", std::numeric_limits<int32_t>::max() / 4,
+                            " are supported (4 * cells must fit int32 indexes)"));
+  }
   for (float x : m.positions) {
     if (!std::isfinite(x)) return bad("has a non-finite vertex position");
   }
