@@ -8,8 +8,11 @@
 // axis, where the parabolas are rooted at half-integer positions and evaluated at the integer
 // voxel positions; the minimum over the three lattices is the answer. Cost: 9 linear passes
 // per metric, one scratch float per voxel.
+#include <algorithm>
+#include <array>
 #include <cmath>
 #include <limits>
+#include <vector>
 
 #include "absl/strings/str_cat.h"
 #include "core/segment/internal.h"
@@ -75,9 +78,15 @@ void Envelope1D(const double* f, int64_t nin, double offset, double w, float* ou
   }
 }
 
-// Squared distance to the face centres of lattice `a`, min-combined into d2 (dims).
+}  // namespace
+
+namespace segment_internal {
+
+// Squared distance to the face centres of lattice `a`, min-combined into d2 (dims). The faces
+// are those between two different labels, or with region >= 0 those between region and the
+// rest.
 void ShiftedLatticeEdt(const uint8_t* labels, const std::array<int64_t, 3>& dims, int a,
-                       const double w[3], std::vector<float>& g, std::vector<float>& d2,
+                       const double w[3], int region, std::vector<float>& g, float* d2,
                        int threads) {
   std::array<int64_t, 3> ld = dims;
   ld[a] -= 1;
@@ -90,7 +99,8 @@ void ShiftedLatticeEdt(const uint8_t* labels, const std::array<int64_t, 3>& dims
     for (int64_t jj = 0; jj < ld[1]; ++jj) {
       for (int64_t ii = 0; ii < ld[0]; ++ii) {
         const int64_t x = ii + dims[0] * (jj + dims[1] * kk);
-        const bool differ = labels[x] != labels[x + stride[a]];
+        const uint8_t l0 = labels[x], l1 = labels[x + stride[a]];
+        const bool differ = region < 0 ? l0 != l1 : (l0 == region) != (l1 == region);
         g[ii + ld[0] * (jj + ld[1] * kk)] = differ ? 0.0f : kInf;
       }
     }
@@ -124,7 +134,147 @@ void ShiftedLatticeEdt(const uint8_t* labels, const std::array<int64_t, 3>& dims
   pass(a, true);
 }
 
+namespace {
+
+// The voxels of a volume seen along one axis: `outer` slabs of `len` rows of `inner`
+// contiguous floats (inner = the axis stride). Along x rows are single voxels, so the passes
+// below take lines there instead of rows.
+struct AxisRows {
+  int64_t outer, len, inner;
+};
+AxisRows RowsAlong(const std::array<int64_t, 3>& dims, int axis) {
+  const int64_t inner = axis == 0 ? 1 : (axis == 1 ? dims[0] : dims[0] * dims[1]);
+  return {dims[0] * dims[1] * dims[2] / (inner * dims[axis]), dims[axis], inner};
+}
+
+// Runs f(slab, column begin, column end) over the slabs and column chunks of `rows` in
+// parallel; along x (inner == 1) a work item is a run of whole lines instead.
+template <typename F>
+void ForColumnChunks(const AxisRows& rows, int threads, F&& f) {
+  constexpr int64_t kChunk = 2048;
+  const int64_t chunks = (rows.inner + kChunk - 1) / kChunk;
+#pragma omp parallel for schedule(dynamic, 1) num_threads(threads)
+  for (int64_t w = 0; w < rows.outer * chunks; ++w) {
+    const int64_t slab = w / chunks, c0 = (w % chunks) * kChunk;
+    f(slab, c0, std::min(rows.inner, c0 + kChunk));
+  }
+}
+
+// g = squared distance along `axis` (weight h^2) to the nearest face between `region` and the
+// rest on the same line, +inf beyond `clamp`.
+void LineFaceDistance(const uint8_t* labels, const std::array<int64_t, 3>& dims, int axis, double h,
+                      int region, float clamp, float* g, int threads) {
+  const AxisRows rows = RowsAlong(dims, axis);
+  const float step = static_cast<float>(h);
+  // One line along x, or the columns [c0, c1) of the rows of a slab along y or z: stride
+  // `along` between positions, `across` between neighbouring lines.
+  auto run = [&](int64_t base, int64_t along, int64_t across, int64_t lines) {
+    std::vector<float> back(lines);
+    auto in = [&](int64_t x) { return labels[x] == region; };
+    // Forward: distance to the nearest face before p (in g); backward: after p (in back).
+    for (int64_t c = 0; c < lines; ++c) g[base + c * across] = kInf;
+    for (int64_t p = 1; p < rows.len; ++p)
+      for (int64_t c = 0; c < lines; ++c) {
+        const int64_t x = base + p * along + c * across;
+        g[x] = in(x - along) != in(x) ? 0.5f * step : g[x - along] + step;
+      }
+    std::fill(back.begin(), back.end(), kInf);
+    for (int64_t p = rows.len - 1; p >= 0; --p)
+      for (int64_t c = 0; c < lines; ++c) {
+        const int64_t x = base + p * along + c * across;
+        if (p + 1 < rows.len) back[c] = in(x) != in(x + along) ? 0.5f * step : back[c] + step;
+        const float d = std::min(g[x], back[c]);
+        g[x] = d <= clamp ? d * d : kInf;
+      }
+  };
+  if (axis == 0) {
+#pragma omp parallel for schedule(static) num_threads(threads)
+    for (int64_t line = 0; line < rows.outer; ++line) run(line * rows.len, 1, 0, 1);
+  } else {
+    ForColumnChunks(rows, threads, [&](int64_t slab, int64_t c0, int64_t c1) {
+      run(slab * rows.len * rows.inner + c0, rows.inner, 1, c1 - c0);
+    });
+  }
+}
+
+// In place along `axis`: g(p) = min over |t| <= reach of g(p + t) + (t h)^2, where
+// reach = floor(clamp / h): values beyond the clamp are not needed.
+void WindowMin(const std::array<int64_t, 3>& dims, int axis, double h, float clamp, float* g,
+               int threads) {
+  const AxisRows rows = RowsAlong(dims, axis);
+  const int64_t reach = std::min<int64_t>(static_cast<int64_t>(clamp / h), rows.len - 1);
+  if (reach <= 0) return;
+  std::vector<float> add(reach + 1);
+  for (int64_t t = 0; t <= reach; ++t) add[t] = static_cast<float>(t * t * h * h);
+  if (axis == 0) {
+#pragma omp parallel num_threads(threads)
+    {
+      std::vector<float> line(rows.len);
+#pragma omp for schedule(static)
+      for (int64_t l = 0; l < rows.outer; ++l) {
+        float* row = g + l * rows.len;
+        std::copy(row, row + rows.len, line.begin());
+        for (int64_t p = 0; p < rows.len; ++p) {
+          float best = line[p];
+          for (int64_t t = 1; t <= reach; ++t) {
+            if (p - t >= 0) best = std::min(best, line[p - t] + add[t]);
+            if (p + t < rows.len) best = std::min(best, line[p + t] + add[t]);
+          }
+          row[p] = best;
+        }
+      }
+    }
+    return;
+  }
+  ForColumnChunks(rows, threads, [&](int64_t slab, int64_t c0, int64_t c1) {
+    const int64_t width = c1 - c0, base = slab * rows.len * rows.inner + c0;
+    // Ring of the original values of the last `reach` rows (they are overwritten in place).
+    std::vector<float> ring(reach * width), out(width);
+    for (int64_t p = 0; p < rows.len; ++p) {
+      float* row = g + base + p * rows.inner;
+      for (int64_t c = 0; c < width; ++c) out[c] = row[c];
+      for (int64_t t = 1; t <= reach; ++t) {
+        if (p - t >= 0) {
+          const float* before = &ring[((p - t) % reach) * width];
+          for (int64_t c = 0; c < width; ++c) out[c] = std::min(out[c], before[c] + add[t]);
+        }
+        if (p + t < rows.len) {
+          const float* after = g + base + (p + t) * rows.inner;
+          for (int64_t c = 0; c < width; ++c) out[c] = std::min(out[c], after[c] + add[t]);
+        }
+      }
+      std::copy(row, row + width, &ring[(p % reach) * width]);
+      std::copy(out.begin(), out.end(), row);
+    }
+  });
+}
+
 }  // namespace
+
+void RegionSignedDistance(const uint8_t* labels, const std::array<int64_t, 3>& dims,
+                          const double h[3], int region, float clamp, float* phi, int threads) {
+  const int64_t n = dims[0] * dims[1] * dims[2];
+  std::fill(phi, phi + n, kInf);
+  std::vector<float> g(n);
+  // Per face lattice (faces normal to axis a): the 1D distance along a, then the windowed
+  // minimum along the two other axes (the separable squared distance, bounded by the clamp).
+  for (int a = 0; a < 3; ++a) {
+    if (dims[a] < 2) continue;
+    LineFaceDistance(labels, dims, a, h[a], region, clamp, g.data(), threads);
+    for (int b = 0; b < 3; ++b)
+      if (b != a && dims[b] > 1) WindowMin(dims, b, h[b], clamp, g.data(), threads);
+#pragma omp parallel for schedule(static) num_threads(threads)
+    for (int64_t x = 0; x < n; ++x) phi[x] = std::min(phi[x], g[x]);
+  }
+  const float c2 = clamp * clamp;
+#pragma omp parallel for schedule(static) num_threads(threads)
+  for (int64_t x = 0; x < n; ++x) {
+    const float d = phi[x] < c2 ? std::sqrt(phi[x]) : clamp;
+    phi[x] = labels[x] == region ? d : -d;
+  }
+}
+
+}  // namespace segment_internal
 
 absl::Status ComputeInterfaceDistance(const Volume& labels, std::vector<float>* voxels,
                                       std::vector<float>* mm, int threads,
@@ -160,7 +310,7 @@ absl::Status ComputeInterfaceDistance(const Volume& labels, std::vector<float>* 
       if (labels.dims[a] < 2) continue;
       DECIMA_RETURN_IF_ERROR(CheckCancelled(cancel, "segment"));
       g.resize(n / labels.dims[a] * (labels.dims[a] - 1));
-      ShiftedLatticeEdt(lab, labels.dims, a, w, g, *out, nt);
+      segment_internal::ShiftedLatticeEdt(lab, labels.dims, a, w, -1, g, out->data(), nt);
     }
     float* o = out->data();
 #pragma omp parallel for schedule(static) num_threads(nt)

@@ -2,6 +2,7 @@
 #pragma once
 
 #include <algorithm>
+#include <array>
 #include <cstdint>
 #include <thread>
 #include <vector>
@@ -35,6 +36,19 @@ void AssignNearest(const float* v, int64_t n, const std::vector<double>& means, 
 // Pooled within-class variance sum_x (v_x - means[labels_x])^2 / n.
 double PooledVariance(const float* v, int64_t n, const uint8_t* labels,
                       const std::vector<double>& means);
+
+// Squared Euclidean distance from every voxel centre to the nearest centre of a voxel face
+// normal to axis `a` that separates two labels (region < 0) or region from the rest, with
+// per-axis weights w = spacing^2, min-combined into d2. `g` is scratch.
+void ShiftedLatticeEdt(const uint8_t* labels, const std::array<int64_t, 3>& dims, int a,
+                       const double w[3], int region, std::vector<float>& g, float* d2,
+                       int threads);
+
+// phi = the signed distance (positive inside `region`) from every voxel centre to the faces
+// between `region` and the rest, in units where the spacing is h, clamped to +-clamp. Exact
+// Euclidean; one scratch float per voxel.
+void RegionSignedDistance(const uint8_t* labels, const std::array<int64_t, 3>& dims,
+                          const double h[3], int region, float clamp, float* phi, int threads);
 
 // Fills region_voxels and region_volumes_mm3 of `result` from result->labels (K regions).
 void CountRegions(int k, SegmentResult* result);

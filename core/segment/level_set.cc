@@ -9,12 +9,12 @@
 //  - only voxels with |phi_i| < alpha move (delta_alpha vanishes elsewhere), so between two
 //    re-initializations an interface moves at most about alpha and stays inside the band;
 //  - s0/s1/s2 hold sum_x H(phi_i) * (1, I, I^2) over the whole grid, updated incrementally by
-//    every write to phi_i; they give the class means c_i and the fitting energy without a pass
-//    over the volume.
+//    every evolution step and recomputed after each re-initialization; they give the class
+//    means c_i without a pass over the volume per iteration.
 // Determinism: every parallel loop writes disjoint voxels and its per-block partial sums are
 // added in block order, so results do not depend on the thread count or schedule.
 #include <algorithm>
-#include <atomic>
+#include <array>
 #include <cmath>
 #include <cstdio>
 #include <cstdlib>
@@ -38,9 +38,10 @@ struct Grid {
   int64_t n[3];
   int64_t stride[3];
   int64_t count;
-  double h[3];     // spacing in voxel units (spacing / smallest spacing of a non-flat axis)
-  bool active[3];  // axis has more than one voxel
-  int64_t nb[3];   // blocks per axis
+  double h[3];  // spacing in voxel units (spacing / smallest spacing of a non-flat axis)
+  double inv_h[3], inv_4h[3], inv_h2[3];  // 1 / h, 1 / (4 h), 1 / h^2: the stencils multiply
+  bool active[3];                         // axis has more than one voxel
+  int64_t nb[3];                          // blocks per axis
   int64_t block_count;
 };
 
@@ -55,6 +56,9 @@ Grid MakeGrid(const Volume& image) {
   if (!std::isfinite(hmin)) hmin = image.spacing.minCoeff();
   for (int c = 0; c < 3; ++c) {
     g.h[c] = image.spacing[c] / hmin;
+    g.inv_h[c] = 1.0 / g.h[c];
+    g.inv_4h[c] = 0.25 / g.h[c];
+    g.inv_h2[c] = 1.0 / (g.h[c] * g.h[c]);
     g.nb[c] = (g.n[c] + kBlock - 1) / kBlock;
   }
   g.stride[0] = 1;
@@ -140,6 +144,9 @@ inline Offsets NeighbourOffsets(const Grid& g, int64_t i, int64_t j, int64_t k) 
 // extrema (a one-voxel island has curvature -2 per axis), which is what removes noise specks.
 inline double Curvature(const float* phi, const Grid& g, int64_t x, const Offsets& o) {
   constexpr double kEps = 1e-6;
+  // x's central differences along every axis, shared by the four faces across the other axes.
+  double across_x[3];
+  for (int b = 0; b < 3; ++b) across_x[b] = double(phi[x + o.p[b]]) - phi[x + o.m[b]];
   double kappa = 0.0;
   for (int a = 0; a < 3; ++a) {
     if (!g.active[a]) continue;
@@ -151,19 +158,18 @@ inline double Curvature(const float* phi, const Grid& g, int64_t x, const Offset
         continue;
       }
       const int64_t y = x + off;
-      const double ga = side ? (phi[y] - phi[x]) / g.h[a] : (phi[x] - phi[y]) / g.h[a];
+      const double ga = (side ? double(phi[y]) - phi[x] : double(phi[x]) - phi[y]) * g.inv_h[a];
       double n2 = ga * ga;
       for (int b = 0; b < 3; ++b) {
         if (b == a || !g.active[b]) continue;
         // Central difference along b averaged over the two voxels of the face (y differs from
         // x only along a, so x's clamped offsets along b are y's too).
-        const double gb = (phi[x + o.p[b]] - phi[x + o.m[b]] + phi[y + o.p[b]] - phi[y + o.m[b]]) /
-                          (4.0 * g.h[b]);
+        const double gb = (across_x[b] + (double(phi[y + o.p[b]]) - phi[y + o.m[b]])) * g.inv_4h[b];
         n2 += gb * gb;
       }
       face_normal[side] = ga / (std::sqrt(n2) + kEps);
     }
-    kappa += (face_normal[1] - face_normal[0]) / g.h[a];
+    kappa += (face_normal[1] - face_normal[0]) * g.inv_h[a];
   }
   return kappa;
 }
@@ -181,40 +187,113 @@ struct Context {
   std::vector<double> nu, e, c;
   const float* image = nullptr;
   uint8_t* labels = nullptr;
-  std::vector<uint8_t> accepted;  // fast-marching "accepted" flag: bit i for level set i
   std::vector<LevelSet> ls;
   std::vector<double> region_sums;  // per label: voxels, sum I, sum I^2 (3 K values)
   int threads = 1;
   std::unique_ptr<SmoothedStep> step;
 };
 
-inline bool TestBit(const uint8_t& byte, uint8_t bit) {
-  return std::atomic_ref<const uint8_t>(byte).load(std::memory_order_relaxed) & bit;
-}
-inline void SetBit(uint8_t& byte, uint8_t bit) {
-  std::atomic_ref<uint8_t>(byte).fetch_or(bit, std::memory_order_relaxed);
-}
-inline void ClearBit(uint8_t& byte, uint8_t bit) {
-  std::atomic_ref<uint8_t>(byte).fetch_and(static_cast<uint8_t>(~bit), std::memory_order_relaxed);
+// One bit per voxel: the fast-marching "accepted" flags of one level set. Each level set has its
+// own, so the K marches running in parallel never write to the same cache line.
+class BitSet {
+ public:
+  explicit BitSet(int64_t n) : words_((n + 63) / 64, 0) {}
+  bool Test(int64_t x) const { return (words_[x >> 6] >> (x & 63)) & 1; }
+  void Set(int64_t x) { words_[x >> 6] |= uint64_t{1} << (x & 63); }
+
+ private:
+  std::vector<uint64_t> words_;
+};
+
+// The buckets of the untidy priority queue of the fast marching: a stack of fixed-size chunks
+// per bucket, chunks recycled through a free list, so the memory follows the entries pending
+// at any time (within one chunk per bucket) instead of the sum of the vectors' capacities.
+class BucketQueue {
+ public:
+  explicit BucketQueue(int64_t buckets) : head_(buckets, kNone) {}
+  void Push(int64_t bucket, uint32_t x) {
+    int32_t c = head_[bucket];
+    if (c == kNone || chunks_[c]->count == kChunkEntries) {
+      const int32_t fresh = NewChunk();
+      chunks_[fresh]->next = c;
+      head_[bucket] = c = fresh;
+    }
+    Chunk& chunk = *chunks_[c];
+    chunk.ids[chunk.count++] = x;
+  }
+  // Moves every entry of `bucket` to *out (replacing its contents) and empties the bucket.
+  void Drain(int64_t bucket, std::vector<uint32_t>* out) {
+    out->clear();
+    for (int32_t c = head_[bucket]; c != kNone;) {
+      const Chunk& chunk = *chunks_[c];
+      out->insert(out->end(), chunk.ids, chunk.ids + chunk.count);
+      free_.push_back(c);
+      c = chunk.next;
+    }
+    head_[bucket] = kNone;
+  }
+
+ private:
+  static constexpr int32_t kNone = -1;
+  static constexpr uint32_t kChunkEntries = 2046;  // a chunk is 8 KB
+  struct Chunk {
+    uint32_t count = 0;
+    int32_t next = kNone;
+    uint32_t ids[kChunkEntries];
+  };
+  int32_t NewChunk() {
+    if (!free_.empty()) {
+      const int32_t c = free_.back();
+      free_.pop_back();
+      chunks_[c]->count = 0;
+      return c;
+    }
+    chunks_.push_back(std::make_unique<Chunk>());
+    return static_cast<int32_t>(chunks_.size() - 1);
+  }
+  std::vector<int32_t> head_;
+  std::vector<std::unique_ptr<Chunk>> chunks_;
+  std::vector<int32_t> free_;
+};
+
+// Sorts voxel indices ascending: LSD radix sort, 11-bit digits, only as many digits as the
+// largest index needs.
+void SortIndices(std::vector<uint32_t>* v, std::vector<uint32_t>* scratch) {
+  uint32_t max_value = 0;
+  for (const uint32_t x : *v) max_value = std::max(max_value, x);
+  scratch->resize(v->size());
+  constexpr int kBits = 11, kRadix = 1 << kBits;
+  uint32_t count[kRadix];
+  for (int shift = 0; shift < 32 && (max_value >> shift) != 0; shift += kBits) {
+    std::fill(count, count + kRadix, 0u);
+    for (const uint32_t x : *v) ++count[(x >> shift) & (kRadix - 1)];
+    uint32_t sum = 0;
+    for (int d = 0; d < kRadix; ++d) {
+      const uint32_t c = count[d];
+      count[d] = sum;
+      sum += c;
+    }
+    for (const uint32_t x : *v) (*scratch)[count[(x >> shift) & (kRadix - 1)]++] = x;
+    v->swap(*scratch);
+  }
 }
 
 // First-order upwind Eikonal update |grad u| = 1 at voxel x from its accepted neighbours
 // (anisotropic spacing h).
-inline double EikonalUpdate(const Context& ctx, const float* phi, int64_t x, const Offsets& o,
-                            uint8_t bit) {
-  const Grid& g = ctx.g;
+inline double EikonalUpdate(const Grid& g, const BitSet& accepted, const float* phi, int64_t x,
+                            const Offsets& o) {
   double a[3], w[3];
   int m = 0;
   for (int c = 0; c < 3; ++c) {
     if (!g.active[c]) continue;
     double best = std::numeric_limits<double>::infinity();
-    if (o.m[c] != 0 && TestBit(ctx.accepted[x + o.m[c]], bit))
+    if (o.m[c] != 0 && accepted.Test(x + o.m[c]))
       best = std::min<double>(best, std::abs(phi[x + o.m[c]]));
-    if (o.p[c] != 0 && TestBit(ctx.accepted[x + o.p[c]], bit))
+    if (o.p[c] != 0 && accepted.Test(x + o.p[c]))
       best = std::min<double>(best, std::abs(phi[x + o.p[c]]));
     if (std::isfinite(best)) {
       a[m] = best;
-      w[m] = 1.0 / (g.h[c] * g.h[c]);
+      w[m] = g.inv_h2[c];
       ++m;
     }
   }
@@ -244,18 +323,15 @@ inline double EikonalUpdate(const Context& ctx, const float* phi, int64_t x, con
 // crossing is at the fraction |psi_x| / (|psi_x| + |psi_y|) of the step (clamped to
 // [kMinFrac, 1 - kMinFrac], so no seed is 0 and every voxel keeps a strict sign), and the
 // distances t_c to the crossings along the axes combine as 1 / sqrt(sum_c t_c^-2) (the distance
-// to the plane through them). With `from_labels` (the k-means start, phi not yet defined) the
-// crossing is the voxel face (fraction 1/2). Reads every phi_j: run before any phi is rewritten.
+// to the plane through them). Reads every phi_j: run before any phi is rewritten.
 std::vector<std::pair<uint32_t, float>> ReinitSeeds(const Context& ctx, int i,
-                                                    const std::vector<int64_t>& blocks,
-                                                    bool from_labels) {
+                                                    const std::vector<int64_t>& blocks) {
   constexpr double kMinFrac = 0.02;
   const Grid& g = ctx.g;
   const int k = ctx.k;
   const uint8_t* labels = ctx.labels;
   // psi_i at voxel x (>= 0 iff labels[x] == i).
   auto psi = [&](int64_t x) -> double {
-    if (from_labels) return labels[x] == i ? 1.0 : -1.0;
     const double pi = ctx.ls[i].phi[x];
     if (labels[x] != i) return std::min(0.0, pi - ctx.ls[labels[x]].phi[x]);
     double other = -std::numeric_limits<double>::infinity();
@@ -301,106 +377,174 @@ std::vector<std::pair<uint32_t, float>> ReinitSeeds(const Context& ctx, int i,
 // are unchanged (re-initialization preserves the partition; it only removes overlaps and vacuum
 // and restores |grad phi| = 1). `blocks` must hold every voxel whose label or phi_i changed since
 // the last re-initialization (the label blocks); voxels elsewhere are +-W with their label's sign
-// already. With `track`, keeps s0/s1/s2 exact by adding every change of H(phi_i). Runs on one
-// thread; level sets run in parallel.
+// already. s0/s1/s2 are left to ComputeHeavisideSums (a sequential pass costs less than
+// tracking every write of the march). Runs on one thread; level sets run in parallel.
 void Reinitialize(Context& ctx, int i, const std::vector<int64_t>& blocks,
-                  std::vector<std::pair<uint32_t, float>> seeds, bool track) {
+                  std::vector<std::pair<uint32_t, float>> seeds) {
   const Grid& g = ctx.g;
   LevelSet& ls = ctx.ls[i];
   float* phi = ls.phi.data();
   const double W = ctx.width;
-  const uint8_t bit = static_cast<uint8_t>(1u << i);
   const uint8_t* labels = ctx.labels;
-  auto add_h = [&](int64_t x, double before, double after) {
-    if (!track) return;
-    const double dh = ctx.step->H(after) - ctx.step->H(before);
-    if (dh == 0.0) return;
-    const double v = ctx.image[x];
-    ls.s0 += dh;
-    ls.s1 += dh * v;
-    ls.s2 += dh * v * v;
-  };
 
   // 1. Reset the blocks to +-W by label, then place the seeds.
   for (int64_t b : blocks) {
     ForBlock(g, b, [&](int64_t x, int64_t, int64_t, int64_t) {
       const float before = phi[x];
       const float after = labels[x] == i ? static_cast<float>(W) : static_cast<float>(-W);
-      if (before != after) {
-        add_h(x, before, after);
-        phi[x] = after;
-      }
+      if (before != after) phi[x] = after;
     });
   }
   // 2. Fast marching outwards on both sides until the distance reaches W, with an "untidy"
   // priority queue (Yatziv, Bartesaghi, Sapiro 2006): buckets of width kBucket processed in
-  // order, FIFO inside a bucket. O(1) per operation instead of a heap's O(log n); the ordering
-  // error, and so the distance error, stays below kBucket voxels.
+  // order. O(1) per operation instead of a heap's O(log n); the ordering error, and so the
+  // distance error, stays below kBucket voxels.
   constexpr double kBucket = 0.02;
   const int64_t bucket_count = static_cast<int64_t>(W / kBucket) + 2;
-  std::vector<std::vector<uint32_t>> buckets(bucket_count);
+  BucketQueue queue(bucket_count);
   auto bucket_of = [&](double d) {
     return std::min<int64_t>(bucket_count - 1, static_cast<int64_t>(d / kBucket));
   };
   for (const auto& [x, d] : seeds) {
-    add_h(x, phi[x], d);
     phi[x] = d;
-    buckets[bucket_of(std::abs(d))].push_back(x);
+    queue.Push(bucket_of(std::abs(d)), x);
   }
   seeds.clear();
   seeds.shrink_to_fit();
+  BitSet accepted(g.count);
   std::vector<uint8_t> in_band(g.block_count, 0);
+  // A bucket is processed in batches sorted by voxel index: popping in push order walks the
+  // volume at random and waits on memory for every neighbour; in index order the neighbours of
+  // nearby voxels share cache lines. (Any order within a bucket is allowed by the untidy queue.)
+  const uint32_t nx = static_cast<uint32_t>(g.n[0]), ny = static_cast<uint32_t>(g.n[1]);
+  constexpr size_t kPrefetchAhead = 16;
+  const int64_t sy = g.stride[1], sz = g.stride[2];
+  const int64_t prefetch_offsets[] = {0,       -sy,    sy,       -sz,     sz,       -2 * sy, 2 * sy,
+                                      -2 * sz, 2 * sz, -sy - sz, sy - sz, -sy + sz, sy + sz};
+  std::vector<uint32_t> batch, sort_scratch;
   for (int64_t current = 0; current < bucket_count; ++current) {
-    // Index loop: the bucket may grow while it is processed.
-    for (size_t e = 0; e < buckets[current].size(); ++e) {
-      const int64_t x = buckets[current][e];
-      if (TestBit(ctx.accepted[x], bit)) continue;
-      SetBit(ctx.accepted[x], bit);
-      const int64_t xi = x % g.n[0], xj = (x / g.n[0]) % g.n[1], xk = x / g.stride[2];
-      in_band[BlockOf(g, xi, xj, xk)] = 1;
-      const Offsets o = NeighbourOffsets(g, xi, xj, xk);
-      for (int c = 0; c < 3; ++c) {
-        for (int side = 0; side < 2; ++side) {
-          const int64_t off = side ? o.p[c] : o.m[c];
-          if (off == 0) continue;
-          const int64_t y = x + off;
-          if (TestBit(ctx.accepted[y], bit)) continue;
-          // y's coordinates from x's (no integer divisions in the hot loop).
-          int64_t yc[3] = {xi, xj, xk};
-          yc[c] += side ? 1 : -1;
-          const double u =
-              EikonalUpdate(ctx, phi, y, NeighbourOffsets(g, yc[0], yc[1], yc[2]), bit);
-          if (u < W && u < std::abs(phi[y])) {
-            const float after = static_cast<float>(labels[y] == i ? u : -u);
-            add_h(y, phi[y], after);
-            phi[y] = after;
-            buckets[std::max(current, bucket_of(u))].push_back(static_cast<uint32_t>(y));
+    for (;;) {
+      queue.Drain(current, &batch);
+      if (batch.empty()) break;
+      SortIndices(&batch, &sort_scratch);
+      const size_t batch_size = batch.size();
+      for (size_t e = 0; e < batch_size; ++e) {
+        const uint32_t x32 = batch[e];
+        // The Eikonal updates around x read the 3x3x3 neighbourhood and a voxel beyond each
+        // face: fetch the lines of a voxel a few entries ahead (this loop waits on memory).
+        if (e + kPrefetchAhead < batch_size) {
+          const int64_t ahead = batch[e + kPrefetchAhead];
+          for (const int64_t off : prefetch_offsets) {
+            const int64_t y = ahead + off;
+            if (y >= 0 && y < g.count) __builtin_prefetch(phi + y);
+          }
+        }
+        const int64_t x = x32;
+        if (accepted.Test(x)) continue;
+        accepted.Set(x);
+        // 32-bit divisions (voxel indices fit uint32): several times cheaper than 64-bit ones.
+        const uint32_t row = x32 / nx;
+        const int64_t xi = x32 - row * nx, xj = row % ny, xk = row / ny;
+        in_band[BlockOf(g, xi, xj, xk)] = 1;
+        const Offsets o = NeighbourOffsets(g, xi, xj, xk);
+        for (int c = 0; c < 3; ++c) {
+          for (int side = 0; side < 2; ++side) {
+            const int64_t off = side ? o.p[c] : o.m[c];
+            if (off == 0) continue;
+            const int64_t y = x + off;
+            if (accepted.Test(y)) continue;
+            // y's coordinates from x's (no integer divisions in the hot loop).
+            int64_t yc[3] = {xi, xj, xk};
+            yc[c] += side ? 1 : -1;
+            const double u =
+                EikonalUpdate(g, accepted, phi, y, NeighbourOffsets(g, yc[0], yc[1], yc[2]));
+            if (u < W && u < std::abs(phi[y])) {
+              // Every value written keeps the sign of the voxel's label (reset, seeds, march).
+              const float after = static_cast<float>(phi[y] > 0 ? u : -u);
+              phi[y] = after;
+              queue.Push(std::max(current, bucket_of(u)), static_cast<uint32_t>(y));
+            }
           }
         }
       }
     }
-    std::vector<uint32_t>().swap(buckets[current]);
   }
 
-  // 3. New band; reset the accepted flags (all accepted voxels lie in band blocks).
+  // 3. The new band.
   ls.band.clear();
-  for (int64_t b = 0; b < g.block_count; ++b) {
-    if (!in_band[b]) continue;
-    ls.band.push_back(b);
-    ForBlock(g, b, [&](int64_t x, int64_t, int64_t, int64_t) { ClearBit(ctx.accepted[x], bit); });
-  }
+  for (int64_t b = 0; b < g.block_count; ++b)
+    if (in_band[b]) ls.band.push_back(b);
 }
 
 // Re-initializes every phi_i from the current labels (ReinitSeeds, then Reinitialize), the K
 // level sets in parallel. `blocks` as for Reinitialize.
-void ReinitializeAll(Context& ctx, const std::vector<int64_t>& blocks, bool from_labels) {
+void ReinitializeAll(Context& ctx, const std::vector<int64_t>& blocks) {
   const int k = ctx.k;
   std::vector<std::vector<std::pair<uint32_t, float>>> seeds(k);
   // Seeds read every phi_j, so they are all computed before any phi is rewritten.
 #pragma omp parallel for schedule(dynamic, 1) num_threads(std::min(ctx.threads, k))
-  for (int i = 0; i < k; ++i) seeds[i] = ReinitSeeds(ctx, i, blocks, from_labels);
+  for (int i = 0; i < k; ++i) seeds[i] = ReinitSeeds(ctx, i, blocks);
 #pragma omp parallel for schedule(dynamic, 1) num_threads(std::min(ctx.threads, k))
-  for (int i = 0; i < k; ++i) Reinitialize(ctx, i, blocks, std::move(seeds[i]), !from_labels);
+  for (int i = 0; i < k; ++i) Reinitialize(ctx, i, blocks, std::move(seeds[i]));
+}
+
+// phi_i = the exact signed distance to the k-means region i (clamped to +-W) and its band: the
+// start of the evolution. A speckled k-means partition has seeds almost everywhere, which
+// made the fast-marching start the slowest and largest step; the separable distance transform
+// costs a few linear passes and one scratch float per voxel.
+void InitializeFromLabels(Context& ctx) {
+  const Grid& g = ctx.g;
+  const std::array<int64_t, 3> dims = {g.n[0], g.n[1], g.n[2]};
+  const float W = static_cast<float>(ctx.width);
+  for (int i = 0; i < ctx.k; ++i) {
+    LevelSet& ls = ctx.ls[i];
+    ls.phi.resize(g.count);
+    segment_internal::RegionSignedDistance(ctx.labels, dims, g.h, i, W, ls.phi.data(), ctx.threads);
+    std::vector<uint8_t> in_band(g.block_count, 0);
+    const float* phi = ls.phi.data();
+#pragma omp parallel for schedule(dynamic, 16) num_threads(ctx.threads)
+    for (int64_t b = 0; b < g.block_count; ++b) {
+      bool any = false;
+      ForBlock(g, b, [&](int64_t x, int64_t, int64_t, int64_t) { any |= std::abs(phi[x]) < W; });
+      in_band[b] = any;
+    }
+    ls.band.clear();
+    for (int64_t b = 0; b < g.block_count; ++b)
+      if (in_band[b]) ls.band.push_back(b);
+  }
+}
+
+// s0/s1/s2 of every level set from scratch: sum_x H(phi_i) (1, I, I^2) over the grid, in fixed
+// chunks added in order (deterministic for any thread count).
+void ComputeHeavisideSums(Context& ctx) {
+  const int64_t n = ctx.g.count;
+  constexpr int64_t kChunk = 1 << 16;
+  const int64_t chunks = (n + kChunk - 1) / kChunk;
+  std::vector<double> part(3 * chunks);
+  for (LevelSet& ls : ctx.ls) {
+    const float* phi = ls.phi.data();
+#pragma omp parallel for schedule(static) num_threads(ctx.threads)
+    for (int64_t q = 0; q < chunks; ++q) {
+      double a0 = 0, a1 = 0, a2 = 0;
+      for (int64_t x = q * kChunk; x < std::min(n, (q + 1) * kChunk); ++x) {
+        const double h = ctx.step->H(phi[x]);
+        if (h == 0.0) continue;
+        const double v = ctx.image[x];
+        a0 += h;
+        a1 += h * v;
+        a2 += h * v * v;
+      }
+      part[3 * q] = a0;
+      part[3 * q + 1] = a1;
+      part[3 * q + 2] = a2;
+    }
+    ls.s0 = ls.s1 = ls.s2 = 0;
+    for (int64_t q = 0; q < chunks; ++q) {
+      ls.s0 += part[3 * q];
+      ls.s1 += part[3 * q + 1];
+      ls.s2 += part[3 * q + 2];
+    }
+  }
 }
 
 // Sorted union of the band lists (and `extra`, if given).
@@ -430,6 +574,18 @@ void EvolveLevelSet(Context& ctx, int i, std::vector<float>& next) {
   float* phi = ls.phi.data();
   constexpr int64_t kBlockVoxels = int64_t{kBlock} * kBlock * kBlock;
   if (static_cast<int64_t>(next.size()) < nb * kBlockVoxels) next.resize(nb * kBlockVoxels);
+  // Per-voxel constants of the loop in locals: through ctx the compiler reloads them after every
+  // store to `out`, which it cannot prove does not alias them.
+  const float* phis[8];
+  double fit_scale[8], class_mean[8];
+  for (int j = 0; j < k; ++j) {
+    phis[j] = ctx.ls[j].phi.data();
+    fit_scale[j] = ctx.e[j] * ctx.inv_s2;
+    class_mean[j] = ctx.c[j];
+  }
+  const float* image = ctx.image;
+  const SmoothedStep& step = *ctx.step;
+  const double nu = ctx.nu[i], beta = ctx.beta, dt = ctx.dt;
 
 #pragma omp parallel for schedule(dynamic, 4) num_threads(ctx.threads)
   for (int64_t q = 0; q < nb; ++q) {
@@ -443,21 +599,21 @@ void EvolveLevelSet(Context& ctx, int i, std::vector<float>& next) {
       }
       const Offsets o = NeighbourOffsets(g, ii, jj, kk);
       const double kappa = Curvature(phi, g, x, o);
-      const double delta = ctx.step->Delta(p);
+      const double delta = step.Delta(p);
       // Fitting force relative to the best class at this voxel (see README: subtracting the
       // per-voxel minimum leaves the partition-constrained energy unchanged).
-      const double v = ctx.image[x];
+      const double v = image[x];
       double fit_i = 0.0, fit_min = std::numeric_limits<double>::infinity();
       double sum_h = 0.0;
       for (int j = 0; j < k; ++j) {
-        const double r = v - ctx.c[j];
-        const double f = ctx.e[j] * r * r * ctx.inv_s2;
+        const double r = v - class_mean[j];
+        const double f = fit_scale[j] * r * r;
         if (j == i) fit_i = f;
         fit_min = std::min(fit_min, f);
-        sum_h += ctx.step->H(j == i ? p : ctx.ls[j].phi[x]);
+        sum_h += step.H(j == i ? p : phis[j][x]);
       }
-      const double force = ctx.nu[i] * kappa - (fit_i - fit_min) - ctx.beta * (sum_h - 1.0);
-      out[t++] = static_cast<float>(std::clamp(p + ctx.dt * delta * force, -W, W));
+      const double force = nu * kappa - (fit_i - fit_min) - beta * (sum_h - 1.0);
+      out[t++] = static_cast<float>(std::clamp(p + dt * delta * force, -W, W));
     });
   }
 
@@ -776,54 +932,10 @@ absl::StatusOr<SegmentResult> Segment(const Volume& image, const SegmentOptions&
   bool converged = false;
   double energy = 0.0;
   if (o.max_iterations > 0) {
-    // phi_i = signed distance to the k-means region i, clamped to +-W.
     ctx.ls.resize(k);
-    const float W = static_cast<float>(ctx.width);
-    for (int i = 0; i < k; ++i) {
-      ctx.ls[i].phi.resize(n);
-      float* phi = ctx.ls[i].phi.data();
-#pragma omp parallel for schedule(static) num_threads(threads)
-      for (int64_t x = 0; x < n; ++x) phi[x] = ctx.labels[x] == i ? W : -W;
-    }
-    ctx.accepted.assign(n, 0);
+    InitializeFromLabels(ctx);
     DECIMA_RETURN_IF_ERROR(CheckCancelled(cancel, "segment"));
-    {
-      std::vector<int64_t> all(ctx.g.block_count);
-      std::iota(all.begin(), all.end(), int64_t{0});
-      ReinitializeAll(ctx, all, /*from_labels=*/true);
-    }
-    DECIMA_RETURN_IF_ERROR(CheckCancelled(cancel, "segment"));
-    // Exact H sums once; afterwards they are maintained incrementally.
-    {
-      constexpr int64_t kChunk = 1 << 16;
-      const int64_t chunks = (n + kChunk - 1) / kChunk;
-      for (int i = 0; i < k; ++i) {
-        std::vector<double> part(3 * chunks, 0.0);
-        const float* phi = ctx.ls[i].phi.data();
-#pragma omp parallel for schedule(static) num_threads(threads)
-        for (int64_t q = 0; q < chunks; ++q) {
-          double a0 = 0, a1 = 0, a2 = 0;
-          for (int64_t x = q * kChunk; x < std::min(n, (q + 1) * kChunk); ++x) {
-            const double h = ctx.step->H(phi[x]);
-            if (h == 0.0) continue;
-            const double v = values[x];
-            a0 += h;
-            a1 += h * v;
-            a2 += h * v * v;
-          }
-          part[3 * q] = a0;
-          part[3 * q + 1] = a1;
-          part[3 * q + 2] = a2;
-        }
-        LevelSet& ls = ctx.ls[i];
-        ls.s0 = ls.s1 = ls.s2 = 0;
-        for (int64_t q = 0; q < chunks; ++q) {
-          ls.s0 += part[3 * q];
-          ls.s1 += part[3 * q + 1];
-          ls.s2 += part[3 * q + 2];
-        }
-      }
-    }
+    ComputeHeavisideSums(ctx);
     std::vector<float> next;  // band-sized scratch of EvolveLevelSet
     std::vector<int64_t> label_blocks = BandUnion(ctx, nullptr);
     int quiet = 0;
@@ -880,7 +992,8 @@ absl::StatusOr<SegmentResult> Segment(const Volume& image, const SegmentOptions&
         // The Jacobi scratch is not needed during the re-initialization: freeing it keeps the
         // fast-marching queues from adding to the peak memory.
         std::vector<float>().swap(next);
-        ReinitializeAll(ctx, label_blocks, /*from_labels=*/false);
+        ReinitializeAll(ctx, label_blocks);
+        ComputeHeavisideSums(ctx);
         // Safety net and witness of that invariant: relabel by argmax once (reported).
         reinit_changed = Relabel(ctx, label_blocks);
         label_blocks = BandUnion(ctx, nullptr);
@@ -896,8 +1009,6 @@ absl::StatusOr<SegmentResult> Segment(const Volume& image, const SegmentOptions&
   // Free the level sets before the distance transform (peak memory).
   ctx.ls.clear();
   ctx.ls.shrink_to_fit();
-  ctx.accepted.clear();
-  ctx.accepted.shrink_to_fit();
   copy.clear();
   copy.shrink_to_fit();
   segment_internal::CountRegions(k, &result);

@@ -5,6 +5,7 @@
 
 #include <gtest/gtest.h>
 
+#include "core/segment/internal.h"
 #include "core/segment/segment.h"
 
 namespace decima {
@@ -96,6 +97,63 @@ TEST(InterfaceDistance, MatchesBruteForceOnRandomLabels) {
         EXPECT_NEAR(vox[lab.Index(i, j, k)], best_v, 1e-4);
         EXPECT_NEAR(mm[lab.Index(i, j, k)], best_mm, 1e-4);
       }
+}
+
+// The start of the level set: the signed distance to one region's boundary, bounded by the
+// band width. Within the bound it must be the exact Euclidean distance to the nearest face
+// between the region and the rest (brute force), beyond it exactly +-clamp.
+TEST(RegionSignedDistance, MatchesBruteForceWithinTheClampOnRandomLabels) {
+  const std::array<int64_t, 3> dims = {13, 9, 11};
+  const double h[3] = {1.0, 1.5, 2.0};
+  const float clamp = 2.5f;
+  const int64_t n = dims[0] * dims[1] * dims[2];
+  std::vector<uint8_t> labels(n);
+  std::mt19937 rng(11);
+  // Blobs rather than independent voxels, so distances up to the clamp occur.
+  for (int64_t z = 0; z < dims[2]; ++z)
+    for (int64_t y = 0; y < dims[1]; ++y)
+      for (int64_t x = 0; x < dims[0]; ++x)
+        labels[x + dims[0] * (y + dims[1] * z)] =
+            static_cast<uint8_t>((x / 6 + y / 4 + z / 3 + (rng() % 9 == 0)) % 3);
+  auto at = [&](int64_t x, int64_t y, int64_t z) { return x + dims[0] * (y + dims[1] * z); };
+  for (int region = 0; region < 3; ++region) {
+    std::vector<float> phi(n);
+    segment_internal::RegionSignedDistance(labels.data(), dims, h, region, clamp, phi.data(), 2);
+    std::vector<Eigen::Vector3d> faces;
+    for (int64_t z = 0; z < dims[2]; ++z)
+      for (int64_t y = 0; y < dims[1]; ++y)
+        for (int64_t x = 0; x < dims[0]; ++x)
+          for (int a = 0; a < 3; ++a) {
+            int64_t q[3] = {x, y, z};
+            if (++q[a] >= dims[a]) continue;
+            if ((labels[at(x, y, z)] == region) != (labels[at(q[0], q[1], q[2])] == region)) {
+              Eigen::Vector3d f(x * h[0], y * h[1], z * h[2]);
+              f[a] += 0.5 * h[a];
+              faces.push_back(f);
+            }
+          }
+    ASSERT_FALSE(faces.empty());
+    int near = 0, far = 0;
+    for (int64_t z = 0; z < dims[2]; ++z)
+      for (int64_t y = 0; y < dims[1]; ++y)
+        for (int64_t x = 0; x < dims[0]; ++x) {
+          double best = 1e30;
+          for (const auto& f : faces)
+            best = std::min(best, (f - Eigen::Vector3d(x * h[0], y * h[1], z * h[2])).norm());
+          const bool inside = labels[at(x, y, z)] == region;
+          const float got = phi[at(x, y, z)];
+          EXPECT_EQ(got > 0, inside) << x << " " << y << " " << z;
+          if (best < clamp) {
+            ++near;
+            EXPECT_NEAR(std::abs(got), best, 1e-5) << x << " " << y << " " << z;
+          } else {
+            ++far;
+            EXPECT_EQ(std::abs(got), clamp) << x << " " << y << " " << z;
+          }
+        }
+    EXPECT_GT(near, 100);
+    EXPECT_GT(far, 10) << "the test must also reach beyond the clamp";
+  }
 }
 
 }  // namespace
