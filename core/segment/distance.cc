@@ -90,7 +90,6 @@ void ShiftedLatticeEdt(const uint8_t* labels, const std::array<int64_t, 3>& dims
                        int threads) {
   std::array<int64_t, 3> ld = dims;
   ld[a] -= 1;
-  const int64_t ln = ld[0] * ld[1] * ld[2];
   const int64_t stride[3] = {1, dims[0], dims[0] * dims[1]};
   const int64_t lstride[3] = {1, ld[0], ld[0] * ld[1]};
   // Seeds: face (m, m+1) along a with different labels.
@@ -105,26 +104,62 @@ void ShiftedLatticeEdt(const uint8_t* labels, const std::array<int64_t, 3>& dims
       }
     }
   }
-  (void)ln;
   // Passes along the unshifted axes, in place on the lattice, then the shifted axis into d2.
   auto pass = [&](int c, bool final_pass) {
     const std::array<int64_t, 3>& n = ld;
-    const int c1 = (c + 1) % 3, c2 = (c + 2) % 3;
-    const int64_t lines = n[c1] * n[c2];
+    const int64_t nout = final_pass ? dims[c] : n[c];
+    const double offset = final_pass ? 0.5 : 0.0;
+    float* out = final_pass ? d2 : g.data();
+    const int64_t* ostride = final_pass ? stride : lstride;
+    if (c == 0) {  // lines along x are contiguous
+      const int64_t lines = n[1] * n[2];
+#pragma omp parallel num_threads(threads)
+      {
+        LineScratch s;
+        s.Resize(std::max(n[c], dims[c]) + 1);
+#pragma omp for schedule(static)
+        for (int64_t line = 0; line < lines; ++line) {
+          const int64_t u = line % n[1], t = line / n[1];
+          const int64_t base = u * lstride[1] + t * lstride[2];
+          for (int64_t m = 0; m < n[0]; ++m) s.f[m] = g[base + m];
+          const int64_t obase = u * ostride[1] + t * ostride[2];
+          Envelope1D(s.f.data(), n[0], offset, w[0], &out[obase], 1, nout, final_pass, s);
+        }
+      }
+      return;
+    }
+    // Along y or z a line is strided: take kTile neighbouring lines along x at once, so every
+    // row read or written is a run of contiguous floats instead of one float per cache line.
+    constexpr int64_t kTile = 16;
+    const int o = 3 - c;  // the other axis that is not x
+    const int64_t tiles = (n[0] + kTile - 1) / kTile, items = tiles * n[o];
 #pragma omp parallel num_threads(threads)
     {
       LineScratch s;
       s.Resize(std::max(n[c], dims[c]) + 1);
+      std::vector<double> f(kTile * n[c]);
+      std::vector<float> result(kTile * nout);
 #pragma omp for schedule(static)
-      for (int64_t line = 0; line < lines; ++line) {
-        const int64_t u = line % n[c1], t = line / n[c1];
-        int64_t base = u * lstride[c1] + t * lstride[c2];
-        for (int64_t m = 0; m < n[c]; ++m) s.f[m] = g[base + m * lstride[c]];
-        if (!final_pass) {
-          Envelope1D(s.f.data(), n[c], 0.0, w[c], &g[base], lstride[c], n[c], false, s);
-        } else {
-          const int64_t obase = u * stride[c1] + t * stride[c2];
-          Envelope1D(s.f.data(), n[c], 0.5, w[c], &d2[obase], stride[c], dims[c], true, s);
+      for (int64_t item = 0; item < items; ++item) {
+        const int64_t i0 = (item % tiles) * kTile, oi = item / tiles;
+        const int64_t count = std::min(kTile, n[0] - i0);
+        const int64_t lbase = i0 + oi * lstride[o], obase = i0 + oi * ostride[o];
+        for (int64_t m = 0; m < n[c]; ++m) {
+          const float* row = &g[lbase + m * lstride[c]];
+          for (int64_t j = 0; j < count; ++j) f[j * n[c] + m] = row[j];
+        }
+        if (final_pass) {  // min-combined with the other lattices
+          for (int64_t p = 0; p < nout; ++p) {
+            const float* row = &out[obase + p * ostride[c]];
+            for (int64_t j = 0; j < count; ++j) result[j * nout + p] = row[j];
+          }
+        }
+        for (int64_t j = 0; j < count; ++j) {
+          Envelope1D(&f[j * n[c]], n[c], offset, w[c], &result[j * nout], 1, nout, final_pass, s);
+        }
+        for (int64_t p = 0; p < nout; ++p) {
+          float* row = &out[obase + p * ostride[c]];
+          for (int64_t j = 0; j < count; ++j) row[j] = result[j * nout + p];
         }
       }
     }

@@ -180,12 +180,44 @@ struct LevelSet {
   double s0 = 0, s1 = 0, s2 = 0;
 };
 
+// The input's voxel values in its own type, read as double: the evolution reads the image
+// directly instead of holding a float copy of it (one float per voxel less for integer scans).
+class ImageValues {
+ public:
+  explicit ImageValues(const Volume& v) : data_(v.bytes.data()), type_(v.type) {}
+  double operator[](int64_t x) const {
+    switch (type_) {
+      case VoxelType::kUInt8:
+        return static_cast<const uint8_t*>(data_)[x];
+      case VoxelType::kInt8:
+        return static_cast<const int8_t*>(data_)[x];
+      case VoxelType::kUInt16:
+        return static_cast<const uint16_t*>(data_)[x];
+      case VoxelType::kInt16:
+        return static_cast<const int16_t*>(data_)[x];
+      case VoxelType::kUInt32:
+        return static_cast<const uint32_t*>(data_)[x];
+      case VoxelType::kInt32:
+        return static_cast<const int32_t*>(data_)[x];
+      case VoxelType::kFloat32:
+        return static_cast<const float*>(data_)[x];
+      case VoxelType::kFloat64:
+        return static_cast<const double*>(data_)[x];
+    }
+    return 0.0;
+  }
+
+ private:
+  const void* data_;
+  VoxelType type_;
+};
+
 struct Context {
   Grid g;
   int k = 0;
   double alpha = 0, width = 0, dt = 0, beta = 0, inv_s2 = 0, voxel_volume = 1;
   std::vector<double> nu, e, c;
-  const float* image = nullptr;
+  const ImageValues* image = nullptr;
   uint8_t* labels = nullptr;
   std::vector<LevelSet> ls;
   std::vector<double> region_sums;  // per label: voxels, sum I, sum I^2 (3 K values)
@@ -235,7 +267,7 @@ class BucketQueue {
 
  private:
   static constexpr int32_t kNone = -1;
-  static constexpr uint32_t kChunkEntries = 2046;  // a chunk is 8 KB
+  static constexpr uint32_t kChunkEntries = 510;  // a chunk is 2 KB
   struct Chunk {
     uint32_t count = 0;
     int32_t next = kNone;
@@ -529,7 +561,7 @@ void ComputeHeavisideSums(Context& ctx) {
       for (int64_t x = q * kChunk; x < std::min(n, (q + 1) * kChunk); ++x) {
         const double h = ctx.step->H(phi[x]);
         if (h == 0.0) continue;
-        const double v = ctx.image[x];
+        const double v = (*ctx.image)[x];
         a0 += h;
         a1 += h * v;
         a2 += h * v * v;
@@ -573,7 +605,11 @@ void EvolveLevelSet(Context& ctx, int i, std::vector<float>& next) {
   const int k = ctx.k;
   float* phi = ls.phi.data();
   constexpr int64_t kBlockVoxels = int64_t{kBlock} * kBlock * kBlock;
-  if (static_cast<int64_t>(next.size()) < nb * kBlockVoxels) next.resize(nb * kBlockVoxels);
+  if (static_cast<int64_t>(next.size()) < nb * kBlockVoxels) {
+    // Grow without keeping the old contents: a resize would hold both buffers at once.
+    std::vector<float>().swap(next);
+    next.resize(nb * kBlockVoxels);
+  }
   // Per-voxel constants of the loop in locals: through ctx the compiler reloads them after every
   // store to `out`, which it cannot prove does not alias them.
   const float* phis[8];
@@ -583,7 +619,7 @@ void EvolveLevelSet(Context& ctx, int i, std::vector<float>& next) {
     fit_scale[j] = ctx.e[j] * ctx.inv_s2;
     class_mean[j] = ctx.c[j];
   }
-  const float* image = ctx.image;
+  const ImageValues& image = *ctx.image;
   const SmoothedStep& step = *ctx.step;
   const double nu = ctx.nu[i], beta = ctx.beta, dt = ctx.dt;
 
@@ -626,7 +662,7 @@ void EvolveLevelSet(Context& ctx, int i, std::vector<float>& next) {
       const float before = phi[x], after = out[t++];
       if (before == after) return;
       const double dh = ctx.step->H(after) - ctx.step->H(before);
-      const double v = ctx.image[x];
+      const double v = (*ctx.image)[x];
       d0 += dh;
       d1 += dh * v;
       d2 += dh * v * v;
@@ -666,7 +702,7 @@ int64_t Relabel(Context& ctx, const std::vector<int64_t>& blocks) {
       }
       const int old = ctx.labels[x];
       if (old != best) {
-        const double v = ctx.image[x];
+        const double v = (*ctx.image)[x];
         d[3 * old] -= 1;
         d[3 * old + 1] -= v;
         d[3 * old + 2] -= v * v;
@@ -853,12 +889,14 @@ absl::StatusOr<SegmentResult> Segment(const Volume& image, const SegmentOptions&
   ctx.threads = threads;
   const int64_t n = ctx.g.count;
 
-  // The float image the evolution reads: the input itself when it is float32 (one float per
-  // voxel less), else a converted copy.
+  // The float image of the set-up (k-means, initial partition, noise level): the input itself
+  // when it is float32, else a converted copy, freed before the level sets are allocated (the
+  // evolution reads the input through ImageValues).
   std::vector<float> copy;
   if (image.type != VoxelType::kFloat32) copy = image.ToFloat();
   const float* values = image.type == VoxelType::kFloat32 ? image.data<float>() : copy.data();
-  ctx.image = values;
+  const ImageValues image_values(image);
+  ctx.image = &image_values;
   SegmentResult result;
   DECIMA_ASSIGN_OR_RETURN(result.labels, MakeVolume(image.dims, VoxelType::kUInt8, image.spacing));
   result.labels.origin = image.origin;
@@ -910,6 +948,8 @@ absl::StatusOr<SegmentResult> Segment(const Volume& image, const SegmentOptions&
                               std::pow(0.05 * min_gap, 2));
   ctx.inv_s2 = 1.0 / var;
   result.within_class_sigma = std::sqrt(var);
+  values = nullptr;
+  std::vector<float>().swap(copy);
 
   ctx.alpha = o.alpha;
   ctx.step = std::make_unique<SmoothedStep>(o.alpha);
@@ -1009,8 +1049,6 @@ absl::StatusOr<SegmentResult> Segment(const Volume& image, const SegmentOptions&
   // Free the level sets before the distance transform (peak memory).
   ctx.ls.clear();
   ctx.ls.shrink_to_fit();
-  copy.clear();
-  copy.shrink_to_fit();
   segment_internal::CountRegions(k, &result);
   DECIMA_RETURN_IF_ERROR(ComputeInterfaceDistance(result.labels, &result.interface_distance_voxels,
                                                   &result.interface_distance_mm, threads, cancel));

@@ -62,7 +62,9 @@ TEST(InterfaceDistance, RejectsNonUint8Labels) {
 // Brute force over all faces on random labels, anisotropic spacing.
 TEST(InterfaceDistance, MatchesBruteForceOnRandomLabels) {
   const Eigen::Vector3d spacing(0.7, 1.3, 2.0);
-  Volume lab = Labels({7, 6, 5}, spacing);
+  // 37 along x: the strided passes work on tiles of 16 lines, so several tiles and a partial
+  // one are exercised.
+  Volume lab = Labels({37, 6, 5}, spacing);
   std::mt19937 rng(7);
   for (int64_t x = 0; x < lab.voxel_count(); ++x)
     lab.mutable_data<uint8_t>()[x] = (rng() % 10) < 8 ? 0 : static_cast<uint8_t>(1 + rng() % 2);
@@ -72,7 +74,7 @@ TEST(InterfaceDistance, MatchesBruteForceOnRandomLabels) {
   const uint8_t* l = lab.data<uint8_t>();
   for (int64_t k = 0; k < 5; ++k)
     for (int64_t j = 0; j < 6; ++j)
-      for (int64_t i = 0; i < 7; ++i) {
+      for (int64_t i = 0; i < 37; ++i) {
         const int64_t c[3] = {i, j, k};
         for (int a = 0; a < 3; ++a) {
           int64_t d[3] = {i, j, k};
@@ -87,7 +89,7 @@ TEST(InterfaceDistance, MatchesBruteForceOnRandomLabels) {
   ASSERT_FALSE(faces.empty());
   for (int64_t k = 0; k < 5; ++k)
     for (int64_t j = 0; j < 6; ++j)
-      for (int64_t i = 0; i < 7; ++i) {
+      for (int64_t i = 0; i < 37; ++i) {
         double best_v = 1e30, best_mm = 1e30;
         for (const auto& f : faces) {
           const Eigen::Vector3d d = f - Eigen::Vector3d(i, j, k);
