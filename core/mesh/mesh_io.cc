@@ -139,18 +139,10 @@ class TextWriter {
     buf_.append(s);
     return MaybeFlush();
   }
-  // Integer followed by `sep`.
+  // A number followed by `sep`: integers exactly, reals as the shortest decimal text that
+  // parses back to the same value.
   template <typename T>
-  absl::Status Int(T v, char sep) {
-    char tmp[24];
-    auto r = std::to_chars(tmp, tmp + sizeof(tmp), v);
-    buf_.append(tmp, r.ptr);
-    buf_.push_back(sep);
-    return MaybeFlush();
-  }
-  // Shortest decimal text that parses back to the same value, followed by `sep`.
-  template <typename T>
-  absl::Status Real(T v, char sep) {
+  absl::Status Number(T v, char sep) {
     char tmp[40];
     auto r = std::to_chars(tmp, tmp + sizeof(tmp), v);
     buf_.append(tmp, r.ptr);
@@ -506,45 +498,45 @@ absl::Status WriteGmshAscii(const TetMesh& mesh, const RegionGroups& g, AtomicFi
   DECIMA_RETURN_IF_ERROR(w.Str("$MeshFormat\n4.1 0 8\n$EndMeshFormat\n"));
   DECIMA_RETURN_IF_ERROR(w.Str(PhysicalNames(g)));
   DECIMA_RETURN_IF_ERROR(w.Str("$Entities\n0 0 0 "));
-  DECIMA_RETURN_IF_ERROR(w.Int(ne, '\n'));
+  DECIMA_RETURN_IF_ERROR(w.Number(ne, '\n'));
   for (size_t e = 0; e < ne; ++e) {
-    DECIMA_RETURN_IF_ERROR(w.Int(g.regions[e] + 1, ' '));
-    for (double c : g.bbox[e]) DECIMA_RETURN_IF_ERROR(w.Real(c, ' '));
+    DECIMA_RETURN_IF_ERROR(w.Number(g.regions[e] + 1, ' '));
+    for (double c : g.bbox[e]) DECIMA_RETURN_IF_ERROR(w.Number(c, ' '));
     DECIMA_RETURN_IF_ERROR(w.Str("1 "));
-    DECIMA_RETURN_IF_ERROR(w.Int(g.regions[e] + 1, ' '));
+    DECIMA_RETURN_IF_ERROR(w.Number(g.regions[e] + 1, ' '));
     DECIMA_RETURN_IF_ERROR(w.Str("0\n"));
   }
   DECIMA_RETURN_IF_ERROR(w.Str("$EndEntities\n$Nodes\n1 "));
-  DECIMA_RETURN_IF_ERROR(w.Int(nv, ' '));
-  DECIMA_RETURN_IF_ERROR(w.Int(nv == 0 ? 0 : 1, ' '));
-  DECIMA_RETURN_IF_ERROR(w.Int(nv, '\n'));
+  DECIMA_RETURN_IF_ERROR(w.Number(nv, ' '));
+  DECIMA_RETURN_IF_ERROR(w.Number(nv == 0 ? 0 : 1, ' '));
+  DECIMA_RETURN_IF_ERROR(w.Number(nv, '\n'));
   DECIMA_RETURN_IF_ERROR(w.Str("3 "));
-  DECIMA_RETURN_IF_ERROR(w.Int(g.regions[0] + 1, ' '));
+  DECIMA_RETURN_IF_ERROR(w.Number(g.regions[0] + 1, ' '));
   DECIMA_RETURN_IF_ERROR(w.Str("0 "));
-  DECIMA_RETURN_IF_ERROR(w.Int(nv, '\n'));
-  for (uint64_t v = 0; v < nv; ++v) DECIMA_RETURN_IF_ERROR(w.Int(v + 1, '\n'));
+  DECIMA_RETURN_IF_ERROR(w.Number(nv, '\n'));
+  for (uint64_t v = 0; v < nv; ++v) DECIMA_RETURN_IF_ERROR(w.Number(v + 1, '\n'));
   for (uint64_t v = 0; v < nv; ++v) {
-    DECIMA_RETURN_IF_ERROR(w.Real(mesh.positions[3 * v], ' '));
-    DECIMA_RETURN_IF_ERROR(w.Real(mesh.positions[3 * v + 1], ' '));
-    DECIMA_RETURN_IF_ERROR(w.Real(mesh.positions[3 * v + 2], '\n'));
+    DECIMA_RETURN_IF_ERROR(w.Number(mesh.positions[3 * v], ' '));
+    DECIMA_RETURN_IF_ERROR(w.Number(mesh.positions[3 * v + 1], ' '));
+    DECIMA_RETURN_IF_ERROR(w.Number(mesh.positions[3 * v + 2], '\n'));
   }
   size_t blocks = 0;
   for (size_t e = 0; e < ne; ++e) blocks += g.tets[e].empty() ? 0 : 1;
   DECIMA_RETURN_IF_ERROR(w.Str("$EndNodes\n$Elements\n"));
-  DECIMA_RETURN_IF_ERROR(w.Int(blocks, ' '));
-  DECIMA_RETURN_IF_ERROR(w.Int(nt, ' '));
-  DECIMA_RETURN_IF_ERROR(w.Int(nt == 0 ? 0 : 1, ' '));
-  DECIMA_RETURN_IF_ERROR(w.Int(nt, '\n'));
+  DECIMA_RETURN_IF_ERROR(w.Number(blocks, ' '));
+  DECIMA_RETURN_IF_ERROR(w.Number(nt, ' '));
+  DECIMA_RETURN_IF_ERROR(w.Number(nt == 0 ? 0 : 1, ' '));
+  DECIMA_RETURN_IF_ERROR(w.Number(nt, '\n'));
   for (size_t e = 0; e < ne; ++e) {
     if (g.tets[e].empty()) continue;
     DECIMA_RETURN_IF_ERROR(w.Str("3 "));
-    DECIMA_RETURN_IF_ERROR(w.Int(g.regions[e] + 1, ' '));
+    DECIMA_RETURN_IF_ERROR(w.Number(g.regions[e] + 1, ' '));
     DECIMA_RETURN_IF_ERROR(w.Str("4 "));
-    DECIMA_RETURN_IF_ERROR(w.Int(g.tets[e].size(), '\n'));
+    DECIMA_RETURN_IF_ERROR(w.Number(g.tets[e].size(), '\n'));
     for (int64_t t : g.tets[e]) {
-      DECIMA_RETURN_IF_ERROR(w.Int(t + 1, ' '));
+      DECIMA_RETURN_IF_ERROR(w.Number(t + 1, ' '));
       for (int q = 0; q < 4; ++q)
-        DECIMA_RETURN_IF_ERROR(w.Int(int64_t(mesh.tets[4 * t + q]) + 1, q == 3 ? '\n' : ' '));
+        DECIMA_RETURN_IF_ERROR(w.Number(int64_t(mesh.tets[4 * t + q]) + 1, q == 3 ? '\n' : ' '));
     }
   }
   DECIMA_RETURN_IF_ERROR(w.Str("$EndElements\n"));
@@ -577,17 +569,17 @@ absl::Status WriteMedit(const TetMesh& mesh, const std::filesystem::path& path) 
   DECIMA_RETURN_IF_ERROR(file.Open(path));
   TextWriter w(&file);
   DECIMA_RETURN_IF_ERROR(w.Str("MeshVersionFormatted 2\n\nDimension 3\n\nVertices\n"));
-  DECIMA_RETURN_IF_ERROR(w.Int(nv, '\n'));
+  DECIMA_RETURN_IF_ERROR(w.Number(nv, '\n'));
   for (int64_t v = 0; v < nv; ++v) {
-    for (int c = 0; c < 3; ++c) DECIMA_RETURN_IF_ERROR(w.Real(mesh.positions[3 * v + c], ' '));
-    DECIMA_RETURN_IF_ERROR(w.Int(int(mesh.labels[v]), '\n'));
+    for (int c = 0; c < 3; ++c) DECIMA_RETURN_IF_ERROR(w.Number(mesh.positions[3 * v + c], ' '));
+    DECIMA_RETURN_IF_ERROR(w.Number(int(mesh.labels[v]), '\n'));
   }
   DECIMA_RETURN_IF_ERROR(w.Str("\nTetrahedra\n"));
-  DECIMA_RETURN_IF_ERROR(w.Int(nt, '\n'));
+  DECIMA_RETURN_IF_ERROR(w.Number(nt, '\n'));
   for (int64_t t = 0; t < nt; ++t) {
     for (int q = 0; q < 4; ++q)
-      DECIMA_RETURN_IF_ERROR(w.Int(int64_t(mesh.tets[4 * t + q]) + 1, ' '));
-    DECIMA_RETURN_IF_ERROR(w.Int(int(mesh.cell_regions[t]) + 1, '\n'));
+      DECIMA_RETURN_IF_ERROR(w.Number(int64_t(mesh.tets[4 * t + q]) + 1, ' '));
+    DECIMA_RETURN_IF_ERROR(w.Number(int(mesh.cell_regions[t]) + 1, '\n'));
   }
   DECIMA_RETURN_IF_ERROR(w.Str("\nEnd\n"));
   DECIMA_RETURN_IF_ERROR(w.Flush());
