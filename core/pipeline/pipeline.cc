@@ -15,6 +15,7 @@
 #include "core/mesh/mesh_io.h"
 #include "core/mesh/tetrahedralize.h"
 #include "core/metrics/fidelity.h"
+#include "core/metrics/fidelity_json.h"
 #include "core/render/camera.h"
 #include "core/render/diff.h"
 #include "core/render/renderer.h"
@@ -31,9 +32,6 @@ using Clock = std::chrono::steady_clock;
 double Seconds(Clock::time_point since) {
   return std::chrono::duration<double>(Clock::now() - since).count();
 }
-
-// JSON cannot hold infinities (PSNR of an exact copy): write them as null.
-Json Finite(double v) { return std::isfinite(v) ? Json(v) : Json(nullptr); }
 
 // Forwards a core module's progress under the pipeline's stage name.
 ProgressFn Forward(const ProgressFn& progress, const char* stage) {
@@ -114,33 +112,6 @@ Json SegmentJson(const SegmentResult& seg, bool from_label_map) {
   j["class_means"] = seg.class_means;
   j["region_voxels"] = seg.region_voxels;
   j["region_volumes_mm3"] = seg.region_volumes_mm3;
-  return j;
-}
-
-Json FidelityJson(const FidelityMetrics& m) {
-  Json j;
-  j["vertices"] = m.vertices;
-  j["cells"] = m.cells;
-  j["coverage"] = m.coverage;
-  j["rmse"] = m.rmse;
-  j["psnr_db"] = Finite(m.psnr_db);
-  j["max_abs_error"] = m.max_abs_error;
-  j["value_range"] = m.value_range;
-  Json dice = Json::array();
-  for (const RegionDice& d : m.dice) dice.push_back({{"label", d.label}, {"dice", d.dice}});
-  j["dice"] = dice;
-  j["mean_dice"] = m.mean_dice;
-  j["label_mismatch"] = m.label_mismatch;
-  j["interface_rmse"] = m.interface_rmse;
-  j["feature_vertices"] = m.feature_vertices;
-  j["feature_vertices_moved"] = m.feature_vertices_moved;
-  j["feature_vertices_removed"] = m.feature_vertices_removed;
-  j["inverted_cells"] = m.inverted_cells;
-  j["degenerate_cells"] = m.degenerate_cells;
-  j["min_dihedral_deg"] = m.min_dihedral_deg;
-  j["mesh_bytes"] = m.mesh_bytes;
-  j["voxel_bytes"] = m.voxel_bytes;
-  j["bytes_ratio"] = m.bytes_ratio;
   return j;
 }
 
@@ -263,7 +234,7 @@ absl::StatusOr<JobResult> RunJob(const JobSpec& spec, const std::filesystem::pat
   fo.mesh_bytes = static_cast<int64_t>(result.artifacts[1].size_bytes);
   DECIMA_ASSIGN_OR_RETURN(const FidelityMetrics fidelity,
                           MeasureFidelity(image, simplified.mesh, fo, cancel));
-  metrics["fidelity"] = FidelityJson(fidelity);
+  metrics["fidelity"] = FidelityToJson(fidelity);
   timings["fidelity"] = Seconds(t);
 
   // render

@@ -30,6 +30,7 @@
 #include "core/io/volume_io.h"
 #include "core/mesh/tetrahedralize.h"
 #include "core/metrics/fidelity.h"
+#include "core/metrics/fidelity_json.h"
 #include "core/render/camera.h"
 #include "core/render/diff.h"
 #include "core/render/renderer.h"
@@ -53,8 +54,6 @@ double LoadAverage() {
   double load[1] = {0};
   return getloadavg(load, 1) == 1 ? load[0] : -1.0;
 }
-
-Json Finite(double v) { return std::isfinite(v) ? Json(v) : Json(nullptr); }
 
 // Runs `fn` `repeat` times and fills seconds (median) and seconds_all.
 absl::Status Time(int repeat, Json& out, const std::function<absl::Status()>& fn) {
@@ -217,22 +216,7 @@ absl::Status RunSimplify(const BenchOptions& o, BenchState& state, Json& out) {
   fo.vertex_map = &r.vertex_map;
   auto f = MeasureFidelity(state.image, r.mesh, fo);
   if (!f.ok()) return f.status();
-  Json m;
-  m["rmse"] = f->rmse;
-  m["psnr_db"] = Finite(f->psnr_db);
-  m["max_abs_error"] = f->max_abs_error;
-  m["coverage"] = f->coverage;
-  Json dice = Json::array();
-  for (const RegionDice& d : f->dice) dice.push_back({{"label", d.label}, {"dice", d.dice}});
-  m["dice"] = dice;
-  m["interface_rmse"] = f->interface_rmse;
-  m["feature_vertices"] = f->feature_vertices;
-  m["feature_vertices_moved"] = f->feature_vertices_moved;
-  m["feature_vertices_removed"] = f->feature_vertices_removed;
-  m["inverted_cells"] = f->inverted_cells;
-  m["degenerate_cells"] = f->degenerate_cells;
-  m["min_dihedral_deg"] = f->min_dihedral_deg;
-  out["fidelity"] = m;
+  out["fidelity"] = FidelityToJson(*f);
   return absl::OkStatus();
 }
 
