@@ -24,6 +24,7 @@
 
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_format.h"
+#include "core/common/bit_set.h"
 #include "core/segment/internal.h"
 #include "core/segment/segment.h"
 
@@ -223,18 +224,6 @@ struct Context {
   std::vector<double> region_sums;  // per label: voxels, sum I, sum I^2 (3 K values)
   int threads = 1;
   std::unique_ptr<SmoothedStep> step;
-};
-
-// One bit per voxel: the fast-marching "accepted" flags of one level set. Each level set has its
-// own, so the K marches running in parallel never write to the same cache line.
-class BitSet {
- public:
-  explicit BitSet(int64_t n) : words_((n + 63) / 64, 0) {}
-  bool Test(int64_t x) const { return (words_[x >> 6] >> (x & 63)) & 1; }
-  void Set(int64_t x) { words_[x >> 6] |= uint64_t{1} << (x & 63); }
-
- private:
-  std::vector<uint64_t> words_;
 };
 
 // The buckets of the untidy priority queue of the fast marching: a stack of fixed-size chunks
@@ -443,6 +432,8 @@ void Reinitialize(Context& ctx, int i, const std::vector<int64_t>& blocks,
   }
   seeds.clear();
   seeds.shrink_to_fit();
+  // One bit per voxel: the accepted flags of this level set only, so the K marches running in
+  // parallel never write to the same cache line.
   BitSet accepted(g.count);
   std::vector<uint8_t> in_band(g.block_count, 0);
   // A bucket is processed in batches sorted by voxel index: popping in push order walks the

@@ -210,11 +210,11 @@ CollapseEngine::CollapseEngine(TetMesh mesh, const SimplifyOptions& options, int
 
   parent_.resize(nv);
   std::iota(parent_.begin(), parent_.end(), 0);
-  dead_bits_.assign((nt + 63) / 64, 0);
+  dead_ = BitSet(nt);
   permanent_.assign(nt, 0);
   scored_at_.assign(nt, 0);
   rejected_at_.assign(nt, 0);
-  locked_bits_.assign((nt + 63) / 64, 0);
+  locked_ = BitSet(nt);
   live_cells_ = nt;
 }
 
@@ -765,7 +765,7 @@ CollapseResult CollapseEngine::TryCollapse(int32_t cell, float next_key) {
 
 int64_t CollapseEngine::BeginRound(int threads) {
   heap_.clear();
-  std::fill(locked_bits_.begin(), locked_bits_.end(), 0);
+  locked_.ClearAll();
   const int64_t nt = mesh_.tet_count();
   keys_.resize(nt);
   ParallelFor(nt, threads, kCellChunk, [&](int64_t b, int64_t e) {

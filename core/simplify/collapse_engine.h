@@ -3,7 +3,7 @@
 // meshes (a rejected collapse must leave the mesh untouched).
 //
 // State invariants between calls:
-//  - mesh_.tets holds every input cell; deleted ones are flagged in dead_bits_. A live cell's four
+//  - mesh_.tets holds every input cell; deleted ones are flagged in dead_. A live cell's four
 //    vertex ids are live vertices (a merged vertex is never referenced again; parent_ points to
 //    the vertex it merged into).
 //  - The cells around a live vertex v are the live cells among the adjacency rows of every
@@ -21,6 +21,7 @@
 #include <vector>
 
 #include "absl/status/status.h"
+#include "core/common/bit_set.h"
 #include "core/common/progress.h"
 #include "core/mesh/tet_mesh.h"
 #include "core/simplify/simplify.h"
@@ -118,10 +119,10 @@ class CollapseEngine {
   bool IsBoundary(int32_t v) const {
     return (mesh_.vertex_flags[v] & kExteriorBoundaryVertex) != 0;
   }
-  bool IsDead(int32_t c) const { return (dead_bits_[c >> 6] >> (c & 63)) & 1; }
-  void Kill(int32_t c) { dead_bits_[c >> 6] |= uint64_t{1} << (c & 63); }
-  bool IsLocked(int32_t c) const { return (locked_bits_[c >> 6] >> (c & 63)) & 1; }
-  void Lock(int32_t c) { locked_bits_[c >> 6] |= uint64_t{1} << (c & 63); }
+  bool IsDead(int32_t c) const { return dead_.Test(c); }
+  void Kill(int32_t c) { dead_.Set(c); }
+  bool IsLocked(int32_t c) const { return locked_.Test(c); }
+  void Lock(int32_t c) { locked_.Set(c); }
   bool IsCrossRegionCell(const int32_t* tet) const;
   double CellVolume(const int32_t* tet) const;
   uint32_t LastTouch(int32_t cell) const;
@@ -181,12 +182,11 @@ class CollapseEngine {
   std::vector<int32_t> adj_ids_;
   std::vector<uint8_t> cross_touch_;  // in a cross-region cell at set-up (a superset later)
   // Per cell.
-  std::vector<uint64_t> dead_bits_;  // a bit set: 1/8 of the memory, so it stays in cache
-  std::vector<uint8_t> permanent_;   // an IsPermanent outcome: never queued again
+  BitSet dead_;                     // deleted cells
+  std::vector<uint8_t> permanent_;  // an IsPermanent outcome: never queued again
   std::vector<float> cell_volume_;
   std::vector<uint32_t> scored_at_, rejected_at_;
-  std::vector<uint64_t>
-      locked_bits_;  // paper mode: locked in this round (a bit set, as dead_bits_)
+  BitSet locked_;  // paper mode: locked in this round
 
   // The round's queue: cells sorted by (key, id), then a min-heap of re-pushed (key, id).
   std::vector<int32_t> order_;
