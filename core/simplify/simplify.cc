@@ -9,6 +9,7 @@
 #include "absl/strings/str_format.h"
 #include "core/common/status.h"
 #include "core/simplify/collapse_engine.h"
+#include "core/simplify/field_engine.h"
 
 namespace decima {
 namespace {
@@ -101,6 +102,66 @@ absl::Status ValidateMesh(const TetMesh& m) {
   return absl::OkStatus();
 }
 
+// The paper's and TetFusion's greedy cell collapse, round after round (collapse_engine.h).
+absl::Status RunCellCollapse(const TetMesh& mesh, const SimplifyOptions& options, int threads,
+                             int64_t target, bool has_target, const ProgressFn& progress,
+                             const CancelToken* cancel, SimplifyResult* result) {
+  const bool has_tolerance = options.error_tolerance > 0;
+  CollapseEngine engine(mesh, options, threads);
+  bool stopped = false;
+  for (int pass = 1; pass <= options.max_passes && !stopped; ++pass) {
+    if (engine.removed_cells() >= target) break;
+    DECIMA_RETURN_IF_ERROR(CheckCancelled(cancel, "simplify"));
+    engine.BeginRound(threads);
+    simplify_internal::RoundStats round;
+    DECIMA_RETURN_IF_ERROR(
+        engine.RunRound(target, has_tolerance ? options.error_tolerance : 0, cancel, &round));
+    SimplifyPassStats stats;
+    stats.candidates = round.candidates;
+    stats.collapses = round.collapses;
+    stats.cells_removed = round.cells_removed;
+    stats.rejected_flip = round.rejected_flip;
+    stats.rejected_rule4 = round.rejected_rule4;
+    stats.requeued = round.requeued;
+    stats.other_point = round.other_point;
+    stats.last_error = round.last_error;
+    result->max_error = std::max(result->max_error, round.max_error);
+    const int64_t removed = engine.removed_cells();
+    result->passes = pass;
+    result->collapses += stats.collapses;
+    result->pass_stats.push_back(stats);
+    Report(progress, {"simplify",
+                      has_target ? std::min(1.0, double(removed) / double(target)) : 0.0,
+                      absl::StrFormat("round %d: %d collapses removed %d cells (%.1f%% so far)",
+                                      pass, stats.collapses, stats.cells_removed,
+                                      100.0 * double(removed) /
+                                          double(std::max<int64_t>(1, result->input_cells))),
+                      {{"pass", double(pass)},
+                       {"cells_removed", double(removed)},
+                       {"error", stats.last_error}}});
+    if (stats.collapses == 0) {
+      stopped = true;
+      result->stop_reason =
+          round.tolerance_hit ? StopReason::kErrorTolerance : StopReason::kNoValidCollapse;
+    } else if (round.tolerance_hit) {
+      stopped = true;
+      result->stop_reason = StopReason::kErrorTolerance;
+    } else if (removed < target &&
+               double(stats.cells_removed) < options.min_pass_gain * double(result->input_cells)) {
+      stopped = true;
+      result->stop_reason = StopReason::kStalled;
+    }
+  }
+  if (engine.removed_cells() >= target) {
+    result->stop_reason = StopReason::kTargetReached;
+  } else if (!stopped) {
+    result->stop_reason = StopReason::kMaxPasses;
+  }
+
+  engine.Finish(&result->mesh, &result->vertex_map);
+  return absl::OkStatus();
+}
+
 }  // namespace
 
 const char* StopReasonName(StopReason reason) {
@@ -135,59 +196,15 @@ absl::StatusOr<SimplifyResult> Simplify(const TetMesh& mesh, const SimplifyOptio
                  : std::numeric_limits<int64_t>::max();
   const bool has_tolerance = options.error_tolerance > 0;
 
-  CollapseEngine engine(mesh, options, threads);
-  bool stopped = false;
-  for (int pass = 1; pass <= options.max_passes && !stopped; ++pass) {
-    if (engine.removed_cells() >= target) break;
-    DECIMA_RETURN_IF_ERROR(CheckCancelled(cancel, "simplify"));
-    engine.BeginRound(threads);
-    simplify_internal::RoundStats round;
+  if (options.policy == SimplifyPolicy::kField) {
+    DECIMA_RETURN_IF_ERROR(simplify_internal::RunFieldSimplify(
+        mesh, options, threads, target, has_tolerance ? options.error_tolerance : 0, progress,
+        cancel, &result));
+  } else {
     DECIMA_RETURN_IF_ERROR(
-        engine.RunRound(target, has_tolerance ? options.error_tolerance : 0, cancel, &round));
-    SimplifyPassStats stats;
-    stats.candidates = round.candidates;
-    stats.collapses = round.collapses;
-    stats.cells_removed = round.cells_removed;
-    stats.rejected_flip = round.rejected_flip;
-    stats.rejected_rule4 = round.rejected_rule4;
-    stats.requeued = round.requeued;
-    stats.other_point = round.other_point;
-    stats.last_error = round.last_error;
-    result.max_error = std::max(result.max_error, round.max_error);
-    const int64_t removed = engine.removed_cells();
-    result.passes = pass;
-    result.collapses += stats.collapses;
-    result.pass_stats.push_back(stats);
-    Report(progress, {"simplify",
-                      has_target ? std::min(1.0, double(removed) / double(target)) : 0.0,
-                      absl::StrFormat("round %d: %d collapses removed %d cells (%.1f%% so far)",
-                                      pass, stats.collapses, stats.cells_removed,
-                                      100.0 * double(removed) /
-                                          double(std::max<int64_t>(1, result.input_cells))),
-                      {{"pass", double(pass)},
-                       {"cells_removed", double(removed)},
-                       {"error", stats.last_error}}});
-    if (stats.collapses == 0) {
-      stopped = true;
-      result.stop_reason =
-          round.tolerance_hit ? StopReason::kErrorTolerance : StopReason::kNoValidCollapse;
-    } else if (round.tolerance_hit) {
-      stopped = true;
-      result.stop_reason = StopReason::kErrorTolerance;
-    } else if (removed < target &&
-               double(stats.cells_removed) < options.min_pass_gain * double(result.input_cells)) {
-      stopped = true;
-      result.stop_reason = StopReason::kStalled;
-    }
+        RunCellCollapse(mesh, options, threads, target, has_target, progress, cancel, &result));
   }
-  const int64_t removed = engine.removed_cells();
-  if (removed >= target) {
-    result.stop_reason = StopReason::kTargetReached;
-  } else if (!stopped) {
-    result.stop_reason = StopReason::kMaxPasses;
-  }
-
-  engine.Finish(&result.mesh, &result.vertex_map);
+  const int64_t removed = result.input_cells - result.mesh.tet_count();
   result.output_cells = result.mesh.tet_count();
   result.achieved_reduction =
       result.input_cells > 0 ? 1.0 - double(result.output_cells) / double(result.input_cells) : 0;

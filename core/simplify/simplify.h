@@ -38,6 +38,7 @@ namespace decima {
 enum class SimplifyPolicy : uint8_t {
   kPaper,      // rules 1-6 of §2.2.2 and the full error of Eq. (8)
   kTetFusion,  // every interior cell to its centroid, local error only, rule 6, hull kept
+  kField,      // field-accurate: half-edge collapses ranked by the field's quadric error
 };
 
 // Weights of Eq. (8); defaults are the paper's Table 2 (CT-head). Any value >= 0.

@@ -145,6 +145,7 @@ int Run(int argc, char** argv) {
   for (double reduction : reductions) {
     decima::SimplifyOptions o;
     o.policy = policy_name == "tetfusion" ? decima::SimplifyPolicy::kTetFusion
+               : policy_name == "field"   ? decima::SimplifyPolicy::kField
                                           : decima::SimplifyPolicy::kPaper;
     o.target_reduction = reduction;
     o.threads = threads;

@@ -1,0 +1,301 @@
+// The field-accurate policy (SimplifyPolicy::kField): what it keeps exactly (interfaces, hull,
+// labels, kept samples) and how far it gets.
+#include <algorithm>
+#include <array>
+#include <cmath>
+#include <random>
+#include <vector>
+
+#include <gtest/gtest.h>
+
+#include "core/metrics/fidelity.h"
+#include "core/simplify/simplify.h"
+#include "tests/core/simplify/simplify_test_util.h"
+
+namespace decima {
+namespace {
+
+using testing::FaceUse;
+using testing::MakePhantomMesh;
+using testing::SimpleInterfaceDistance;
+using testing::TotalVolume;
+
+struct Labeled {
+  Volume image, labels;
+  TetMesh mesh;
+};
+
+// A float image and uint8 labels on an n^3 grid from per-voxel functions, meshed with the
+// stand-in interface distance (feature vertices = voxels with a 6-neighbour of another label).
+template <typename ValueFn, typename LabelFn>
+Labeled MakeLabeled(int64_t n, ValueFn value, LabelFn label) {
+  Labeled out;
+  auto image = MakeVolume({n, n, n}, VoxelType::kFloat32);
+  auto labels = MakeVolume({n, n, n}, VoxelType::kUInt8);
+  EXPECT_TRUE(image.ok() && labels.ok());
+  out.image = *std::move(image);
+  out.labels = *std::move(labels);
+  for (int64_t k = 0, p = 0; k < n; ++k)
+    for (int64_t j = 0; j < n; ++j)
+      for (int64_t i = 0; i < n; ++i, ++p) {
+        out.image.mutable_data<float>()[p] = float(value(i, j, k));
+        out.labels.mutable_data<uint8_t>()[p] = uint8_t(label(i, j, k));
+      }
+  const std::vector<float> dist = SimpleInterfaceDistance(out.labels);
+  TetrahedralizeOptions t;
+  t.labels = &out.labels;
+  t.interface_distance = dist.data();
+  auto mesh = Tetrahedralize(out.image, t);
+  EXPECT_TRUE(mesh.ok()) << mesh.status();
+  out.mesh = *std::move(mesh);
+  return out;
+}
+
+SimplifyOptions Field(double reduction, int threads = 2) {
+  SimplifyOptions o;
+  o.policy = SimplifyPolicy::kField;
+  o.target_reduction = reduction;
+  o.threads = threads;
+  return o;
+}
+
+// The hull of `m` is the box surface of `original` (a grid mesh) as a set: every boundary face
+// lies in one box face, and together they cover its area exactly; the volume is the box's.
+void ExpectBoxHull(const TetMesh& m, const TetMesh& original) {
+  Eigen::Vector3d lo = original.Position(0), hi = lo;
+  for (int64_t v = 0; v < original.vertex_count(); ++v) {
+    lo = lo.cwiseMin(original.Position(v));
+    hi = hi.cwiseMax(original.Position(v));
+  }
+  const Eigen::Vector3d size = hi - lo;
+  double area = 0;
+  for (const auto& [f, count] : FaceUse(m)) {
+    ASSERT_LE(count, 2) << "non-conforming face";
+    if (count != 1) continue;
+    bool on_one_box_face = false;
+    for (int axis = 0; axis < 3 && !on_one_box_face; ++axis) {
+      for (double plane : {lo[axis], hi[axis]}) {
+        bool all = true;
+        for (int k = 0; k < 3; ++k) all &= m.positions[3 * f[k] + axis] == float(plane);
+        on_one_box_face |= all;
+      }
+    }
+    EXPECT_TRUE(on_one_box_face) << "a boundary face off the box surface";
+    const Eigen::Vector3d a = m.Position(f[0]), b = m.Position(f[1]), c = m.Position(f[2]);
+    area += 0.5 * (b - a).cross(c - a).norm();
+  }
+  const double box_area = 2 * (size.x() * size.y() + size.y() * size.z() + size.z() * size.x());
+  EXPECT_NEAR(area, box_area, 1e-6 * box_area);
+  EXPECT_NEAR(TotalVolume(m), size.prod(), 1e-6 * size.prod());
+}
+
+// Every original feature vertex is still a vertex at its place, or lies on a face of the
+// simplified mesh whose three vertices are feature vertices of its own label (it lies on its
+// interface layer, which the collapses re-triangulated). Returns the number that are neither.
+int64_t FeatureVerticesOffTheirLayer(const Labeled& in, const SimplifyResult& r) {
+  auto resample = ResampleOnGrid(in.image, r.mesh, 1, 1e-6);
+  EXPECT_TRUE(resample.ok());
+  const TetMesh& out = r.mesh;
+  int64_t off = 0;
+  for (int64_t v = 0; v < in.mesh.vertex_count(); ++v) {
+    if (!(in.mesh.vertex_flags[v] & kFeatureVertex)) continue;
+    const int32_t c = resample->cell[v];
+    if (c < 0) {
+      ++off;
+      continue;
+    }
+    // Barycentric weights of the grid point in its cell; all weight must sit on same-label
+    // feature vertices.
+    const int32_t* t = &out.tets[4 * int64_t(c)];
+    const Eigen::Vector3d p = in.mesh.Position(v);
+    Eigen::Matrix3d e;
+    for (int k = 0; k < 3; ++k) e.col(k) = out.Position(t[k + 1]) - out.Position(t[0]);
+    const Eigen::Vector3d l = e.inverse() * (p - out.Position(t[0]));
+    const double w[4] = {1 - l.sum(), l.x(), l.y(), l.z()};
+    double stray = 0;
+    for (int k = 0; k < 4; ++k) {
+      const bool same_layer =
+          (out.vertex_flags[t[k]] & kFeatureVertex) && out.labels[t[k]] == in.mesh.labels[v];
+      if (!same_layer) stray += std::abs(w[k]);
+    }
+    off += stray > 1e-5;
+  }
+  return off;
+}
+
+TEST(FieldPolicy, LinearRampIsReproducedExactlyAtEveryReduction) {
+  const Labeled lin = MakeLabeled(
+      16, [](int64_t i, int64_t j, int64_t k) { return 3.0 * i - 2.0 * j + 0.5 * k; },
+      [](int64_t, int64_t, int64_t) { return 0; });
+  for (double reduction : {0.5, 0.8, 0.9}) {
+    auto r = Simplify(lin.mesh, Field(reduction));
+    ASSERT_TRUE(r.ok()) << r.status();
+    EXPECT_TRUE(r->reached_target) << reduction << ": " << r->stop_message;
+    auto m = MeasureFidelity(lin.image, r->mesh);
+    ASSERT_TRUE(m.ok());
+    EXPECT_DOUBLE_EQ(m->coverage, 1.0);
+    // Exact up to float rounding of the interpolation (values reach 75).
+    EXPECT_LT(m->rmse, 1e-4) << reduction;
+    EXPECT_GT(m->psnr_db, 110) << reduction;
+    EXPECT_EQ(m->inverted_cells, 0);
+    ExpectBoxHull(r->mesh, lin.mesh);
+  }
+}
+
+// Three slabs and a box-shaped inclusion: every interface is made of planar patches with
+// straight creases and corners. The policy must get past 90 % with the interfaces, the labels
+// and the hull kept as sets.
+Labeled Blocks(int64_t n, double noise) {
+  std::mt19937 rng(11);
+  std::normal_distribution<double> gauss(0, noise);
+  auto label = [n](int64_t i, int64_t j, int64_t k) {
+    if (i >= n / 4 && i < n / 2 && j >= n / 4 && j < 3 * n / 4 && k >= n / 3 && k < 2 * n / 3) {
+      return 3;
+    }
+    return i < n / 3 ? 0 : i < 2 * n / 3 ? 1 : 2;
+  };
+  return MakeLabeled(
+      n,
+      [&](int64_t i, int64_t j, int64_t k) {
+        const double means[4] = {0, 800, 300, 1500};
+        return means[label(i, j, k)] + 2.0 * double(j) + gauss(rng);
+      },
+      label);
+}
+
+TEST(FieldPolicy, PlanarInterfacesReachNinetyPercentWithInterfacesLabelsAndHullKept) {
+  const Labeled b = Blocks(24, 5);
+  auto r = Simplify(b.mesh, Field(0.9));
+  ASSERT_TRUE(r.ok()) << r.status();
+  EXPECT_TRUE(r->reached_target) << r->stop_message;
+  EXPECT_GE(r->achieved_reduction, 0.9);
+  ExpectBoxHull(r->mesh, b.mesh);
+  EXPECT_EQ(FeatureVerticesOffTheirLayer(b, *r), 0);
+  FidelityOptions fo;
+  fo.labels = &b.labels;
+  auto m = MeasureFidelity(b.image, r->mesh, fo);
+  ASSERT_TRUE(m.ok());
+  EXPECT_EQ(m->inverted_cells, 0);
+  EXPECT_EQ(m->degenerate_cells, 0);
+  EXPECT_DOUBLE_EQ(m->coverage, 1.0);
+  // Labels exact at every feature vertex (they sit on their layer); elsewhere the nearest-vertex
+  // label may differ only where a removed free vertex's cell reaches across a layer.
+  EXPECT_GE(m->mean_dice, 0.999);
+}
+
+// Corners of an interface (where three planes of the voxel boundary meet) never move: the
+// inclusion's 8 corner voxels, inside and outside, survive in place even when simplifying to
+// the end.
+TEST(FieldPolicy, InterfaceCornersNeverMove) {
+  const int64_t n = 20;
+  const Labeled b = MakeLabeled(
+      n, [](int64_t i, int64_t j, int64_t k) { return double(i + j + k); },
+      [](int64_t i, int64_t j, int64_t k) {
+        return i >= 6 && i < 14 && j >= 6 && j < 14 && k >= 6 && k < 14 ? 1 : 0;
+      });
+  auto r = Simplify(b.mesh, Field(0.99));
+  ASSERT_TRUE(r.ok()) << r.status();
+  EXPECT_GT(r->achieved_reduction, 0.8);
+  int checked = 0;
+  for (int64_t lo : {6, 13}) {
+    for (int64_t lo2 : {6, 13}) {
+      for (int64_t lo3 : {6, 13}) {
+        const int64_t v = lo + n * (lo2 + n * lo3);  // an inner corner voxel (label 1)
+        ASSERT_TRUE(b.mesh.vertex_flags[v] & kFeatureVertex);
+        const int32_t out = r->vertex_map[v];
+        ASSERT_GE(out, 0);
+        EXPECT_EQ(r->mesh.Position(out), b.mesh.Position(v)) << "corner " << v << " moved";
+        ++checked;
+      }
+    }
+  }
+  EXPECT_EQ(checked, 8);
+  EXPECT_EQ(FeatureVerticesOffTheirLayer(b, *r), 0);
+  ExpectBoxHull(r->mesh, b.mesh);
+}
+
+// On a curved interface (the head phantom's ellipsoids) most layer vertices are corners of the
+// voxel staircase: none of them may leave its layer, and the surviving ones keep their place.
+TEST(FieldPolicy, CurvedInterfacesKeepEveryFeatureVertexOnItsLayer) {
+  auto pm = MakePhantomMesh(24, 30);
+  Labeled in{pm.phantom.image, pm.phantom.labels, pm.mesh};
+  auto r = Simplify(in.mesh, Field(0.7));
+  ASSERT_TRUE(r.ok()) << r.status();
+  EXPECT_GT(r->achieved_reduction, 0.6);
+  EXPECT_EQ(FeatureVerticesOffTheirLayer(in, *r), 0);
+  // Surviving vertices keep position and voxel sample exactly.
+  for (int64_t v = 0; v < in.mesh.vertex_count(); ++v) {
+    const int32_t o = r->vertex_map[v];
+    if (o < 0 || r->mesh.Position(o) != in.mesh.Position(v)) continue;
+    EXPECT_EQ(r->mesh.scalars[o], in.mesh.scalars[v]);
+  }
+  ExpectBoxHull(r->mesh, in.mesh);
+}
+
+TEST(FieldPolicy, KeepsPaperGuaranteesAndBeatsPaperOnTheField) {
+  auto pm = MakePhantomMesh(24, 40);
+  FidelityOptions fo;
+  fo.labels = &pm.phantom.labels;
+  SimplifyOptions paper;
+  paper.target_reduction = 0.5;
+  auto p = Simplify(pm.mesh, paper);
+  auto f = Simplify(pm.mesh, Field(0.5));
+  ASSERT_TRUE(p.ok() && f.ok());
+  EXPECT_TRUE(f->reached_target);
+  auto mp = MeasureFidelity(pm.phantom.image, p->mesh, fo);
+  auto mf = MeasureFidelity(pm.phantom.image, f->mesh, fo);
+  ASSERT_TRUE(mp.ok() && mf.ok());
+  EXPECT_GT(mf->psnr_db, mp->psnr_db + 3) << "field " << mf->psnr_db << " paper " << mp->psnr_db;
+  EXPECT_DOUBLE_EQ(mf->coverage, 1.0);
+  EXPECT_EQ(mf->inverted_cells, 0);
+  EXPECT_EQ(mf->degenerate_cells, 0);
+  for (const auto& [face, count] : FaceUse(f->mesh)) ASSERT_LE(count, 2);
+  ExpectBoxHull(f->mesh, pm.mesh);
+}
+
+TEST(FieldPolicy, SameResultOnOneAndTwoThreads) {
+  auto pm = MakePhantomMesh(20, 40);
+  auto a = Simplify(pm.mesh, Field(0.6, 1));
+  auto b = Simplify(pm.mesh, Field(0.6, 2));
+  ASSERT_TRUE(a.ok() && b.ok());
+  EXPECT_GT(a->collapses, 0);
+  EXPECT_EQ(a->mesh.tets, b->mesh.tets);
+  EXPECT_EQ(a->mesh.positions, b->mesh.positions);
+  EXPECT_EQ(a->mesh.scalars, b->mesh.scalars);
+  EXPECT_EQ(a->vertex_map, b->vertex_map);
+}
+
+TEST(FieldPolicy, ToleranceStopsTheLoopAndSaysSo) {
+  auto pm = MakePhantomMesh(16, 40);
+  SimplifyOptions o = Field(0);  // no target: run to the tolerance
+  o.error_tolerance = 5;         // RMS field error in image units
+  auto r = Simplify(pm.mesh, o);
+  ASSERT_TRUE(r.ok()) << r.status();
+  EXPECT_EQ(r->stop_reason, StopReason::kErrorTolerance) << r->stop_message;
+  EXPECT_GT(r->collapses, 0);
+  EXPECT_LE(r->max_error, 5.0);
+  EXPECT_NE(r->stop_message.find("tolerance"), std::string::npos);
+}
+
+TEST(FieldPolicy, ReportsProgressAndHonoursCancellation) {
+  auto pm = MakePhantomMesh(20, 40);
+  int reports = 0;
+  double last = -1;
+  bool monotone = true;
+  auto r = Simplify(pm.mesh, Field(0.5), [&](const Progress& e) {
+    EXPECT_EQ(e.stage, "simplify");
+    monotone &= e.fraction >= last;
+    last = e.fraction;
+    ++reports;
+  });
+  ASSERT_TRUE(r.ok());
+  EXPECT_GE(reports, 10);
+  EXPECT_TRUE(monotone);
+  CancelToken cancel;
+  cancel.Cancel();
+  auto c = Simplify(pm.mesh, Field(0.5), nullptr, &cancel);
+  EXPECT_EQ(c.status().code(), absl::StatusCode::kCancelled);
+}
+
+}  // namespace
+}  // namespace decima
