@@ -180,6 +180,26 @@ const char* StopReasonName(StopReason reason) {
   return "?";
 }
 
+const char* SimplifyPolicyName(SimplifyPolicy policy) {
+  switch (policy) {
+    case SimplifyPolicy::kPaper:
+      return "paper";
+    case SimplifyPolicy::kTetFusion:
+      return "tetfusion";
+    case SimplifyPolicy::kField:
+      return "field";
+  }
+  return "?";
+}
+
+std::optional<SimplifyPolicy> ParseSimplifyPolicy(std::string_view name) {
+  for (SimplifyPolicy p :
+       {SimplifyPolicy::kPaper, SimplifyPolicy::kTetFusion, SimplifyPolicy::kField}) {
+    if (name == SimplifyPolicyName(p)) return p;
+  }
+  return std::nullopt;
+}
+
 absl::StatusOr<SimplifyResult> Simplify(const TetMesh& mesh, const SimplifyOptions& options,
                                         const ProgressFn& progress, const CancelToken* cancel) {
   DECIMA_RETURN_IF_ERROR(ValidateOptions(options));

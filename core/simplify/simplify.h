@@ -26,6 +26,8 @@
 #pragma once
 
 #include <cstdint>
+#include <optional>
+#include <string_view>
 #include <string>
 #include <vector>
 
@@ -98,6 +100,11 @@ enum class StopReason : uint8_t {
   kStalled,          // the last pass removed fewer than min_pass_gain of the input cells
 };
 const char* StopReasonName(StopReason reason);
+
+// "paper", "tetfusion", "field": the one spelling of each policy in files, flags and the API.
+const char* SimplifyPolicyName(SimplifyPolicy policy);
+// The policy of that name, or nullopt for any other string (case-sensitive).
+std::optional<SimplifyPolicy> ParseSimplifyPolicy(std::string_view name);
 
 struct SimplifyPassStats {
   int64_t candidates = 0;      // cells the own-vertex rules allowed at the start of the round

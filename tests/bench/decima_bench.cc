@@ -94,7 +94,7 @@ struct BenchOptions {
   int repeat = 3;
   int regions = 3;
   double reduction = 0.5;
-  std::string policy = "paper";
+  std::string policy = "field";
   int size = 512;
   std::string view = "anterior";
 };
@@ -186,7 +186,7 @@ absl::Status RunTetra(const BenchOptions& o, BenchState& state, Json& out) {
 
 absl::Status RunSimplify(const BenchOptions& o, BenchState& state, Json& out) {
   SimplifyOptions so;
-  so.policy = o.policy == "tetfusion" ? SimplifyPolicy::kTetFusion : SimplifyPolicy::kPaper;
+  so.policy = *ParseSimplifyPolicy(o.policy);  // the flag accepts only known names
   so.target_reduction = o.reduction;
   absl::Status s = Time(o.repeat, out, [&]() -> absl::Status {
     state.simplified.reset();
@@ -276,8 +276,8 @@ int Main(int argc, char** argv) {
   app.add_option("--reduction", o.reduction, "simplify: fraction of cells to remove")
       ->check(CLI::Range(0.0, 0.95))
       ->capture_default_str();
-  app.add_option("--policy", o.policy, "simplify: paper or tetfusion")
-      ->check(CLI::IsMember({"paper", "tetfusion"}))
+  app.add_option("--policy", o.policy, "simplify: field, paper or tetfusion")
+      ->check(CLI::IsMember({"field", "paper", "tetfusion"}))
       ->capture_default_str();
   app.add_option("--size", o.size, "render: image width and height in pixels")
       ->check(CLI::Range(16, 4096))

@@ -144,9 +144,12 @@ int Run(int argc, char** argv) {
 
   for (double reduction : reductions) {
     decima::SimplifyOptions o;
-    o.policy = policy_name == "tetfusion" ? decima::SimplifyPolicy::kTetFusion
-               : policy_name == "field"   ? decima::SimplifyPolicy::kField
-                                          : decima::SimplifyPolicy::kPaper;
+    const auto policy = decima::ParseSimplifyPolicy(policy_name);
+    if (!policy) {
+      std::fprintf(stderr, "unknown policy %s\n", policy_name.c_str());
+      return 2;
+    }
+    o.policy = *policy;
     o.target_reduction = reduction;
     o.threads = threads;
     if (lock >= 0) o.lock_neighbours = lock != 0;
