@@ -127,7 +127,8 @@ class FieldEngine {
   // Cost of the collapse u -> x: u's quadric at x's point (x's position and value), plus the
   // shortest-edge tie break. Depends only on Q_u and x, both fixed until u or x collapses.
   double Cost(int32_t u, int32_t x) const {
-    const double p[5] = {pos_[3 * x], pos_[3 * x + 1], pos_[3 * x + 2], values_[x], 1.0};
+    const double p[5] = {pos_[3 * x], pos_[3 * x + 1], pos_[3 * x + 2], double(in_.scalars[x]),
+                         1.0};
     const double q = std::max(0.0, EvaluateQuadric(&quadric_[kQuadricSize * int64_t(u)], p));
     return ((flags_[u] & kFeatureVertex) ? kFeatureCostFactor : 1.0) * q + TieBreak(u, x);
   }
@@ -152,13 +153,12 @@ class FieldEngine {
   const int threads_;
 
   int64_t nv_ = 0, nt_ = 0;
-  std::vector<double> pos_;     // positions relative to the bounding-box centre, mm
-  std::vector<double> values_;  // field value per vertex (optimize_values changes survivors')
+  std::vector<double> pos_;  // positions relative to the bounding-box centre, mm
   std::vector<uint8_t> flags_;
   std::vector<int32_t> tets_;
   BitSet dead_;
   // Adjacency: the input CSR rows, linked per merge class (survivor first).
-  std::vector<int64_t> row_start_;
+  std::vector<int32_t> row_start_;  // int32: 4 * cells fits (Simplify checks)
   std::vector<int32_t> row_len_, class_next_, class_tail_, cell_ids_;
   std::vector<int32_t> valence_;  // live cells around a live vertex
   std::vector<int32_t> parent_;   // -1 alive, else the vertex it collapsed onto
@@ -216,7 +216,6 @@ void FieldEngine::Setup() {
   for (int64_t v = 0; v < nv_; ++v) {
     for (int k = 0; k < 3; ++k) pos_[3 * v + k] = double(in_.positions[3 * v + k]) - centre[k];
   }
-  values_.assign(in_.scalars.begin(), in_.scalars.end());
   flags_ = in_.vertex_flags;
   if (options_.feature_threshold_voxels >= 0) {
     for (int64_t v = 0; v < nv_; ++v) {
@@ -229,9 +228,9 @@ void FieldEngine::Setup() {
   tets_ = in_.tets;
   dead_ = BitSet(nt_);
 
-  const VertexTetAdjacency adjacency = BuildVertexTetAdjacency(in_);
+  VertexTetAdjacency adjacency = BuildVertexTetAdjacency(in_);
   row_start_.assign(adjacency.offsets.begin(), adjacency.offsets.end() - 1);
-  cell_ids_ = adjacency.tet_ids;
+  cell_ids_ = std::move(adjacency.tet_ids);  // the rows are consumed in place
   row_len_.resize(nv_);
   valence_.resize(nv_);
   for (int64_t v = 0; v < nv_; ++v) {
@@ -269,7 +268,7 @@ void FieldEngine::Setup() {
     for (int64_t v = v0; v < v1; ++v) {
       double* q = &quadric_[kQuadricSize * v];
       for (int64_t i = adjacency.offsets[v]; i < adjacency.offsets[v + 1]; ++i) {
-        const int32_t* c = &tets_[4 * int64_t(adjacency.tet_ids[i])];
+        const int32_t* c = &tets_[4 * int64_t(cell_ids_[i])];
         const Eigen::Vector3d p0(pos_[3 * c[0]], pos_[3 * c[0] + 1], pos_[3 * c[0] + 2]);
         Eigen::Matrix3d e;
         Eigen::Vector3d ds;
@@ -718,13 +717,17 @@ void FieldEngine::Finish(SimplifyResult* result) {
     const int32_t i = index[v];
     if (i < 0) continue;
     for (int k = 0; k < 3; ++k) out.positions[3 * int64_t(i) + k] = in_.positions[3 * v + k];
-    out.scalars[i] = static_cast<float>(values_[v]);
+    out.scalars[i] = in_.scalars[v];
     out.labels[i] = in_.labels[v];
     out.interface_distance[i] = in_.interface_distance[v];
     out.vertex_flags[i] = in_.vertex_flags[v];
   }
+  int64_t live = 0;
+  for (int64_t t = 0; t < nt_; ++t) live += !dead_.Test(t);
   out.tets.clear();
   out.cell_regions.clear();
+  out.tets.reserve(4 * live);
+  out.cell_regions.reserve(live);
   for (int64_t t = 0; t < nt_; ++t) {
     if (dead_.Test(t)) continue;
     const int32_t* c = &tets_[4 * t];

@@ -1,5 +1,12 @@
-// Feature-preserving decimation of a tetrahedral mesh by greedy cell collapse (paper §2.2) and
-// the TetFusion baseline (Chopra & Meyer 2002) on the same engine.
+// Decimation of a tetrahedral mesh with three policies:
+//  - kField (the job default): greedy half-edge collapses ranked by the error of the
+//    piecewise-linear field (4-D quadrics). Surviving vertices keep their position and voxel
+//    sample; feature vertices move only inside a planar patch of their interface layer or along
+//    a straight crease of it, hull vertices only inside a box face or along a box edge; corners
+//    never. So interfaces and hull stay the same point sets, every cell stays positive and the
+//    mesh conforming, the output does not depend on `threads`. README.md: "The field policy".
+//  - kPaper: feature-preserving greedy cell collapse (paper §2.2), described below.
+//  - kTetFusion: the TetFusion baseline (Chopra & Meyer 2002) on the paper's engine.
 //
 // A collapse merges the four vertices of a cell τ into one point: the centroid (rule 1), or a
 // vertex of τ that must not move (a feature vertex, rule 2; the vertex shared with a
@@ -27,8 +34,8 @@
 
 #include <cstdint>
 #include <optional>
-#include <string_view>
 #include <string>
+#include <string_view>
 #include <vector>
 
 #include "absl/status/statusor.h"
@@ -57,7 +64,8 @@ struct SimplifyOptions {
   // Fraction of the input cells to remove, in [0, 0.99]. 0 = no target: run until the error
   // tolerance or no collapsible cell remains.
   double target_reduction = 0.5;
-  // Largest predicted error Δε (Eq. 8) a collapse may have; <= 0 means no tolerance.
+  // Largest predicted error a collapse may have; <= 0 means no tolerance. kPaper/kTetFusion:
+  // Δε of Eq. (8). kField: the RMS field deviation its quadric predicts, in image units.
   double error_tolerance = 0;
   ErrorWeights weights;
   // Feature vertices (kPaper): < 0 uses the kFeatureVertex flags as Tetrahedralize set them;
