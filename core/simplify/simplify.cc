@@ -10,6 +10,7 @@
 #include "core/common/status.h"
 #include "core/simplify/collapse_engine.h"
 #include "core/simplify/field_engine.h"
+#include "core/simplify/field_refit.h"
 
 namespace decima {
 namespace {
@@ -53,6 +54,9 @@ absl::Status ValidateOptions(const SimplifyOptions& o) {
   }
   if (o.max_passes < 1 || o.max_passes > 10000) {
     return bad(absl::StrCat("max_passes = ", o.max_passes, ": expected 1..10000"));
+  }
+  if (o.refit_iterations < 0 || o.refit_iterations > 1000) {
+    return bad(absl::StrCat("refit_iterations = ", o.refit_iterations, ": expected 0..1000"));
   }
   if (o.threads < 0 || o.threads > 1024) {
     return bad(absl::StrCat("threads = ", o.threads, ": expected 0..1024"));
@@ -220,6 +224,10 @@ absl::StatusOr<SimplifyResult> Simplify(const TetMesh& mesh, const SimplifyOptio
     DECIMA_RETURN_IF_ERROR(simplify_internal::RunFieldSimplify(
         mesh, options, threads, target, has_tolerance ? options.error_tolerance : 0, progress,
         cancel, &result));
+    if (options.refit_iterations > 0) {
+      DECIMA_RETURN_IF_ERROR(simplify_internal::RefitValues(
+          mesh, &result.mesh, options.refit_iterations, cancel, nullptr));
+    }
   } else {
     DECIMA_RETURN_IF_ERROR(
         RunCellCollapse(mesh, options, threads, target, has_target, progress, cancel, &result));

@@ -97,6 +97,10 @@ struct SimplifyOptions {
   // jammed: later rounds gain almost nothing). 0 = run until a round removes nothing.
   // In [0, 0.5].
   double min_pass_gain = 1e-3;
+  // kField: conjugate-gradient steps of the least-squares refit of the vertex values to the
+  // original samples after the collapses (README "Refit"); 0 keeps every surviving vertex's
+  // voxel sample. 0..1000.
+  int refit_iterations = 30;
   int threads = 0;  // worker threads for the per-pass scoring; 0 = hardware concurrency
 };
 

@@ -219,11 +219,13 @@ TEST(FieldPolicy, InterfaceCornersNeverMove) {
 TEST(FieldPolicy, CurvedInterfacesKeepEveryFeatureVertexOnItsLayer) {
   auto pm = MakePhantomMesh(24, 30);
   Labeled in{pm.phantom.image, pm.phantom.labels, pm.mesh};
-  auto r = Simplify(in.mesh, Field(0.7));
+  SimplifyOptions o = Field(0.7);
+  o.refit_iterations = 0;
+  auto r = Simplify(in.mesh, o);
   ASSERT_TRUE(r.ok()) << r.status();
   EXPECT_GT(r->achieved_reduction, 0.6);
   EXPECT_EQ(FeatureVerticesOffTheirLayer(in, *r), 0);
-  // Surviving vertices keep position and voxel sample exactly.
+  // Without the refit, surviving vertices keep position and voxel sample exactly.
   for (int64_t v = 0; v < in.mesh.vertex_count(); ++v) {
     const int32_t o = r->vertex_map[v];
     if (o < 0 || r->mesh.Position(o) != in.mesh.Position(v)) continue;
@@ -251,6 +253,26 @@ TEST(FieldPolicy, KeepsPaperGuaranteesAndBeatsPaperOnTheField) {
   EXPECT_EQ(mf->degenerate_cells, 0);
   for (const auto& [face, count] : FaceUse(f->mesh)) ASSERT_LE(count, 2);
   ExpectBoxHull(f->mesh, pm.mesh);
+}
+
+// The least-squares refit only lowers the error at the original samples, never touches the
+// geometry, and keeps a linear field exact (LinearRamp... above runs with it).
+TEST(FieldPolicy, RefitLowersTheErrorAndKeepsTheMesh) {
+  auto pm = MakePhantomMesh(24, 40);
+  SimplifyOptions o = Field(0.8);
+  o.refit_iterations = 0;
+  auto kept = Simplify(pm.mesh, o);
+  o.refit_iterations = 30;
+  auto refit = Simplify(pm.mesh, o);
+  ASSERT_TRUE(kept.ok() && refit.ok());
+  EXPECT_EQ(kept->mesh.tets, refit->mesh.tets);
+  EXPECT_EQ(kept->mesh.positions, refit->mesh.positions);
+  EXPECT_EQ(kept->mesh.labels, refit->mesh.labels);
+  EXPECT_NE(kept->mesh.scalars, refit->mesh.scalars);
+  auto mk = MeasureFidelity(pm.phantom.image, kept->mesh);
+  auto mr = MeasureFidelity(pm.phantom.image, refit->mesh);
+  ASSERT_TRUE(mk.ok() && mr.ok());
+  EXPECT_LT(mr->rmse, 0.95 * mk->rmse) << mk->rmse << " -> " << mr->rmse;
 }
 
 TEST(FieldPolicy, SameResultOnOneAndTwoThreads) {

@@ -6,7 +6,8 @@
 //
 //   simplify-measure --input ct.nii.gz --policy paper --reductions 0.1,0.2,0.5 --repeat 3
 //   simplify-measure --phantom 128 --policy tetfusion --reductions 0.5 --no-metrics
-// --lock 1 / --widen 0 switch SimplifyOptions::lock_neighbours / widen_collapse_point;
+// --lock 1 / --widen 0 / --refit N switch SimplifyOptions::lock_neighbours /
+// widen_collapse_point / refit_iterations;
 // MEASURE_PASSES=1 prints the per-round statistics.
 #include <sys/resource.h>
 
@@ -54,7 +55,7 @@ std::vector<double> ParseList(const char* s) {
 int Run(int argc, char** argv) {
   std::string input, policy_name = "paper";
   int64_t phantom = 0;
-  int repeat = 1, threads = 2, lock = -1, widen = 1;
+  int repeat = 1, threads = 2, lock = -1, widen = 1, refit = -1;
   bool metrics = true;
   std::vector<double> reductions = {0.5};
   for (int i = 1; i < argc; ++i) {
@@ -73,6 +74,8 @@ int Run(int argc, char** argv) {
       threads = std::atoi(argv[++i]);
     } else if (arg("--lock")) {
       lock = std::atoi(argv[++i]);
+    } else if (arg("--refit")) {
+      refit = std::atoi(argv[++i]);
     } else if (arg("--widen")) {
       widen = std::atoi(argv[++i]);
     } else if (std::strcmp(argv[i], "--no-metrics") == 0) {
@@ -154,6 +157,7 @@ int Run(int argc, char** argv) {
     o.threads = threads;
     if (lock >= 0) o.lock_neighbours = lock != 0;
     o.widen_collapse_point = widen != 0;
+    if (refit >= 0) o.refit_iterations = refit;
     std::vector<double> secs, cpu;
     absl::StatusOr<decima::SimplifyResult> r;
     for (int k = 0; k < repeat; ++k) {

@@ -1,0 +1,30 @@
+// Least-squares refit of a simplified mesh's vertex values to the original samples.
+// Internal to core/simplify (used by the field policy); README.md "Refit" says why.
+#pragma once
+
+#include <cstdint>
+
+#include "absl/status/status.h"
+#include "core/common/progress.h"
+#include "core/mesh/tet_mesh.h"
+
+namespace decima::simplify_internal {
+
+struct RefitStats {
+  int64_t samples = 0;    // original vertices located in the simplified mesh
+  int64_t unlocated = 0;  // outside every cell (left out of the fit)
+  double rms_before = 0;  // RMS deviation at the located samples, image units
+  double rms_after = 0;
+  int iterations = 0;
+};
+
+// Changes simplified->scalars so that the piecewise-linear field best matches, in the least-
+// squares sense, the value of every vertex of `original` at its position (the original samples):
+// each sample is located in the simplified mesh (lowest cell id on shared faces) and the normal
+// equations are solved by conjugate gradients (CGLS) from the current values, at most
+// `iterations` steps. Positions, cells and labels are untouched; a linear field stays exact.
+// Serial, so the result does not depend on any thread count.
+absl::Status RefitValues(const TetMesh& original, TetMesh* simplified, int iterations,
+                         const CancelToken* cancel, RefitStats* stats);
+
+}  // namespace decima::simplify_internal
