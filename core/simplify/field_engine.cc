@@ -48,6 +48,32 @@ inline double EvaluateQuadric(const double* q, const double p[5]) {
   return r;
 }
 
+// q' = M^T q M with M the translation p -> p + d of the first four coordinates: the same
+// quadric, expressed around an origin moved by -d (q was centred at o, q' is centred at o + d).
+inline void TranslateQuadric(const float* q, const double d[4], double out[15]) {
+  double full[5][5];
+  for (int i = 0, k = 0; i < 5; ++i) {
+    for (int j = i; j < 5; ++j, ++k) full[i][j] = full[j][i] = double(q[k]);
+  }
+  // (M^T Q M)_ij with M = I except M(i, 4) = d_i for i < 4.
+  double qm[5][5];  // Q M
+  for (int i = 0; i < 5; ++i) {
+    for (int j = 0; j < 4; ++j) qm[i][j] = full[i][j];
+    double last = full[i][4];
+    for (int k = 0; k < 4; ++k) last += full[i][k] * d[k];
+    qm[i][4] = last;
+  }
+  for (int i = 0, k = 0; i < 5; ++i) {
+    for (int j = i; j < 5; ++j, ++k) {
+      double v = qm[i][j];
+      if (i == 4) {
+        for (int m = 0; m < 4; ++m) v += d[m] * qm[m][j];
+      }
+      out[k] = v;
+    }
+  }
+}
+
 inline void AddPlane(double* q, const double a[5], double w) {
   int k = 0;
   for (int i = 0; i < 5; ++i) {
@@ -127,24 +153,30 @@ class FieldEngine {
   // Cost of the collapse u -> x: u's quadric at x's point (x's position and value), plus the
   // shortest-edge tie break. Depends only on Q_u and x, both fixed until u or x collapses.
   double Cost(int32_t u, int32_t x) const {
-    const double p[5] = {pos_[3 * x], pos_[3 * x + 1], pos_[3 * x + 2], double(in_.scalars[x]),
-                         1.0};
-    const double q = std::max(0.0, EvaluateQuadric(&quadric_[kQuadricSize * int64_t(u)], p));
+    // Quadrics are stored around their own vertex's point (x_u, s_u), so floats suffice.
+    const double p[5] = {
+        double(pos_[3 * x]) - pos_[3 * u], double(pos_[3 * x + 1]) - pos_[3 * u + 1],
+        double(pos_[3 * x + 2]) - pos_[3 * u + 2], double(in_.scalars[x]) - in_.scalars[u], 1.0};
+    const float* qf = &quadric_[kQuadricSize * int64_t(u)];
+    double qd[kQuadricSize];
+    for (int k = 0; k < kQuadricSize; ++k) qd[k] = qf[k];
+    const double q = std::max(0.0, EvaluateQuadric(qd, p));
     return ((flags_[u] & kFeatureVertex) ? kFeatureCostFactor : 1.0) * q + TieBreak(u, x);
   }
   double TieBreak(int32_t u, int32_t x) const {
-    const double dx = pos_[3 * x] - pos_[3 * u], dy = pos_[3 * x + 1] - pos_[3 * u + 1],
-                 dz = pos_[3 * x + 2] - pos_[3 * u + 2];
+    const double dx = double(pos_[3 * x]) - pos_[3 * u],
+                 dy = double(pos_[3 * x + 1]) - pos_[3 * u + 1],
+                 dz = double(pos_[3 * x + 2]) - pos_[3 * u + 2];
     return tie_break_ * (dx * dx + dy * dy + dz * dz);
   }
   double SignedVolume(const int32_t* c) const {
-    const double* a = &pos_[3 * c[0]];
-    const double* b = &pos_[3 * c[1]];
-    const double* d = &pos_[3 * c[2]];
-    const double* e = &pos_[3 * c[3]];
-    const double b0 = b[0] - a[0], b1 = b[1] - a[1], b2 = b[2] - a[2];
-    const double d0 = d[0] - a[0], d1 = d[1] - a[1], d2 = d[2] - a[2];
-    const double e0 = e[0] - a[0], e1 = e[1] - a[1], e2 = e[2] - a[2];
+    const float* a = &pos_[3 * c[0]];
+    const float* b = &pos_[3 * c[1]];
+    const float* d = &pos_[3 * c[2]];
+    const float* e = &pos_[3 * c[3]];
+    const double b0 = double(b[0]) - a[0], b1 = double(b[1]) - a[1], b2 = double(b[2]) - a[2];
+    const double d0 = double(d[0]) - a[0], d1 = double(d[1]) - a[1], d2 = double(d[2]) - a[2];
+    const double e0 = double(e[0]) - a[0], e1 = double(e[1]) - a[1], e2 = double(e[2]) - a[2];
     return (b0 * (d1 * e2 - d2 * e1) - b1 * (d0 * e2 - d2 * e0) + b2 * (d0 * e1 - d1 * e0)) / 6;
   }
 
@@ -153,7 +185,7 @@ class FieldEngine {
   const int threads_;
 
   int64_t nv_ = 0, nt_ = 0;
-  std::vector<double> pos_;  // positions relative to the bounding-box centre, mm
+  const float* pos_ = nullptr;  // the input positions, mm (they never change)
   std::vector<uint8_t> flags_;
   std::vector<int32_t> tets_;
   BitSet dead_;
@@ -162,7 +194,8 @@ class FieldEngine {
   std::vector<int32_t> row_len_, class_next_, class_tail_, cell_ids_;
   std::vector<int32_t> valence_;  // live cells around a live vertex
   std::vector<int32_t> parent_;   // -1 alive, else the vertex it collapsed onto
-  std::vector<double> quadric_;
+  // Per vertex, centred at its own point (position, value) so that float keeps the precision.
+  std::vector<float> quadric_;
   std::vector<double> cost_;
   std::vector<int32_t> best_;
   std::vector<int32_t> second_;  // runner-up target (-1 unknown), to replace a lost best
@@ -203,19 +236,7 @@ void FieldEngine::GatherStar(int32_t v, std::vector<int32_t>* cells) {
 void FieldEngine::Setup() {
   nv_ = in_.vertex_count();
   nt_ = in_.tet_count();
-  Eigen::Vector3d lo = Eigen::Vector3d::Constant(std::numeric_limits<double>::infinity());
-  Eigen::Vector3d hi = -lo;
-  for (int64_t v = 0; v < nv_; ++v) {
-    const Eigen::Vector3d p = in_.Position(v);
-    lo = lo.cwiseMin(p);
-    hi = hi.cwiseMax(p);
-  }
-  const Eigen::Vector3d centre =
-      nv_ > 0 ? Eigen::Vector3d(0.5 * (lo + hi)) : Eigen::Vector3d(0, 0, 0);
-  pos_.resize(3 * nv_);
-  for (int64_t v = 0; v < nv_; ++v) {
-    for (int k = 0; k < 3; ++k) pos_[3 * v + k] = double(in_.positions[3 * v + k]) - centre[k];
-  }
+  pos_ = in_.positions.data();
   flags_ = in_.vertex_flags;
   if (options_.feature_threshold_voxels >= 0) {
     for (int64_t v = 0; v < nv_; ++v) {
@@ -263,27 +284,31 @@ void FieldEngine::Setup() {
 
   // Quadric of every vertex: the planes of its cells' linear interpolants, one unit weight per
   // cell (volume weights, and volume squared, were measured worse on the CT head at 80 %).
-  quadric_.assign(kQuadricSize * nv_, 0.0);
+  quadric_.assign(kQuadricSize * nv_, 0.f);
   ParallelFor(nv_, threads_, 4096, [&](int64_t v0, int64_t v1) {
     for (int64_t v = v0; v < v1; ++v) {
-      double* q = &quadric_[kQuadricSize * v];
+      double q[kQuadricSize] = {};
+      const Eigen::Vector3d origin(pos_[3 * v], pos_[3 * v + 1], pos_[3 * v + 2]);
       for (int64_t i = adjacency.offsets[v]; i < adjacency.offsets[v + 1]; ++i) {
         const int32_t* c = &tets_[4 * int64_t(cell_ids_[i])];
-        const Eigen::Vector3d p0(pos_[3 * c[0]], pos_[3 * c[0] + 1], pos_[3 * c[0] + 2]);
+        const Eigen::Vector3d p0 =
+            Eigen::Vector3d(pos_[3 * c[0]], pos_[3 * c[0] + 1], pos_[3 * c[0] + 2]) - origin;
         Eigen::Matrix3d e;
         Eigen::Vector3d ds;
         for (int k = 1; k < 4; ++k) {
           e.row(k - 1) =
-              Eigen::Vector3d(pos_[3 * c[k]], pos_[3 * c[k] + 1], pos_[3 * c[k] + 2]) - p0;
+              Eigen::Vector3d(pos_[3 * c[k]], pos_[3 * c[k] + 1], pos_[3 * c[k] + 2]) - origin - p0;
           ds[k - 1] = double(in_.scalars[c[k]]) - double(in_.scalars[c[0]]);
         }
         const double det = e.determinant();
         if (!(det > 0)) continue;
         // Gradient of the cell's linear interpolant: e * g = ds.
         const Eigen::Vector3d g = e.inverse() * ds;
-        const double a[5] = {g.x(), g.y(), g.z(), -1.0, double(in_.scalars[c[0]]) - g.dot(p0)};
+        const double a[5] = {g.x(), g.y(), g.z(), -1.0,
+                             double(in_.scalars[c[0]]) - double(in_.scalars[v]) - g.dot(p0)};
         AddPlane(q, a, 1.0);
       }
+      for (int k = 0; k < kQuadricSize; ++k) quadric_[kQuadricSize * v + k] = float(q[k]);
     }
   });
 
@@ -507,9 +532,14 @@ int64_t FieldEngine::Collapse(int32_t u, int32_t v, const std::vector<int32_t>& 
   }
   class_next_[class_tail_[v]] = u;
   class_tail_[v] = class_tail_[u];
-  double* qv = &quadric_[kQuadricSize * int64_t(v)];
-  const double* qu = &quadric_[kQuadricSize * int64_t(u)];
-  for (int k = 0; k < kQuadricSize; ++k) qv[k] += qu[k];
+  // Q_v += Q_u, moved from u's origin to v's.
+  const double d[4] = {double(pos_[3 * v]) - pos_[3 * u], double(pos_[3 * v + 1]) - pos_[3 * u + 1],
+                       double(pos_[3 * v + 2]) - pos_[3 * u + 2],
+                       double(in_.scalars[v]) - in_.scalars[u]};
+  double moved[kQuadricSize];
+  TranslateQuadric(&quadric_[kQuadricSize * int64_t(u)], d, moved);
+  float* qv = &quadric_[kQuadricSize * int64_t(v)];
+  for (int k = 0; k < kQuadricSize; ++k) qv[k] = float(double(qv[k]) + moved[k]);
   parent_[u] = v;
   valence_[u] = 0;
   cost_[u] = std::numeric_limits<double>::infinity();
