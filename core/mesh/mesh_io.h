@@ -17,6 +17,7 @@
 #pragma once
 
 #include <filesystem>
+#include <string>
 
 #include "absl/status/status.h"
 #include "absl/status/statusor.h"
@@ -46,11 +47,26 @@ struct VtuWriteOptions {
 absl::Status WriteVtu(const TetMesh& mesh, const std::filesystem::path& path,
                       const VtuWriteOptions& options = {});
 
+// What ReadVtu found in the file, so a caller can say which values came from the file and which
+// are the documented defaults (nothing is made up silently).
+struct VtuReadReport {
+  std::string scalar_array;             // name of the point array read as TetMesh::scalars
+  bool has_labels = false;              // "label" present; else every vertex label is 0
+  bool has_interface_distance = false;  // else +infinity everywhere
+  bool has_vertex_flags = false;        // "feature" or "boundary" present; else flags are 0
+  bool has_regions = false;             // cell "region" present; else every cell region is 0
+};
+
 // Reads a .vtu holding one piece of tetrahedra: the files WriteVtu writes, and what VTK writes
 // for such a grid (appended raw or base64, inline base64 "binary", "ascii"; uncompressed or
 // vtkZLibDataCompressor; header_type UInt32 or UInt64; any integer/float array types).
-// Point arrays "scalar", "label", "interface_distance", "feature", "boundary" and cell array
-// "region" are optional: missing ones read as 0 (interface_distance: +infinity) and
+// The field (TetMesh::scalars) is, in this order: the point array the file names as its active
+// scalars (<PointData Scalars="...">; VTK's filters write theirs as "scalars"), the array named
+// "scalar", the only point array. If none applies (no point array, or several and none marked),
+// or the active scalars name a missing array, it is an InvalidArgument error naming the file and
+// the arrays: the field is never defaulted. Point arrays "label", "interface_distance",
+// "feature", "boundary" and cell array "region" are optional: missing ones read as 0
+// (interface_distance: +infinity), and `report` (if not null) says which were present.
 // vertex_flags is rebuilt from "feature" and "boundary" (so a WriteVtu -> ReadVtu round trip
 // gives back identical arrays for meshes whose flags use only those two bits).
 // Everything is validated before use: XML structure, counts against array lengths, sizes against
@@ -59,7 +75,7 @@ absl::Status WriteVtu(const TetMesh& mesh, const std::filesystem::path& path,
 // finite positions and scalars, labels and regions < 8. Errors: NotFound if the file does not
 // exist, InvalidArgument for malformed content, Unimplemented for valid VTK features outside
 // this subset (big endian, other compressors, several pieces); messages name the path and field.
-absl::StatusOr<TetMesh> ReadVtu(const std::filesystem::path& path);
+absl::StatusOr<TetMesh> ReadVtu(const std::filesystem::path& path, VtuReadReport* report = nullptr);
 
 struct GmshWriteOptions {
   // Binary (the default: coordinates as exact doubles, ~2x faster to write than ASCII) or
