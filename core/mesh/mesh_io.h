@@ -16,6 +16,7 @@
 //          number as the .msh physical tag; MEDIT readers commonly treat 0 as "no reference").
 #pragma once
 
+#include <cstdint>
 #include <filesystem>
 #include <string>
 
@@ -55,6 +56,15 @@ struct VtuReadReport {
   bool has_interface_distance = false;  // else +infinity everywhere
   bool has_vertex_flags = false;        // "feature" or "boundary" present; else flags are 0
   bool has_regions = false;             // cell "region" present; else every cell region is 0
+  int64_t inverted_or_flat_cells = 0;   // kept by VtuReadOptions::allow_inverted_cells
+};
+
+struct VtuReadOptions {
+  // Keep cells with signed volume <= 0 instead of rejecting the file, and count them in
+  // VtuReadReport. For measuring meshes other tools wrote (VTK's quadric decimation leaves flat
+  // cells at high reductions): the result then breaks TetMesh's orientation invariant, so only
+  // code that tolerates such cells (core/metrics counts them) may use it.
+  bool allow_inverted_cells = false;
 };
 
 // Reads a .vtu holding one piece of tetrahedra: the files WriteVtu writes, and what VTK writes
@@ -71,11 +81,13 @@ struct VtuReadReport {
 // gives back identical arrays for meshes whose flags use only those two bits).
 // Everything is validated before use: XML structure, counts against array lengths, sizes against
 // the file size before allocating (also for compressed data), zlib stream integrity, cell types
-// (only VTK_TETRA), offsets, connectivity indices in range and distinct, positive orientation,
-// finite positions and scalars, labels and regions < 8. Errors: NotFound if the file does not
-// exist, InvalidArgument for malformed content, Unimplemented for valid VTK features outside
-// this subset (big endian, other compressors, several pieces); messages name the path and field.
-absl::StatusOr<TetMesh> ReadVtu(const std::filesystem::path& path, VtuReadReport* report = nullptr);
+// (only VTK_TETRA), offsets, connectivity indices in range and distinct, positive orientation
+// (unless options.allow_inverted_cells), finite positions and scalars, labels and regions < 8.
+// Errors: NotFound if the file does not exist, InvalidArgument for malformed content, Unimplemented
+// for valid VTK features outside this subset (big endian, other compressors, several pieces);
+// messages name the path and field.
+absl::StatusOr<TetMesh> ReadVtu(const std::filesystem::path& path, VtuReadReport* report = nullptr,
+                                const VtuReadOptions& options = {});
 
 struct GmshWriteOptions {
   // Binary (the default: coordinates as exact doubles, ~2x faster to write than ASCII) or

@@ -388,7 +388,8 @@ struct ArraySpec {
 
 class VtuReader {
  public:
-  explicit VtuReader(const std::filesystem::path& path) : path_(path) {}
+  VtuReader(const std::filesystem::path& path, const VtuReadOptions& options)
+      : path_(path), options_(options) {}
   ~VtuReader() {
     if (fd_ >= 0) ::close(fd_);
   }
@@ -433,6 +434,7 @@ class VtuReader {
                                      const std::function<uint8_t*(uint64_t)>& alloc);
 
   std::filesystem::path path_;
+  VtuReadOptions options_;
   int fd_ = -1;
   uint64_t file_size_ = 0;
   std::string head_;  // the XML (the whole file when nothing is appended)
@@ -913,9 +915,13 @@ absl::StatusOr<TetMesh> VtuReader::Read() {
       for (int r = 0; r < q; ++r)
         if (v[r] == v[q]) return Error(absl::StrCat("cell ", t, " uses point ", v[q], " twice"));
     }
-    if (TetVolume(m, t) <= 0)
-      return Error(absl::StrCat("cell ", t, " is inverted or flat (signed volume ", TetVolume(m, t),
-                                " mm^3); tetrahedra must be positively oriented"));
+    if (TetVolume(m, t) <= 0) {
+      if (!options_.allow_inverted_cells)
+        return Error(absl::StrCat("cell ", t, " is inverted or flat (signed volume ",
+                                  TetVolume(m, t),
+                                  " mm^3); tetrahedra must be positively oriented"));
+      ++report.inverted_or_flat_cells;
+    }
   }
 
   // Optional attributes.
@@ -978,8 +984,9 @@ absl::StatusOr<TetMesh> VtuReader::Read() {
 
 }  // namespace
 
-absl::StatusOr<TetMesh> ReadVtu(const std::filesystem::path& path, VtuReadReport* report) {
-  VtuReader reader(path);
+absl::StatusOr<TetMesh> ReadVtu(const std::filesystem::path& path, VtuReadReport* report,
+                                const VtuReadOptions& options) {
+  VtuReader reader(path, options);
   auto mesh = reader.Read();
   if (mesh.ok() && report != nullptr) *report = reader.report;
   return mesh;

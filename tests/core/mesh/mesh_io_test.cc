@@ -635,6 +635,15 @@ TEST_F(BrokenVtu, BadCellsAreRejected) {
   std::string swapped = Poke<int32_t>(raw_, DataPos(raw_, "connectivity") + 4 * 0, 1);
   swapped = Poke<int32_t>(swapped, DataPos(raw_, "connectivity") + 4 * 1, 0);
   ExpectError(swapped, kInvalid, "cell 0 is inverted");
+  // Measuring another tool's output may keep such cells, counted.
+  const fs::path p = dir_ / "inverted.vtu";
+  WriteAll(p, swapped);
+  VtuReadReport report;
+  auto kept = ReadVtu(p, &report, {.allow_inverted_cells = true});
+  ASSERT_TRUE(kept.ok()) << kept.status();
+  EXPECT_EQ(report.inverted_or_flat_cells, 1);
+  EXPECT_LT(TetVolume(*kept, 0), 0);
+  EXPECT_EQ(kept->tet_count(), 2);
   ExpectError(Poke<int32_t>(raw_, DataPos(raw_, "offsets"), 3), kInvalid,
               "'offsets' entry 0 is 3, expected 4");
 }
