@@ -17,6 +17,8 @@ packages=(
   libsqlite3-dev libcli11-dev nlohmann-json3-dev
   # tests and benchmarks
   libgtest-dev libgmock-dev libbenchmark-dev
+  # libFuzzer targets (DECIMA_FUZZ=ON, clang only): tests/fuzz, tests/core/io/io_fuzz
+  clang libclang-rt-14-dev
   # independent tools that prove our files are readable by others
   python3 python3-vtk9 python3-numpy gmsh
   # the real MRI the demo and tests use

@@ -16,7 +16,9 @@
 //          number as the .msh physical tag; MEDIT readers commonly treat 0 as "no reference").
 #pragma once
 
+#include <cstdint>
 #include <filesystem>
+#include <string>
 
 #include "absl/status/status.h"
 #include "absl/status/statusor.h"
@@ -46,20 +48,46 @@ struct VtuWriteOptions {
 absl::Status WriteVtu(const TetMesh& mesh, const std::filesystem::path& path,
                       const VtuWriteOptions& options = {});
 
+// What ReadVtu found in the file, so a caller can say which values came from the file and which
+// are the documented defaults (nothing is made up silently).
+struct VtuReadReport {
+  std::string scalar_array;             // name of the point array read as TetMesh::scalars
+  bool has_labels = false;              // "label" present; else every vertex label is 0
+  bool has_interface_distance = false;  // else +infinity everywhere
+  bool has_vertex_flags = false;        // "feature" or "boundary" present; else flags are 0
+  bool has_regions = false;             // cell "region" present; else every cell region is 0
+  int64_t inverted_or_flat_cells = 0;   // kept by VtuReadOptions::allow_inverted_cells
+};
+
+struct VtuReadOptions {
+  // Keep cells with signed volume <= 0 instead of rejecting the file, and count them in
+  // VtuReadReport. For measuring meshes other tools wrote (VTK's quadric decimation leaves flat
+  // cells at high reductions): the result then breaks TetMesh's orientation invariant, so only
+  // code that tolerates such cells (core/metrics counts them) may use it.
+  bool allow_inverted_cells = false;
+};
+
 // Reads a .vtu holding one piece of tetrahedra: the files WriteVtu writes, and what VTK writes
 // for such a grid (appended raw or base64, inline base64 "binary", "ascii"; uncompressed or
 // vtkZLibDataCompressor; header_type UInt32 or UInt64; any integer/float array types).
-// Point arrays "scalar", "label", "interface_distance", "feature", "boundary" and cell array
-// "region" are optional: missing ones read as 0 (interface_distance: +infinity) and
+// The field (TetMesh::scalars) is, in this order: the point array the file names as its active
+// scalars (<PointData Scalars="...">; VTK's filters write theirs as "scalars"), the array named
+// "scalar", the only point array. If none applies (no point array, or several and none marked),
+// or the active scalars name a missing array, it is an InvalidArgument error naming the file and
+// the arrays: the field is never defaulted. Point arrays "label", "interface_distance",
+// "feature", "boundary" and cell array "region" are optional: missing ones read as 0
+// (interface_distance: +infinity), and `report` (if not null) says which were present.
 // vertex_flags is rebuilt from "feature" and "boundary" (so a WriteVtu -> ReadVtu round trip
 // gives back identical arrays for meshes whose flags use only those two bits).
 // Everything is validated before use: XML structure, counts against array lengths, sizes against
 // the file size before allocating (also for compressed data), zlib stream integrity, cell types
-// (only VTK_TETRA), offsets, connectivity indices in range and distinct, positive orientation,
-// finite positions and scalars, labels and regions < 8. Errors: NotFound if the file does not
-// exist, InvalidArgument for malformed content, Unimplemented for valid VTK features outside
-// this subset (big endian, other compressors, several pieces); messages name the path and field.
-absl::StatusOr<TetMesh> ReadVtu(const std::filesystem::path& path);
+// (only VTK_TETRA), offsets, connectivity indices in range and distinct, positive orientation
+// (unless options.allow_inverted_cells), finite positions and scalars, labels and regions < 8.
+// Errors: NotFound if the file does not exist, InvalidArgument for malformed content, Unimplemented
+// for valid VTK features outside this subset (big endian, other compressors, several pieces);
+// messages name the path and field.
+absl::StatusOr<TetMesh> ReadVtu(const std::filesystem::path& path, VtuReadReport* report = nullptr,
+                                const VtuReadOptions& options = {});
 
 struct GmshWriteOptions {
   // Binary (the default: coordinates as exact doubles, ~2x faster to write than ASCII) or

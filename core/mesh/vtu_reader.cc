@@ -388,12 +388,15 @@ struct ArraySpec {
 
 class VtuReader {
  public:
-  explicit VtuReader(const std::filesystem::path& path) : path_(path) {}
+  VtuReader(const std::filesystem::path& path, const VtuReadOptions& options)
+      : path_(path), options_(options) {}
   ~VtuReader() {
     if (fd_ >= 0) ::close(fd_);
   }
 
   absl::StatusOr<TetMesh> Read();
+
+  VtuReadReport report;  // filled by a successful Read()
 
  private:
   absl::Status Error(absl::string_view msg) const {
@@ -411,6 +414,8 @@ class VtuReader {
   absl::StatusOr<ArraySpec> Spec(const XmlElement& e, absl::string_view where) const;
   absl::StatusOr<const XmlElement*> FindArray(const XmlElement* section, absl::string_view name,
                                               absl::string_view section_name) const;
+  // The point array holding the field (the order is documented at ReadVtu in mesh_io.h).
+  absl::StatusOr<const XmlElement*> FieldArray(const XmlElement* point_data) const;
 
   // Reads the array's values (count tuples of `components`, count in [min_count, max_count]) into
   // `out` converted to T. Returns the number of tuples.
@@ -429,6 +434,7 @@ class VtuReader {
                                      const std::function<uint8_t*(uint64_t)>& alloc);
 
   std::filesystem::path path_;
+  VtuReadOptions options_;
   int fd_ = -1;
   uint64_t file_size_ = 0;
   std::string head_;  // the XML (the whole file when nothing is appended)
@@ -609,6 +615,35 @@ absl::StatusOr<const XmlElement*> VtuReader::FindArray(const XmlElement* section
     found = e;
   }
   return found;
+}
+
+absl::StatusOr<const XmlElement*> VtuReader::FieldArray(const XmlElement* point_data) const {
+  const std::vector<const XmlElement*> arrays = point_data == nullptr
+                                                    ? std::vector<const XmlElement*>{}
+                                                    : xml_.Children(*point_data, "DataArray");
+  // 1. The active scalars the file names: its own statement of which array is the field.
+  if (const auto active = point_data == nullptr ? std::nullopt : point_data->Attr("Scalars")) {
+    DECIMA_ASSIGN_OR_RETURN(const XmlElement* e, FindArray(point_data, *active, "PointData"));
+    if (e == nullptr)
+      return Error(absl::StrCat("PointData names '", *active,
+                                "' as its active scalars, but has no DataArray of that name"));
+    return e;
+  }
+  // 2. Decima's own name (files written before WriteVtu marked the active scalars).
+  DECIMA_ASSIGN_OR_RETURN(const XmlElement* own, FindArray(point_data, "scalar", "PointData"));
+  if (own != nullptr) return own;
+  // 3. The only point array: nothing else it could be.
+  if (arrays.size() == 1) return arrays[0];
+  std::string names;
+  for (const XmlElement* e : arrays)
+    absl::StrAppend(&names, names.empty() ? "" : ", ", "'", e->Attr("Name").value_or(""), "'");
+  if (arrays.empty())
+    return Error(
+        "PointData has no DataArray, so the file holds no field (expected active scalars, an "
+        "array named 'scalar', or exactly one point array)");
+  return Error(absl::StrCat("cannot tell which point array is the field: PointData has no active ",
+                            "Scalars attribute and no array named 'scalar', but ", arrays.size(),
+                            " arrays (", names, ")"));
 }
 
 absl::StatusOr<uint64_t> VtuReader::LoadBinary(ByteSource& src, uint64_t min_bytes,
@@ -880,9 +915,13 @@ absl::StatusOr<TetMesh> VtuReader::Read() {
       for (int r = 0; r < q; ++r)
         if (v[r] == v[q]) return Error(absl::StrCat("cell ", t, " uses point ", v[q], " twice"));
     }
-    if (TetVolume(m, t) <= 0)
-      return Error(absl::StrCat("cell ", t, " is inverted or flat (signed volume ", TetVolume(m, t),
-                                " mm^3); tetrahedra must be positively oriented"));
+    if (TetVolume(m, t) <= 0) {
+      if (!options_.allow_inverted_cells)
+        return Error(absl::StrCat("cell ", t, " is inverted or flat (signed volume ",
+                                  TetVolume(m, t),
+                                  " mm^3); tetrahedra must be positively oriented"));
+      ++report.inverted_or_flat_cells;
+    }
   }
 
   // Optional attributes.
@@ -894,15 +933,22 @@ absl::StatusOr<TetMesh> VtuReader::Read() {
     DECIMA_RETURN_IF_ERROR(Load(spec, 1, count, count, out).status());
     return true;
   };
-  DECIMA_ASSIGN_OR_RETURN(const bool has_scalar,
-                          optional(point_data, "PointData", "scalar", nv, &m.scalars));
-  if (!has_scalar) m.scalars.assign(nv, 0.0f);
+  // The field is never invented: a file whose field we cannot identify is an error, not zeros
+  // (VTK's own filters call the array "scalars", and a silent all-zero field looked like a
+  // valid but terrible mesh downstream).
+  DECIMA_ASSIGN_OR_RETURN(const XmlElement* scalar_array, FieldArray(point_data));
+  {
+    DECIMA_ASSIGN_OR_RETURN(const ArraySpec spec, Spec(*scalar_array, "PointData"));
+    DECIMA_RETURN_IF_ERROR(Load(spec, 1, nv, nv, &m.scalars).status());
+    report.scalar_array = spec.name;
+  }
   for (uint64_t v = 0; v < nv; ++v)
     if (!std::isfinite(m.scalars[v]))
       return Error(absl::StrCat("point ", v, " has a non-finite scalar"));
   DECIMA_ASSIGN_OR_RETURN(const bool has_labels,
                           optional(point_data, "PointData", "label", nv, &m.labels));
   if (!has_labels) m.labels.assign(nv, 0);
+  report.has_labels = has_labels;
   for (uint64_t v = 0; v < nv; ++v)
     if (m.labels[v] >= kMaxRegions)
       return Error(absl::StrCat("point ", v, " has label ", int(m.labels[v]), ", expected 0..",
@@ -911,6 +957,7 @@ absl::StatusOr<TetMesh> VtuReader::Read() {
       const bool has_distance,
       optional(point_data, "PointData", "interface_distance", nv, &m.interface_distance));
   if (!has_distance) m.interface_distance.assign(nv, std::numeric_limits<float>::infinity());
+  report.has_interface_distance = has_distance;
   for (uint64_t v = 0; v < nv; ++v)
     if (std::isnan(m.interface_distance[v]))
       return Error(absl::StrCat("point ", v, " has a NaN interface_distance"));
@@ -922,10 +969,12 @@ absl::StatusOr<TetMesh> VtuReader::Read() {
     if (has)
       for (uint64_t v = 0; v < nv; ++v)
         if (bits[v]) m.vertex_flags[v] |= bit;
+    report.has_vertex_flags = report.has_vertex_flags || has;
   }
   DECIMA_ASSIGN_OR_RETURN(const bool has_regions,
                           optional(cell_data, "CellData", "region", nt, &m.cell_regions));
   if (!has_regions) m.cell_regions.assign(nt, 0);
+  report.has_regions = has_regions;
   for (uint64_t t = 0; t < nt; ++t)
     if (m.cell_regions[t] >= kMaxRegions)
       return Error(absl::StrCat("cell ", t, " has region ", int(m.cell_regions[t]),
@@ -935,9 +984,12 @@ absl::StatusOr<TetMesh> VtuReader::Read() {
 
 }  // namespace
 
-absl::StatusOr<TetMesh> ReadVtu(const std::filesystem::path& path) {
-  VtuReader reader(path);
-  return reader.Read();
+absl::StatusOr<TetMesh> ReadVtu(const std::filesystem::path& path, VtuReadReport* report,
+                                const VtuReadOptions& options) {
+  VtuReader reader(path, options);
+  auto mesh = reader.Read();
+  if (mesh.ok() && report != nullptr) *report = reader.report;
+  return mesh;
 }
 
 }  // namespace decima

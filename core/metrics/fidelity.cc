@@ -181,6 +181,77 @@ MeshQuality MeasureQuality(const TetMesh& mesh, double degenerate_volume_mm3) {
   return q;
 }
 
+FaceCounts CountFaces(const TetMesh& mesh, int threads) {
+  // The faces of a positively oriented tet (v0, v1, v2, v3), each wound so its normal points out
+  // of the cell. Two cells on opposite sides of a shared face wind it in opposite directions.
+  static constexpr int kFaces[4][3] = {{1, 2, 3}, {0, 3, 2}, {0, 1, 3}, {0, 2, 1}};
+  const VertexTetAdjacency adj = BuildVertexTetAdjacency(mesh);
+  const int64_t nv = mesh.vertex_count();
+  threads = ResolveThreads(threads);
+  // One slot per range, summed in range order so the area is the same on every run.
+  std::vector<std::pair<int64_t, FaceCounts>> partial(threads);
+  std::atomic<int> next_slot{0};
+  ParallelFor(nv, threads, kCellChunk, [&](int64_t begin, int64_t end) {
+    auto& [range_begin, c] = partial[next_slot++];
+    range_begin = begin;
+    // The faces whose smallest vertex is v: the other two vertices (ascending) and whether the
+    // outward winding is an even permutation of (v, a, b).
+    struct Face {
+      int32_t a, b;
+      bool even;
+      bool operator<(const Face& o) const { return a != o.a ? a < o.a : b < o.b; }
+    };
+    std::vector<Face> faces;
+    for (int64_t v = begin; v < end; ++v) {
+      faces.clear();
+      for (int64_t i = adj.offsets[v]; i < adj.offsets[v + 1]; ++i) {
+        const int32_t* t = &mesh.tets[4 * int64_t(adj.tet_ids[i])];
+        for (const auto& f : kFaces) {
+          int32_t w[3] = {t[f[0]], t[f[1]], t[f[2]]};
+          // Rotate (an even permutation) so v comes first; skip faces without v or with a
+          // smaller vertex (they are counted at that vertex).
+          int at = -1;
+          for (int k = 0; k < 3; ++k)
+            if (w[k] == v) at = k;
+          if (at < 0) continue;
+          std::rotate(w, w + at, w + 3);
+          if (w[1] < v || w[2] < v) continue;
+          faces.push_back(w[1] < w[2] ? Face{w[1], w[2], true} : Face{w[2], w[1], false});
+        }
+      }
+      std::sort(faces.begin(), faces.end());
+      for (size_t i = 0; i < faces.size();) {
+        size_t j = i + 1;
+        while (j < faces.size() && faces[j].a == faces[i].a && faces[j].b == faces[i].b) ++j;
+        if (j - i == 1) {
+          ++c.boundary_faces;
+          const Eigen::Vector3d p = mesh.Position(v);
+          c.boundary_area_mm2 +=
+              0.5 * (mesh.Position(faces[i].a) - p).cross(mesh.Position(faces[i].b) - p).norm();
+        } else if (j - i == 2) {
+          ++c.interior_faces;
+          if (faces[i].even == faces[i + 1].even) ++c.folded_faces;
+        } else {
+          ++c.nonmanifold_faces;
+        }
+        i = j;
+      }
+    }
+  });
+  partial.resize(next_slot);
+  std::sort(partial.begin(), partial.end(),
+            [](const auto& x, const auto& y) { return x.first < y.first; });
+  FaceCounts total;
+  for (const auto& [range_begin, c] : partial) {
+    total.boundary_faces += c.boundary_faces;
+    total.interior_faces += c.interior_faces;
+    total.nonmanifold_faces += c.nonmanifold_faces;
+    total.folded_faces += c.folded_faces;
+    total.boundary_area_mm2 += c.boundary_area_mm2;
+  }
+  return total;
+}
+
 absl::StatusOr<FidelityMetrics> MeasureFidelity(const Volume& image, const TetMesh& simplified,
                                                 const FidelityOptions& options,
                                                 const CancelToken* cancel) {
@@ -300,6 +371,13 @@ absl::StatusOr<FidelityMetrics> MeasureFidelity(const Volume& image, const TetMe
   m.inverted_cells = q.inverted_cells;
   m.degenerate_cells = q.degenerate_cells;
   m.min_dihedral_deg = q.min_dihedral_deg;
+  const FaceCounts faces = CountFaces(simplified, options.threads);
+  m.boundary_faces = faces.boundary_faces;
+  m.interior_faces = faces.interior_faces;
+  m.nonmanifold_faces = faces.nonmanifold_faces;
+  m.folded_faces = faces.folded_faces;
+  m.boundary_area_mm2 = faces.boundary_area_mm2;
+  m.manifold = faces.nonmanifold_faces == 0 && faces.folded_faces == 0;
 
   m.mesh_bytes = options.mesh_bytes;
   m.voxel_bytes = int64_t(image.bytes.size());

@@ -1,6 +1,7 @@
 // How much a simplified mesh still says what the original volume said: the field resampled on
 // the original grid (RMSE, PSNR, max error, coverage), region labels (Dice), the feature
-// vertices (moved or removed), cell quality (inverted, degenerate, min dihedral angle) and size.
+// vertices (moved or removed), cell quality (inverted, degenerate, min dihedral angle),
+// conformity (faces shared by one, two, or three or more cells) and size.
 //
 // Resampling: every original grid point is located in the simplified mesh and the field is
 // interpolated barycentrically in its containing cell (the mesh's piecewise-linear field). A
@@ -83,6 +84,14 @@ struct FidelityMetrics {
   int64_t inverted_cells = 0;    // volume < 0
   int64_t degenerate_cells = 0;  // 0 <= volume < degenerate_volume_fraction voxels^3
   double min_dihedral_deg = 0;   // over all cells
+  // Conformity (CountFaces): a valid mesh has no face in three or more cells, and its two cells
+  // of an interior face lie on opposite sides of it.
+  int64_t boundary_faces = 0;     // faces of exactly one cell
+  int64_t interior_faces = 0;     // faces of exactly two cells
+  int64_t nonmanifold_faces = 0;  // faces of three or more cells
+  int64_t folded_faces = 0;       // interior faces whose two cells lie on the same side
+  double boundary_area_mm2 = 0;   // area of the boundary faces (grows with holes and T-joints)
+  bool manifold = false;          // nonmanifold_faces == 0 && folded_faces == 0
   // Size.
   int64_t mesh_bytes = 0, voxel_bytes = 0;
   double bytes_ratio = 0;  // mesh_bytes / voxel_bytes (0 when mesh_bytes is unknown)
@@ -101,5 +110,24 @@ struct MeshQuality {
   double min_dihedral_deg = 0;
 };
 MeshQuality MeasureQuality(const TetMesh& mesh, double degenerate_volume_mm3);
+
+// How the cells share their faces (a face is a set of 3 vertex indices; geometry is not
+// compared, so two cells meeting along a face with different vertices count as two boundary
+// faces, and the boundary area then exceeds the hull's).
+struct FaceCounts {
+  int64_t boundary_faces = 0;     // in exactly one cell
+  int64_t interior_faces = 0;     // in exactly two cells
+  int64_t nonmanifold_faces = 0;  // in three or more cells
+  // Interior faces whose two cells see them with the same orientation, i.e. both cells lie on
+  // the same side of the face (a fold; in a positively oriented conforming mesh this is 0).
+  int64_t folded_faces = 0;
+  double boundary_area_mm2 = 0;
+};
+// Groups the faces around their smallest vertex (vertex -> tet CSR adjacency, then a sort of
+// each vertex's few faces), so it needs 4 bytes per cell corner plus 8 per vertex and no global
+// sort. O(T log(faces per vertex)). The counts do not depend on `threads` (0 = hardware
+// concurrency); the area is summed per thread range, so its last bits may. Vertex indices must
+// be in range (MeasureFidelity checks this; callers of CountFaces must too).
+FaceCounts CountFaces(const TetMesh& mesh, int threads = 0);
 
 }  // namespace decima

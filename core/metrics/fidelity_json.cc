@@ -27,6 +27,12 @@ nlohmann::ordered_json FidelityToJson(const FidelityMetrics& m) {
   j["inverted_cells"] = m.inverted_cells;
   j["degenerate_cells"] = m.degenerate_cells;
   j["min_dihedral_deg"] = m.min_dihedral_deg;
+  j["boundary_faces"] = m.boundary_faces;
+  j["interior_faces"] = m.interior_faces;
+  j["nonmanifold_faces"] = m.nonmanifold_faces;
+  j["folded_faces"] = m.folded_faces;
+  j["boundary_area_mm2"] = m.boundary_area_mm2;
+  j["manifold"] = m.manifold;
   j["mesh_bytes"] = m.mesh_bytes;
   j["voxel_bytes"] = m.voxel_bytes;
   j["bytes_ratio"] = m.bytes_ratio;

@@ -9,6 +9,9 @@
       (ascii, inline base64 "binary", appended raw, appended base64) x compressor (none, zlib)
       x header type (UInt32, UInt64), printing "written PATH" per file, so the C++ test can
       check that ReadVtu reads files written by VTK itself.
+  check_vtu.py decimate IN OUT REDUCTION
+      Runs vtkUnstructuredGridQuadricDecimation on IN (ScalarsName "scalar") and writes its
+      output to OUT with VTK's writer: a file whose field VTK itself renamed to "scalars".
 
 Exits non-zero (printing the reason on stderr) if VTK reports any error.
 """
@@ -104,11 +107,22 @@ def write(grid, dst, mode, compress, header):
         sys.exit(f"VTK failed to write {dst}")
 
 
+def decimate(src, dst, reduction):
+    decimation = vtk.vtkUnstructuredGridQuadricDecimation()
+    decimation.SetInputData(read(src))
+    decimation.SetTargetReduction(float(reduction))
+    decimation.SetScalarsName("scalar")
+    decimation.Update()
+    write(decimation.GetOutput(), dst, "appended", "zlib", "64")
+
+
 def main(argv):
     if len(argv) >= 3 and argv[1] == "stats":
         stats(argv[2])
     elif len(argv) == 4 and argv[1] == "rewrite":
         rewrite(*argv[2:])
+    elif len(argv) == 5 and argv[1] == "decimate":
+        decimate(*argv[2:])
     else:
         sys.exit(__doc__)
 

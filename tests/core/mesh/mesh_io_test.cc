@@ -2,6 +2,7 @@
 
 #include <sys/wait.h>
 
+#include <algorithm>
 #include <cmath>
 #include <cstdio>
 #include <cstdlib>
@@ -382,6 +383,36 @@ TEST(MeshIo, ReadVtuReadsEveryEncodingVtkWrites) {
   EXPECT_EQ(files, 14) << log;  // 4 modes x 2 compressors x 2 headers, minus compressed ascii
 }
 
+// VTK's quadric decimation renames the field to "scalars" (and drops every other array): the
+// reader must take that array as the field, not default it to zeros.
+TEST(MeshIo, ReadVtuTakesTheFieldVtkDecimationWrites) {
+  const std::string python = PythonWithVtk();
+  if (python.empty()) GTEST_SKIP() << "no python3 with the vtk module (Debian python3-vtk9)";
+  const fs::path dir = testing::MakeScratchDir("vtk_decimates");
+  const TetMesh m = PhantomMesh({9, 8, 7});
+  const fs::path src = dir / "ours.vtu", dst = dir / "vtk.vtu";
+  ASSERT_TRUE(WriteVtu(m, src).ok());
+  auto [rc, log] = RunCommand(python + " " + Quote(Script("check_vtu.py")) + " decimate " +
+                              Quote(src) + " " + Quote(dst) + " 0.3");
+  ASSERT_EQ(rc, 0) << log;
+  auto [src_rc, out] =
+      RunCommand(python + " " + Quote(Script("check_vtu.py")) + " stats " + Quote(dst));
+  ASSERT_EQ(src_rc, 0) << out;
+  const VtkFacts f{ParseFacts(out)};
+  ASSERT_NE(f.facts.count("point_array scalars"), 0u) << "VTK no longer renames the field";
+  VtuReadReport report;
+  auto back = ReadVtu(dst, &report);
+  ASSERT_TRUE(back.ok()) << back.status();
+  EXPECT_EQ(report.scalar_array, "scalars");
+  EXPECT_FALSE(report.has_labels);
+  EXPECT_FALSE(report.has_regions);
+  EXPECT_EQ(back->tet_count(), f.Num("cells"));
+  EXPECT_LT(back->tet_count(), m.tet_count());
+  // VTK writes the field as Float64; ours is Float32, hence the relative tolerance.
+  EXPECT_NEAR(Sum(back->scalars), f.Num("sum_scalars"), 1e-6 * std::abs(f.Num("sum_scalars")));
+  EXPECT_GT(*std::max_element(back->scalars.begin(), back->scalars.end()), 500.0f);
+}
+
 struct GmshFacts {
   std::map<std::string, std::string> facts;
   double Num(const std::string& key) const {
@@ -604,6 +635,15 @@ TEST_F(BrokenVtu, BadCellsAreRejected) {
   std::string swapped = Poke<int32_t>(raw_, DataPos(raw_, "connectivity") + 4 * 0, 1);
   swapped = Poke<int32_t>(swapped, DataPos(raw_, "connectivity") + 4 * 1, 0);
   ExpectError(swapped, kInvalid, "cell 0 is inverted");
+  // Measuring another tool's output may keep such cells, counted.
+  const fs::path p = dir_ / "inverted.vtu";
+  WriteAll(p, swapped);
+  VtuReadReport report;
+  auto kept = ReadVtu(p, &report, {.allow_inverted_cells = true});
+  ASSERT_TRUE(kept.ok()) << kept.status();
+  EXPECT_EQ(report.inverted_or_flat_cells, 1);
+  EXPECT_LT(TetVolume(*kept, 0), 0);
+  EXPECT_EQ(kept->tet_count(), 2);
   ExpectError(Poke<int32_t>(raw_, DataPos(raw_, "offsets"), 3), kInvalid,
               "'offsets' entry 0 is 3, expected 4");
 }
@@ -621,26 +661,98 @@ TEST_F(BrokenVtu, BadValuesAreRejected) {
               kInvalid, "type 'Float33'");
 }
 
-TEST_F(BrokenVtu, OptionalArraysDefaultWhenMissing) {
+// Removes the DataArray named `name` (its whole element) from the XML of `s`.
+std::string EraseArray(std::string s, const std::string& name) {
+  const size_t at = s.find("Name=\"" + name + "\"");
+  EXPECT_NE(at, std::string::npos) << name;
+  const size_t b = s.rfind('<', at), e = s.find('>', at) + 1;
+  return s.erase(b, e - b);
+}
+
+TEST_F(BrokenVtu, OptionalArraysDefaultWhenMissingAndTheReportSaysSo) {
   std::string s = raw_;
-  for (const char* name :
-       {"scalar", "label", "feature", "interface_distance", "boundary", "region"}) {
-    const size_t at = s.find(std::string("Name=\"") + name + "\"");
-    const size_t b = s.rfind('<', at), e = s.find('>', at) + 1;
-    s.erase(b, e - b);
-  }
+  for (const char* name : {"label", "feature", "interface_distance", "boundary", "region"})
+    s = EraseArray(s, name);
   const fs::path p = dir_ / "bare.vtu";
   WriteAll(p, s);
-  auto m = ReadVtu(p);
+  VtuReadReport report;
+  report.has_labels = report.has_regions = true;  // must be overwritten
+  auto m = ReadVtu(p, &report);
   ASSERT_TRUE(m.ok()) << m.status();
   const TetMesh ref = TwoTets();
   EXPECT_EQ(m->positions, ref.positions);
   EXPECT_EQ(m->tets, ref.tets);
-  EXPECT_EQ(m->scalars, std::vector<float>(5, 0.0f));
+  EXPECT_EQ(m->scalars, ref.scalars);
   EXPECT_EQ(m->labels, std::vector<uint8_t>(5, 0));
   EXPECT_EQ(m->interface_distance, std::vector<float>(5, kInf));
   EXPECT_EQ(m->vertex_flags, std::vector<uint8_t>(5, 0));
   EXPECT_EQ(m->cell_regions, std::vector<uint8_t>(2, 0));
+  EXPECT_EQ(report.scalar_array, "scalar");
+  EXPECT_FALSE(report.has_labels);
+  EXPECT_FALSE(report.has_interface_distance);
+  EXPECT_FALSE(report.has_vertex_flags);
+  EXPECT_FALSE(report.has_regions);
+
+  VtuReadReport full;
+  ASSERT_TRUE(ReadVtu(dir_ / "raw.vtu", &full).ok());
+  EXPECT_TRUE(full.has_labels && full.has_interface_distance && full.has_vertex_flags &&
+              full.has_regions);
+}
+
+TEST_F(BrokenVtu, FieldIsTheActiveScalarsWhateverTheirName) {
+  // As VTK's filters write it: the field renamed "scalars" and marked active.
+  std::string s = Replace(raw_, "Name=\"scalar\"", "Name=\"scalars\"");
+  s = Replace(s, "Scalars=\"scalar\"", "Scalars=\"scalars\"");
+  const fs::path p = dir_ / "scalars.vtu";
+  WriteAll(p, s);
+  VtuReadReport report;
+  auto m = ReadVtu(p, &report);
+  ASSERT_TRUE(m.ok()) << m.status();
+  EXPECT_EQ(m->scalars, TwoTets().scalars);
+  EXPECT_EQ(report.scalar_array, "scalars");
+
+  // The active array wins over one named "scalar": the file says which one is the field.
+  std::string label_active = Replace(raw_, "Scalars=\"scalar\"", "Scalars=\"label\"");
+  WriteAll(p, label_active);
+  m = ReadVtu(p, &report);
+  ASSERT_TRUE(m.ok()) << m.status();
+  EXPECT_EQ(m->scalars, std::vector<float>({0, 0, 2, 2, 1}));
+  EXPECT_EQ(report.scalar_array, "label");
+}
+
+TEST_F(BrokenVtu, OnlyPointArrayIsTheField) {
+  std::string s = raw_;
+  for (const char* name : {"label", "feature", "interface_distance", "boundary"})
+    s = EraseArray(s, name);
+  s = Replace(s, " Scalars=\"scalar\"", "");
+  s = Replace(s, "Name=\"scalar\"", "Name=\"intensity\"");
+  const fs::path p = dir_ / "only.vtu";
+  WriteAll(p, s);
+  VtuReadReport report;
+  auto m = ReadVtu(p, &report);
+  ASSERT_TRUE(m.ok()) << m.status();
+  EXPECT_EQ(m->scalars, TwoTets().scalars);
+  EXPECT_EQ(report.scalar_array, "intensity");
+}
+
+TEST_F(BrokenVtu, FileWithoutAnIdentifiableFieldIsAnErrorNotZeros) {
+  const auto kInvalid = absl::StatusCode::kInvalidArgument;
+  // The active scalars name an array that is not there.
+  ExpectError(EraseArray(raw_, "scalar"), kInvalid,
+              "PointData names 'scalar' as its active scalars, but has no DataArray");
+  // Several arrays, none active, none named "scalar".
+  std::string two = Replace(raw_, " Scalars=\"scalar\"", "");
+  two = Replace(two, "Name=\"scalar\"", "Name=\"scalars\"");
+  ExpectError(two, kInvalid, "cannot tell which point array is the field");
+  ExpectError(two, kInvalid, "5 arrays ('scalars', 'label', 'feature'");
+  // No point array at all.
+  std::string none = Replace(raw_, " Scalars=\"scalar\"", "");
+  for (const char* name : {"scalar", "label", "feature", "interface_distance", "boundary"})
+    none = EraseArray(none, name);
+  ExpectError(none, kInvalid, "PointData has no DataArray");
+  // An active array of vectors is not a field.
+  ExpectError(Replace(raw_, "Scalars=\"scalar\"", "Scalars=\"Points\""), kInvalid,
+              "active scalars, but has no DataArray");
 }
 
 }  // namespace

@@ -6,6 +6,7 @@
 #include <gtest/gtest.h>
 
 #include "core/mesh/tetrahedralize.h"
+#include "core/metrics/fidelity_json.h"
 #include "core/volume/phantom.h"
 
 namespace decima {
@@ -136,6 +137,9 @@ TEST(Fidelity, CountsInvertedCellsAndMovedOrMergedFeatureVertices) {
   EXPECT_EQ(f->feature_vertices_removed, 2);
   EXPECT_EQ(f->feature_vertices_moved, 1);
   EXPECT_EQ(f->inverted_cells, 1);
+  // The inverted cell lies on the same side of its interior faces as its neighbours.
+  EXPECT_GE(f->folded_faces, 1);
+  EXPECT_FALSE(f->manifold);
 }
 
 TEST(Fidelity, RejectsInconsistentInputs) {
@@ -168,6 +172,78 @@ TEST(Fidelity, ResultDoesNotDependOnThreads) {
   ASSERT_TRUE(a.ok() && b.ok());
   EXPECT_EQ(a->cell, b->cell);
   EXPECT_EQ(a->values, b->values);
+}
+
+// Tets sharing the face (0, 1, 2) in the z = 0 plane, one per apex, each ordered to be positively
+// oriented.
+TetMesh FanAroundOneFace(const std::vector<float>& apex_z) {
+  TetMesh m;
+  m.positions = {0, 0, 0, 4, 0, 0, 0, 4, 0};
+  for (size_t i = 0; i < apex_z.size(); ++i) {
+    m.positions.insert(m.positions.end(), {1, 1, apex_z[i]});
+    const int32_t a = int32_t(3 + i);
+    if (apex_z[i] > 0) {
+      m.tets.insert(m.tets.end(), {0, 1, 2, a});
+    } else {
+      m.tets.insert(m.tets.end(), {0, 2, 1, a});
+    }
+  }
+  const int64_t nv = m.positions.size() / 3;
+  m.scalars.assign(nv, 1.0f);
+  m.labels.assign(nv, 0);
+  m.interface_distance.assign(nv, 1.0f);
+  m.vertex_flags.assign(nv, 0);
+  m.cell_regions.assign(m.tet_count(), 0);
+  for (int64_t t = 0; t < m.tet_count(); ++t) EXPECT_GT(TetVolume(m, t), 0) << t;
+  return m;
+}
+
+TEST(Fidelity, GridMeshIsManifoldWithTheBoxAsItsBoundary) {
+  const Volume v = Ramp({6, 5, 4}, {0.5, 1.0, 2.0});
+  const TetMesh m = Mesh(v);
+  // Cubes 5 x 4 x 3, two triangles per boundary square.
+  const int64_t boundary = 2 * 2 * (5 * 4 + 4 * 3 + 5 * 3);
+  for (int threads : {1, 3}) {
+    const FaceCounts c = CountFaces(m, threads);
+    EXPECT_EQ(c.boundary_faces, boundary);
+    EXPECT_EQ(c.interior_faces, (4 * m.tet_count() - boundary) / 2);
+    EXPECT_EQ(c.nonmanifold_faces, 0);
+    EXPECT_EQ(c.folded_faces, 0);
+    // Box 2.5 x 4 x 6 mm.
+    EXPECT_NEAR(c.boundary_area_mm2, 2 * (2.5 * 4 + 4 * 6 + 2.5 * 6), 1e-9);
+  }
+  auto f = MeasureFidelity(v, m);
+  ASSERT_TRUE(f.ok());
+  EXPECT_TRUE(f->manifold);
+  EXPECT_EQ(f->boundary_faces, boundary);
+  EXPECT_EQ(f->nonmanifold_faces, 0);
+}
+
+TEST(Fidelity, FaceSharedByThreeCellsIsReportedNonManifold) {
+  const TetMesh m = FanAroundOneFace({1, -1, 2});
+  const FaceCounts c = CountFaces(m);
+  EXPECT_EQ(c.nonmanifold_faces, 1);
+  EXPECT_EQ(c.interior_faces, 0);
+  EXPECT_EQ(c.boundary_faces, 9);  // the three other faces of each tet
+  const Volume v = Ramp({4, 4, 4});
+  auto f = MeasureFidelity(v, m);
+  ASSERT_TRUE(f.ok()) << f.status();
+  EXPECT_EQ(f->nonmanifold_faces, 1);
+  EXPECT_FALSE(f->manifold);
+  const auto json = FidelityToJson(*f);
+  EXPECT_EQ(json["nonmanifold_faces"], 1);
+  EXPECT_EQ(json["manifold"], false);
+  EXPECT_EQ(json["boundary_faces"], 9);
+}
+
+TEST(Fidelity, TwoCellsOnTheSameSideOfTheirFaceAreAFold) {
+  const FaceCounts opposite = CountFaces(FanAroundOneFace({1, -1}));
+  EXPECT_EQ(opposite.interior_faces, 1);
+  EXPECT_EQ(opposite.folded_faces, 0);
+  const FaceCounts same = CountFaces(FanAroundOneFace({1, 2}));
+  EXPECT_EQ(same.interior_faces, 1);
+  EXPECT_EQ(same.folded_faces, 1);
+  EXPECT_EQ(same.nonmanifold_faces, 0);
 }
 
 }  // namespace
