@@ -196,12 +196,23 @@ const char* SimplifyPolicyName(SimplifyPolicy policy) {
   return "?";
 }
 
+namespace {
+constexpr SimplifyPolicy kAllPolicies[] = {SimplifyPolicy::kField, SimplifyPolicy::kPaper,
+                                           SimplifyPolicy::kTetFusion};
+}  // namespace
+
 std::optional<SimplifyPolicy> ParseSimplifyPolicy(std::string_view name) {
-  for (SimplifyPolicy p :
-       {SimplifyPolicy::kPaper, SimplifyPolicy::kTetFusion, SimplifyPolicy::kField}) {
+  for (SimplifyPolicy p : kAllPolicies) {
     if (name == SimplifyPolicyName(p)) return p;
   }
   return std::nullopt;
+}
+
+std::string SimplifyPolicyNames() {
+  std::string out;
+  for (SimplifyPolicy p : kAllPolicies) absl::StrAppend(&out, out.empty() ? "" : ", ",
+                                                         SimplifyPolicyName(p));
+  return out;
 }
 
 absl::StatusOr<SimplifyResult> Simplify(const TetMesh& mesh, const SimplifyOptions& options,

@@ -117,6 +117,8 @@ const char* StopReasonName(StopReason reason);
 const char* SimplifyPolicyName(SimplifyPolicy policy);
 // The policy of that name, or nullopt for any other string (case-sensitive).
 std::optional<SimplifyPolicy> ParseSimplifyPolicy(std::string_view name);
+// "field, paper, tetfusion": every name, for help texts and error messages.
+std::string SimplifyPolicyNames();
 
 struct SimplifyPassStats {
   int64_t candidates = 0;      // cells the own-vertex rules allowed at the start of the round

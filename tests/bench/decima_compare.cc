@@ -56,7 +56,6 @@
 #include "core/segment/segment.h"
 #include "core/simplify/simplify.h"
 #include "core/volume/phantom.h"
-#include "tests/bench/simplify_policy_names.h"
 
 namespace decima {
 namespace {
@@ -316,7 +315,7 @@ Json RunDecima(const CompareOptions& o, const Reference& ref, const std::string&
   const std::optional<SimplifyPolicy> policy = ParseSimplifyPolicy(name);
   if (!policy) {
     head["error"] = absl::StrCat("unknown policy '", name,
-                                 "' (this build knows: ", KnownSimplifyPolicies(), ")");
+                                 "' (this build knows: ", SimplifyPolicyNames(), ")");
     return head;
   }
   Json r = RunInChild([&]() -> Json {
@@ -539,7 +538,7 @@ int Main(int argc, char** argv) {
   app.add_option("--reductions", reductions_arg, "Comma-separated fractions of cells to remove")
       ->capture_default_str();
   app.add_option("--policies", policies_arg,
-                 "Comma-separated Decima policies (this build: " + KnownSimplifyPolicies() +
+                 "Comma-separated Decima policies (this build: " + SimplifyPolicyNames() +
                      "); an unknown name gives an error entry, not a failure")
       ->capture_default_str();
   app.add_option("--repeat", o.repeat,

@@ -319,5 +319,19 @@ TEST(FieldPolicy, ReportsProgressAndHonoursCancellation) {
   EXPECT_EQ(c.status().code(), absl::StatusCode::kCancelled);
 }
 
+TEST(SimplifyPolicyNames, EveryNameRoundTripsAndNothingElseParses) {
+  for (SimplifyPolicy p :
+       {SimplifyPolicy::kField, SimplifyPolicy::kPaper, SimplifyPolicy::kTetFusion}) {
+    const auto parsed = ParseSimplifyPolicy(SimplifyPolicyName(p));
+    ASSERT_TRUE(parsed.has_value()) << SimplifyPolicyName(p);
+    EXPECT_EQ(*parsed, p);
+    EXPECT_NE(SimplifyPolicyNames().find(SimplifyPolicyName(p)), std::string::npos);
+  }
+  EXPECT_EQ(ParseSimplifyPolicy("field"), SimplifyPolicy::kField);
+  EXPECT_FALSE(ParseSimplifyPolicy("").has_value());
+  EXPECT_FALSE(ParseSimplifyPolicy("Paper").has_value());
+  EXPECT_FALSE(ParseSimplifyPolicy("no-such-policy").has_value());
+}
+
 }  // namespace
 }  // namespace decima
