@@ -647,13 +647,17 @@ absl::Status FieldEngine::Run(int64_t target, double tolerance, const ProgressFn
     // new (Q_w and every position are unchanged), so unless u was its best one comparison
     // does. v (its quadric grew) and constrained vertices (their patch changed) are re-scored.
     changed_.swap(touched_);
-    const size_t star_changed = changed_.size();  // these had a cell changed or deleted
-    for (size_t i = 0; i < changed_.size(); ++i) {
-      const int32_t w2 = changed_[i];
+    // The loop below is bound by cache misses on these scattered records: ask for them first.
+    for (int32_t w2 : changed_) {
+      __builtin_prefetch(&quadric_[kQuadricSize * int64_t(w2)]);
+      __builtin_prefetch(&cost_[w2]);
+      __builtin_prefetch(&second_[w2]);
+      __builtin_prefetch(&best_[w2]);
+    }
+    for (const int32_t w2 : changed_) {
       if (second_[w2] == u) second_[w2] = -1;  // u is gone
       const bool was_blocked = blocked_[w2];
-      if (i < star_changed) blocked_[w2] = 0;
-      if (blocked_[w2]) continue;
+      blocked_[w2] = 0;  // its star changed: worth another try
       if (u_free && w2 != v && flags_[w2] != 0 && !was_blocked && best_[w2] >= 0) {
         // A free vertex's collapse changes no constraint face, so w2's patch, candidates and
         // their costs are unchanged; only its validity may differ: re-checked when popped.
@@ -683,10 +687,13 @@ absl::Status FieldEngine::Run(int64_t target, double tolerance, const ProgressFn
           cost_[w2] = c;
           best_[w2] = v;
           Push(w2);
-        } else if (second_[w2] >= 0 &&
-                   (c < second_cost_[w2] || (c == second_cost_[w2] && v < second_[w2]))) {
-          second_[w2] = v;
-          second_cost_[w2] = c;
+        } else {
+          if (second_[w2] >= 0 &&
+              (c < second_cost_[w2] || (c == second_cost_[w2] && v < second_[w2]))) {
+            second_[w2] = v;
+            second_cost_[w2] = c;
+          }
+          if (was_blocked) Push(w2);  // a blocked vertex has no queue entry
         }
         continue;
       }
