@@ -2,10 +2,12 @@
 
 #include <algorithm>
 #include <array>
+#include <atomic>
 #include <cmath>
 #include <limits>
 #include <vector>
 
+#include "core/common/parallel.h"
 #include "core/common/status.h"
 
 namespace decima::simplify_internal {
@@ -20,7 +22,7 @@ struct Location {
 // Locates every original vertex in `mesh`: samples are bucketed on a uniform grid over their
 // bounding box; each cell, in id order, tests the samples of the buckets its bounding box
 // overlaps, and the first cell that contains a sample keeps it.
-std::vector<Location> LocateSamples(const TetMesh& original, const TetMesh& mesh,
+std::vector<Location> LocateSamples(const TetMesh& original, const TetMesh& mesh, int threads,
                                     const CancelToken* cancel, absl::Status* status) {
   const int64_t n = original.vertex_count();
   std::vector<Location> loc(n);
@@ -55,51 +57,77 @@ std::vector<Location> LocateSamples(const TetMesh& original, const TetMesh& mesh
     std::vector<int64_t> fill(start.begin(), start.end() - 1);
     for (int64_t v = 0; v < n; ++v) members[fill[bucket[v]]++] = int32_t(v);
   }
-  for (int64_t t = 0; t < mesh.tet_count(); ++t) {
-    if ((t & 0xffff) == 0 && cancel != nullptr && cancel->cancelled()) {
-      *status = absl::CancelledError("simplify: cancelled");
-      return loc;
-    }
-    const int32_t* c = &mesh.tets[4 * t];
-    Eigen::Vector3d p[4];
-    for (int k = 0; k < 4; ++k) p[k] = mesh.Position(c[k]);
-    Eigen::Vector3d blo = p[0], bhi = p[0];
-    for (int k = 1; k < 4; ++k) {
-      blo = blo.cwiseMin(p[k]);
-      bhi = bhi.cwiseMax(p[k]);
-    }
-    Eigen::Matrix3d e;
-    for (int k = 0; k < 3; ++k) e.col(k) = p[k + 1] - p[0];
-    const double det = e.determinant();
-    if (!(det > 0)) continue;
-    const Eigen::Matrix3d inv = e.inverse();
-    const double eps = 1e-6;
-    for (int64_t bz = bucket_of(blo, 2); bz <= bucket_of(bhi, 2); ++bz) {
-      for (int64_t by = bucket_of(blo, 1); by <= bucket_of(bhi, 1); ++by) {
-        for (int64_t bx = bucket_of(blo, 0); bx <= bucket_of(bhi, 0); ++bx) {
-          const int64_t b = bx + dims[0] * (by + dims[1] * bz);
-          for (int64_t i = start[b]; i < start[b + 1]; ++i) {
-            const int32_t v = members[i];
-            if (loc[v].cell >= 0) continue;
-            const Eigen::Vector3d l = inv * (original.Position(v) - p[0]);
-            const double w0 = 1 - l.sum();
-            if (w0 < -eps || l.x() < -eps || l.y() < -eps || l.z() < -eps) continue;
-            loc[v].cell = int32_t(t);
-            loc[v].w = {float(w0), float(l.x()), float(l.y()), float(l.z())};
+  // Cells test in parallel; each sample keeps the lowest containing cell id (an atomic
+  // minimum), so the result does not depend on the thread count.
+  std::vector<std::atomic<int32_t>> owner(n);
+  for (auto& o : owner) o.store(std::numeric_limits<int32_t>::max(), std::memory_order_relaxed);
+  std::atomic<bool> cancelled{false};
+  ParallelFor(mesh.tet_count(), threads, 4096, [&](int64_t t0, int64_t t1) {
+    for (int64_t t = t0; t < t1; ++t) {
+      if ((t & 0xffff) == 0 && cancel != nullptr && cancel->cancelled()) {
+        cancelled = true;
+        return;
+      }
+      const int32_t* c = &mesh.tets[4 * t];
+      Eigen::Vector3d p[4];
+      for (int k = 0; k < 4; ++k) p[k] = mesh.Position(c[k]);
+      Eigen::Vector3d blo = p[0], bhi = p[0];
+      for (int k = 1; k < 4; ++k) {
+        blo = blo.cwiseMin(p[k]);
+        bhi = bhi.cwiseMax(p[k]);
+      }
+      Eigen::Matrix3d e;
+      for (int k = 0; k < 3; ++k) e.col(k) = p[k + 1] - p[0];
+      const double det = e.determinant();
+      if (!(det > 0)) continue;
+      const Eigen::Matrix3d inv = e.inverse();
+      const double eps = 1e-6;
+      for (int64_t bz = bucket_of(blo, 2); bz <= bucket_of(bhi, 2); ++bz) {
+        for (int64_t by = bucket_of(blo, 1); by <= bucket_of(bhi, 1); ++by) {
+          for (int64_t bx = bucket_of(blo, 0); bx <= bucket_of(bhi, 0); ++bx) {
+            const int64_t b = bx + dims[0] * (by + dims[1] * bz);
+            for (int64_t i = start[b]; i < start[b + 1]; ++i) {
+              const int32_t v = members[i];
+              if (owner[v].load(std::memory_order_relaxed) < t) continue;
+              const Eigen::Vector3d l = inv * (original.Position(v) - p[0]);
+              const double w0 = 1 - l.sum();
+              if (w0 < -eps || l.x() < -eps || l.y() < -eps || l.z() < -eps) continue;
+              int32_t seen = owner[v].load(std::memory_order_relaxed);
+              while (t < seen && !owner[v].compare_exchange_weak(seen, int32_t(t))) {
+              }
+            }
           }
         }
       }
     }
+  });
+  if (cancelled) {
+    *status = absl::CancelledError("simplify: cancelled");
+    return loc;
   }
+  // Weights in the winning cell.
+  ParallelFor(n, threads, 4096, [&](int64_t v0, int64_t v1) {
+    for (int64_t v = v0; v < v1; ++v) {
+      const int32_t t = owner[v].load(std::memory_order_relaxed);
+      if (t == std::numeric_limits<int32_t>::max()) continue;
+      const int32_t* c = &mesh.tets[4 * int64_t(t)];
+      const Eigen::Vector3d p0 = mesh.Position(c[0]);
+      Eigen::Matrix3d e;
+      for (int k = 0; k < 3; ++k) e.col(k) = mesh.Position(c[k + 1]) - p0;
+      const Eigen::Vector3d l = e.inverse() * (original.Position(v) - p0);
+      loc[v].cell = t;
+      loc[v].w = {float(1 - l.sum()), float(l.x()), float(l.y()), float(l.z())};
+    }
+  });
   return loc;
 }
 
 }  // namespace
 
-absl::Status RefitValues(const TetMesh& original, TetMesh* simplified, int iterations,
+absl::Status RefitValues(const TetMesh& original, TetMesh* simplified, int iterations, int threads,
                          const CancelToken* cancel, RefitStats* stats) {
   absl::Status status;
-  const std::vector<Location> loc = LocateSamples(original, *simplified, cancel, &status);
+  const std::vector<Location> loc = LocateSamples(original, *simplified, threads, cancel, &status);
   DECIMA_RETURN_IF_ERROR(status);
   const int64_t n = original.vertex_count(), nv = simplified->vertex_count();
   const std::vector<int32_t>& tets = simplified->tets;
@@ -107,13 +135,15 @@ absl::Status RefitValues(const TetMesh& original, TetMesh* simplified, int itera
   std::vector<double> s(simplified->scalars.begin(), simplified->scalars.end());
   std::vector<double> r(n, 0), q(n, 0), z(nv), p(nv);
   auto apply = [&](const std::vector<double>& x, std::vector<double>& out) {  // out = A x
-    for (int64_t i = 0; i < n; ++i) {
-      if (loc[i].cell < 0) continue;
-      const int32_t* c = &tets[4 * int64_t(loc[i].cell)];
-      double sum = 0;
-      for (int k = 0; k < 4; ++k) sum += double(loc[i].w[k]) * x[c[k]];
-      out[i] = sum;
-    }
+    ParallelFor(n, threads, 16384, [&](int64_t i0, int64_t i1) {
+      for (int64_t i = i0; i < i1; ++i) {
+        if (loc[i].cell < 0) continue;
+        const int32_t* c = &tets[4 * int64_t(loc[i].cell)];
+        double sum = 0;
+        for (int k = 0; k < 4; ++k) sum += double(loc[i].w[k]) * x[c[k]];
+        out[i] = sum;
+      }
+    });
   };
   auto apply_t = [&](const std::vector<double>& y, std::vector<double>& out) {  // out = A^T y
     std::fill(out.begin(), out.end(), 0.0);

@@ -210,8 +210,8 @@ std::optional<SimplifyPolicy> ParseSimplifyPolicy(std::string_view name) {
 
 std::string SimplifyPolicyNames() {
   std::string out;
-  for (SimplifyPolicy p : kAllPolicies) absl::StrAppend(&out, out.empty() ? "" : ", ",
-                                                         SimplifyPolicyName(p));
+  for (SimplifyPolicy p : kAllPolicies)
+    absl::StrAppend(&out, out.empty() ? "" : ", ", SimplifyPolicyName(p));
   return out;
 }
 
@@ -237,7 +237,7 @@ absl::StatusOr<SimplifyResult> Simplify(const TetMesh& mesh, const SimplifyOptio
         cancel, &result));
     if (options.refit_iterations > 0) {
       DECIMA_RETURN_IF_ERROR(simplify_internal::RefitValues(
-          mesh, &result.mesh, options.refit_iterations, cancel, nullptr));
+          mesh, &result.mesh, options.refit_iterations, threads, cancel, nullptr));
     }
   } else {
     DECIMA_RETURN_IF_ERROR(
