@@ -49,13 +49,15 @@ absl::StatusOr<std::string> ReadFileText(const std::string& path, const char* wh
 
 int RunJobMode(int argc, char** argv) {
   fs::path dir, input, label_map;
+  std::string fault;
   for (int i = 1; i + 1 < argc; i += 2) {
     std::string k = argv[i];
     if (k == "--run-job") dir = argv[i + 1];
     if (k == "--input") input = argv[i + 1];
     if (k == "--label-map") label_map = argv[i + 1];
+    if (k == "--fault") fault = argv[i + 1];
   }
-  return RunJobProcess(dir, input, label_map, kWorkerFd);
+  return RunJobProcess(dir, input, label_map, fault, kWorkerFd);
 }
 
 }  // namespace
@@ -123,7 +125,8 @@ int main(int argc, char** argv) {
                  "address-space limit of each job process, MiB (0: none)")
       ->envname("DECIMA_WORKER_MEMORY_MB")
       ->capture_default_str();
-  app.add_flag("--allow-faults", allow_faults, "accept JobSpec.fault (tests only)")
+  app.add_flag("--allow-faults", allow_faults,
+               "read the test fault seam (metadata decima-test-fault) on CreateJob (tests only)")
       ->envname("DECIMA_ALLOW_FAULTS");
   app.add_flag("--no-fsync", no_fsync, "do not fdatasync blobs before commit (benchmarks)")
       ->envname("DECIMA_NO_FSYNC");
@@ -197,7 +200,8 @@ int main(int argc, char** argv) {
 
   WorkerPoolOptions wo;
   wo.workers = workers;
-  wo.data_dir = data;
+  wo.data_dir = DataDir(data);
+  wo.allow_faults = allow_faults;
   wo.worker_exe = fs::read_symlink("/proc/self/exe", ec);
   wo.owner = absl::StrCat("pid", ::getpid(), "-", NewId());
   wo.lease_ms = static_cast<int64_t>(lease_seconds * 1000);
@@ -206,7 +210,7 @@ int main(int argc, char** argv) {
   WorkerPool pool(store->get(), wo);
 
   ServiceOptions so;
-  so.data_dir = data;
+  so.data_dir = DataDir(data);
   so.token = token;
   so.max_upload_bytes = max_upload_mb << 20;
   so.max_queued = max_queued;

@@ -11,6 +11,8 @@
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_split.h"
 #include "decima/v1/errors.pb.h"
+#include "server/faults.h"
+#include "server/job_spec.h"
 #include "server/sha256.h"
 #include "server/volume_probe.h"
 #include "spdlog/spdlog.h"
@@ -221,8 +223,8 @@ class Services::VolumesImpl final : public v1::Volumes::Service {
       sources.push_back(*path);
     }
     const std::string id = NewId();
-    fs::path root = s_->options_.data_dir / "volumes" / id;
-    fs::path dir = root / "files";
+    fs::path root = s_->options_.data_dir.volume_dir(id);
+    fs::path dir = s_->options_.data_dir.volume_files(id);
     // Materialize the files under their manifest names: hard links to the immutable blobs.
     for (size_t i = 0; i < paths.size(); ++i) {
       std::error_code ec;
@@ -307,8 +309,7 @@ class Services::VolumesImpl final : public v1::Volumes::Service {
     if (!id.ok()) return ToGrpc(id.status());
     absl::Status st = s_->jobs_store_->DeleteVolume(*id);
     if (!st.ok()) return ToGrpc(st);
-    std::error_code ec;
-    fs::remove_all(s_->options_.data_dir / "volumes" / *id, ec);
+    s_->options_.data_dir.RemoveVolume(*id);
     return grpc::Status::OK;
   }
 
@@ -322,63 +323,18 @@ class Services::JobsImpl final : public v1::Jobs::Service {
  public:
   explicit JobsImpl(Services* s) : s_(s) {}
 
-  // Checks the parameters and fills the documented defaults, so a stored job shows what ran.
-  grpc::Status NormalizeSpec(grpc::ServerContext* ctx, v1::JobSpec* spec) {
-    auto vid = ParseName(spec->volume(), "volumes", "spec.volume");
-    if (!vid.ok()) return ToGrpc(vid.status());
-    if (auto v = s_->jobs_store_->GetVolume(*vid); !v.ok()) {
-      return grpc::Status(grpc::StatusCode::NOT_FOUND,
-                          absl::StrCat("spec.volume: ", spec->volume(), " not found"));
-    }
-    if (!spec->label_map().empty()) {
-      auto lid = ParseName(spec->label_map(), "volumes", "spec.label_map");
-      if (!lid.ok()) return ToGrpc(lid.status());
-      if (auto v = s_->jobs_store_->GetVolume(*lid); !v.ok()) {
+  // The volumes a spec names must exist now (NOT_FOUND); their files are resolved at run time.
+  grpc::Status CheckVolumes(const v1::JobSpec& spec) {
+    for (const auto& [field, name] :
+         {std::pair<const char*, const std::string&>{"spec.volume", spec.volume()},
+          {"spec.label_map", spec.label_map()}}) {
+      if (name.empty()) continue;
+      auto id = ParseName(name, "volumes", field);
+      if (!id.ok()) return ToGrpc(id.status());
+      if (auto v = s_->jobs_store_->GetVolume(*id); !v.ok()) {
         return grpc::Status(grpc::StatusCode::NOT_FOUND,
-                            absl::StrCat("spec.label_map: ", spec->label_map(), " not found"));
+                            absl::StrCat(field, ": ", name, " not found"));
       }
-    }
-    if (spec->regions() == 0) spec->set_regions(3);
-    if (spec->regions() < 2 || spec->regions() > 8) {
-      return InvalidField(ctx, "spec.regions", absl::StrCat(spec->regions(), " not in 2..8"));
-    }
-    if (spec->class_means_size() != 0 && spec->class_means_size() != spec->regions()) {
-      return InvalidField(ctx, "spec.class_means",
-                          absl::StrCat(spec->class_means_size(), " values given, ", spec->regions(),
-                                       " expected (one per region)"));
-    }
-    if (spec->target_reduction() == 0) spec->set_target_reduction(0.5);
-    if (!(spec->target_reduction() > 0 && spec->target_reduction() <= 0.95)) {
-      return InvalidField(ctx, "spec.target_reduction",
-                          absl::StrCat(spec->target_reduction(), " not in (0, 0.95]"));
-    }
-    if (spec->policy().empty()) spec->set_policy("paper");
-    if (spec->policy() != "paper" && spec->policy() != "tetfusion") {
-      return InvalidField(ctx, "spec.policy",
-                          absl::StrCat("'", spec->policy(), "' is not 'paper' or 'tetfusion'"));
-    }
-    if (!(spec->error_tolerance() >= 0)) {
-      return InvalidField(ctx, "spec.error_tolerance", "must be >= 0");
-    }
-    static const std::set<std::string> kWeights = {"w_r", "w_g", "w_s", "w_v", "w_n"};
-    for (const auto& [k, v] : spec->weights()) {
-      if (!kWeights.count(k)) {
-        return InvalidField(ctx, "spec.weights",
-                            absl::StrCat("unknown weight '", k, "' (w_r, w_g, w_s, w_v, w_n)"));
-      }
-      if (!(v >= 0)) return InvalidField(ctx, "spec.weights", absl::StrCat(k, " must be >= 0"));
-    }
-    if (spec->views().empty()) spec->add_views("anterior");
-    if (spec->views_size() > 16) return InvalidField(ctx, "spec.views", "at most 16 views");
-    if (spec->image_size() == 0) spec->set_image_size(512);
-    if (spec->image_size() < 16 || spec->image_size() > 4096) {
-      return InvalidField(ctx, "spec.image_size",
-                          absl::StrCat(spec->image_size(), " not in 16..4096"));
-    }
-    if (spec->transfer_function().empty()) spec->set_transfer_function("auto");
-    if (!spec->fault().empty() && !s_->options_.allow_faults) {
-      return InvalidField(ctx, "spec.fault",
-                          "fault injection is for tests; start the server with --allow-faults");
     }
     return grpc::Status::OK;
   }
@@ -387,11 +343,29 @@ class Services::JobsImpl final : public v1::Jobs::Service {
                          v1::Job* resp) override {
     if (auto g = s_->Guard(ctx); !g.ok()) return g;
     if (req->request_id().size() > 128) return InvalidField(ctx, "request_id", "too long");
-    v1::JobSpec spec = req->spec();
-    if (auto st = NormalizeSpec(ctx, &spec); !st.ok()) return st;
+    std::string field;
+    auto spec = NormalizeJobSpec(req->spec(), &field);
+    if (!spec.ok()) {
+      v1::ErrorDetail d;
+      d.set_field(field);
+      return Fail(ctx, spec.status(), d);
+    }
+    if (auto st = CheckVolumes(*spec); !st.ok()) return st;
+    const std::string id = NewId();
+    // Test-only fault seam: never part of the API; without --allow-faults the key is ignored.
+    if (s_->options_.allow_faults) {
+      auto it = ctx->client_metadata().find(kFaultMetadataKey);
+      if (it != ctx->client_metadata().end()) {
+        const std::string fault(it->second.data(), it->second.size());
+        if (auto st = ValidateFaults(fault); !st.ok()) return ToGrpc(st);
+        const DataDir& dd = s_->options_.data_dir;
+        if (auto st = dd.WriteFileAtomically(dd.job_fault(id), fault); !st.ok()) return ToGrpc(st);
+      }
+    }
     bool created = false;
-    auto job = s_->jobs_store_->CreateJob(NewId(), spec, req->request_id(), s_->options_.max_queued,
-                                          &created);
+    auto job =
+        s_->jobs_store_->CreateJob(id, *spec, req->request_id(), s_->options_.max_queued, &created);
+    if (!created) s_->options_.data_dir.RemoveJob(id);
     if (!job.ok()) {
       if (job.status().code() == absl::StatusCode::kResourceExhausted) {
         v1::ErrorDetail d;
@@ -402,7 +376,7 @@ class Services::JobsImpl final : public v1::Jobs::Service {
       return ToGrpc(job.status());
     }
     if (created) {
-      spdlog::info("job {} QUEUED volume {}", job->name().substr(5), spec.volume());
+      spdlog::info("job {} QUEUED volume {}", job->name().substr(5), spec->volume());
       s_->pool_->Notify();
     }
     *resp = *job;
@@ -474,8 +448,7 @@ class Services::JobsImpl final : public v1::Jobs::Service {
     if (!id.ok()) return ToGrpc(id.status());
     absl::Status st = s_->jobs_store_->DeleteJob(*id);
     if (!st.ok()) return ToGrpc(st);
-    std::error_code ec;
-    fs::remove_all(JobDir(s_->options_.data_dir, *id), ec);
+    s_->options_.data_dir.RemoveJob(*id);
     spdlog::info("job {} deleted", *id);
     return grpc::Status::OK;
   }
@@ -616,7 +589,7 @@ class Services::ArtifactsImpl final : public v1::Artifacts::Service {
     if (art == nullptr) {
       return grpc::Status(grpc::StatusCode::NOT_FOUND, absl::StrCat(req->name(), " not found"));
     }
-    fs::path path = JobDir(s_->options_.data_dir, *id) / "out" / art->file_name();
+    fs::path path = s_->options_.data_dir.job_out(*id) / art->file_name();
     std::ifstream in(path, std::ios::binary);
     if (!in) {
       return grpc::Status(grpc::StatusCode::DATA_LOSS,

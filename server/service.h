@@ -15,6 +15,7 @@
 #include "decima/v1/uploads.grpc.pb.h"
 #include "decima/v1/volumes.grpc.pb.h"
 #include "server/blob_store.h"
+#include "server/data_dir.h"
 #include "server/event_bus.h"
 #include "server/job_store.h"
 #include "server/worker_pool.h"
@@ -22,11 +23,11 @@
 namespace decima::server {
 
 struct ServiceOptions {
-  std::filesystem::path data_dir;
+  DataDir data_dir{""};
   std::string token;  // empty: no authentication
   int64_t max_upload_bytes = int64_t{2} << 30;
   int max_queued = 1000;
-  bool allow_faults = false;    // accept JobSpec.fault (tests only)
+  bool allow_faults = false;    // read the test fault seam (faults.h), tests only
   int64_t heartbeat_ms = 5000;  // WatchJob heartbeat period
 };
 

@@ -49,12 +49,17 @@ struct Child {
 };
 
 absl::StatusOr<Child> Spawn(const WorkerPoolOptions& o, const fs::path& job_dir,
-                            const fs::path& input, const fs::path& label_map) {
+                            const fs::path& input, const fs::path& label_map,
+                            const std::string& fault) {
   std::vector<std::string> args = {o.worker_exe.string(), "--run-job", job_dir.string(), "--input",
                                    input.string()};
   if (!label_map.empty()) {
     args.push_back("--label-map");
     args.push_back(label_map.string());
+  }
+  if (!fault.empty()) {
+    args.push_back("--fault");
+    args.push_back(fault);
   }
   std::vector<char*> argv;
   for (auto& a : args) argv.push_back(a.data());
@@ -107,14 +112,6 @@ std::string SignalName(int sig) {
 }
 
 }  // namespace
-
-fs::path JobDir(const fs::path& data_dir, const std::string& job_id) {
-  return data_dir / "jobs" / job_id;
-}
-
-fs::path VolumeFilesDir(const fs::path& data_dir, const std::string& volume_id) {
-  return data_dir / "volumes" / volume_id / "files";
-}
 
 WorkerPool::WorkerPool(JobStore* store, WorkerPoolOptions options)
     : store_(store), options_(std::move(options)) {}
@@ -211,7 +208,7 @@ void WorkerPool::RunOne(Slot& slot, const v1::Job& job) {
   };
 
   // Prepare the job folder: a fresh out/ for every attempt.
-  fs::path dir = JobDir(options_.data_dir, id);
+  fs::path dir = options_.data_dir.job_dir(id);
   std::error_code ec;
   fs::remove_all(dir / "out", ec);
   fs::create_directories(dir / "out", ec);
@@ -226,7 +223,7 @@ void WorkerPool::RunOne(Slot& slot, const v1::Job& job) {
     if (!vid.ok()) return vid.status();
     auto vol = store_->GetVolume(*vid);
     if (!vol.ok()) return vol.status();
-    *out = VolumeInput(VolumeFilesDir(options_.data_dir, *vid), *vol);
+    *out = VolumeInput(options_.data_dir.volume_files(*vid), *vol);
     return absl::OkStatus();
   };
   fs::path input, label_map;
@@ -234,7 +231,8 @@ void WorkerPool::RunOne(Slot& slot, const v1::Job& job) {
   if (rs.ok() && !job.spec().label_map().empty()) rs = resolve(job.spec().label_map(), &label_map);
   if (!rs.ok()) return fail(static_cast<int>(rs.code()), std::string(rs.message()));
 
-  auto child = Spawn(options_, dir, input, label_map);
+  const std::string fault = options_.allow_faults ? options_.data_dir.ReadJobFault(id) : "";
+  auto child = Spawn(options_, dir, input, label_map, fault);
   if (!child.ok()) return fail(13, std::string(child.status().message()));
 
   // Relay the child's lines until it closes the pipe, renewing the lease and watching cancel.

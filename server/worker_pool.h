@@ -18,13 +18,14 @@
 
 #include "absl/base/thread_annotations.h"
 #include "server/blob_store.h"
+#include "server/data_dir.h"
 #include "server/job_store.h"
 
 namespace decima::server {
 
 struct WorkerPoolOptions {
   int workers = 1;
-  std::filesystem::path data_dir;      // jobs/<id>/ and volumes/<id>/ live here
+  DataDir data_dir{""};                // jobs/<id>/ and volumes/<id>/ live here
   std::filesystem::path worker_exe;    // the binary run as `--run-job` (decima-server itself)
   std::string owner;                   // lease owner id, unique per server process
   int64_t lease_ms = 15000;            // renewed every lease_ms / 3
@@ -32,6 +33,7 @@ struct WorkerPoolOptions {
   int64_t cancel_grace_ms = 500;       // SIGTERM -> SIGKILL
   int64_t progress_interval_ms = 100;  // progress events stored at most this often per stage
   int64_t worker_memory_mb = 0;        // RLIMIT_AS of the child, 0 = unlimited
+  bool allow_faults = false;           // hand jobs/<id>/fault to the child (tests only)
 };
 
 class WorkerPool {
@@ -70,11 +72,5 @@ class WorkerPool {
   int64_t wakeups_ ABSL_GUARDED_BY(mu_) = 0;
   std::atomic<int> running_{0};
 };
-
-// Where a job's files live: data_dir/jobs/<id>/ (spec.pb, worker.log, out/).
-std::filesystem::path JobDir(const std::filesystem::path& data_dir, const std::string& job_id);
-// data_dir/volumes/<id>/files/
-std::filesystem::path VolumeFilesDir(const std::filesystem::path& data_dir,
-                                     const std::string& volume_id);
 
 }  // namespace decima::server

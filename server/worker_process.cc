@@ -10,11 +10,11 @@
 #include <sstream>
 #include <thread>
 
-#include "absl/strings/numbers.h"
-#include "absl/strings/str_split.h"
 #include "core/common/progress.h"
 #include "core/pipeline/pipeline.h"
 #include "decima/v1/jobs.pb.h"
+#include "server/faults.h"
+#include "server/job_spec.h"
 
 namespace decima::server {
 namespace {
@@ -53,32 +53,10 @@ int SendError(int fd, absl::StatusCode code, const std::string& message) {
   return code == absl::StatusCode::kCancelled ? kWorkerExitCancelled : kWorkerExitError;
 }
 
-// Test-only faults, comma separated: "sleep:S" spends S seconds in a cancellable "prepare"
-// stage reporting progress every 50 ms; "crash" aborts the process once the job started.
-absl::Status ApplyFaults(const std::string& faults, int fd, bool* crash) {
-  for (absl::string_view f : absl::StrSplit(faults, ',', absl::SkipEmpty())) {
-    if (f == "crash") {
-      *crash = true;
-    } else if (absl::ConsumePrefix(&f, "sleep:")) {
-      double seconds = 0;
-      if (!absl::SimpleAtod(f, &seconds)) return absl::InvalidArgumentError("fault: bad sleep");
-      auto start = std::chrono::steady_clock::now();
-      for (;;) {
-        double t = std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
-        if (t >= seconds) break;
-        if (g_cancel.cancelled()) return absl::CancelledError("prepare: cancelled");
-        SendProgress(fd, {"prepare", t / seconds, "test fault: sleeping", {{"elapsed_s", t}}});
-        std::this_thread::sleep_for(std::chrono::milliseconds(50));
-      }
-    }
-  }
-  return absl::OkStatus();
-}
-
 }  // namespace
 
 int RunJobProcess(const std::filesystem::path& job_dir, const std::filesystem::path& input,
-                  const std::filesystem::path& label_map, int fd) {
+                  const std::filesystem::path& label_map, const std::string& fault, int fd) {
   struct sigaction sa {};
   sa.sa_handler = OnTerm;
   sigemptyset(&sa.sa_mask);
@@ -94,28 +72,21 @@ int RunJobProcess(const std::filesystem::path& job_dir, const std::filesystem::p
                        "worker: cannot read " + (job_dir / "spec.pb").string());
     }
   }
+  // The stored spec is normalized (CreateJob), so this applies no default: it runs what was stored.
+  auto p = JobSpecFromProto(spec);
+  if (!p.ok()) return SendError(fd, p.status().code(), std::string(p.status().message()));
+  p->input = input;
+  if (!label_map.empty()) p->label_map = label_map;
+
   bool crash = false;
-  absl::Status fs = ApplyFaults(spec.fault(), fd, &crash);
+  absl::Status fs = ApplyFaults(
+      fault, [fd](const Progress& pr) { SendProgress(fd, pr); }, g_cancel, &crash);
   if (!fs.ok()) return SendError(fd, fs.code(), std::string(fs.message()));
   SendProgress(fd, {"load", 0, "starting", {}});
   if (crash) std::abort();
 
-  pipeline::JobSpec p;
-  p.input = input;
-  p.series_instance_uid = "";
-  if (spec.regions() > 0) p.regions = spec.regions();
-  p.class_means.assign(spec.class_means().begin(), spec.class_means().end());
-  if (!label_map.empty()) p.label_map = label_map;
-  if (spec.target_reduction() > 0) p.target_reduction = spec.target_reduction();
-  if (!spec.policy().empty()) p.policy = spec.policy();
-  p.error_tolerance = spec.error_tolerance();
-  for (const auto& [k, v] : spec.weights()) p.weights[k] = v;
-  if (!spec.views().empty()) p.views.assign(spec.views().begin(), spec.views().end());
-  if (spec.image_size() > 0) p.image_size = spec.image_size();
-  if (!spec.transfer_function().empty()) p.transfer_function = spec.transfer_function();
-
   auto result = pipeline::RunJob(
-      p, job_dir / "out", [fd](const Progress& pr) { SendProgress(fd, pr); }, &g_cancel);
+      *p, job_dir / "out", [fd](const Progress& pr) { SendProgress(fd, pr); }, &g_cancel);
   if (!result.ok()) {
     return SendError(fd, result.status().code(), std::string(result.status().message()));
   }

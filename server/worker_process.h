@@ -1,4 +1,5 @@
-// The job child process: `decima-server --run-job DIR --input PATH [--label-map PATH]` runs one
+// The job child process: `decima-server --run-job DIR --input PATH [--label-map PATH]
+// [--fault F]` runs one
 // job by calling decima::pipeline::RunJob, isolated from the server so that a crash or an
 // out-of-memory fails that job only, and a cancel (SIGTERM, then SIGKILL) always takes effect.
 //
@@ -21,8 +22,9 @@ inline constexpr int kWorkerExitOk = 0;
 inline constexpr int kWorkerExitError = 2;
 inline constexpr int kWorkerExitCancelled = 3;
 
-// Runs the job and returns the process exit code. `fd` receives the protocol lines.
+// Runs the job and returns the process exit code. `fd` receives the protocol lines. `fault` is
+// the test seam of faults.h ("" in production).
 int RunJobProcess(const std::filesystem::path& job_dir, const std::filesystem::path& input,
-                  const std::filesystem::path& label_map, int fd);
+                  const std::filesystem::path& label_map, const std::string& fault, int fd);
 
 }  // namespace decima::server

@@ -16,16 +16,23 @@ namespace {
 using simplify_internal::CollapseEngine;
 using simplify_internal::Outcome;
 
-absl::Status ValidateOptions(const SimplifyOptions& o) {
+}  // namespace
+
+absl::Status ValidateSimplifyOptions(const SimplifyOptions& o) {
   auto bad = [](const std::string& what) {
     return absl::InvalidArgumentError("simplify: option " + what);
   };
+  if (o.policy != SimplifyPolicy::kPaper && o.policy != SimplifyPolicy::kTetFusion &&
+      o.policy != SimplifyPolicy::kField) {
+    return bad(absl::StrCat("policy = ", static_cast<int>(o.policy), ": not a policy"));
+  }
   if (!(o.target_reduction >= 0 && o.target_reduction <= 0.99)) {
     return bad(absl::StrCat("target_reduction = ", o.target_reduction,
                             ": expected a fraction of cells to remove in [0, 0.99]"));
   }
-  if (!std::isfinite(o.error_tolerance)) {
-    return bad("error_tolerance must be finite (<= 0 for none)");
+  if (!(o.error_tolerance >= 0 && std::isfinite(o.error_tolerance))) {
+    return bad(absl::StrCat("error_tolerance = ", o.error_tolerance,
+                            ": expected a finite value >= 0 (0 for none)"));
   }
   const std::pair<const char*, double> weights[] = {{"weights.regional", o.weights.regional},
                                                     {"weights.gradient", o.weights.gradient},
@@ -58,6 +65,8 @@ absl::Status ValidateOptions(const SimplifyOptions& o) {
   }
   return absl::OkStatus();
 }
+
+namespace {
 
 absl::Status ValidateMesh(const TetMesh& m) {
   const int64_t nv = m.vertex_count(), nt = m.tet_count();
@@ -121,7 +130,10 @@ const char* StopReasonName(StopReason reason) {
 
 absl::StatusOr<SimplifyResult> Simplify(const TetMesh& mesh, const SimplifyOptions& options,
                                         const ProgressFn& progress, const CancelToken* cancel) {
-  DECIMA_RETURN_IF_ERROR(ValidateOptions(options));
+  DECIMA_RETURN_IF_ERROR(ValidateSimplifyOptions(options));
+  if (options.policy == SimplifyPolicy::kField) {
+    return absl::InvalidArgumentError("policy field is not available in this build");
+  }
   DECIMA_RETURN_IF_ERROR(ValidateMesh(mesh));
   DECIMA_RETURN_IF_ERROR(CheckCancelled(cancel, "simplify"));
   const int threads = options.threads > 0 ? options.threads

@@ -38,6 +38,7 @@ namespace decima {
 enum class SimplifyPolicy : uint8_t {
   kPaper,      // rules 1-6 of §2.2.2 and the full error of Eq. (8)
   kTetFusion,  // every interior cell to its centroid, local error only, rule 6, hull kept
+  kField,      // field-accurate: quadric edge collapses, see README
 };
 
 // Weights of Eq. (8); defaults are the paper's Table 2 (CT-head). Any value >= 0.
@@ -54,7 +55,7 @@ struct SimplifyOptions {
   // Fraction of the input cells to remove, in [0, 0.99]. 0 = no target: run until the error
   // tolerance or no collapsible cell remains.
   double target_reduction = 0.5;
-  // Largest predicted error Δε (Eq. 8) a collapse may have; <= 0 means no tolerance.
+  // Largest predicted error Δε (Eq. 8) a collapse may have, finite >= 0; 0 means no tolerance.
   double error_tolerance = 0;
   ErrorWeights weights;
   // Feature vertices (kPaper): < 0 uses the kFeatureVertex flags as Tetrahedralize set them;
@@ -125,6 +126,11 @@ struct SimplifyResult {
   double max_error = 0;  // largest Δε of a performed collapse
   std::vector<SimplifyPassStats> pass_stats;
 };
+
+// OK if every option is in its documented range, else InvalidArgument whose message names the
+// option ("simplify: option target_reduction = 2: ..."). Simplify calls it first; callers that
+// take options from outside (the server's job spec) call it where the value enters.
+absl::Status ValidateSimplifyOptions(const SimplifyOptions& options);
 
 // Simplifies `mesh` (a valid TetMesh, see tet_mesh.h; every cell positively oriented). Progress
 // stage "simplify": once per pass with metrics {"pass", "cells_removed", "error"}. Returns

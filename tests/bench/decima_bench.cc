@@ -1,7 +1,7 @@
 // decima-bench: reproducible figures for the pipeline stages.
 //
 //   decima-bench --input PATH|phantom:NxNxN --stages load,segment,tetra,simplify,render
-//                [--regions K] [--reduction F] [--policy paper|tetfusion] [--size W]
+//                [--regions K] [--reduction F] [--policy paper|tetfusion|field] [--size W]
 //                [--view NAME] [--repeat N] --json
 //
 // Every stage runs --repeat times on the output of the previous stage; `seconds` is the median
@@ -186,7 +186,9 @@ absl::Status RunTetra(const BenchOptions& o, BenchState& state, Json& out) {
 
 absl::Status RunSimplify(const BenchOptions& o, BenchState& state, Json& out) {
   SimplifyOptions so;
-  so.policy = o.policy == "tetfusion" ? SimplifyPolicy::kTetFusion : SimplifyPolicy::kPaper;
+  so.policy = o.policy == "tetfusion" ? SimplifyPolicy::kTetFusion
+              : o.policy == "field"   ? SimplifyPolicy::kField
+                                      : SimplifyPolicy::kPaper;
   so.target_reduction = o.reduction;
   absl::Status s = Time(o.repeat, out, [&]() -> absl::Status {
     state.simplified.reset();
@@ -276,7 +278,7 @@ int Main(int argc, char** argv) {
   app.add_option("--reduction", o.reduction, "simplify: fraction of cells to remove")
       ->check(CLI::Range(0.0, 0.95))
       ->capture_default_str();
-  app.add_option("--policy", o.policy, "simplify: paper or tetfusion")
+  app.add_option("--policy", o.policy, "simplify: paper, tetfusion or field")
       ->check(CLI::IsMember({"paper", "tetfusion"}))
       ->capture_default_str();
   app.add_option("--size", o.size, "render: image width and height in pixels")
