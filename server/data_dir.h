@@ -5,7 +5,7 @@
 //   jobs.sqlite              the embedded job store (WAL)
 //   blobs/                   the blob store (blob_store.h)
 //   volumes/<id>/files/...   a volume's files under their manifest names (hard links to blobs)
-//   jobs/<id>/request.pb     what the job child runs (worker_protocol.proto RunRequest)
+//   jobs/<id>/request.pb     what the job child runs (server/worker.proto RunRequest)
 //   jobs/<id>/worker.log     the child's stdout and stderr
 //   jobs/<id>/fault          test-only fault (faults.h), written only with --allow-faults
 //   jobs/<id>/out/           the artifacts of the current attempt

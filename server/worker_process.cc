@@ -1,20 +1,18 @@
 #include "server/worker_process.h"
 
 #include <signal.h>
-#include <unistd.h>
 
-#include <chrono>
 #include <cstdlib>
 #include <fstream>
-#include <nlohmann/json.hpp>
 #include <sstream>
-#include <thread>
+#include <string>
 
 #include "core/common/progress.h"
 #include "core/pipeline/pipeline.h"
-#include "decima/v1/jobs.pb.h"
 #include "server/faults.h"
 #include "server/job_spec.h"
+#include "server/worker.pb.h"
+#include "server/worker_protocol.h"
 
 namespace decima::server {
 namespace {
@@ -23,78 +21,71 @@ CancelToken g_cancel;
 
 void OnTerm(int) { g_cancel.Cancel(); }
 
-void WriteLine(int fd, const nlohmann::json& j) {
-  std::string line = j.dump() + "\n";
-  const char* p = line.data();
-  size_t left = line.size();
-  while (left > 0) {
-    ssize_t n = ::write(fd, p, left);
-    if (n < 0) {
-      if (errno == EINTR) continue;
-      std::_Exit(kWorkerExitError);  // parent gone: nobody needs the result
-    }
-    p += n;
-    left -= static_cast<size_t>(n);
-  }
+void Send(int fd, const worker::WorkerMessage& m) {
+  // The parent is gone (or the pipe broke): nobody needs the result.
+  if (!WriteFrame(fd, m).ok()) std::_Exit(kWorkerExitError);
 }
 
 void SendProgress(int fd, const Progress& p) {
-  nlohmann::json m = nlohmann::json::object();
-  for (const auto& [k, v] : p.metrics) m[k] = v;
-  WriteLine(fd, {{"type", "progress"},
-                 {"stage", p.stage},
-                 {"fraction", p.fraction},
-                 {"message", p.message},
-                 {"metrics", m}});
+  worker::WorkerMessage m;
+  v1::Progress* out = m.mutable_progress();
+  out->set_stage(p.stage);
+  out->set_fraction(p.fraction);
+  out->set_message(p.message);
+  for (const auto& [k, v] : p.metrics) (*out->mutable_metrics())[k] = v;
+  Send(fd, m);
 }
 
-int SendError(int fd, absl::StatusCode code, const std::string& message) {
-  WriteLine(fd, {{"type", "error"}, {"code", static_cast<int>(code)}, {"message", message}});
-  return code == absl::StatusCode::kCancelled ? kWorkerExitCancelled : kWorkerExitError;
+int SendError(int fd, const absl::Status& status) {
+  worker::WorkerMessage m;
+  m.mutable_error()->set_code(static_cast<int>(status.code()));
+  m.mutable_error()->set_message(std::string(status.message()));
+  Send(fd, m);
+  return status.code() == absl::StatusCode::kCancelled ? kWorkerExitCancelled : kWorkerExitError;
 }
 
 }  // namespace
 
-int RunJobProcess(const std::filesystem::path& job_dir, const std::filesystem::path& input,
-                  const std::filesystem::path& label_map, const std::string& fault, int fd) {
+int RunJobProcess(const std::filesystem::path& request_file, int fd) {
   struct sigaction sa {};
   sa.sa_handler = OnTerm;
   sigemptyset(&sa.sa_mask);
   sigaction(SIGTERM, &sa, nullptr);
 
-  v1::JobSpec spec;
+  worker::RunRequest request;
   {
-    std::ifstream in(job_dir / "spec.pb", std::ios::binary);
+    std::ifstream in(request_file, std::ios::binary);
     std::stringstream ss;
     ss << in.rdbuf();
-    if (!in || !spec.ParseFromString(ss.str())) {
-      return SendError(fd, absl::StatusCode::kInternal,
-                       "worker: cannot read " + (job_dir / "spec.pb").string());
+    if (!in || !request.ParseFromString(ss.str())) {
+      return SendError(fd, absl::InternalError("worker: cannot read " + request_file.string()));
     }
   }
   // The stored spec is normalized (CreateJob), so this applies no default: it runs what was stored.
-  auto p = JobSpecFromProto(spec);
-  if (!p.ok()) return SendError(fd, p.status().code(), std::string(p.status().message()));
-  p->input = input;
-  if (!label_map.empty()) p->label_map = label_map;
+  auto spec = JobSpecFromProto(request.spec());
+  if (!spec.ok()) return SendError(fd, spec.status());
+  spec->input = request.input();
+  if (!request.label_map().empty()) spec->label_map = request.label_map();
 
+  auto progress = [fd](const Progress& p) { SendProgress(fd, p); };
   bool crash = false;
-  absl::Status fs = ApplyFaults(
-      fault, [fd](const Progress& pr) { SendProgress(fd, pr); }, g_cancel, &crash);
-  if (!fs.ok()) return SendError(fd, fs.code(), std::string(fs.message()));
+  if (auto st = ApplyFaults(request.fault(), progress, g_cancel, &crash); !st.ok()) {
+    return SendError(fd, st);
+  }
   SendProgress(fd, {"load", 0, "starting", {}});
   if (crash) std::abort();
 
-  auto result = pipeline::RunJob(
-      *p, job_dir / "out", [fd](const Progress& pr) { SendProgress(fd, pr); }, &g_cancel);
-  if (!result.ok()) {
-    return SendError(fd, result.status().code(), std::string(result.status().message()));
-  }
-  nlohmann::json arts = nlohmann::json::array();
+  auto result = pipeline::RunJob(*spec, request.out_dir(), progress, &g_cancel);
+  if (!result.ok()) return SendError(fd, result.status());
+  worker::WorkerMessage m;
   for (const auto& a : result->artifacts) {
-    arts.push_back({{"name", a.name}, {"path", a.path.string()}, {"size", a.size_bytes}});
+    worker::Artifact* out = m.mutable_result()->add_artifacts();
+    out->set_name(a.name);
+    out->set_path(a.path.string());
+    out->set_size_bytes(static_cast<int64_t>(a.size_bytes));
   }
-  WriteLine(fd, {{"type", "result"}, {"artifacts", arts}, {"metrics_json", result->metrics_json}});
+  m.mutable_result()->set_metrics_json(result->metrics_json);
+  Send(fd, m);
   return kWorkerExitOk;
 }
 
