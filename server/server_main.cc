@@ -23,6 +23,7 @@
 
 #include "absl/strings/ascii.h"
 #include "absl/strings/str_cat.h"
+#include "server/grpc_util.h"
 #include "server/lease_reaper.h"
 #include "server/service.h"
 #include "server/worker_process.h"
