@@ -6,10 +6,15 @@ function(decima_target_defaults target)
   if(DECIMA_WERROR)
     target_compile_options(${target} PRIVATE -Werror)
   endif()
-  if(DECIMA_SANITIZE)
+  if(DECIMA_SANITIZE_KIND STREQUAL "address")
     target_compile_options(${target} PRIVATE -fsanitize=address,undefined -fno-omit-frame-pointer
                                               -fno-sanitize-recover=undefined)
     target_link_options(${target} PRIVATE -fsanitize=address,undefined)
+  elseif(DECIMA_SANITIZE_KIND STREQUAL "thread")
+    # Races are reported for our code; gRPC, protobuf and SQLite from Debian are not
+    # instrumented (their internal atomics are invisible to TSan), see README.
+    target_compile_options(${target} PRIVATE -fsanitize=thread -fno-omit-frame-pointer)
+    target_link_options(${target} PRIVATE -fsanitize=thread)
   endif()
 endfunction()
 
