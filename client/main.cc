@@ -6,6 +6,7 @@
 #include <cstdio>
 #include <fstream>
 #include <iostream>
+#include <optional>
 #include <random>
 #include <thread>
 
@@ -288,10 +289,11 @@ int main(int argc, char** argv) {
   // submit
   auto* submit =
       app.add_subcommand("submit", "upload a volume (file or DICOM folder) and queue a job");
-  std::string input, label_map, policy, tf, fault, request_id;
+  std::string input, label_map, policy = "field", tf, fault, request_id;
   fs::path out;
-  int regions = 0, image_size = 0;
-  double reduction = 0, tolerance = 0;
+  // Unset options stay unset in the request: the server owns the defaults.
+  std::optional<int> regions, image_size;
+  std::optional<double> reduction, tolerance;
   std::vector<double> means;
   std::vector<std::string> weights, views;
   bool watch_flag = false;
@@ -303,14 +305,20 @@ int main(int argc, char** argv) {
   submit->add_option("--label-map", label_map,
                      "a label map on the same grid (replaces the level set)");
   submit->add_option("--reduction", reduction,
-                     "fraction of cells to remove (0..0.95, default 0.5)");
-  submit->add_option("--policy", policy, "paper (default) or tetfusion");
-  submit->add_option("--tolerance", tolerance, "error tolerance (0 = target only)");
-  submit->add_option("--weight", weights, "weight override NAME=VALUE (w_r, w_g, w_s, w_v, w_n)");
+                     "target_reduction: fraction of cells to remove (0..0.99, default 0.5; 0 = "
+                     "no target, stop on --tolerance)");
+  submit->add_option("--policy", policy, "simplification policy: paper, tetfusion or field")
+      ->check(CLI::IsMember({"paper", "tetfusion", "field"}))
+      ->capture_default_str();
+  submit->add_option("--tolerance", tolerance, "error tolerance (>= 0; default 0 = none)");
+  submit->add_option("--weight", weights,
+                     "weight override NAME=VALUE (w_r/regional, w_g/gradient, w_s/shape, "
+                     "w_v/volume, w_n/neighbour)");
   submit->add_option("--views", views, "render views (default anterior)")->delimiter(',');
   submit->add_option("--image-size", image_size, "rendered image size, pixels (default 512)");
   submit->add_option("--transfer-function", tf, "preset name, auto, or JSON");
   submit->add_option("--request-id", request_id, "idempotency key (default: a new UUID)");
+  // Test seam (server/faults.h): sent as metadata, read only by a server run with --allow-faults.
   submit->add_option("--fault", fault, "test-only fault injection")->group("");
   submit->add_flag("--watch", watch_flag, "watch the job until it ends");
   submit->add_option("--out", out,
@@ -375,31 +383,54 @@ int main(int argc, char** argv) {
       rc = MakeVolume(label_map, spec->mutable_label_map());
       if (rc != kOk) return rc;
     }
-    spec->set_regions(regions);
+    if (regions) spec->set_regions(*regions);
     for (double m : means) spec->add_class_means(m);
-    spec->set_target_reduction(reduction);
-    spec->set_policy(policy);
-    spec->set_error_tolerance(tolerance);
+    if (reduction) spec->set_target_reduction(*reduction);
+    spec->set_policy(policy == "paper"       ? v1::PAPER
+                     : policy == "tetfusion" ? v1::TETFUSION
+                                             : v1::FIELD);
+    if (tolerance) spec->set_error_tolerance(*tolerance);
     for (const auto& w : weights) {
       auto eq = w.find('=');
       if (eq == std::string::npos) {
         std::fprintf(stderr, "decima: --weight %s: expected NAME=VALUE\n", w.c_str());
         return kUsage;
       }
+      const std::string name = w.substr(0, eq);
+      double value = 0;
       try {
-        (*spec->mutable_weights())[w.substr(0, eq)] = std::stod(w.substr(eq + 1));
+        value = std::stod(w.substr(eq + 1));
       } catch (...) {
         std::fprintf(stderr, "decima: --weight %s: VALUE is not a number\n", w.c_str());
         return kUsage;
       }
+      v1::ErrorWeights* ew = spec->mutable_weights();
+      if (name == "w_r" || name == "regional") {
+        ew->set_regional(value);
+      } else if (name == "w_g" || name == "gradient") {
+        ew->set_gradient(value);
+      } else if (name == "w_s" || name == "shape") {
+        ew->set_shape(value);
+      } else if (name == "w_v" || name == "volume") {
+        ew->set_volume(value);
+      } else if (name == "w_n" || name == "neighbour") {
+        ew->set_neighbour(value);
+      } else {
+        std::fprintf(stderr, "decima: --weight %s: unknown weight (w_r, w_g, w_s, w_v, w_n)\n",
+                     w.c_str());
+        return kUsage;
+      }
     }
     for (const auto& v : views) spec->add_views(v);
-    spec->set_image_size(image_size);
+    if (image_size) spec->set_image_size(*image_size);
     spec->set_transfer_function(tf);
-    spec->set_fault(fault);
     req.set_request_id(request_id.empty() ? NewRequestId() : request_id);
     v1::Job job;
-    grpc::Status s = WithRetry([&] { return jobs->CreateJob(conn.Context().get(), req, &job); });
+    grpc::Status s = WithRetry([&] {
+      auto ctx = conn.Context();
+      if (!fault.empty()) ctx->AddMetadata("decima-test-fault", fault);
+      return jobs->CreateJob(ctx.get(), req, &job);
+    });
     if (!s.ok()) return Report(s, "submit");
     if (g.json) {
       std::printf("%s\n", ToJson(job).c_str());

@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # The README's test command: installs the Debian packages, configures, builds everything
 # (warnings as errors) and runs every test through ctest. Exits non-zero on any failure.
-# Environment: BUILD_DIR (default build), DECIMA_SANITIZE=ON for an ASan+UBSan build,
+# Environment: BUILD_DIR (default build), DECIMA_SANITIZE=ON for an ASan+UBSan build (thread: TSan),
 # JOBS (default: all cores).
 set -euo pipefail
 cd "$(dirname "$0")/.."

@@ -6,7 +6,11 @@
 // Invariants kept by every implementation:
 //  - a job's events are numbered 1, 2, 3, ... without gaps; each state change writes its event
 //    in the same transaction as the state, so the log and the job never disagree;
-//  - a RUNNING job has exactly one lease owner; ClaimNext never hands a job to two owners;
+//  - a RUNNING job has exactly one lease: an owner and an epoch (fencing token). Every claim of a
+//    job increments its epoch, and every renew, progress and finish must present the lease of
+//    the current claim, so a holder that lost its lease (paused past expiry, job re-queued and
+//    claimed again, perhaps by the same owner) changes nothing; ClaimNext never hands a job to
+//    two holders;
 //  - the listener is called after commit, in sequence order per job.
 // Thread-safety: all methods may be called from any thread.
 #pragma once
@@ -38,6 +42,18 @@ struct VolumePage {
   std::string next_page_token;
 };
 
+// The proof of one claim of one job.
+struct Lease {
+  std::string job_id;
+  std::string owner;  // unique per server process
+  int64_t epoch = 0;  // increments with every claim of the job
+};
+
+struct Claim {
+  v1::Job job;  // as claimed: RUNNING, attempts counted
+  Lease lease;
+};
+
 // What RecoverLeases did.
 struct Recovered {
   std::vector<std::string> requeued;
@@ -67,25 +83,28 @@ class JobStore {
                                            const std::string& page_token) = 0;
   virtual absl::StatusOr<int64_t> CountJobs(v1::JobState state) = 0;
 
-  // Oldest queued job -> RUNNING with a lease for `owner` until now + lease_ms; nullopt if none.
-  virtual absl::StatusOr<std::optional<v1::Job>> ClaimNext(const std::string& owner,
-                                                           int64_t lease_ms) = 0;
-  // Extends the lease; FAILED_PRECONDITION if `owner` no longer holds it.
-  virtual absl::Status RenewLease(const std::string& id, const std::string& owner,
-                                  int64_t lease_ms) = 0;
-  // Appends a progress event of a RUNNING job held by `owner`.
-  virtual absl::Status AppendProgress(const std::string& id, const std::string& owner,
-                                      const v1::Progress& progress) = 0;
-  // RUNNING (held by `owner`) -> SUCCEEDED / FAILED / CANCELLED. `job` supplies error,
+  // Oldest queued job -> RUNNING with a new lease for `owner` until now + lease_ms; nullopt if
+  // none is queued.
+  virtual absl::StatusOr<std::optional<Claim>> ClaimNext(const std::string& owner,
+                                                         int64_t lease_ms) = 0;
+  // Extends the lease to now + lease_ms. FAILED_PRECONDITION if `lease` is not the job's
+  // current lease (lapsed and re-queued, claimed again, finished).
+  virtual absl::Status RenewLease(const Lease& lease, int64_t lease_ms) = 0;
+  // Appends a progress event of the RUNNING job `lease` holds (FAILED_PRECONDITION otherwise).
+  virtual absl::Status AppendProgress(const Lease& lease, const v1::Progress& progress) = 0;
+  // RUNNING (held by `lease`) -> SUCCEEDED / FAILED / CANCELLED. `outcome` supplies error,
   // artifacts and metrics_json.
-  virtual absl::StatusOr<v1::Job> Finish(const std::string& id, const std::string& owner,
-                                         v1::JobState state, const v1::Job& outcome) = 0;
-  // RUNNING (held by `owner`) -> QUEUED, giving back the attempt (graceful shutdown).
-  virtual absl::StatusOr<v1::Job> Requeue(const std::string& id, const std::string& owner,
-                                          const std::string& reason) = 0;
+  virtual absl::StatusOr<v1::Job> Finish(const Lease& lease, v1::JobState state,
+                                         const v1::Job& outcome) = 0;
+  // RUNNING (held by `lease`) -> QUEUED, giving back the attempt (graceful shutdown).
+  virtual absl::StatusOr<v1::Job> Requeue(const Lease& lease, const std::string& reason) = 0;
   // RUNNING jobs whose lease lapsed (all RUNNING jobs when `all`) go back to QUEUED, or to
-  // FAILED once they were claimed `max_attempts` times.
+  // FAILED once they were claimed `max_attempts` times. `all` is only for start-up of an
+  // exclusive store (below): a shared store's RUNNING jobs may belong to live replicas.
   virtual absl::StatusOr<Recovered> RecoverLeases(bool all, int max_attempts) = 0;
+  // True for an embedded store only this process uses (SQLite under the data dir's LOCK): at
+  // start-up every RUNNING job in it is an orphan of a dead process.
+  virtual bool exclusive() const = 0;
 
   // QUEUED -> CANCELLED at once; RUNNING -> cancel requested (the worker finishes it).
   // Final jobs are returned unchanged.

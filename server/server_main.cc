@@ -6,7 +6,7 @@
 //   --max-upload-mb N     DECIMA_MAX_UPLOAD_MB   default 2048
 //   --token-file F        DECIMA_TOKEN_FILE      bearer token required on every call
 //   --tls-cert F --tls-key F  DECIMA_TLS_CERT / DECIMA_TLS_KEY
-// `decima-server --run-job DIR --input PATH [--label-map PATH]` is the job child process.
+// `decima-server --run-job REQUEST` is the job child process (worker_process.h).
 #include <fcntl.h>
 #include <signal.h>
 #include <sys/file.h>
@@ -23,6 +23,8 @@
 
 #include "absl/strings/ascii.h"
 #include "absl/strings/str_cat.h"
+#include "server/grpc_util.h"
+#include "server/lease_reaper.h"
 #include "server/service.h"
 #include "server/worker_process.h"
 #include "spdlog/spdlog.h"
@@ -47,21 +49,12 @@ absl::StatusOr<std::string> ReadFileText(const std::string& path, const char* wh
   return ss.str();
 }
 
-int RunJobMode(int argc, char** argv) {
-  fs::path dir, input, label_map;
-  for (int i = 1; i + 1 < argc; i += 2) {
-    std::string k = argv[i];
-    if (k == "--run-job") dir = argv[i + 1];
-    if (k == "--input") input = argv[i + 1];
-    if (k == "--label-map") label_map = argv[i + 1];
-  }
-  return RunJobProcess(dir, input, label_map, kWorkerFd);
-}
+int RunJobMode(const char* request_file) { return RunJobProcess(request_file, kWorkerFd); }
 
 }  // namespace
 
 int main(int argc, char** argv) {
-  if (argc >= 3 && std::string(argv[1]) == "--run-job") return RunJobMode(argc, argv);
+  if (argc == 3 && std::string(argv[1]) == "--run-job") return RunJobMode(argv[2]);
 
   CLI::App app{
       "decima-server: turns uploaded medical volumes into simplified tetrahedral "
@@ -123,7 +116,8 @@ int main(int argc, char** argv) {
                  "address-space limit of each job process, MiB (0: none)")
       ->envname("DECIMA_WORKER_MEMORY_MB")
       ->capture_default_str();
-  app.add_flag("--allow-faults", allow_faults, "accept JobSpec.fault (tests only)")
+  app.add_flag("--allow-faults", allow_faults,
+               "read the test fault seam (metadata decima-test-fault) on CreateJob (tests only)")
       ->envname("DECIMA_ALLOW_FAULTS");
   app.add_flag("--no-fsync", no_fsync, "do not fdatasync blobs before commit (benchmarks)")
       ->envname("DECIMA_NO_FSYNC");
@@ -185,28 +179,34 @@ int main(int argc, char** argv) {
   (*store)->SetListener(
       [&bus](const std::string& id, const decima::v1::JobEvent& ev) { bus.Publish(id, ev); });
 
-  auto recovered = (*store)->RecoverLeases(/*all=*/true, max_attempts);
-  if (!recovered.ok()) {
-    spdlog::error("recovering jobs: {}", recovered.status().ToString());
-    return 1;
+  // Only an exclusive store (ours, under LOCK) knows its RUNNING jobs are orphans; a shared store
+  // leaves them to the lease reaper, since other replicas may be running them.
+  if ((*store)->exclusive()) {
+    auto recovered = (*store)->RecoverLeases(/*all=*/true, max_attempts);
+    if (!recovered.ok()) {
+      spdlog::error("recovering jobs: {}", recovered.status().ToString());
+      return 1;
+    }
+    for (const auto& id : recovered->requeued) {
+      spdlog::info("job {} QUEUED again (its worker was lost when the server stopped)", id);
+    }
+    for (const auto& id : recovered->failed) {
+      spdlog::info("job {} FAILED/CANCELLED on recovery", id);
+    }
   }
-  for (const auto& id : recovered->requeued) {
-    spdlog::info("job {} QUEUED again (its worker was lost when the server stopped)", id);
-  }
-  for (const auto& id : recovered->failed) spdlog::info("job {} FAILED/CANCELLED on recovery", id);
 
   WorkerPoolOptions wo;
   wo.workers = workers;
-  wo.data_dir = data;
-  wo.worker_exe = fs::read_symlink("/proc/self/exe", ec);
   wo.owner = absl::StrCat("pid", ::getpid(), "-", NewId());
-  wo.lease_ms = static_cast<int64_t>(lease_seconds * 1000);
-  wo.max_attempts = max_attempts;
-  wo.worker_memory_mb = worker_memory_mb;
+  wo.runner.data_dir = DataDir(data);
+  wo.runner.worker_exe = fs::read_symlink("/proc/self/exe", ec);
+  wo.runner.lease_ms = static_cast<int64_t>(lease_seconds * 1000);
+  wo.runner.worker_memory_mb = worker_memory_mb;
+  wo.runner.allow_faults = allow_faults;
   WorkerPool pool(store->get(), wo);
 
   ServiceOptions so;
-  so.data_dir = data;
+  so.data_dir = DataDir(data);
   so.token = token;
   so.max_upload_bytes = max_upload_mb << 20;
   so.max_queued = max_queued;
@@ -252,18 +252,11 @@ int main(int argc, char** argv) {
     fs::rename(tmp, port_file, ec);
   }
 
-  // Re-queue jobs whose lease lapsed (a worker thread lost in another replica, a stuck store).
-  std::atomic<bool> stop_reaper{false};
-  std::thread reaper([&] {
-    while (!stop_reaper.load()) {
-      for (int i = 0; i < 10 && !stop_reaper.load(); ++i) {
-        std::this_thread::sleep_for(std::chrono::milliseconds(wo.lease_ms / 20));
-      }
-      if (stop_reaper.load()) break;
-      auto r = (*store)->RecoverLeases(/*all=*/false, max_attempts);
-      if (r.ok() && !r->requeued.empty()) pool.Notify();
-    }
-  });
+  // Lease expiry on its own timer: lapsed leases (a worker lost in another replica, a stuck
+  // store) go back to the queue twice per lease period.
+  LeaseReaper reaper(store->get(), std::chrono::milliseconds(wo.runner.lease_ms / 2), max_attempts,
+                     [&pool] { pool.Notify(); });
+  reaper.Start();
 
   int sig = 0;
   sigwait(&sigs, &sig);
@@ -275,8 +268,7 @@ int main(int argc, char** argv) {
   server->GetHealthCheckService()->SetServingStatus(false);
   bus.Close();
   pool.Drain(std::chrono::milliseconds(static_cast<int64_t>(drain_seconds * 1000)));
-  stop_reaper = true;
-  reaper.join();
+  reaper.Stop();
   server->Shutdown(std::chrono::system_clock::now() + std::chrono::seconds(2));
   spdlog::info("decima-server stopped");
   return 0;

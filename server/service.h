@@ -1,20 +1,21 @@
-// The gRPC services of decima.v1 (Uploads, Volumes, Jobs, Artifacts) over one job store, one
-// blob store, the event bus and the worker pool. Handlers validate, call one store or pool
-// operation, and convert absl::Status to grpc::Status at the edge, keeping code and message.
-// Every handler starts with the same guard: the bearer token (when configured) and the drain
-// state. The standard health and reflection services are registered beside these (server.cc).
+// The gRPC services of decima.v1, one file each: uploads_service.cc, volumes_service.cc,
+// jobs_service.cc, artifacts_service.cc. Handlers are adapters: check the call (CallGuard: token,
+// drain), parse names, call one domain function (VolumeCatalog, SubmitJob, WatchLoop,
+// OpenArtifact, the stores), and convert absl::Status to grpc::Status keeping code and message
+// (grpc_util.h). The standard health and reflection services are registered beside these
+// (server_main.cc).
 #pragma once
 
-#include <atomic>
-#include <filesystem>
+#include <grpcpp/grpcpp.h>
+#include <grpcpp/impl/service_type.h>
+
+#include <cstdint>
 #include <memory>
 #include <string>
 
-#include "decima/v1/artifacts.grpc.pb.h"
-#include "decima/v1/jobs.grpc.pb.h"
-#include "decima/v1/uploads.grpc.pb.h"
-#include "decima/v1/volumes.grpc.pb.h"
 #include "server/blob_store.h"
+#include "server/call_guard.h"
+#include "server/data_dir.h"
 #include "server/event_bus.h"
 #include "server/job_store.h"
 #include "server/worker_pool.h"
@@ -22,57 +23,50 @@
 namespace decima::server {
 
 struct ServiceOptions {
-  std::filesystem::path data_dir;
+  DataDir data_dir{""};
   std::string token;  // empty: no authentication
   int64_t max_upload_bytes = int64_t{2} << 30;
   int max_queued = 1000;
-  bool allow_faults = false;    // accept JobSpec.fault (tests only)
+  bool allow_faults = false;    // read the test fault seam (faults.h), tests only
   int64_t heartbeat_ms = 5000;  // WatchJob heartbeat period
 };
 
 inline constexpr size_t kMaxChunkBytes = size_t{1} << 20;
 
+// What the services share; all pointers outlive the services.
+struct ServiceDeps {
+  const ServiceOptions* options;
+  JobStore* jobs;
+  BlobStore* blobs;
+  EventBus* bus;
+  WorkerPool* pool;
+  const CallGuard* guard;
+};
+
+std::unique_ptr<grpc::Service> MakeUploadsService(const ServiceDeps& deps);
+std::unique_ptr<grpc::Service> MakeVolumesService(const ServiceDeps& deps);
+std::unique_ptr<grpc::Service> MakeJobsService(const ServiceDeps& deps);
+std::unique_ptr<grpc::Service> MakeArtifactsService(const ServiceDeps& deps);
+
+// The four services over one set of stores, with their guard.
 class Services {
  public:
   Services(ServiceOptions options, JobStore* jobs, BlobStore* blobs, EventBus* bus,
            WorkerPool* pool);
-  ~Services();
 
   // Refuse new calls with UNAVAILABLE and end watch streams.
-  void StartDraining();
-  bool draining() const { return draining_.load(); }
+  void StartDraining() { guard_.StartDraining(); }
+  bool draining() const { return guard_.draining(); }
 
-  grpc::Service* uploads();
-  grpc::Service* volumes();
-  grpc::Service* jobs();
-  grpc::Service* artifacts();
-
-  // The common guard: UNAUTHENTICATED without the right bearer token, UNAVAILABLE while
-  // draining. Public for tests.
-  grpc::Status Guard(grpc::ServerContext* ctx) const;
-
-  class UploadsImpl;
-  class VolumesImpl;
-  class JobsImpl;
-  class ArtifactsImpl;
+  grpc::Service* uploads() { return uploads_.get(); }
+  grpc::Service* volumes() { return volumes_.get(); }
+  grpc::Service* jobs() { return jobs_.get(); }
+  grpc::Service* artifacts() { return artifacts_.get(); }
 
  private:
-  ServiceOptions options_;
-  JobStore* jobs_store_;
-  BlobStore* blob_store_;
-  EventBus* bus_;
-  WorkerPool* pool_;
-  std::atomic<bool> draining_{false};
-  std::unique_ptr<UploadsImpl> uploads_;
-  std::unique_ptr<VolumesImpl> volumes_;
-  std::unique_ptr<JobsImpl> jobs_;
-  std::unique_ptr<ArtifactsImpl> artifacts_;
+  const ServiceOptions options_;
+  CallGuard guard_;
+  std::unique_ptr<grpc::Service> uploads_, volumes_, jobs_, artifacts_;
 };
-
-// absl::Status -> grpc::Status with the same code and message.
-grpc::Status ToGrpc(const absl::Status& s);
-
-// A random resource id: 16 lower-case hex characters.
-std::string NewId();
 
 }  // namespace decima::server

@@ -113,6 +113,7 @@ class SqliteJobStore : public JobStore {
         state INTEGER NOT NULL,
         lease_owner TEXT,
         lease_expiry INTEGER NOT NULL DEFAULT 0,
+        lease_epoch INTEGER NOT NULL DEFAULT 0,
         cancel_requested INTEGER NOT NULL DEFAULT 0,
         volume TEXT NOT NULL,
         job BLOB NOT NULL);
@@ -130,8 +131,17 @@ class SqliteJobStore : public JobStore {
         PRIMARY KEY(volume_id, sha256)) WITHOUT ROWID;
       CREATE INDEX IF NOT EXISTS volume_blobs_by_sha ON volume_blobs(sha256);
     )sql";
-    return Exec(kSchema);
+    DECIMA_RETURN_IF_ERROR_LOCAL(Exec(kSchema));
+    // Data dirs created before leases had epochs: add the column (0 for every job).
+    Stmt cols(db_, "SELECT COUNT(*) FROM pragma_table_info('jobs') WHERE name='lease_epoch'");
+    if (cols.Step() != SQLITE_ROW) return cols.Error("reading the schema");
+    if (cols.Int(0) == 0) {
+      return Exec("ALTER TABLE jobs ADD COLUMN lease_epoch INTEGER NOT NULL DEFAULT 0");
+    }
+    return absl::OkStatus();
   }
+
+  bool exclusive() const override { return true; }
 
   void SetListener(EventListener listener) override {
     std::lock_guard<std::mutex> lock(mu_);
@@ -227,18 +237,20 @@ class SqliteJobStore : public JobStore {
     return c.Int(0);
   }
 
-  absl::StatusOr<std::optional<v1::Job>> ClaimNext(const std::string& owner,
-                                                   int64_t lease_ms) override {
+  absl::StatusOr<std::optional<Claim>> ClaimNext(const std::string& owner,
+                                                 int64_t lease_ms) override {
     std::lock_guard<std::mutex> lock(mu_);
     Tx tx(this);
     if (!tx.ok()) return tx.status();
-    Stmt q(db_, "SELECT job FROM jobs WHERE state=? ORDER BY ord LIMIT 1");
+    Stmt q(db_, "SELECT job, lease_epoch FROM jobs WHERE state=? ORDER BY ord LIMIT 1");
     q.Bind(1, int64_t{v1::QUEUED});
     int rc = q.Step();
-    if (rc == SQLITE_DONE) return std::optional<v1::Job>();
+    if (rc == SQLITE_DONE) return std::optional<Claim>();
     if (rc != SQLITE_ROW) return q.Error("claiming a job");
     auto job = ParseJob(q.Text(0));
     if (!job.ok()) return job.status();
+    Claim claim;
+    claim.lease = {job->name().substr(5), owner, q.Int(1) + 1};
     job->set_state(v1::RUNNING);
     job->set_attempts(job->attempts() + 1);
     *job->mutable_start_time() = NowTimestamp();
@@ -247,29 +259,34 @@ class SqliteJobStore : public JobStore {
     job->clear_progress();
     AddStateEvent(*job, v1::RUNNING, nullptr);
     DECIMA_RETURN_IF_ERROR_LOCAL(SaveJob(*job, owner, NowMs() + lease_ms, /*cancel=*/0));
+    Stmt e(db_, "UPDATE jobs SET lease_epoch=? WHERE id=?");
+    e.Bind(1, claim.lease.epoch).Bind(2, claim.lease.job_id);
+    if (e.Step() != SQLITE_DONE) return e.Error("claiming a job");
     DECIMA_TX_COMMIT(tx);
-    return std::optional<v1::Job>(std::move(*job));
+    claim.job = std::move(*job);
+    return std::optional<Claim>(std::move(claim));
   }
 
-  absl::Status RenewLease(const std::string& id, const std::string& owner,
-                          int64_t lease_ms) override {
+  absl::Status RenewLease(const Lease& lease, int64_t lease_ms) override {
     std::lock_guard<std::mutex> lock(mu_);
-    Stmt u(db_, "UPDATE jobs SET lease_expiry=? WHERE id=? AND state=? AND lease_owner=?");
-    u.Bind(1, NowMs() + lease_ms).Bind(2, id).Bind(3, int64_t{v1::RUNNING}).Bind(4, owner);
+    Stmt u(db_,
+           "UPDATE jobs SET lease_expiry=? WHERE id=? AND state=? AND lease_owner=? AND "
+           "lease_epoch=?");
+    u.Bind(1, NowMs() + lease_ms).Bind(2, lease.job_id).Bind(3, int64_t{v1::RUNNING});
+    u.Bind(4, lease.owner).Bind(5, lease.epoch);
     if (u.Step() != SQLITE_DONE) return u.Error("renewing a lease");
     if (sqlite3_changes(db_) != 1) {
-      return absl::FailedPreconditionError(
-          absl::StrCat("job ", id, " is no longer leased to ", owner));
+      return absl::FailedPreconditionError(absl::StrCat(
+          "jobs/", lease.job_id, " is no longer leased to ", lease.owner, " epoch ", lease.epoch));
     }
     return absl::OkStatus();
   }
 
-  absl::Status AppendProgress(const std::string& id, const std::string& owner,
-                              const v1::Progress& progress) override {
+  absl::Status AppendProgress(const Lease& lease, const v1::Progress& progress) override {
     std::lock_guard<std::mutex> lock(mu_);
     Tx tx(this);
     if (!tx.ok()) return tx.status();
-    auto job = LoadHeld(id, owner);
+    auto job = LoadHeld(lease);
     if (!job.ok()) return job.status();
     *job->mutable_progress() = progress;
     v1::JobEvent ev;
@@ -280,12 +297,12 @@ class SqliteJobStore : public JobStore {
     return absl::OkStatus();
   }
 
-  absl::StatusOr<v1::Job> Finish(const std::string& id, const std::string& owner,
-                                 v1::JobState state, const v1::Job& outcome) override {
+  absl::StatusOr<v1::Job> Finish(const Lease& lease, v1::JobState state,
+                                 const v1::Job& outcome) override {
     std::lock_guard<std::mutex> lock(mu_);
     Tx tx(this);
     if (!tx.ok()) return tx.status();
-    auto job = LoadHeld(id, owner);
+    auto job = LoadHeld(lease);
     if (!job.ok()) return job.status();
     job->set_state(state);
     *job->mutable_end_time() = NowTimestamp();
@@ -298,12 +315,11 @@ class SqliteJobStore : public JobStore {
     return *job;
   }
 
-  absl::StatusOr<v1::Job> Requeue(const std::string& id, const std::string& owner,
-                                  const std::string& reason) override {
+  absl::StatusOr<v1::Job> Requeue(const Lease& lease, const std::string& reason) override {
     std::lock_guard<std::mutex> lock(mu_);
     Tx tx(this);
     if (!tx.ok()) return tx.status();
-    auto job = LoadHeld(id, owner);
+    auto job = LoadHeld(lease);
     if (!job.ok()) return job.status();
     job->set_state(v1::QUEUED);
     job->set_attempts(std::max(0, job->attempts() - 1));
@@ -335,14 +351,14 @@ class SqliteJobStore : public JobStore {
       std::string id = job.name().substr(5);
       if (cancel) {
         job.set_state(v1::CANCELLED);
-        job.mutable_error()->set_code(1);
+        job.mutable_error()->set_code(static_cast<int>(absl::StatusCode::kCancelled));
         job.mutable_error()->set_message("cancelled by request (its worker was lost)");
         *job.mutable_end_time() = NowTimestamp();
         AddStateEvent(job, v1::CANCELLED, &job.error());
         out.failed.push_back(id);
       } else if (job.attempts() >= max_attempts) {
         job.set_state(v1::FAILED);
-        job.mutable_error()->set_code(14);
+        job.mutable_error()->set_code(static_cast<int>(absl::StatusCode::kUnavailable));
         job.mutable_error()->set_message(absl::StrCat("the worker was lost ", job.attempts(),
                                                       " times (lease lapsed); giving up"));
         *job.mutable_end_time() = NowTimestamp();
@@ -368,7 +384,7 @@ class SqliteJobStore : public JobStore {
     if (!job.ok()) return job.status();
     if (job->state() == v1::QUEUED) {
       job->set_state(v1::CANCELLED);
-      job->mutable_error()->set_code(1);
+      job->mutable_error()->set_code(static_cast<int>(absl::StatusCode::kCancelled));
       job->mutable_error()->set_message("cancelled by request while queued");
       *job->mutable_end_time() = NowTimestamp();
       AddStateEvent(*job, v1::CANCELLED, &job->error());
@@ -624,16 +640,19 @@ class SqliteJobStore : public JobStore {
     return ParseJob(q.Text(0));
   }
 
-  // The job, if RUNNING and leased to `owner`.
-  absl::StatusOr<v1::Job> LoadHeld(const std::string& id, const std::string& owner) {
-    Stmt q(db_, "SELECT job, state, lease_owner FROM jobs WHERE id=?");
-    q.Bind(1, id);
+  // The job, if RUNNING under exactly `lease` (owner and epoch).
+  absl::StatusOr<v1::Job> LoadHeld(const Lease& lease) {
+    Stmt q(db_, "SELECT job, state, lease_owner, lease_epoch FROM jobs WHERE id=?");
+    q.Bind(1, lease.job_id);
     int rc = q.Step();
-    if (rc == SQLITE_DONE) return absl::NotFoundError(absl::StrCat("jobs/", id, " not found"));
+    if (rc == SQLITE_DONE) {
+      return absl::NotFoundError(absl::StrCat("jobs/", lease.job_id, " not found"));
+    }
     if (rc != SQLITE_ROW) return q.Error("reading job");
-    if (q.Int(1) != v1::RUNNING || q.Text(2) != owner) {
-      return absl::FailedPreconditionError(
-          absl::StrCat("jobs/", id, " is not running under lease ", owner));
+    if (q.Int(1) != v1::RUNNING || q.Text(2) != lease.owner || q.Int(3) != lease.epoch) {
+      return absl::FailedPreconditionError(absl::StrCat("jobs/", lease.job_id,
+                                                        " is not running under lease ", lease.owner,
+                                                        " epoch ", lease.epoch));
     }
     return ParseJob(q.Text(0));
   }

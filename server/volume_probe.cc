@@ -1,11 +1,9 @@
 #include "server/volume_probe.h"
 
-#include <cstring>
-#include <fstream>
-
 #include "absl/strings/ascii.h"
 #include "absl/strings/match.h"
 #include "absl/strings/str_cat.h"
+#include "core/io/dicom.h"
 #include "core/io/volume_io.h"
 #include "core/volume/volume.h"
 
@@ -13,10 +11,28 @@ namespace decima::server {
 namespace fs = std::filesystem;
 namespace {
 
-bool HasDicmPreamble(const fs::path& path) {
-  std::ifstream in(path, std::ios::binary);
-  char buf[132];
-  return in.read(buf, 132) && std::memcmp(buf + 128, "DICM", 4) == 0;
+v1::VolumeFormat ToProto(io::VolumeFormat f) {
+  switch (f) {
+    case io::VolumeFormat::kNifti:
+      return v1::VOLUME_FORMAT_NIFTI;
+    case io::VolumeFormat::kMetaImage:
+      return v1::VOLUME_FORMAT_METAIMAGE;
+    case io::VolumeFormat::kNrrd:
+      return v1::VOLUME_FORMAT_NRRD;
+    case io::VolumeFormat::kDirectory:
+      return v1::VOLUME_FORMAT_DICOM;
+    case io::VolumeFormat::kUnknown:
+      break;
+  }
+  return v1::VOLUME_FORMAT_UNSPECIFIED;
+}
+
+// The header file among `files` (core/io's extension table) or "" if none.
+std::string MainFile(const std::vector<std::string>& files) {
+  for (const auto& f : files) {
+    if (io::VolumeFormatFromName(f) != io::VolumeFormat::kUnknown) return f;
+  }
+  return {};
 }
 
 }  // namespace
@@ -24,89 +40,64 @@ bool HasDicmPreamble(const fs::path& path) {
 absl::StatusOr<VolumeHeader> ProbeVolume(const fs::path& dir, const std::vector<std::string>& files,
                                          v1::VolumeFormat format) {
   if (files.empty()) return absl::InvalidArgumentError("files: a volume needs at least one file");
-  VolumeHeader h;
-  auto lower = [](const std::string& s) { return absl::AsciiStrToLower(s); };
-  // The header file among the files, and the format it implies.
-  std::string main;
-  v1::VolumeFormat detected = v1::VOLUME_FORMAT_UNSPECIFIED;
-  for (const auto& f : files) {
-    std::string l = lower(f);
-    if (absl::EndsWith(l, ".nii") || absl::EndsWith(l, ".nii.gz")) {
-      detected = v1::VOLUME_FORMAT_NIFTI;
-    } else if (absl::EndsWith(l, ".mha") || absl::EndsWith(l, ".mhd")) {
-      detected = v1::VOLUME_FORMAT_METAIMAGE;
-    } else if (absl::EndsWith(l, ".nrrd") || absl::EndsWith(l, ".nhdr")) {
-      detected = v1::VOLUME_FORMAT_NRRD;
-    } else {
-      continue;
-    }
-    main = f;
-    break;
-  }
-  if (detected == v1::VOLUME_FORMAT_UNSPECIFIED &&
-      (files.size() > 1 || HasDicmPreamble(dir / files[0]) || lower(files[0]).ends_with(".dcm"))) {
+  const std::string main = MainFile(files);
+  v1::VolumeFormat detected = ToProto(io::VolumeFormatFromName(main));
+  std::string reason;
+  if (main.empty() && (files.size() > 1 || decima::HasDicomMarker(dir / files[0], &reason) ||
+                       absl::EndsWith(absl::AsciiStrToLower(files[0]), ".dcm"))) {
     detected = v1::VOLUME_FORMAT_DICOM;
   }
   if (format == v1::VOLUME_FORMAT_UNSPECIFIED) format = detected;
   if (format == v1::VOLUME_FORMAT_UNSPECIFIED) {
-    return absl::InvalidArgumentError(
-        absl::StrCat(files[0],
-                     ": unknown volume format (expected .nii, .nii.gz, .mha, .mhd, .nrrd, .nhdr "
-                     "or DICOM files)"));
+    return absl::InvalidArgumentError(absl::StrCat(
+        files[0],
+        ": unknown volume format (expected .nii, .nii.gz, .hdr/.img, .mha, .mhd, .nrrd, .nhdr "
+        "or DICOM files)"));
   }
   if (format != v1::VOLUME_FORMAT_DICOM && format != detected) {
     return absl::InvalidArgumentError(absl::StrCat("format ", v1::VolumeFormat_Name(format),
                                                    ": no file with a matching extension"));
   }
+  VolumeHeader h;
   h.format = format;
-  // The core reader: the same code the job's load stage runs, so a volume accepted here loads.
-  if (format != v1::VOLUME_FORMAT_DICOM) {
-    auto vol = io::ReadVolume(dir / main);
-    if (!vol.ok()) {
-      // Name the file as the client did, not by its path on the server.
-      std::string msg(vol.status().message());
-      std::string server_path = (dir / main).string();
-      if (absl::StartsWith(msg, server_path)) msg = main + msg.substr(server_path.size());
-      return absl::Status(vol.status().code() == absl::StatusCode::kNotFound
-                              ? absl::StatusCode::kInvalidArgument
-                              : vol.status().code(),
-                          msg);
+  if (format == v1::VOLUME_FORMAT_DICOM) {
+    // Every file must carry the marker; dims come from the job's load stage.
+    for (const auto& f : files) {
+      if (!decima::HasDicomMarker(dir / f, &reason)) {
+        return absl::InvalidArgumentError(absl::StrCat(f, ": not a DICOM file (", reason, ")"));
+      }
     }
-    for (int i = 0; i < 3; ++i) {
-      h.dims[i] = vol->dims[i];
-      h.spacing[i] = vol->spacing[i];
-    }
-    h.modality = vol->modality;
-    h.scalar_type = std::string(VoxelTypeName(vol->type));
-    h.parsed = true;
-    h.input = dir / main;
+    h.input = dir;
     return h;
   }
-  // DICOM: check every file carries the preamble; dims come from the job's load stage.
-  for (const auto& f : files) {
-    if (!HasDicmPreamble(dir / f)) {
-      return absl::InvalidArgumentError(
-          absl::StrCat(f, ": not a DICOM file (no 'DICM' at byte 128)"));
-    }
+  // The header only, by the same readers as the job's load stage: no voxel is decoded here.
+  auto probe = io::ProbeVolume(dir / main);
+  if (!probe.ok()) {
+    // Name the file as the client did, not by its path on the server.
+    std::string msg(probe.status().message());
+    const std::string server_path = dir.string() + "/";
+    for (size_t at; (at = msg.find(server_path)) != std::string::npos;)
+      msg.erase(at, server_path.size());
+    return absl::Status(probe.status().code() == absl::StatusCode::kNotFound
+                            ? absl::StatusCode::kInvalidArgument
+                            : probe.status().code(),
+                        msg);
   }
-  h.input = dir;
+  h.parsed = true;
+  h.dims = probe->dims;
+  h.spacing = probe->spacing;
+  h.modality = probe->modality;
+  h.scalar_type = std::string(VoxelTypeName(probe->type));
+  h.input = dir / main;
   return h;
 }
 
-}  // namespace decima::server
-
-namespace decima::server {
-
-std::filesystem::path VolumeInput(const std::filesystem::path& files_dir,
-                                  const v1::Volume& volume) {
+fs::path VolumeInput(const fs::path& files_dir, const v1::Volume& volume) {
   if (volume.format() == v1::VOLUME_FORMAT_DICOM || volume.files().empty()) return files_dir;
-  for (const auto& f : volume.files()) {
-    std::string l = absl::AsciiStrToLower(f.path());
-    for (const char* ext : {".nii", ".nii.gz", ".mha", ".mhd", ".nrrd", ".nhdr"}) {
-      if (absl::EndsWith(l, ext)) return files_dir / f.path();
-    }
-  }
-  return files_dir / volume.files(0).path();
+  std::vector<std::string> names;
+  for (const auto& f : volume.files()) names.push_back(f.path());
+  const std::string main = MainFile(names);
+  return files_dir / (main.empty() ? volume.files(0).path() : main);
 }
 
 }  // namespace decima::server

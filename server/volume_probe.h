@@ -1,7 +1,7 @@
-// Reads just enough of a volume's header at creation time to report dims, spacing, modality
-// and voxel type, and to refuse garbage before a job is queued. This is the single place to wire
-// the core reader (decima::ReadVolume in core/io) once it is on main: ProbeVolume keeps its
-// signature and the server does not change.
+// A volume's files as uploaded -> what core/io's header-only ProbeVolume says about them: the
+// format (by core/io's one extension table, or the DICM marker), the file the pipeline opens,
+// dims, spacing, modality and voxel type, so garbage is refused before a job is queued. No
+// voxel is decoded here: this runs in the RPC thread (a decompression bomb costs nothing).
 #pragma once
 
 #include <array>
@@ -26,9 +26,9 @@ struct VolumeHeader {
 };
 
 // `dir` holds the volume's files at their manifest paths `files`. `format` UNSPECIFIED detects
-// it from the names (.nii/.nii.gz, .mha/.mhd, .nrrd/.nhdr; several files or a "DICM" preamble:
-// DICOM). INVALID_ARGUMENT naming the file and the problem for an unknown format, a header
-// that does not parse, dims out of range, or data shorter than the header promises.
+// it from the names (.nii/.nii.gz/.hdr/.img, .mha/.mhd, .nrrd/.nhdr; several files or a "DICM"
+// preamble: DICOM). INVALID_ARGUMENT naming the file and the problem for an unknown format, a
+// header that does not parse, dims out of range, or data shorter than the header promises.
 absl::StatusOr<VolumeHeader> ProbeVolume(const std::filesystem::path& dir,
                                          const std::vector<std::string>& files,
                                          v1::VolumeFormat format);

@@ -1,20 +1,18 @@
 #include "server/worker_process.h"
 
 #include <signal.h>
-#include <unistd.h>
 
-#include <chrono>
 #include <cstdlib>
 #include <fstream>
-#include <nlohmann/json.hpp>
 #include <sstream>
-#include <thread>
+#include <string>
 
-#include "absl/strings/numbers.h"
-#include "absl/strings/str_split.h"
 #include "core/common/progress.h"
 #include "core/pipeline/pipeline.h"
-#include "decima/v1/jobs.pb.h"
+#include "server/faults.h"
+#include "server/job_spec.h"
+#include "server/worker.pb.h"
+#include "server/worker_protocol.h"
 
 namespace decima::server {
 namespace {
@@ -23,107 +21,71 @@ CancelToken g_cancel;
 
 void OnTerm(int) { g_cancel.Cancel(); }
 
-void WriteLine(int fd, const nlohmann::json& j) {
-  std::string line = j.dump() + "\n";
-  const char* p = line.data();
-  size_t left = line.size();
-  while (left > 0) {
-    ssize_t n = ::write(fd, p, left);
-    if (n < 0) {
-      if (errno == EINTR) continue;
-      std::_Exit(kWorkerExitError);  // parent gone: nobody needs the result
-    }
-    p += n;
-    left -= static_cast<size_t>(n);
-  }
+void Send(int fd, const worker::WorkerMessage& m) {
+  // The parent is gone (or the pipe broke): nobody needs the result.
+  if (!WriteFrame(fd, m).ok()) std::_Exit(kWorkerExitError);
 }
 
 void SendProgress(int fd, const Progress& p) {
-  nlohmann::json m = nlohmann::json::object();
-  for (const auto& [k, v] : p.metrics) m[k] = v;
-  WriteLine(fd, {{"type", "progress"},
-                 {"stage", p.stage},
-                 {"fraction", p.fraction},
-                 {"message", p.message},
-                 {"metrics", m}});
+  worker::WorkerMessage m;
+  v1::Progress* out = m.mutable_progress();
+  out->set_stage(p.stage);
+  out->set_fraction(p.fraction);
+  out->set_message(p.message);
+  for (const auto& [k, v] : p.metrics) (*out->mutable_metrics())[k] = v;
+  Send(fd, m);
 }
 
-int SendError(int fd, absl::StatusCode code, const std::string& message) {
-  WriteLine(fd, {{"type", "error"}, {"code", static_cast<int>(code)}, {"message", message}});
-  return code == absl::StatusCode::kCancelled ? kWorkerExitCancelled : kWorkerExitError;
-}
-
-// Test-only faults, comma separated: "sleep:S" spends S seconds in a cancellable "prepare"
-// stage reporting progress every 50 ms; "crash" aborts the process once the job started.
-absl::Status ApplyFaults(const std::string& faults, int fd, bool* crash) {
-  for (absl::string_view f : absl::StrSplit(faults, ',', absl::SkipEmpty())) {
-    if (f == "crash") {
-      *crash = true;
-    } else if (absl::ConsumePrefix(&f, "sleep:")) {
-      double seconds = 0;
-      if (!absl::SimpleAtod(f, &seconds)) return absl::InvalidArgumentError("fault: bad sleep");
-      auto start = std::chrono::steady_clock::now();
-      for (;;) {
-        double t = std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
-        if (t >= seconds) break;
-        if (g_cancel.cancelled()) return absl::CancelledError("prepare: cancelled");
-        SendProgress(fd, {"prepare", t / seconds, "test fault: sleeping", {{"elapsed_s", t}}});
-        std::this_thread::sleep_for(std::chrono::milliseconds(50));
-      }
-    }
-  }
-  return absl::OkStatus();
+int SendError(int fd, const absl::Status& status) {
+  worker::WorkerMessage m;
+  m.mutable_error()->set_code(static_cast<int>(status.code()));
+  m.mutable_error()->set_message(std::string(status.message()));
+  Send(fd, m);
+  return status.code() == absl::StatusCode::kCancelled ? kWorkerExitCancelled : kWorkerExitError;
 }
 
 }  // namespace
 
-int RunJobProcess(const std::filesystem::path& job_dir, const std::filesystem::path& input,
-                  const std::filesystem::path& label_map, int fd) {
+int RunJobProcess(const std::filesystem::path& request_file, int fd) {
   struct sigaction sa {};
   sa.sa_handler = OnTerm;
   sigemptyset(&sa.sa_mask);
   sigaction(SIGTERM, &sa, nullptr);
 
-  v1::JobSpec spec;
+  worker::RunRequest request;
   {
-    std::ifstream in(job_dir / "spec.pb", std::ios::binary);
+    std::ifstream in(request_file, std::ios::binary);
     std::stringstream ss;
     ss << in.rdbuf();
-    if (!in || !spec.ParseFromString(ss.str())) {
-      return SendError(fd, absl::StatusCode::kInternal,
-                       "worker: cannot read " + (job_dir / "spec.pb").string());
+    if (!in || !request.ParseFromString(ss.str())) {
+      return SendError(fd, absl::InternalError("worker: cannot read " + request_file.string()));
     }
   }
+  // The stored spec is normalized (CreateJob), so this applies no default: it runs what was stored.
+  auto spec = JobSpecFromProto(request.spec());
+  if (!spec.ok()) return SendError(fd, spec.status());
+  spec->input = request.input();
+  if (!request.label_map().empty()) spec->label_map = request.label_map();
+
+  auto progress = [fd](const Progress& p) { SendProgress(fd, p); };
   bool crash = false;
-  absl::Status fs = ApplyFaults(spec.fault(), fd, &crash);
-  if (!fs.ok()) return SendError(fd, fs.code(), std::string(fs.message()));
+  if (auto st = ApplyFaults(request.fault(), progress, g_cancel, &crash); !st.ok()) {
+    return SendError(fd, st);
+  }
   SendProgress(fd, {"load", 0, "starting", {}});
   if (crash) std::abort();
 
-  pipeline::JobSpec p;
-  p.input = input;
-  p.series_instance_uid = "";
-  if (spec.regions() > 0) p.regions = spec.regions();
-  p.class_means.assign(spec.class_means().begin(), spec.class_means().end());
-  if (!label_map.empty()) p.label_map = label_map;
-  if (spec.target_reduction() > 0) p.target_reduction = spec.target_reduction();
-  if (!spec.policy().empty()) p.policy = spec.policy();
-  p.error_tolerance = spec.error_tolerance();
-  for (const auto& [k, v] : spec.weights()) p.weights[k] = v;
-  if (!spec.views().empty()) p.views.assign(spec.views().begin(), spec.views().end());
-  if (spec.image_size() > 0) p.image_size = spec.image_size();
-  if (!spec.transfer_function().empty()) p.transfer_function = spec.transfer_function();
-
-  auto result = pipeline::RunJob(
-      p, job_dir / "out", [fd](const Progress& pr) { SendProgress(fd, pr); }, &g_cancel);
-  if (!result.ok()) {
-    return SendError(fd, result.status().code(), std::string(result.status().message()));
-  }
-  nlohmann::json arts = nlohmann::json::array();
+  auto result = pipeline::RunJob(*spec, request.out_dir(), progress, &g_cancel);
+  if (!result.ok()) return SendError(fd, result.status());
+  worker::WorkerMessage m;
   for (const auto& a : result->artifacts) {
-    arts.push_back({{"name", a.name}, {"path", a.path.string()}, {"size", a.size_bytes}});
+    worker::Artifact* out = m.mutable_result()->add_artifacts();
+    out->set_name(a.name);
+    out->set_path(a.path.string());
+    out->set_size_bytes(static_cast<int64_t>(a.size_bytes));
   }
-  WriteLine(fd, {{"type", "result"}, {"artifacts", arts}, {"metrics_json", result->metrics_json}});
+  m.mutable_result()->set_metrics_json(result->metrics_json);
+  Send(fd, m);
   return kWorkerExitOk;
 }
 

@@ -141,27 +141,6 @@ std::optional<uint16_t> GetUs(const gdcm::DataSet& ds, const gdcm::Tag& tag, boo
   return v;
 }
 
-// Reads 132 bytes: Part 10 files start with a 128-byte preamble and "DICM". Checking this before
-// GDCM sees the file keeps arbitrary files (checksums, NIfTI, archives) away from its parser.
-bool HasDicomMarker(const fs::path& path, std::string* reason) {
-  std::ifstream in(path, std::ios::binary);
-  if (!in) {
-    *reason = "cannot be opened";
-    return false;
-  }
-  char buf[132];
-  in.read(buf, sizeof(buf));
-  if (in.gcount() != static_cast<std::streamsize>(sizeof(buf))) {
-    *reason = "shorter than the 132-byte DICOM preamble";
-    return false;
-  }
-  if (std::memcmp(buf + 128, "DICM", 4) != 0) {
-    *reason = "no DICM marker at byte 128";
-    return false;
-  }
-  return true;
-}
-
 // Reads a whole file that has the DICOM marker and checks its element structure, so that GDCM
 // (which asserts on some malformed input) only ever parses structurally sound bytes.
 absl::StatusOr<std::string> LoadCheckedFile(const fs::path& dir, const fs::path& path,
@@ -870,6 +849,25 @@ absl::StatusOr<Volume> AssembleSeries(const fs::path& dir, const std::string& ui
 }
 
 }  // namespace
+
+bool HasDicomMarker(const fs::path& path, std::string* reason) {
+  std::ifstream in(path, std::ios::binary);
+  if (!in) {
+    *reason = "cannot be opened";
+    return false;
+  }
+  char buf[132];
+  in.read(buf, sizeof(buf));
+  if (in.gcount() != static_cast<std::streamsize>(sizeof(buf))) {
+    *reason = "shorter than the 132-byte DICOM preamble";
+    return false;
+  }
+  if (std::memcmp(buf + 128, "DICM", 4) != 0) {
+    *reason = "no DICM marker at byte 128";
+    return false;
+  }
+  return true;
+}
 
 absl::StatusOr<std::vector<DicomSeriesInfo>> ListDicomSeries(const fs::path& dir) {
   DECIMA_ASSIGN_OR_RETURN(FolderScan scan, ScanFolder(dir));

@@ -42,6 +42,11 @@ struct DicomSeriesInfo {
 // Thread-safe (the first call silences GDCM's global warning and error trace once).
 absl::StatusOr<std::vector<DicomSeriesInfo>> ListDicomSeries(const std::filesystem::path& dir);
 
+// True if `path` is a DICOM Part 10 file by its first 132 bytes (128-byte preamble, "DICM");
+// else false with `*reason` saying why. Checking this before GDCM sees a file keeps arbitrary
+// files (checksums, NIfTI, archives) away from its parser. The one DICM check of the project.
+bool HasDicomMarker(const std::filesystem::path& path, std::string* reason);
+
 // Reads the series `series_instance_uid` of `dir` into a Volume (dims = Columns x Rows x
 // slices; type uint8/int8/uint16/int16/uint32/int32 as stored, or after Modality LUT rescale
 // (0028,1052/1053) int16 if every rescaled value is an integer in int16 range, else float32;

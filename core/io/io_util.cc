@@ -219,9 +219,8 @@ absl::Status InputStream::ExpectEnd(absl::string_view what) {
   return absl::OkStatus();
 }
 
-absl::StatusOr<std::vector<uint8_t>> ReadVoxelBytes(const fs::path& data_path, int64_t offset,
-                                                    bool compressed, int64_t skip, int64_t nbytes,
-                                                    absl::string_view what) {
+absl::Status CheckVoxelBytes(const fs::path& data_path, int64_t offset, bool compressed,
+                             int64_t skip, int64_t nbytes, absl::string_view what) {
   DECIMA_ASSIGN_OR_RETURN(const int64_t size, RegularFileSize(data_path));
   if (offset < 0 || skip < 0 || offset > size) {
     return Invalid(data_path, "truncated: ", what, " starts at byte ", offset,
@@ -243,6 +242,14 @@ absl::StatusOr<std::vector<uint8_t>> ReadVoxelBytes(const fs::path& data_path, i
     return Invalid(data_path, "truncated: ", what, " needs ", nbytes, " bytes but only ",
                    size - offset, " compressed bytes are present (beyond zlib's maximum ratio)");
   }
+  return absl::OkStatus();
+}
+
+absl::StatusOr<std::vector<uint8_t>> ReadVoxelBytes(const fs::path& data_path, int64_t offset,
+                                                    bool compressed, int64_t skip, int64_t nbytes,
+                                                    absl::string_view what) {
+  DECIMA_RETURN_IF_ERROR(CheckVoxelBytes(data_path, offset, compressed, skip, nbytes, what));
+  if (!compressed) offset += skip;  // raw data: `skip` bytes are simply not read
   DECIMA_ASSIGN_OR_RETURN(InputStream in,
                           InputStream::Open(data_path, offset,
                                             compressed ? InputStream::Compression::kZlibOrGzip

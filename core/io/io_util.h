@@ -84,6 +84,21 @@ absl::StatusOr<std::vector<uint8_t>> ReadVoxelBytes(const std::filesystem::path&
                                                     int64_t offset, bool compressed, int64_t skip,
                                                     int64_t nbytes, absl::string_view what);
 
+// The checks ReadVoxelBytes makes before reading anything: the file holds exactly the raw data,
+// or enough compressed bytes for it. What a header-only probe can know about the data.
+absl::Status CheckVoxelBytes(const std::filesystem::path& data_path, int64_t offset,
+                             bool compressed, int64_t skip, int64_t nbytes, absl::string_view what);
+
+// How far a reader goes: the whole volume, or the header and the data size checks only
+// (ProbeVolume: no voxel is read, so time and memory stay bounded whatever the header claims).
+enum class ReadMode { kVolume, kHeaderOnly };
+
+// The readers of volume_io.h with a mode; kHeaderOnly returns the Volume's geometry, type and
+// modality with no voxel bytes.
+absl::StatusOr<Volume> ReadNifti(const std::filesystem::path& path, ReadMode mode);
+absl::StatusOr<Volume> ReadMetaImage(const std::filesystem::path& path, ReadMode mode);
+absl::StatusOr<Volume> ReadNrrd(const std::filesystem::path& path, ReadMode mode);
+
 // Reverses the byte order of `count` elements of `elem_size` bytes in place.
 void SwapBytes(uint8_t* data, size_t count, size_t elem_size);
 

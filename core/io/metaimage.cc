@@ -120,7 +120,9 @@ std::string Num(double d) {
 
 }  // namespace
 
-absl::StatusOr<Volume> ReadMetaImage(const fs::path& path) {
+namespace internal {
+
+absl::StatusOr<Volume> ReadMetaImage(const fs::path& path, ReadMode mode) {
   DECIMA_ASSIGN_OR_RETURN(const MetaHeader h, ParseHeader(path));
   if (const std::string* ot = Field(h, {"objecttype"}); ot != nullptr && *ot != "Image") {
     return Unsupported(path, "ObjectType = ", *ot, ", expected Image");
@@ -238,6 +240,11 @@ absl::StatusOr<Volume> ReadMetaImage(const fs::path& path) {
     }
     offset = size - nbytes;
   }
+  if (mode == ReadMode::kHeaderOnly) {
+    DECIMA_RETURN_IF_ERROR(
+        internal::CheckVoxelBytes(data_path, offset, compressed, 0, nbytes, "voxel data"));
+    return v;
+  }
   DECIMA_ASSIGN_OR_RETURN(
       v.bytes, internal::ReadVoxelBytes(data_path, offset, compressed, 0, nbytes, "voxel data"));
   if (msb) {
@@ -246,6 +253,12 @@ absl::StatusOr<Volume> ReadMetaImage(const fs::path& path) {
   }
   DECIMA_RETURN_IF_ERROR(Validate(v, path.string()));
   return v;
+}
+
+}  // namespace internal
+
+absl::StatusOr<Volume> ReadMetaImage(const fs::path& path) {
+  return internal::ReadMetaImage(path, internal::ReadMode::kVolume);
 }
 
 absl::Status WriteMetaImage(const Volume& volume, const fs::path& path,

@@ -312,7 +312,9 @@ void RescaleToFloat(Volume& v, double slope, double inter) {
 
 }  // namespace
 
-absl::StatusOr<Volume> ReadNifti(const fs::path& path) {
+namespace internal {
+
+absl::StatusOr<Volume> ReadNifti(const fs::path& path, ReadMode mode) {
   const std::string lower = internal::LowerName(path);
   const std::string base =
       internal::EndsWith(lower, ".gz") ? lower.substr(0, lower.size() - 3) : lower;
@@ -380,6 +382,15 @@ absl::StatusOr<Volume> ReadNifti(const fs::path& path) {
   }
   DECIMA_ASSIGN_OR_RETURN(const std::string head, internal::ReadFileHead(data_path, 2));
   const bool gz = internal::HasGzipMagic(head);
+  const bool rescale =
+      std::isfinite(h.scl_slope) && h.scl_slope != 0 && !(h.scl_slope == 1 && h.scl_inter == 0);
+  if (mode == ReadMode::kHeaderOnly) {
+    DECIMA_RETURN_IF_ERROR(
+        internal::CheckVoxelBytes(data_path, gz ? 0 : offset, gz, gz ? offset : 0,
+                                  internal::DataBytes(dims, type), "voxel data"));
+    if (rescale) v.type = VoxelType::kFloat32;  // what the full read returns
+    return v;
+  }
   DECIMA_ASSIGN_OR_RETURN(v.bytes,
                           internal::ReadVoxelBytes(data_path, gz ? 0 : offset, gz, gz ? offset : 0,
                                                    internal::DataBytes(dims, type), "voxel data"));
@@ -388,7 +399,7 @@ absl::StatusOr<Volume> ReadNifti(const fs::path& path) {
   }
   // scl_slope = 0 means "no scaling" (nifti1.h); a non-finite slope is treated the same way
   // rather than poisoning every voxel with NaN.
-  if (std::isfinite(h.scl_slope) && h.scl_slope != 0 && !(h.scl_slope == 1 && h.scl_inter == 0)) {
+  if (rescale) {
     if (!std::isfinite(h.scl_inter)) {
       return Invalid(header_path, "scl_inter = ", h.scl_inter, ", expected a finite number");
     }
@@ -396,6 +407,12 @@ absl::StatusOr<Volume> ReadNifti(const fs::path& path) {
   }
   DECIMA_RETURN_IF_ERROR(Validate(v, path.string()));
   return v;
+}
+
+}  // namespace internal
+
+absl::StatusOr<Volume> ReadNifti(const fs::path& path) {
+  return internal::ReadNifti(path, internal::ReadMode::kVolume);
 }
 
 absl::Status WriteNifti(const Volume& volume, const fs::path& path) {

@@ -247,7 +247,9 @@ absl::StatusOr<int64_t> SkipLines(const fs::path& data_path, int64_t offset, int
 
 }  // namespace
 
-absl::StatusOr<Volume> ReadNrrd(const fs::path& path) {
+namespace internal {
+
+absl::StatusOr<Volume> ReadNrrd(const fs::path& path, ReadMode mode) {
   DECIMA_ASSIGN_OR_RETURN(const NrrdHeader h, ParseHeader(path));
 
   const std::string* dim_s = Field(h, {"dimension"});
@@ -410,6 +412,7 @@ absl::StatusOr<Volume> ReadNrrd(const fs::path& path) {
       return Invalid(data_path, "truncated: ", text_bytes, " bytes of ascii data cannot hold ",
                      v.voxel_count(), " values");
     }
+    if (mode == ReadMode::kHeaderOnly) return v;
     DECIMA_ASSIGN_OR_RETURN(
         auto in,
         internal::InputStream::Open(data_path, offset, internal::InputStream::Compression::kNone));
@@ -427,6 +430,11 @@ absl::StatusOr<Volume> ReadNrrd(const fs::path& path) {
       offset = size - nbytes;
       byte_skip = 0;
     }
+    if (mode == ReadMode::kHeaderOnly) {
+      DECIMA_RETURN_IF_ERROR(
+          internal::CheckVoxelBytes(data_path, offset, gzip, byte_skip, nbytes, "voxel data"));
+      return v;
+    }
     DECIMA_ASSIGN_OR_RETURN(v.bytes, internal::ReadVoxelBytes(data_path, offset, gzip, byte_skip,
                                                               nbytes, "voxel data"));
     if (msb) {
@@ -436,6 +444,12 @@ absl::StatusOr<Volume> ReadNrrd(const fs::path& path) {
   }
   DECIMA_RETURN_IF_ERROR(Validate(v, path.string()));
   return v;
+}
+
+}  // namespace internal
+
+absl::StatusOr<Volume> ReadNrrd(const fs::path& path) {
+  return internal::ReadNrrd(path, internal::ReadMode::kVolume);
 }
 
 }  // namespace decima::io

@@ -13,7 +13,9 @@ namespace {
 
 namespace fs = std::filesystem;
 
-VolumeFormat FormatFromExtension(const fs::path& path) {
+}  // namespace
+
+VolumeFormat VolumeFormatFromName(const fs::path& path) {
   const std::string name = internal::LowerName(path);
   for (const char* ext : {".nii", ".nii.gz", ".hdr", ".hdr.gz", ".img", ".img.gz"}) {
     if (internal::EndsWith(name, ext)) return VolumeFormat::kNifti;
@@ -26,6 +28,8 @@ VolumeFormat FormatFromExtension(const fs::path& path) {
   }
   return VolumeFormat::kUnknown;
 }
+
+namespace {
 
 bool LooksLikeNiftiHeader(const uint8_t* b, size_t n) {
   if (n >= 348) {
@@ -60,7 +64,7 @@ std::string GunzipHead(const std::string& compressed) {
 VolumeFormat DetectVolumeFormat(const fs::path& path) {
   std::error_code ec;
   if (fs::is_directory(path, ec)) return VolumeFormat::kDirectory;
-  if (const VolumeFormat f = FormatFromExtension(path); f != VolumeFormat::kUnknown) return f;
+  if (const VolumeFormat f = VolumeFormatFromName(path); f != VolumeFormat::kUnknown) return f;
   auto head = internal::ReadFileHead(path, 4096);
   if (!head.ok()) return VolumeFormat::kUnknown;
   std::string h = *head;
@@ -73,6 +77,54 @@ VolumeFormat DetectVolumeFormat(const fs::path& path) {
     if (h.rfind(key, 0) == 0) return VolumeFormat::kMetaImage;
   }
   return VolumeFormat::kUnknown;
+}
+
+absl::StatusOr<VolumeHeader> ProbeVolume(const fs::path& path) {
+  std::error_code ec;
+  if (!fs::exists(path, ec)) {
+    return absl::NotFoundError(absl::StrCat(path.string(), ": file does not exist"));
+  }
+  VolumeHeader h;
+  h.format = DetectVolumeFormat(path);
+  h.input = path;
+  absl::StatusOr<Volume> v = absl::UnknownError("unset");
+  switch (h.format) {
+    case VolumeFormat::kNifti:
+      v = internal::ReadNifti(path, internal::ReadMode::kHeaderOnly);
+      break;
+    case VolumeFormat::kMetaImage:
+      v = internal::ReadMetaImage(path, internal::ReadMode::kHeaderOnly);
+      break;
+    case VolumeFormat::kNrrd:
+      v = internal::ReadNrrd(path, internal::ReadMode::kHeaderOnly);
+      break;
+    case VolumeFormat::kDirectory: {
+      int files = 0;
+      for (const auto& e : fs::recursive_directory_iterator(path, ec)) {
+        if (!e.is_regular_file(ec)) continue;
+        std::string reason;
+        if (!HasDicomMarker(e.path(), &reason)) {
+          return internal::Invalid(fs::relative(e.path(), path, ec), "not a DICOM file (", reason,
+                                   ")");
+        }
+        ++files;
+      }
+      if (ec) return internal::Invalid(path, ec.message());
+      if (files == 0) return internal::Invalid(path, "no DICOM file in the folder");
+      return h;
+    }
+    case VolumeFormat::kUnknown:
+      return internal::Invalid(path,
+                               "unknown volume format: expected NIfTI (.nii, .nii.gz, .hdr/.img), "
+                               "MetaImage (.mha, .mhd) or NRRD (.nrrd, .nhdr)");
+  }
+  if (!v.ok()) return v.status();
+  h.parsed = true;
+  h.dims = v->dims;
+  for (int i = 0; i < 3; ++i) h.spacing[i] = v->spacing[i];
+  h.modality = v->modality;
+  h.type = v->type;
+  return h;
 }
 
 absl::StatusOr<Volume> ReadVolume(const fs::path& path) {

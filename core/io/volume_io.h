@@ -19,6 +19,8 @@
 // directory to it (the folder must then hold exactly one series).
 #pragma once
 
+#include <array>
+#include <cstdint>
 #include <filesystem>
 #include <string>
 
@@ -36,6 +38,29 @@ enum class VolumeFormat { kUnknown, kNifti, kMetaImage, kNrrd, kDirectory };
 // "ObjectType"/"NDims" key), kDirectory for a folder, kUnknown if nothing matches or the file
 // cannot be opened.
 VolumeFormat DetectVolumeFormat(const std::filesystem::path& path);
+
+// Format of a file by its name alone: .nii, .nii.gz, .hdr, .img (optionally .gz), .mha, .mhd,
+// .nrrd, .nhdr, case-insensitive; kUnknown otherwise. The one extension table of the project.
+VolumeFormat VolumeFormatFromName(const std::filesystem::path& name);
+
+// What a volume holds, from its header alone.
+struct VolumeHeader {
+  VolumeFormat format = VolumeFormat::kUnknown;
+  std::filesystem::path input;  // what ReadVolume opens: the file, or the DICOM folder
+  bool parsed = false;          // false for a DICOM folder: dims come from the full read
+  std::array<int64_t, 3> dims{0, 0, 0};
+  std::array<double, 3> spacing{0, 0, 0};  // mm
+  std::string modality;                    // "CT", "MR", or "" when the format has none
+  VoxelType type = VoxelType::kUInt8;      // the type ReadVolume returns (after any rescale)
+};
+
+// Reads the header of `path` (a file, or a folder of DICOM files) and checks that the data can
+// be there, without reading a voxel: raw data must fill the file exactly, compressed data must
+// fit zlib's maximum ratio, so time and memory stay small whatever the header claims (a
+// decompression bomb is not inflated here). A folder: every regular file must carry the DICOM
+// marker (HasDicomMarker); its geometry is left to ReadDicomSeries. Errors as ReadVolume's;
+// a file ProbeVolume accepts can still fail ReadVolume on its voxels (NaN, corrupt stream).
+absl::StatusOr<VolumeHeader> ProbeVolume(const std::filesystem::path& path);
 
 // Reads any supported format (dispatch by DetectVolumeFormat). A directory is read as a DICOM
 // series (ReadDicomSeries with no series uid: several series give InvalidArgument listing them);

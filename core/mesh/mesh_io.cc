@@ -24,10 +24,10 @@
 #include <limits>
 #include <string>
 #include <string_view>
-#include <thread>
 #include <vector>
 
 #include "absl/strings/str_cat.h"
+#include "core/common/parallel.h"
 #include "core/common/status.h"
 
 namespace decima {
@@ -167,11 +167,6 @@ const uint8_t* Bytes(const std::vector<T>& v) {
   return reinterpret_cast<const uint8_t*>(v.data());
 }
 
-int ThreadCount(int requested) {
-  if (requested > 0) return requested;
-  return std::max(1u, std::thread::hardware_concurrency());
-}
-
 // ---------------------------------------------------------------------------------------------
 // .vtu writer
 
@@ -206,29 +201,26 @@ absl::Status CompressArrays(const std::vector<VtuArray>& arrays, std::vector<Enc
     enc[i].compressed_blocks.resize(nblocks);
     for (uint64_t b = 0; b < nblocks; ++b) tasks.push_back({&arrays[i], &enc[i], b});
   }
-  std::atomic<size_t> next{0};
+  // Blocks are 1 MiB but the last of each array, so contiguous ranges balance well; each block
+  // is compressed alone, so the bytes do not depend on the thread count.
   std::atomic<bool> failed{false};
-  auto work = [&] {
-    for (size_t i = next.fetch_add(1); i < tasks.size(); i = next.fetch_add(1)) {
-      const Task& t = tasks[i];
-      const uint64_t begin = t.block * kVtuBlockBytes;
-      const uint64_t n = std::min(kVtuBlockBytes, t.array->bytes - begin);
-      std::vector<uint8_t>& out = t.out->compressed_blocks[t.block];
-      uLongf out_len = compressBound(static_cast<uLong>(n));
-      out.resize(out_len);
-      if (compress2(out.data(), &out_len, t.array->data + begin, static_cast<uLong>(n),
-                    options.level) != Z_OK) {
-        failed = true;
-        return;
-      }
-      out.resize(out_len);
-    }
-  };
-  const int threads = std::min<int>(ThreadCount(options.threads), static_cast<int>(tasks.size()));
-  std::vector<std::thread> pool;
-  for (int i = 1; i < threads; ++i) pool.emplace_back(work);
-  work();
-  for (std::thread& t : pool) t.join();
+  ParallelFor(static_cast<int64_t>(tasks.size()), ResolveThreads(options.threads),
+              [&](int64_t first, int64_t last) {
+                for (int64_t i = first; i < last && !failed; ++i) {
+                  const Task& t = tasks[i];
+                  const uint64_t begin = t.block * kVtuBlockBytes;
+                  const uint64_t n = std::min(kVtuBlockBytes, t.array->bytes - begin);
+                  std::vector<uint8_t>& out = t.out->compressed_blocks[t.block];
+                  uLongf out_len = compressBound(static_cast<uLong>(n));
+                  out.resize(out_len);
+                  if (compress2(out.data(), &out_len, t.array->data + begin, static_cast<uLong>(n),
+                                options.level) != Z_OK) {
+                    failed = true;
+                    return;
+                  }
+                  out.resize(out_len);
+                }
+              });
   if (failed)
     return absl::InternalError(absl::StrCat(PathString(path), ": zlib compression failed"));
 

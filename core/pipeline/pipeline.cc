@@ -43,48 +43,6 @@ ProgressFn Forward(const ProgressFn& progress, const char* stage) {
   };
 }
 
-absl::Status ValidateSpec(const JobSpec& spec) {
-  if (spec.regions < 2 || spec.regions > 8) {
-    return absl::InvalidArgumentError(absl::StrCat("regions: ", spec.regions, ", expected 2..8"));
-  }
-  if (!(spec.target_reduction >= 0 && spec.target_reduction <= 0.95)) {
-    return absl::InvalidArgumentError(
-        absl::StrCat("target_reduction: ", spec.target_reduction, ", expected 0..0.95"));
-  }
-  if (spec.policy != "paper" && spec.policy != "tetfusion") {
-    return absl::InvalidArgumentError(
-        absl::StrCat("policy: '", spec.policy, "', expected 'paper' or 'tetfusion'"));
-  }
-  if (spec.image_size < 16 || spec.image_size > 4096) {
-    return absl::InvalidArgumentError(
-        absl::StrCat("image_size: ", spec.image_size, ", expected 16..4096"));
-  }
-  if (spec.views.empty()) return absl::InvalidArgumentError("views: at least one view is needed");
-  return absl::OkStatus();
-}
-
-absl::StatusOr<ErrorWeights> WeightsFrom(const std::map<std::string, double>& overrides) {
-  ErrorWeights w;
-  for (const auto& [name, value] : overrides) {
-    double* slot = name == "w_r" || name == "regional"    ? &w.regional
-                   : name == "w_g" || name == "gradient"  ? &w.gradient
-                   : name == "w_s" || name == "shape"     ? &w.shape
-                   : name == "w_v" || name == "volume"    ? &w.volume
-                   : name == "w_n" || name == "neighbour" ? &w.neighbour
-                                                          : nullptr;
-    if (slot == nullptr) {
-      return absl::InvalidArgumentError(
-          absl::StrCat("weights: unknown weight '", name, "', expected w_r, w_g, w_s, w_v or w_n"));
-    }
-    if (!(value >= 0) || !std::isfinite(value)) {
-      return absl::InvalidArgumentError(
-          absl::StrCat("weights: ", name, " = ", value, ", expected >= 0"));
-    }
-    *slot = value;
-  }
-  return w;
-}
-
 absl::StatusOr<Volume> LoadInput(const JobSpec& spec) {
   std::error_code ec;
   if (std::filesystem::is_directory(spec.input, ec)) {
@@ -130,11 +88,73 @@ absl::Status WriteText(const std::filesystem::path& path, const std::string& tex
 
 }  // namespace
 
+
+absl::Status ValidateJobSpec(const JobSpec& spec, std::string* field) {
+  // Each value goes through its module's validator on otherwise default options, so the
+  // failing one is known by name and the ranges exist once, in the module that owns them.
+  auto check = [field](const char* name, const absl::Status& s) {
+    if (!s.ok() && field != nullptr) *field = name;
+    return s;
+  };
+  SegmentOptions so;
+  so.regions = spec.regions;
+  DECIMA_RETURN_IF_ERROR(check("regions", ValidateSegmentOptions(so)));
+  so.class_means = spec.class_means;
+  DECIMA_RETURN_IF_ERROR(check("class_means", ValidateSegmentOptions(so)));
+
+  auto simplify = [&](const char* name, auto set) {
+    SimplifyOptions o;
+    o.policy = SimplifyPolicy::kPaper;
+    set(o);
+    return check(name, ValidateSimplifyOptions(o));
+  };
+  DECIMA_RETURN_IF_ERROR(simplify(
+      "target_reduction", [&](SimplifyOptions& o) { o.target_reduction = spec.target_reduction; }));
+  DECIMA_RETURN_IF_ERROR(simplify("policy", [&](SimplifyOptions& o) { o.policy = spec.policy; }));
+  DECIMA_RETURN_IF_ERROR(simplify(
+      "error_tolerance", [&](SimplifyOptions& o) { o.error_tolerance = spec.error_tolerance; }));
+  DECIMA_RETURN_IF_ERROR(simplify(
+      "weights.regional", [&](SimplifyOptions& o) { o.weights.regional = spec.weights.regional; }));
+  DECIMA_RETURN_IF_ERROR(simplify(
+      "weights.gradient", [&](SimplifyOptions& o) { o.weights.gradient = spec.weights.gradient; }));
+  DECIMA_RETURN_IF_ERROR(
+      simplify("weights.shape", [&](SimplifyOptions& o) { o.weights.shape = spec.weights.shape; }));
+  DECIMA_RETURN_IF_ERROR(simplify(
+      "weights.volume", [&](SimplifyOptions& o) { o.weights.volume = spec.weights.volume; }));
+  DECIMA_RETURN_IF_ERROR(simplify("weights.neighbour", [&](SimplifyOptions& o) {
+    o.weights.neighbour = spec.weights.neighbour;
+  }));
+
+  if (spec.views.empty() || spec.views.size() > 16) {
+    return check("views", absl::InvalidArgumentError(
+                              absl::StrCat(spec.views.size(), " views, expected 1..16")));
+  }
+  for (const auto& v : spec.views) {
+    if (auto parsed = ParseView(v); !parsed.ok()) return check("views", parsed.status());
+  }
+  if (spec.image_size < 16 || spec.image_size > 4096) {
+    return check("image_size", absl::InvalidArgumentError(
+                                   absl::StrCat(spec.image_size, " pixels, expected 16..4096")));
+  }
+  // The data range is unknown before load; any valid range tells a bad name or document apart.
+  const ScalarRange probe{0, 1};
+  const std::string& tf = spec.transfer_function;
+  if (!tf.empty() && tf.front() == '{') {
+    if (auto t = ParseTransferFunction(tf, probe, "transfer_function"); !t.ok()) {
+      return check("transfer_function", t.status());
+    }
+  } else if (tf != "auto") {
+    if (auto t = TransferFunctionPreset(tf, probe); !t.ok()) {
+      return check("transfer_function", t.status());
+    }
+  }
+  return absl::OkStatus();
+}
+
 absl::StatusOr<JobResult> RunJob(const JobSpec& spec, const std::filesystem::path& out_dir,
                                  const ProgressFn& progress, const CancelToken* cancel) {
   const auto job_start = Clock::now();
-  DECIMA_RETURN_IF_ERROR(ValidateSpec(spec));
-  DECIMA_ASSIGN_OR_RETURN(const ErrorWeights weights, WeightsFrom(spec.weights));
+  DECIMA_RETURN_IF_ERROR(ValidateJobSpec(spec));
   std::error_code ec;
   std::filesystem::create_directories(out_dir, ec);
   if (ec) return absl::InternalError(absl::StrCat(out_dir.string(), ": ", ec.message()));
@@ -192,16 +212,15 @@ absl::StatusOr<JobResult> RunJob(const JobSpec& spec, const std::filesystem::pat
   // simplify
   t = Clock::now();
   SimplifyOptions simplify_options;
-  simplify_options.policy =
-      spec.policy == "tetfusion" ? SimplifyPolicy::kTetFusion : SimplifyPolicy::kPaper;
+  simplify_options.policy = spec.policy;
   simplify_options.target_reduction = spec.target_reduction;
   simplify_options.error_tolerance = spec.error_tolerance;
-  simplify_options.weights = weights;
+  simplify_options.weights = spec.weights;
   DECIMA_ASSIGN_OR_RETURN(
       SimplifyResult simplified,
       Simplify(original, simplify_options, Forward(progress, "simplify"), cancel));
   timings["simplify"] = Seconds(t);
-  metrics["simplification"] = {{"policy", spec.policy},
+  metrics["simplification"] = {{"policy", SimplifyPolicyName(spec.policy)},
                                {"target_reduction", spec.target_reduction},
                                {"achieved_reduction", simplified.achieved_reduction},
                                {"reached_target", simplified.reached_target},

@@ -12,29 +12,38 @@
 
 #include "absl/status/statusor.h"
 #include "core/common/progress.h"
+#include "core/simplify/simplify.h"
 
 namespace decima::pipeline {
 
+// One job's parameters. The member initializers are THE defaults of the service (the server's
+// JobSpecFromProto starts from them); ValidateJobSpec holds the ranges, taken from the validators
+// of the core modules.
 struct JobSpec {
-  // A volume file (.nii, .nii.gz, .mha, .mhd, .nrrd, .nhdr) or a directory of DICOM files.
+  // A volume file (.nii, .nii.gz, .hdr/.img, .mha, .mhd, .nrrd, .nhdr) or a DICOM folder.
   std::filesystem::path input;
   std::string series_instance_uid;  // DICOM: pick this series when the folder holds several
   // Segmentation: K regions (2..8) by the multiphase level set, or a label map on the same grid.
   int regions = 3;
   std::vector<double> class_means;                 // empty: estimated by k-means
   std::optional<std::filesystem::path> label_map;  // replaces the level set when set
-  // Simplification.
-  double target_reduction = 0.5;          // fraction of cells to remove, 0..0.95
-  std::string policy = "paper";           // "paper" or "tetfusion"
-  double error_tolerance = 0;             // 0 = no tolerance, stop on target only
-  std::map<std::string, double> weights;  // overrides of w_r, w_g, w_s, w_v, w_n by name
+  // Simplification (SimplifyOptions of the same names; ranges from ValidateSimplifyOptions).
+  double target_reduction = 0.5;  // fraction of cells to remove, [0, 0.99]; 0 = no target
+  SimplifyPolicy policy = SimplifyPolicy::kField;
+  double error_tolerance = 0;  // >= 0; 0 = no tolerance, stop on the target only
+  ErrorWeights weights;
   // Rendering.
-  std::vector<std::string> views{"anterior"};
-  int image_size = 512;
-  std::string transfer_function = "auto";  // preset name, "auto" (from modality), or JSON text
-  // Test-only fault injection: "crash" aborts the process in the named stage.
-  std::string fault;
+  std::vector<std::string> views{"anterior"};  // 1..16 names ParseView accepts
+  int image_size = 512;                        // pixels, 16..4096
+  std::string transfer_function = "auto";      // preset name, "auto" (from modality), or JSON text
 };
+
+// OK, or InvalidArgument for the first parameter out of range; `*field` (when given) receives
+// its JobSpec member name ("target_reduction", "weights.shape", ...). Checks the parameters
+// only, not that `input` exists. Uses ValidateSegmentOptions, ValidateSimplifyOptions,
+// ParseView and the transfer-function parser, so it accepts exactly what RunJob can run.
+absl::Status ValidateJobSpec(const JobSpec& spec, std::string* field = nullptr);
+
 
 struct Artifact {
   std::string name;  // "mesh.vtu", "diff.png", ...

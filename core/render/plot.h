@@ -1,6 +1,6 @@
 // The paper's Fig. 5(c): diff1 (Eq. 9) against the number of cells removed, one line per
 // simplification policy (the paper's and TetFusion), drawn as a PNG with axes, ticks, labels
-// and a legend.
+// and a legend. Library decima_render_figures: linked by tools and tests only, not decima_core.
 #pragma once
 
 #include <filesystem>

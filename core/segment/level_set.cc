@@ -748,8 +748,9 @@ int64_t InterfaceFaces(const Context& ctx, const std::vector<int64_t>& blocks, d
   return total;
 }
 
-absl::Status ValidateOptions(const SegmentOptions& o, const Volume& image) {
-  DECIMA_RETURN_IF_ERROR(Validate(image, "segment: image"));
+}  // namespace
+
+absl::Status ValidateSegmentOptions(const SegmentOptions& o) {
   const int k = o.regions;
   if (k < 2 || k > 8) {
     return absl::InvalidArgumentError(absl::StrCat("segment: regions = ", k, ", expected 2 to 8"));
@@ -808,17 +809,6 @@ absl::Status ValidateOptions(const SegmentOptions& o, const Volume& image) {
     return absl::InvalidArgumentError(
         absl::StrCat("segment: dt = ", o.dt, ", expected >= 0 (0 = automatic)"));
   }
-  const double dt_max = MaxStableTimeStep(o, image);
-  if (o.dt > dt_max) {
-    return absl::InvalidArgumentError(absl::StrFormat(
-        "segment: dt = %g breaks the stability bound dt <= %g (1 / (2 nu sum_c h_c^-2 / alpha + "
-        "beta / (2 alpha^2)) for nu = %g, beta = %g, alpha = %g); lower dt or use 0 (automatic)",
-        o.dt, dt_max,
-        o.curvature_weights.empty()
-            ? o.curvature_weight
-            : *std::max_element(o.curvature_weights.begin(), o.curvature_weights.end()),
-        o.overlap_weight, o.alpha));
-  }
   if (o.reinit_interval < 1) {
     return absl::InvalidArgumentError(
         absl::StrCat("segment: reinit_interval = ", o.reinit_interval, ", expected >= 1"));
@@ -838,6 +828,26 @@ absl::Status ValidateOptions(const SegmentOptions& o, const Volume& image) {
   if (o.threads < 0) {
     return absl::InvalidArgumentError(
         absl::StrCat("segment: threads = ", o.threads, ", expected >= 0 (0 = all cores)"));
+  }
+  return absl::OkStatus();
+}
+
+namespace {
+
+// ValidateSegmentOptions plus what depends on the grid.
+absl::Status ValidateOptions(const SegmentOptions& o, const Volume& image) {
+  DECIMA_RETURN_IF_ERROR(Validate(image, "segment: image"));
+  DECIMA_RETURN_IF_ERROR(ValidateSegmentOptions(o));
+  const double dt_max = MaxStableTimeStep(o, image);
+  if (o.dt > dt_max) {
+    return absl::InvalidArgumentError(absl::StrFormat(
+        "segment: dt = %g breaks the stability bound dt <= %g (1 / (2 nu sum_c h_c^-2 / alpha + "
+        "beta / (2 alpha^2)) for nu = %g, beta = %g, alpha = %g); lower dt or use 0 (automatic)",
+        o.dt, dt_max,
+        o.curvature_weights.empty()
+            ? o.curvature_weight
+            : *std::max_element(o.curvature_weights.begin(), o.curvature_weights.end()),
+        o.overlap_weight, o.alpha));
   }
   if (o.band_width != 0) {
     const Grid g = MakeGrid(image);

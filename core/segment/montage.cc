@@ -12,6 +12,7 @@
 #include "absl/strings/str_cat.h"
 #include "core/io/png.h"
 #include "core/segment/internal.h"
+#include "core/segment/montage.h"
 #include "core/segment/segment.h"
 
 namespace decima {

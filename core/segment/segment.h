@@ -103,6 +103,12 @@ struct SegmentResult {
   double within_class_sigma = 0.0;  // s, image units (see SegmentOptions)
 };
 
+// The checks of `options` that need no image (regions, class_means, weights, alpha, dt >= 0,
+// iteration and convergence settings, threads): OK or InvalidArgument naming the option
+// ("segment: regions = 9, expected 2 to 8"). Segment adds the grid-dependent checks (dt against
+// the stability bound, band_width). For callers that validate a request before any image exists.
+absl::Status ValidateSegmentOptions(const SegmentOptions& options);
+
 // Segments `image` into options.regions regions by Eq. (4), starting from k-means (or from the
 // nearest given class mean). Reports Progress{stage "segment", metrics iteration, energy,
 // changed_fraction} after every iteration and polls `cancel` (nullptr = never) every iteration
@@ -140,12 +146,5 @@ absl::StatusOr<KMeansResult> KMeansIntensities(const Volume& image, int k,
 absl::Status ComputeInterfaceDistance(const Volume& labels, std::vector<float>* voxels,
                                       std::vector<float>* mm, int threads = 0,
                                       const CancelToken* cancel = nullptr);
-
-// Writes a PNG montage of three orthogonal slices through the volume centre (axial | coronal |
-// sagittal, each at its physical aspect ratio) with the labels as a coloured overlay and the
-// interfaces drawn solid, like the paper's Fig. 2. Grey levels window the image between its
-// 1st and 99th percentile. `labels` must be uint8 on the image's grid. Overwrites `png`.
-absl::Status WriteSegmentationMontage(const Volume& image, const Volume& labels,
-                                      const std::filesystem::path& png);
 
 }  // namespace decima

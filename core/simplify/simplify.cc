@@ -18,52 +18,6 @@ namespace {
 using simplify_internal::CollapseEngine;
 using simplify_internal::Outcome;
 
-absl::Status ValidateOptions(const SimplifyOptions& o) {
-  auto bad = [](const std::string& what) {
-    return absl::InvalidArgumentError("simplify: option " + what);
-  };
-  if (!(o.target_reduction >= 0 && o.target_reduction <= 0.99)) {
-    return bad(absl::StrCat("target_reduction = ", o.target_reduction,
-                            ": expected a fraction of cells to remove in [0, 0.99]"));
-  }
-  if (!std::isfinite(o.error_tolerance)) {
-    return bad("error_tolerance must be finite (<= 0 for none)");
-  }
-  const std::pair<const char*, double> weights[] = {{"weights.regional", o.weights.regional},
-                                                    {"weights.gradient", o.weights.gradient},
-                                                    {"weights.shape", o.weights.shape},
-                                                    {"weights.volume", o.weights.volume},
-                                                    {"weights.neighbour", o.weights.neighbour}};
-  for (const auto& [name, w] : weights) {
-    if (!(w >= 0 && std::isfinite(w))) {
-      return bad(absl::StrCat(name, " = ", w, ": expected a finite weight >= 0"));
-    }
-  }
-  if (!std::isfinite(o.feature_threshold_voxels)) {
-    return bad("feature_threshold_voxels must be finite (< 0 to use the vertex flags)");
-  }
-  if (!(o.voxel_size_mm >= 0 && std::isfinite(o.voxel_size_mm))) {
-    return bad(absl::StrCat("voxel_size_mm = ", o.voxel_size_mm, ": expected >= 0 mm"));
-  }
-  if (!(o.min_volume_fraction > 0 && o.min_volume_fraction < 1)) {
-    return bad(absl::StrCat("min_volume_fraction = ", o.min_volume_fraction,
-                            ": expected a value in (0, 1) voxels^3"));
-  }
-  if (!(o.min_pass_gain >= 0 && o.min_pass_gain <= 0.5)) {
-    return bad(absl::StrCat("min_pass_gain = ", o.min_pass_gain, ": expected [0, 0.5]"));
-  }
-  if (o.max_passes < 1 || o.max_passes > 10000) {
-    return bad(absl::StrCat("max_passes = ", o.max_passes, ": expected 1..10000"));
-  }
-  if (o.refit_iterations < 0 || o.refit_iterations > 1000) {
-    return bad(absl::StrCat("refit_iterations = ", o.refit_iterations, ": expected 0..1000"));
-  }
-  if (o.threads < 0 || o.threads > 1024) {
-    return bad(absl::StrCat("threads = ", o.threads, ": expected 0..1024"));
-  }
-  return absl::OkStatus();
-}
-
 absl::Status ValidateMesh(const TetMesh& m) {
   const int64_t nv = m.vertex_count(), nt = m.tet_count();
   auto bad = [](const std::string& what) {
@@ -168,6 +122,56 @@ absl::Status RunCellCollapse(const TetMesh& mesh, const SimplifyOptions& options
 
 }  // namespace
 
+absl::Status ValidateSimplifyOptions(const SimplifyOptions& o) {
+  auto bad = [](const std::string& what) {
+    return absl::InvalidArgumentError("simplify: option " + what);
+  };
+  if (!ParseSimplifyPolicy(SimplifyPolicyName(o.policy))) {
+    return bad(absl::StrCat("policy = ", static_cast<int>(o.policy), ": not a policy"));
+  }
+  if (!(o.target_reduction >= 0 && o.target_reduction <= 0.99)) {
+    return bad(absl::StrCat("target_reduction = ", o.target_reduction,
+                            ": expected a fraction of cells to remove in [0, 0.99]"));
+  }
+  if (!(o.error_tolerance >= 0 && std::isfinite(o.error_tolerance))) {
+    return bad(absl::StrCat("error_tolerance = ", o.error_tolerance,
+                            ": expected a finite value >= 0 (0 for none)"));
+  }
+  const std::pair<const char*, double> weights[] = {{"weights.regional", o.weights.regional},
+                                                    {"weights.gradient", o.weights.gradient},
+                                                    {"weights.shape", o.weights.shape},
+                                                    {"weights.volume", o.weights.volume},
+                                                    {"weights.neighbour", o.weights.neighbour}};
+  for (const auto& [name, w] : weights) {
+    if (!(w >= 0 && std::isfinite(w))) {
+      return bad(absl::StrCat(name, " = ", w, ": expected a finite weight >= 0"));
+    }
+  }
+  if (!std::isfinite(o.feature_threshold_voxels)) {
+    return bad("feature_threshold_voxels must be finite (< 0 to use the vertex flags)");
+  }
+  if (!(o.voxel_size_mm >= 0 && std::isfinite(o.voxel_size_mm))) {
+    return bad(absl::StrCat("voxel_size_mm = ", o.voxel_size_mm, ": expected >= 0 mm"));
+  }
+  if (!(o.min_volume_fraction > 0 && o.min_volume_fraction < 1)) {
+    return bad(absl::StrCat("min_volume_fraction = ", o.min_volume_fraction,
+                            ": expected a value in (0, 1) voxels^3"));
+  }
+  if (!(o.min_pass_gain >= 0 && o.min_pass_gain <= 0.5)) {
+    return bad(absl::StrCat("min_pass_gain = ", o.min_pass_gain, ": expected [0, 0.5]"));
+  }
+  if (o.max_passes < 1 || o.max_passes > 10000) {
+    return bad(absl::StrCat("max_passes = ", o.max_passes, ": expected 1..10000"));
+  }
+  if (o.refit_iterations < 0 || o.refit_iterations > 1000) {
+    return bad(absl::StrCat("refit_iterations = ", o.refit_iterations, ": expected 0..1000"));
+  }
+  if (o.threads < 0 || o.threads > 1024) {
+    return bad(absl::StrCat("threads = ", o.threads, ": expected 0..1024"));
+  }
+  return absl::OkStatus();
+}
+
 const char* StopReasonName(StopReason reason) {
   switch (reason) {
     case StopReason::kTargetReached:
@@ -217,7 +221,7 @@ std::string SimplifyPolicyNames() {
 
 absl::StatusOr<SimplifyResult> Simplify(const TetMesh& mesh, const SimplifyOptions& options,
                                         const ProgressFn& progress, const CancelToken* cancel) {
-  DECIMA_RETURN_IF_ERROR(ValidateOptions(options));
+  DECIMA_RETURN_IF_ERROR(ValidateSimplifyOptions(options));
   DECIMA_RETURN_IF_ERROR(ValidateMesh(mesh));
   DECIMA_RETURN_IF_ERROR(CheckCancelled(cancel, "simplify"));
   const int threads = options.threads > 0 ? options.threads

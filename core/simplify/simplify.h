@@ -64,7 +64,7 @@ struct SimplifyOptions {
   // Fraction of the input cells to remove, in [0, 0.99]. 0 = no target: run until the error
   // tolerance or no collapsible cell remains.
   double target_reduction = 0.5;
-  // Largest predicted error a collapse may have; <= 0 means no tolerance. kPaper/kTetFusion:
+  // Largest predicted error a collapse may have, finite >= 0; 0 means no tolerance. kPaper/kTetFusion:
   // Δε of Eq. (8). kField: the RMS field deviation its quadric predicts, in image units.
   double error_tolerance = 0;
   ErrorWeights weights;
@@ -147,6 +147,11 @@ struct SimplifyResult {
   double max_error = 0;  // largest Δε of a performed collapse
   std::vector<SimplifyPassStats> pass_stats;
 };
+
+// OK if every option is in its documented range, else InvalidArgument whose message names the
+// option ("simplify: option target_reduction = 2: ..."). Simplify calls it first; callers that
+// take options from outside (the server's job spec) call it where the value enters.
+absl::Status ValidateSimplifyOptions(const SimplifyOptions& options);
 
 // Simplifies `mesh` (a valid TetMesh, see tet_mesh.h; every cell positively oriented). Progress
 // stage "simplify": once per pass with metrics {"pass", "cells_removed", "error"}. Returns

@@ -1,7 +1,7 @@
 // decima-bench: reproducible figures for the pipeline stages.
 //
 //   decima-bench --input PATH|phantom:NxNxN --stages load,segment,tetra,simplify,render
-//                [--regions K] [--reduction F] [--policy paper|tetfusion] [--size W]
+//                [--regions K] [--reduction F] [--policy field|paper|tetfusion] [--size W]
 //                [--view NAME] [--repeat N] --json
 //
 // Every stage runs --repeat times on the output of the previous stage; `seconds` is the median

@@ -2,7 +2,10 @@
 //   submit_to_running_ms: CreateJob -> RUNNING event at the client, idle server (p50, p90)
 //   upload_mb_per_s:      one 256 MB blob over loopback (median of 3; fsync on and off)
 //   watchers:             job time (start -> end, server clock) with 0 and 100 watchers
+//   job_overhead:         (job time - the pipeline's own total in metrics.json) / pipeline total
 // Usage: decima-service-bench [--volume FILE] [--jobs N]
+//        decima-service-bench --create-volume FILE [--repeat N]
+//   the second form only measures CreateVolume (p50, p90 ms) of FILE, uploaded once.
 #include <google/protobuf/util/time_util.h>
 #include <grpcpp/grpcpp.h>
 #include <signal.h>
@@ -87,18 +90,67 @@ double JobSeconds(const v1::Job& j) {
   return TimeUtil::DurationToNanoseconds(j.end_time() - j.start_time()) / 1e9;
 }
 
+// The pipeline's own seconds (metrics.json "seconds.total"), 0 when absent.
+double PipelineSeconds(const v1::Job& j) {
+  auto m = nlohmann::json::parse(j.metrics_json(), nullptr, false);
+  if (!m.is_object() || !m.contains("seconds")) return 0;
+  return m["seconds"].value("total", 0.0);
+}
+
+// CreateVolume latency of one uploaded file: the header check and the manifest, no upload.
+int MeasureCreateVolume(const fs::path& scratch, const fs::path& file, int repeat) {
+  e2e::ServerProcess server(scratch / "data-cv", {"--workers", "1"});
+  auto c = client::Connect(server.address(), "", false, "", 60s);
+  std::vector<client::InputFile> files;
+  std::string err;
+  client::CollectInputs(file, &files, &err);
+  client::HashInputs(&files, &err);
+  for (const auto& f : files) client::UploadBlob(c, f, nullptr, 3, nullptr);
+  v1::CreateVolumeRequest req;
+  for (const auto& f : files) {
+    auto* mf = req.mutable_volume()->add_files();
+    mf->set_path(f.name);
+    mf->set_blob("blobs/" + f.sha256);
+  }
+  auto stub = v1::Volumes::NewStub(c.channel);
+  std::vector<double> ms;
+  for (int i = 0; i < repeat; ++i) {
+    v1::Volume vol;
+    auto t0 = std::chrono::steady_clock::now();
+    grpc::Status s = stub->CreateVolume(c.Context().get(), req, &vol);
+    ms.push_back(std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count() *
+                 1000);
+    if (!s.ok()) {
+      std::fprintf(stderr, "create volume: %s\n", s.error_message().c_str());
+      return 1;
+    }
+  }
+  nlohmann::json out;
+  out["volume"] = file.string();
+  out["create_volume_ms"] = {{"p50", Median(ms)}, {"p90", Percentile(ms, 0.9)}, {"n", repeat}};
+  std::printf("%s\n", out.dump(2).c_str());
+  return 0;
+}
+
 }  // namespace
 
 int main(int argc, char** argv) {
-  fs::path volume;
-  int jobs = 20;
+  fs::path volume, create_volume;
+  int jobs = 20, repeat = 15;
   for (int i = 1; i + 1 < argc; i += 2) {
     std::string k = argv[i];
     if (k == "--volume") volume = argv[i + 1];
     if (k == "--jobs") jobs = std::atoi(argv[i + 1]);
+    if (k == "--create-volume") create_volume = argv[i + 1];
+    if (k == "--repeat") repeat = std::atoi(argv[i + 1]);
   }
   fs::path scratch = fs::temp_directory_path() / ("decima-bench-" + std::to_string(getpid()));
   fs::create_directories(scratch);
+  if (!create_volume.empty()) {
+    int rc = MeasureCreateVolume(scratch, create_volume, repeat);
+    fs::remove_all(scratch);
+    return rc;
+  }
   if (volume.empty()) {
     volume = scratch / "phantom.nii";
     e2e::WriteTinyNifti(volume, 24, 24, 16);
@@ -110,15 +162,17 @@ int main(int argc, char** argv) {
     e2e::ServerProcess server(scratch / "data1", {"--workers", "1"});
     auto c = client::Connect(server.address(), "", false, "", 30s);
     std::string vol = MakeVolume(c, volume);
-    std::vector<double> lat, job_s;
+    std::vector<double> lat, job_s, overhead;
     for (int i = 0; i < jobs; ++i) {
       v1::Job j;
       lat.push_back(SubmitAndWait(c, vol, false, &j) * 1000);
       job_s.push_back(JobSeconds(j));
+      if (double p = PipelineSeconds(j); p > 0) overhead.push_back((JobSeconds(j) - p) / p);
     }
     out["submit_to_running_ms"] = {
         {"p50", Median(lat)}, {"p90", Percentile(lat, 0.9)}, {"n", jobs}};
     out["job_seconds_idle_p50"] = Median(job_s);
+    out["job_overhead_fraction_p50"] = Median(overhead);
 
     // Watchers: 100 extra watch streams on each job vs none.
     std::vector<double> with, without;

@@ -61,27 +61,58 @@ TEST_F(JobStoreTest, ClaimTakesOldestFirstAndNeverTwice) {
   auto z = store_->ClaimNext("w3", 10000);
   ASSERT_TRUE(x.ok() && y.ok() && z.ok());
   ASSERT_TRUE(x->has_value() && y->has_value());
-  EXPECT_EQ((*x)->name(), "jobs/a");
-  EXPECT_EQ((*y)->name(), "jobs/b");
+  EXPECT_EQ((*x)->job.name(), "jobs/a");
+  EXPECT_EQ((*y)->job.name(), "jobs/b");
   EXPECT_FALSE(z->has_value());
-  EXPECT_EQ((*x)->attempts(), 1);
-  // Only the lease owner may report on the job.
-  EXPECT_EQ(store_->AppendProgress("a", "w2", v1::Progress()).code(),
+  EXPECT_EQ((*x)->job.attempts(), 1);
+  EXPECT_EQ((*x)->lease.owner, "w1");
+  EXPECT_EQ((*x)->lease.epoch, 1);
+  // Only the lease holder may report on the job.
+  Lease other = (*x)->lease;
+  other.owner = "w2";
+  EXPECT_EQ(store_->AppendProgress(other, v1::Progress()).code(),
             absl::StatusCode::kFailedPrecondition);
-  EXPECT_TRUE(store_->AppendProgress("a", "w1", v1::Progress()).ok());
+  EXPECT_TRUE(store_->AppendProgress((*x)->lease, v1::Progress()).ok());
+}
+
+TEST_F(JobStoreTest, AStaleLeaseIsFencedOffEvenForTheSameOwner) {
+  Create("a");
+  auto first = store_->ClaimNext("w", -1000);  // lapses at once (a paused replica)
+  ASSERT_TRUE(first.ok() && first->has_value());
+  ASSERT_TRUE(store_->RecoverLeases(/*all=*/false, 3).ok());
+  auto second = store_->ClaimNext("w", 60000);
+  ASSERT_TRUE(second.ok() && second->has_value());
+  const Lease stale = (*first)->lease, current = (*second)->lease;
+  EXPECT_EQ(stale.owner, current.owner);
+  EXPECT_EQ(current.epoch, stale.epoch + 1);
+  EXPECT_EQ(store_->RenewLease(stale, 60000).code(), absl::StatusCode::kFailedPrecondition);
+  EXPECT_EQ(store_->AppendProgress(stale, v1::Progress()).code(),
+            absl::StatusCode::kFailedPrecondition);
+  EXPECT_EQ(store_->Finish(stale, v1::SUCCEEDED, v1::Job()).status().code(),
+            absl::StatusCode::kFailedPrecondition);
+  EXPECT_EQ(store_->Requeue(stale, "x").status().code(), absl::StatusCode::kFailedPrecondition);
+  EXPECT_EQ(store_->GetJob("a")->state(), v1::RUNNING);
+  EXPECT_TRUE(store_->RenewLease(current, 60000).ok());
+  auto done = store_->Finish(current, v1::SUCCEEDED, v1::Job());
+  ASSERT_TRUE(done.ok()) << done.status();
+  EXPECT_EQ(done->attempts(), 2);
+  // A finished job's lease is gone for its last holder too.
+  EXPECT_EQ(store_->RenewLease(current, 60000).code(), absl::StatusCode::kFailedPrecondition);
 }
 
 TEST_F(JobStoreTest, EventsAreGaplessAndPublishedInOrder) {
   Create("a");
-  ASSERT_TRUE(store_->ClaimNext("w", 10000).ok());
+  auto claim = store_->ClaimNext("w", 10000);
+  ASSERT_TRUE(claim.ok() && claim->has_value());
+  const Lease lease = (*claim)->lease;
   for (int i = 0; i < 5; ++i) {
     v1::Progress p;
     p.set_stage("segment");
     p.set_fraction(i / 5.0);
-    ASSERT_TRUE(store_->AppendProgress("a", "w", p).ok());
+    ASSERT_TRUE(store_->AppendProgress(lease, p).ok());
   }
   v1::Job outcome;
-  auto done = store_->Finish("a", "w", v1::SUCCEEDED, outcome);
+  auto done = store_->Finish(lease, v1::SUCCEEDED, outcome);
   ASSERT_TRUE(done.ok());
   EXPECT_EQ(done->last_sequence(), 8);  // QUEUED, RUNNING, 5 progress, SUCCEEDED
   auto events = store_->ListEvents("a", 0, 100);

@@ -1,5 +1,6 @@
 #include <gmock/gmock.h>
 #include <gtest/gtest.h>
+#include <cstring>
 
 #include "core/io/volume_io.h"
 #include "tests/core/io/io_test_util.h"
@@ -113,6 +114,89 @@ TEST(ReadVolumeRealData, AllSharedFilesLoad) {
   auto h = ReadVolume(m);
   ASSERT_TRUE(h.ok()) << h.status();
   EXPECT_EQ(h->voxel_count(), 64 * 64 * 93);
+}
+
+}  // namespace
+}  // namespace decima::io
+
+namespace decima::io {
+namespace {
+
+TEST(VolumeFormatFromName, KnowsEveryExtensionOnceIncludingHdrImgPairs) {
+  for (const char* n : {"a.nii", "a.NII.GZ", "a.hdr", "a.img", "a.hdr.gz", "a.img.gz"}) {
+    EXPECT_EQ(VolumeFormatFromName(n), VolumeFormat::kNifti) << n;
+  }
+  EXPECT_EQ(VolumeFormatFromName("a.mha"), VolumeFormat::kMetaImage);
+  EXPECT_EQ(VolumeFormatFromName("a.MHD"), VolumeFormat::kMetaImage);
+  EXPECT_EQ(VolumeFormatFromName("a.nrrd"), VolumeFormat::kNrrd);
+  EXPECT_EQ(VolumeFormatFromName("a.nhdr"), VolumeFormat::kNrrd);
+  EXPECT_EQ(VolumeFormatFromName("a.dcm"), VolumeFormat::kUnknown);
+  EXPECT_EQ(VolumeFormatFromName("a.zraw"), VolumeFormat::kUnknown);
+}
+
+TEST(ProbeVolume, ReportsWhatReadVolumeReturnsForEveryFormat) {
+  const fs::path dir = decima::testing::MakeScratchDir("probe");
+  Volume v = PatternVolume({5, 4, 3}, VoxelType::kInt16);
+  v.spacing = {0.5, 0.75, 2.0};
+  v.modality = "CT";
+  ASSERT_TRUE(WriteNifti(v, dir / "a.nii.gz").ok());
+  ASSERT_TRUE(WriteMetaImage(v, dir / "b.mha").ok());
+  ASSERT_TRUE(WriteMetaImage(v, dir / "c.mhd", {.compress = false}).ok());
+  for (const char* name : {"a.nii.gz", "b.mha", "c.mhd"}) {
+    auto full = ReadVolume(dir / name);
+    auto probe = ProbeVolume(dir / name);
+    ASSERT_TRUE(full.ok() && probe.ok()) << name << ": " << probe.status();
+    EXPECT_TRUE(probe->parsed);
+    EXPECT_EQ(probe->input, dir / name);
+    EXPECT_EQ(probe->dims, full->dims) << name;
+    for (int c = 0; c < 3; ++c) EXPECT_DOUBLE_EQ(probe->spacing[c], full->spacing[c]) << name;
+    EXPECT_EQ(probe->type, full->type) << name;
+    EXPECT_EQ(probe->modality, full->modality) << name;
+  }
+}
+
+TEST(ProbeVolume, DecodesNoVoxelACorruptDataStreamPassesTheProbeAndFailsTheRead) {
+  const fs::path dir = decima::testing::MakeScratchDir("probe");
+  const Volume v = PatternVolume({64, 64, 64}, VoxelType::kUInt16);
+  ASSERT_TRUE(WriteMetaImage(v, dir / "a.mhd").ok());  // zlib data in a.zraw
+  auto bytes = testing::ReadAll(dir / "a.zraw");
+  testing::CorruptMiddle(bytes, bytes.size() / 2, 64);
+  testing::WriteAll(dir / "a.zraw", bytes);
+  EXPECT_FALSE(ReadVolume(dir / "a.mhd").ok());
+  auto probe = ProbeVolume(dir / "a.mhd");
+  ASSERT_TRUE(probe.ok()) << probe.status();
+  EXPECT_EQ(probe->dims, (std::array<int64_t, 3>{64, 64, 64}));
+}
+
+TEST(ProbeVolume, RefusesRawDataShorterThanTheHeaderPromisesAndUnknownFiles) {
+  const fs::path dir = decima::testing::MakeScratchDir("probe");
+  const Volume v = PatternVolume({8, 8, 8}, VoxelType::kUInt8);
+  ASSERT_TRUE(WriteNifti(v, dir / "a.nii").ok());
+  auto bytes = testing::ReadAll(dir / "a.nii");
+  bytes.resize(bytes.size() - 10);
+  testing::WriteAll(dir / "a.nii", bytes);
+  auto probe = ProbeVolume(dir / "a.nii");
+  ASSERT_FALSE(probe.ok());
+  EXPECT_EQ(probe.status().code(), absl::StatusCode::kInvalidArgument);
+  EXPECT_THAT(std::string(probe.status().message()), HasSubstr("truncated"));
+  WriteText(dir / "notes.txt", "hello");
+  EXPECT_EQ(ProbeVolume(dir / "notes.txt").status().code(), absl::StatusCode::kInvalidArgument);
+  EXPECT_EQ(ProbeVolume(dir / "missing.nii").status().code(), absl::StatusCode::kNotFound);
+}
+
+TEST(ProbeVolume, AFolderIsDicomOnlyIfEveryFileCarriesTheMarker) {
+  const fs::path dir = decima::testing::MakeScratchDir("probe-dicom");
+  std::vector<uint8_t> dicm(200, 0);
+  std::memcpy(dicm.data() + 128, "DICM", 4);
+  testing::WriteAll(dir / "1.dcm", dicm);
+  auto ok = ProbeVolume(dir);
+  ASSERT_TRUE(ok.ok()) << ok.status();
+  EXPECT_EQ(ok->format, VolumeFormat::kDirectory);
+  EXPECT_FALSE(ok->parsed);
+  WriteText(dir / "2.dcm", "not dicom");
+  auto bad = ProbeVolume(dir);
+  ASSERT_FALSE(bad.ok());
+  EXPECT_THAT(std::string(bad.status().message()), HasSubstr("2.dcm"));
 }
 
 }  // namespace

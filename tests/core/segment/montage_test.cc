@@ -3,6 +3,7 @@
 
 #include <gtest/gtest.h>
 
+#include "core/segment/montage.h"
 #include "core/segment/segment.h"
 #include "core/volume/phantom.h"
 #include "tests/testing/test_data.h"

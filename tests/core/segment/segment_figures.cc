@@ -16,6 +16,7 @@
 #include <string>
 
 #include "core/io/volume_io.h"
+#include "core/segment/montage.h"
 #include "core/segment/segment.h"
 #include "core/volume/phantom.h"
 

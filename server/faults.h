@@ -1,0 +1,29 @@
+// Test-only fault injection, kept out of the public API (as LevelDB's tests inject faults through
+// an Env, never through the database interface). A test passes a fault to CreateJob in the
+// request metadata `decima-test-fault`; only a server started with --allow-faults reads it, keeps
+// it beside the job (jobs/<id>/fault, so it survives a restart) and hands it to the job child,
+// which applies it. A production server never looks at the key.
+//
+// Faults, comma separated: "crash" aborts the job process once it started; "sleep:S" spends S
+// seconds (0..3600) in a cancellable "prepare" stage reporting progress every 50 ms.
+#pragma once
+
+#include <filesystem>
+#include <string>
+
+#include "absl/status/status.h"
+#include "core/common/progress.h"
+
+namespace decima::server {
+
+inline constexpr char kFaultMetadataKey[] = "decima-test-fault";
+
+// OK if `faults` parses, else INVALID_ARGUMENT naming the metadata key.
+absl::Status ValidateFaults(const std::string& faults);
+
+// Applies `faults` in the job child: sleeps (polling `cancel`, reporting through `progress`),
+// then sets *crash for the caller to abort at the right moment. Cancelled if cancelled.
+absl::Status ApplyFaults(const std::string& faults, const ProgressFn& progress,
+                         const CancelToken& cancel, bool* crash);
+
+}  // namespace decima::server

@@ -1,0 +1,265 @@
+#include "server/job_runner.h"
+
+#include <poll.h>
+#include <signal.h>
+#include <sys/wait.h>
+#include <unistd.h>
+
+#include <cerrno>
+#include <fstream>
+#include <optional>
+#include <thread>
+
+#include "absl/strings/str_cat.h"
+#include "server/child_process.h"
+#include "server/sha256.h"
+#include "server/volume_probe.h"
+#include "server/worker_process.h"
+#include "server/worker_protocol.h"
+#include "spdlog/spdlog.h"
+
+namespace decima::server {
+namespace fs = std::filesystem;
+namespace {
+
+using Clock = std::chrono::steady_clock;
+
+int64_t MsSince(Clock::time_point t) {
+  return std::chrono::duration_cast<std::chrono::milliseconds>(Clock::now() - t).count();
+}
+
+// The last non-empty line of a log file (at most 300 bytes), for crash reports.
+std::string LogTail(const fs::path& log) {
+  std::ifstream in(log, std::ios::binary);
+  if (!in) return {};
+  in.seekg(0, std::ios::end);
+  const std::streamoff size = in.tellg();
+  const std::streamoff start = size > 300 ? size - 300 : 0;
+  in.seekg(start);
+  std::string s(static_cast<size_t>(size - start), '\0');
+  in.read(s.data(), static_cast<std::streamsize>(s.size()));
+  while (!s.empty() && (s.back() == '\n' || s.back() == '\r')) s.pop_back();
+  const size_t nl = s.rfind('\n');
+  return nl == std::string::npos ? s : s.substr(nl + 1);
+}
+
+v1::Job Outcome(absl::StatusCode code, const std::string& message) {
+  v1::Job outcome;
+  outcome.mutable_error()->set_code(static_cast<int>(code));
+  outcome.mutable_error()->set_message(message);
+  return outcome;
+}
+
+}  // namespace
+
+struct JobRunner::ChildEnd {
+  std::optional<worker::WorkerMessage> final;  // the result or error message, if one came
+  absl::Status protocol;                       // a malformed or truncated message stream
+  int wait_status = 0;
+  std::string stage = "start";  // the last stage the child reported
+  bool lost_lease = false;
+};
+
+JobRunner::JobRunner(JobStore* store, JobRunnerOptions options)
+    : store_(store), options_(std::move(options)) {}
+
+absl::StatusOr<fs::path> JobRunner::Prepare(const v1::Job& job) {
+  const std::string id = job.name().substr(5);
+  const DataDir& dd = options_.data_dir;
+  if (auto st = dd.ResetJobOut(id); !st.ok()) return st;
+  auto resolve = [&](const std::string& name, const char* field) -> absl::StatusOr<fs::path> {
+    auto vid = ParseName(name, "volumes", field);
+    if (!vid.ok()) return vid.status();
+    auto vol = store_->GetVolume(*vid);
+    if (!vol.ok()) return vol.status();
+    return VolumeInput(dd.volume_files(*vid), *vol);
+  };
+  worker::RunRequest request;
+  *request.mutable_spec() = job.spec();
+  auto input = resolve(job.spec().volume(), "spec.volume");
+  if (!input.ok()) return input.status();
+  request.set_input(input->string());
+  if (!job.spec().label_map().empty()) {
+    auto label_map = resolve(job.spec().label_map(), "spec.label_map");
+    if (!label_map.ok()) return label_map.status();
+    request.set_label_map(label_map->string());
+  }
+  request.set_out_dir(dd.job_out(id).string());
+  if (options_.allow_faults) request.set_fault(dd.ReadJobFault(id));
+  if (auto st = dd.WriteFileAtomically(dd.job_request(id), request.SerializeAsString()); !st.ok()) {
+    return st;
+  }
+  return dd.job_request(id);
+}
+
+JobRunner::ChildEnd JobRunner::Relay(ChildProcess& child, const Lease& lease, StopFlags& stop) {
+  ChildEnd end;
+  FrameReader reader;
+  std::string last_stored_stage;
+  Clock::time_point last_renew = Clock::now(), last_poll = Clock::now(), last_progress{};
+  const auto grace = std::chrono::milliseconds(options_.cancel_grace_ms);
+  auto handle = [&](const worker::WorkerMessage& m) {
+    if (m.has_progress()) {
+      const v1::Progress& p = m.progress();
+      end.stage = p.stage();
+      // Stage changes and stage ends are always stored; within a stage, at most one event per
+      // progress_interval_ms, so a chatty stage cannot flood the event log.
+      const bool due = p.stage() != last_stored_stage || p.fraction() >= 1.0 ||
+                       MsSince(last_progress) >= options_.progress_interval_ms;
+      if (due) {
+        absl::Status s = store_->AppendProgress(lease, p);
+        if (!s.ok()) spdlog::warn("job {}: storing progress: {}", lease.job_id, s.ToString());
+        last_stored_stage = p.stage();
+        last_progress = Clock::now();
+      }
+    } else if (m.has_result() || m.has_error()) {
+      end.final = m;
+    }
+  };
+  bool eof = false;
+  for (;;) {
+    if (!eof) {
+      pollfd pfd{child.fd(), POLLIN, 0};
+      const int pr = ::poll(&pfd, 1, 50);
+      if (pr > 0) {
+        char buf[65536];
+        const ssize_t n = ::read(child.fd(), buf, sizeof buf);
+        if (n < 0 && errno == EINTR) continue;
+        if (n <= 0) {
+          eof = true;
+          child.CloseFd();
+        } else {
+          reader.Append(buf, static_cast<size_t>(n));
+          worker::WorkerMessage m;
+          while (reader.Next(&m)) handle(m);
+        }
+      }
+    } else if (auto st = child.TryWait()) {
+      end.wait_status = *st;
+      break;
+    } else {
+      std::this_thread::sleep_for(std::chrono::milliseconds(5));
+    }
+    if (MsSince(last_renew) >= options_.lease_ms / 3) {
+      last_renew = Clock::now();
+      absl::Status s = store_->RenewLease(lease, options_.lease_ms);
+      if (!s.ok()) {
+        spdlog::warn("job {}: {}; stopping its worker", lease.job_id, s.ToString());
+        end.lost_lease = true;
+      }
+    }
+    if (MsSince(last_poll) >= 500) {
+      last_poll = Clock::now();
+      auto c = store_->CancelRequested(lease.job_id);
+      if (c.ok() && *c) stop.cancel = true;
+    }
+    if (stop.cancel || stop.requeue || end.lost_lease) child.Terminate(grace);
+    if (!eof) child.TryWait();  // escalates a due SIGKILL while the pipe is still open
+  }
+  end.protocol = reader.status();
+  if (end.protocol.ok() && reader.pending() > 0) {
+    end.protocol = absl::DataLossError("the worker's last message was cut off");
+  }
+  return end;
+}
+
+void JobRunner::Fail(const Lease& lease, absl::StatusCode code, const std::string& message,
+                     double seconds) {
+  auto r = store_->Finish(lease, v1::FAILED, Outcome(code, message));
+  if (!r.ok()) spdlog::error("job {}: recording failure: {}", lease.job_id, r.status().ToString());
+  spdlog::info("job {} FAILED after {:.3f} s: {}", lease.job_id, seconds, message);
+}
+
+void JobRunner::RecordOutcome(const v1::Job& job, const Lease& lease, const ChildEnd& end,
+                              const StopFlags& stop, double secs) {
+  const std::string& id = lease.job_id;
+  if (end.lost_lease) return;  // another claim holds the job now
+  if (stop.cancel) {
+    auto r = store_->Finish(lease, v1::CANCELLED,
+                            Outcome(absl::StatusCode::kCancelled,
+                                    absl::StrCat("cancelled by request during ", end.stage)));
+    if (!r.ok()) spdlog::error("job {}: recording cancel: {}", id, r.status().ToString());
+    spdlog::info("job {} CANCELLED after {:.3f} s in stage {}", id, secs, end.stage);
+    return;
+  }
+  if (stop.requeue) {
+    auto r = store_->Requeue(lease, "requeued: the server shut down while it ran");
+    if (!r.ok()) spdlog::error("job {}: requeue: {}", id, r.status().ToString());
+    spdlog::info("job {} QUEUED again after {:.3f} s (server shutting down)", id, secs);
+    return;
+  }
+  const bool exited = WIFEXITED(end.wait_status);
+  const int code = exited ? WEXITSTATUS(end.wait_status) : -1;
+  if (end.final && end.final->has_result() && exited && code == kWorkerExitOk) {
+    v1::Job outcome;
+    std::error_code ec;
+    const fs::path out_dir = fs::weakly_canonical(options_.data_dir.job_out(id), ec);
+    for (const auto& a : end.final->result().artifacts()) {
+      const std::string& name = a.name();
+      const fs::path path = fs::weakly_canonical(fs::path(a.path()), ec);
+      // Only plain names of files inside out/ are served.
+      if (name.empty() || name.find('/') != std::string::npos || name[0] == '.' ||
+          path.parent_path() != out_dir || !fs::is_regular_file(path, ec)) {
+        return Fail(lease, absl::StatusCode::kInternal,
+                    absl::StrCat("pipeline returned artifact '", name, "' at ", path.string(),
+                                 ", not a file in ", out_dir.string()),
+                    secs);
+      }
+      auto sha = Sha256OfFile(path);
+      if (!sha.ok())
+        return Fail(lease, sha.status().code(), std::string(sha.status().message()), secs);
+      auto* art = outcome.add_artifacts();
+      art->set_name(absl::StrCat(job.name(), "/artifacts/", name));
+      art->set_file_name(name);
+      art->set_size_bytes(static_cast<int64_t>(fs::file_size(path, ec)));
+      art->set_sha256(*sha);
+    }
+    outcome.set_metrics_json(end.final->result().metrics_json());
+    auto r = store_->Finish(lease, v1::SUCCEEDED, outcome);
+    if (!r.ok()) spdlog::error("job {}: recording success: {}", id, r.status().ToString());
+    spdlog::info("job {} SUCCEEDED in {:.3f} s ({} artifacts)", id, secs, outcome.artifacts_size());
+    return;
+  }
+  if (end.final && end.final->has_error()) {
+    const auto& e = end.final->error();
+    return Fail(lease, static_cast<absl::StatusCode>(e.code()), e.message(), secs);
+  }
+  std::string why = absl::StrCat("the worker ", DescribeWaitStatus(end.wait_status));
+  if (!exited && WTERMSIG(end.wait_status) == SIGKILL)
+    absl::StrAppend(&why, ", e.g. out of memory");
+  absl::StrAppend(&why, " during stage ", end.stage);
+  if (!end.protocol.ok()) absl::StrAppend(&why, " (", end.protocol.message(), ")");
+  const std::string tail = LogTail(options_.data_dir.job_log(id));
+  if (!tail.empty()) absl::StrAppend(&why, "; last log line: ", tail);
+  Fail(lease, absl::StatusCode::kInternal, why, secs);
+}
+
+void JobRunner::Run(const Claim& claim, StopFlags& stop) {
+  const v1::Job& job = claim.job;
+  const Lease& lease = claim.lease;
+  const auto t0 = Clock::now();
+  const double queued_s =
+      static_cast<double>(job.start_time().seconds() - job.create_time().seconds()) +
+      (job.start_time().nanos() - job.create_time().nanos()) * 1e-9;
+  spdlog::info("job {} RUNNING attempt {} epoch {} (queued {:.3f} s)", lease.job_id, job.attempts(),
+               lease.epoch, queued_s);
+  auto secs = [&] { return MsSince(t0) / 1000.0; };
+
+  auto request = Prepare(job);
+  if (!request.ok()) {
+    return Fail(lease, request.status().code(), std::string(request.status().message()), secs());
+  }
+  ChildOptions co;
+  co.argv = {options_.worker_exe.string(), "--run-job", request->string()};
+  co.log = options_.data_dir.job_log(lease.job_id);
+  co.protocol_fd = kWorkerFd;
+  co.memory_mb = options_.worker_memory_mb;
+  auto child = ChildProcess::Spawn(co);
+  if (!child.ok()) {
+    return Fail(lease, child.status().code(), std::string(child.status().message()), secs());
+  }
+  const ChildEnd end = Relay(**child, lease, stop);
+  RecordOutcome(job, lease, end, stop, secs());
+}
+
+}  // namespace decima::server

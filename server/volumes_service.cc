@@ -1,0 +1,67 @@
+// decima.v1.Volumes: volumes made of uploaded blobs (volume_catalog.h).
+#include "decima/v1/volumes.grpc.pb.h"
+#include "server/grpc_util.h"
+#include "server/service.h"
+#include "server/volume_catalog.h"
+
+namespace decima::server {
+namespace {
+
+class VolumesService final : public v1::Volumes::Service {
+ public:
+  explicit VolumesService(const ServiceDeps& d)
+      : d_(d), catalog_(&d.options->data_dir, d.jobs, d.blobs) {}
+
+  grpc::Status CreateVolume(grpc::ServerContext* ctx, const v1::CreateVolumeRequest* req,
+                            v1::Volume* resp) override {
+    if (auto g = d_.guard->Check(ctx); !g.ok()) return g;
+    v1::ErrorDetail detail;
+    auto vol = catalog_.Create(*req, &detail);
+    if (!vol.ok())
+      return detail.field().empty() ? ToGrpc(vol.status()) : Fail(ctx, vol.status(), detail);
+    *resp = std::move(*vol);
+    return grpc::Status::OK;
+  }
+
+  grpc::Status GetVolume(grpc::ServerContext* ctx, const v1::GetVolumeRequest* req,
+                         v1::Volume* resp) override {
+    if (auto g = d_.guard->Check(ctx); !g.ok()) return g;
+    auto id = ParseName(req->name(), "volumes", "name");
+    if (!id.ok()) return ToGrpc(id.status());
+    auto v = d_.jobs->GetVolume(*id);
+    if (!v.ok()) return ToGrpc(v.status());
+    *resp = std::move(*v);
+    return grpc::Status::OK;
+  }
+
+  grpc::Status ListVolumes(grpc::ServerContext* ctx, const v1::ListVolumesRequest* req,
+                           v1::ListVolumesResponse* resp) override {
+    if (auto g = d_.guard->Check(ctx); !g.ok()) return g;
+    if (req->page_size() < 0) return InvalidField(ctx, "page_size", "must be >= 0");
+    auto page = d_.jobs->ListVolumes(req->page_size(), req->page_token());
+    if (!page.ok()) return ToGrpc(page.status());
+    for (auto& v : page->volumes) *resp->add_volumes() = std::move(v);
+    resp->set_next_page_token(page->next_page_token);
+    return grpc::Status::OK;
+  }
+
+  grpc::Status DeleteVolume(grpc::ServerContext* ctx, const v1::DeleteVolumeRequest* req,
+                            v1::DeleteVolumeResponse*) override {
+    if (auto g = d_.guard->Check(ctx); !g.ok()) return g;
+    auto id = ParseName(req->name(), "volumes", "name");
+    if (!id.ok()) return ToGrpc(id.status());
+    return ToGrpc(catalog_.Delete(*id));
+  }
+
+ private:
+  const ServiceDeps d_;
+  VolumeCatalog catalog_;
+};
+
+}  // namespace
+
+std::unique_ptr<grpc::Service> MakeVolumesService(const ServiceDeps& deps) {
+  return std::make_unique<VolumesService>(deps);
+}
+
+}  // namespace decima::server

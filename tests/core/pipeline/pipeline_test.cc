@@ -1,0 +1,143 @@
+// RunJob end to end on a small phantom: every documented artifact and metrics key, the
+// ValidateJobSpec ranges naming their field, and cancel at a stage boundary.
+#include "core/pipeline/pipeline.h"
+
+#include <gmock/gmock.h>
+#include <gtest/gtest.h>
+
+#include <cmath>
+#include <limits>
+#include <nlohmann/json.hpp>
+#include <set>
+
+#include "core/io/volume_io.h"
+#include "core/volume/phantom.h"
+#include "tests/testing/test_data.h"
+
+namespace decima::pipeline {
+namespace {
+
+namespace fs = std::filesystem;
+using ::testing::HasSubstr;
+
+// A 24^3 three-region head phantom written as NIfTI: the pipeline reads files, not Volumes.
+fs::path PhantomFile(const fs::path& dir) {
+  HeadPhantomOptions o;
+  o.dims = {24, 24, 20};
+  o.spacing = {2, 2, 2};
+  o.noise_sigma = 20;
+  auto p = MakeHeadPhantom(o);
+  EXPECT_TRUE(p.ok()) << p.status();
+  const fs::path path = dir / "phantom.nii.gz";
+  EXPECT_TRUE(io::WriteNifti(p->image, path).ok());
+  return path;
+}
+
+JobSpec SmallSpec(const fs::path& input) {
+  JobSpec s;
+  s.input = input;
+  s.image_size = 48;
+  return s;
+}
+
+TEST(RunJob, WritesEveryArtifactAndTheDocumentedMetricsKeys) {
+  const fs::path dir = decima::testing::MakeScratchDir("pipeline");
+  JobSpec spec = SmallSpec(PhantomFile(dir));
+  spec.views = {"anterior", "lateral"};
+  std::vector<std::string> stages;
+  auto result = RunJob(
+      spec, dir / "out",
+      [&](const Progress& p) {
+        if (stages.empty() || stages.back() != p.stage) stages.push_back(p.stage);
+      },
+      nullptr);
+  ASSERT_TRUE(result.ok()) << result.status();
+  std::set<std::string> names;
+  for (const auto& a : result->artifacts) {
+    names.insert(a.name);
+    EXPECT_TRUE(fs::is_regular_file(a.path)) << a.name;
+    EXPECT_EQ(a.path.parent_path(), dir / "out") << a.name;
+    EXPECT_GT(a.size_bytes, 0u) << a.name;
+  }
+  for (const char* n :
+       {"labels.nii.gz", "mesh.vtu", "mesh.msh", "original.png", "simplified.png", "diff.png",
+        "comparison.png", "original-lateral.png", "diff-lateral.png", "metrics.json"}) {
+    EXPECT_TRUE(names.count(n)) << n;
+  }
+  EXPECT_EQ(stages, (std::vector<std::string>{"load", "segment", "tetra", "simplify", "write",
+                                              "render", "diff"}));
+  auto m = nlohmann::json::parse(result->metrics_json);
+  for (const char* key :
+       {"input", "segmentation", "simplification", "fidelity", "render", "diff1", "seconds"}) {
+    EXPECT_TRUE(m.contains(key)) << key;
+  }
+  EXPECT_EQ(m["simplification"]["policy"], "field");
+  EXPECT_DOUBLE_EQ(m["simplification"]["target_reduction"].get<double>(), 0.5);
+  EXPECT_EQ(m["render"]["views"].size(), 2u);
+  EXPECT_GT(m["seconds"]["total"].get<double>(), 0);
+}
+
+TEST(RunJob, ABadSpecIsInvalidArgumentBeforeAnyFileIsWritten) {
+  const fs::path dir = decima::testing::MakeScratchDir("pipeline");
+  JobSpec spec = SmallSpec(dir / "never-read.nii");
+  spec.target_reduction = std::numeric_limits<double>::quiet_NaN();
+  auto r = RunJob(spec, dir / "out", nullptr, nullptr);
+  EXPECT_EQ(r.status().code(), absl::StatusCode::kInvalidArgument);
+  EXPECT_FALSE(fs::exists(dir / "out"));
+}
+
+TEST(ValidateJobSpec, NamesTheFieldOfEachBadValue) {
+  struct Case {
+    const char* field;
+    std::function<void(JobSpec&)> set;
+  };
+  const double inf = std::numeric_limits<double>::infinity();
+  const Case cases[] = {
+      {"regions", [](JobSpec& s) { s.regions = 1; }},
+      {"class_means",
+       [](JobSpec& s) {
+         s.class_means = {1, 2};
+       }},
+      {"target_reduction", [](JobSpec& s) { s.target_reduction = 1.5; }},
+      {"policy", [](JobSpec& s) { s.policy = static_cast<SimplifyPolicy>(9); }},
+      {"error_tolerance", [](JobSpec& s) { s.error_tolerance = -1; }},
+      {"weights.gradient", [inf](JobSpec& s) { s.weights.gradient = inf; }},
+      {"views", [](JobSpec& s) { s.views = {}; }},
+      {"views", [](JobSpec& s) { s.views = {"upside-down"}; }},
+      {"image_size", [](JobSpec& s) { s.image_size = 8; }},
+      {"transfer_function", [](JobSpec& s) { s.transfer_function = "neon"; }},
+  };
+  for (const auto& c : cases) {
+    JobSpec s;
+    c.set(s);
+    std::string field;
+    const absl::Status st = ValidateJobSpec(s, &field);
+    EXPECT_EQ(st.code(), absl::StatusCode::kInvalidArgument) << c.field;
+    EXPECT_EQ(field, c.field);
+  }
+  JobSpec ok;
+  EXPECT_TRUE(ValidateJobSpec(ok).ok());
+  ok.target_reduction = 0;  // no target: a real value
+  EXPECT_TRUE(ValidateJobSpec(ok).ok());
+  EXPECT_STREQ(SimplifyPolicyName(SimplifyPolicy::kField), "field");
+}
+
+TEST(RunJob, CancelStopsAtTheNextCheckAndReturnsCancelled) {
+  const fs::path dir = decima::testing::MakeScratchDir("pipeline");
+  const JobSpec spec = SmallSpec(PhantomFile(dir));
+  CancelToken cancel;
+  std::set<std::string> stages;
+  auto r = RunJob(
+      spec, dir / "out",
+      [&](const Progress& p) {
+        stages.insert(p.stage);
+        if (p.stage == "tetra") cancel.Cancel();  // fires inside the tetra stage
+      },
+      &cancel);
+  EXPECT_EQ(r.status().code(), absl::StatusCode::kCancelled) << r.status();
+  EXPECT_FALSE(stages.count("write")) << "no stage after the next check ran";
+  EXPECT_FALSE(fs::exists(dir / "out" / "mesh.vtu"));
+}
+
+}  // namespace
+}  // namespace decima::pipeline

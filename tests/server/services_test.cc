@@ -1,0 +1,176 @@
+// The handlers over an in-process gRPC channel with the real stores: the guard on every
+// service, each bad job spec refused at submit naming its field (message and ErrorDetail), the
+// normalized spec stored, and the fault seam closed unless the server allows faults.
+#include "server/service.h"
+
+#include <grpcpp/grpcpp.h>
+
+#include "decima/v1/artifacts.grpc.pb.h"
+#include "decima/v1/errors.pb.h"
+#include "decima/v1/jobs.grpc.pb.h"
+#include "decima/v1/uploads.grpc.pb.h"
+#include "decima/v1/volumes.grpc.pb.h"
+#include "gmock/gmock.h"
+#include "gtest/gtest.h"
+#include "tests/server/bad_job_specs.h"
+#include "tests/testing/test_data.h"
+
+namespace decima::server {
+namespace {
+
+using ::testing::HasSubstr;
+using ::testing::StartsWith;
+namespace fs = std::filesystem;
+
+constexpr char kToken[] = "s3cret";
+
+class ServicesTest : public ::testing::Test {
+ protected:
+  void Start(bool allow_faults = false) {
+    dir_ = testing::MakeScratchDir("services");
+    auto s = OpenSqliteJobStore((dir_ / "jobs.sqlite").string());
+    ASSERT_TRUE(s.ok()) << s.status();
+    store_ = std::move(*s);
+    store_->SetListener(
+        [this](const std::string& id, const v1::JobEvent& e) { bus_.Publish(id, e); });
+    auto b = LocalBlobStore::Open(dir_ / "blobs", false);
+    ASSERT_TRUE(b.ok()) << b.status();
+    blobs_ = std::move(*b);
+    WorkerPoolOptions wo;
+    wo.owner = "test";
+    pool_ = std::make_unique<WorkerPool>(store_.get(), wo);  // never started: jobs stay QUEUED
+    ServiceOptions so;
+    so.data_dir = DataDir(dir_);
+    so.token = kToken;
+    so.allow_faults = allow_faults;
+    services_ = std::make_unique<Services>(so, store_.get(), blobs_.get(), &bus_, pool_.get());
+    grpc::ServerBuilder builder;
+    builder.RegisterService(services_->uploads());
+    builder.RegisterService(services_->volumes());
+    builder.RegisterService(services_->jobs());
+    builder.RegisterService(services_->artifacts());
+    server_ = builder.BuildAndStart();
+    ASSERT_TRUE(server_);
+    channel_ = server_->InProcessChannel(grpc::ChannelArguments());
+    v1::Volume vol;
+    vol.set_name("volumes/v");
+    bool created = false;
+    ASSERT_TRUE(store_->CreateVolume("v", vol, "", &created).ok());
+  }
+  void TearDown() override {
+    if (server_) server_->Shutdown();
+  }
+  std::unique_ptr<grpc::ClientContext> Ctx(const std::string& token = kToken) {
+    auto ctx = std::make_unique<grpc::ClientContext>();
+    if (!token.empty()) ctx->AddMetadata("authorization", "Bearer " + token);
+    return ctx;
+  }
+  static v1::ErrorDetail Detail(const grpc::ClientContext& ctx) {
+    v1::ErrorDetail d;
+    auto md = ctx.GetServerTrailingMetadata();
+    auto it = md.find("decima-error-bin");
+    if (it != md.end()) d.ParseFromString(std::string(it->second.data(), it->second.size()));
+    return d;
+  }
+
+  fs::path dir_;
+  EventBus bus_;
+  std::unique_ptr<JobStore> store_;
+  std::unique_ptr<BlobStore> blobs_;
+  std::unique_ptr<WorkerPool> pool_;
+  std::unique_ptr<Services> services_;
+  std::unique_ptr<grpc::Server> server_;
+  std::shared_ptr<grpc::Channel> channel_;
+};
+
+TEST_F(ServicesTest, EveryServiceRefusesAMissingOrWrongTokenAndServesTheRightOne) {
+  Start();
+  auto jobs = v1::Jobs::NewStub(channel_);
+  auto vols = v1::Volumes::NewStub(channel_);
+  auto ups = v1::Uploads::NewStub(channel_);
+  auto arts = v1::Artifacts::NewStub(channel_);
+  for (const std::string token : {"", "wrong"}) {
+    v1::ListJobsResponse lj;
+    EXPECT_EQ(jobs->ListJobs(Ctx(token).get(), {}, &lj).error_code(), grpc::UNAUTHENTICATED);
+    v1::ListVolumesResponse lv;
+    EXPECT_EQ(vols->ListVolumes(Ctx(token).get(), {}, &lv).error_code(), grpc::UNAUTHENTICATED);
+    v1::UploadStatus us;
+    EXPECT_EQ(ups->GetUploadStatus(Ctx(token).get(), {}, &us).error_code(), grpc::UNAUTHENTICATED);
+    auto ctx = Ctx(token);
+    auto reader = arts->ReadArtifact(ctx.get(), {});
+    v1::ReadArtifactResponse chunk;
+    while (reader->Read(&chunk)) {
+    }
+    EXPECT_EQ(reader->Finish().error_code(), grpc::UNAUTHENTICATED);
+  }
+  v1::ListJobsResponse lj;
+  EXPECT_TRUE(jobs->ListJobs(Ctx().get(), {}, &lj).ok());
+  services_->StartDraining();
+  EXPECT_EQ(jobs->ListJobs(Ctx().get(), {}, &lj).error_code(), grpc::UNAVAILABLE);
+}
+
+TEST_F(ServicesTest, EveryBadJobSpecIsInvalidArgumentAtSubmitNamingItsFieldAndQueuesNothing) {
+  Start();
+  auto jobs = v1::Jobs::NewStub(channel_);
+  const auto cases = BadJobSpecs();
+  ASSERT_GE(cases.size(), 20u);
+  for (const auto& c : cases) {
+    v1::CreateJobRequest req;
+    req.mutable_spec()->set_volume("volumes/v");
+    c.mutate(req.mutable_spec());
+    v1::Job job;
+    auto ctx = Ctx();
+    grpc::Status s = jobs->CreateJob(ctx.get(), req, &job);
+    EXPECT_EQ(s.error_code(), grpc::INVALID_ARGUMENT) << c.name << ": " << s.error_message();
+    EXPECT_THAT(s.error_message(), StartsWith(c.field + ":")) << c.name;
+    EXPECT_EQ(Detail(*ctx).field(), c.field) << c.name;
+  }
+  EXPECT_EQ(*store_->CountJobs(v1::QUEUED), 0);
+}
+
+TEST_F(ServicesTest, CreateJobStoresTheNormalizedSpecAndAnUnknownVolumeIsNotFound) {
+  Start();
+  auto jobs = v1::Jobs::NewStub(channel_);
+  v1::CreateJobRequest req;
+  req.mutable_spec()->set_volume("volumes/v");
+  req.mutable_spec()->set_target_reduction(0);
+  v1::Job job;
+  ASSERT_TRUE(jobs->CreateJob(Ctx().get(), req, &job).ok());
+  auto stored = store_->GetJob(job.name().substr(5));
+  ASSERT_TRUE(stored.ok());
+  const v1::JobSpec& s = stored->spec();
+  EXPECT_EQ(s.policy(), v1::FIELD);
+  EXPECT_EQ(s.regions(), 3);
+  ASSERT_TRUE(s.has_target_reduction());
+  EXPECT_EQ(s.target_reduction(), 0) << "an explicit 0 is kept";
+  EXPECT_TRUE(s.weights().has_regional());
+  EXPECT_EQ(s.image_size(), 512);
+  EXPECT_EQ(s.views_size(), 1);
+
+  req.mutable_spec()->set_volume("volumes/nope");
+  EXPECT_EQ(jobs->CreateJob(Ctx().get(), req, &job).error_code(), grpc::NOT_FOUND);
+}
+
+TEST_F(ServicesTest, TheFaultSeamIsIgnoredUnlessTheServerAllowsFaults) {
+  for (bool allow : {false, true}) {
+    Start(allow);
+    auto jobs = v1::Jobs::NewStub(channel_);
+    v1::CreateJobRequest req;
+    req.mutable_spec()->set_volume("volumes/v");
+    auto ctx = Ctx();
+    ctx->AddMetadata("decima-test-fault", "sleep:1");
+    v1::Job job;
+    ASSERT_TRUE(jobs->CreateJob(ctx.get(), req, &job).ok());
+    const std::string fault = DataDir(dir_).ReadJobFault(job.name().substr(5));
+    EXPECT_EQ(fault, allow ? "sleep:1" : "") << "allow_faults " << allow;
+    auto bad = Ctx();
+    bad->AddMetadata("decima-test-fault", "explode");
+    grpc::Status s = jobs->CreateJob(bad.get(), req, &job);
+    EXPECT_EQ(s.ok(), !allow) << s.error_message();
+    TearDown();
+    server_.reset();
+  }
+}
+
+}  // namespace
+}  // namespace decima::server
