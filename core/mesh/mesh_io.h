@@ -27,9 +27,8 @@
 namespace decima {
 
 struct VtuWriteOptions {
-  // zlib-compress every array (vtkZLibDataCompressor blocks of 1 MiB). On the CT head
-  // (4.19 M tets) level 1 gives 26 MB instead of 112 MB raw and takes ~0.7 s instead of ~0.3 s
-  // to write; both are read by VTK/ParaView and by ReadVtu.
+  // zlib-compress every array (vtkZLibDataCompressor blocks of 1 MiB): about 4x smaller for
+  // about 2x the write time (README.md "Measured"); both are read by VTK/ParaView and ReadVtu.
   bool compress = true;
   // zlib level 1..9 (1 = fastest; level 6 saves another ~5 % at ~8x the time).
   int level = 1;
@@ -90,10 +89,9 @@ absl::StatusOr<TetMesh> ReadVtu(const std::filesystem::path& path, VtuReadReport
                                 const VtuReadOptions& options = {});
 
 struct GmshWriteOptions {
-  // Binary (the default: coordinates as exact doubles, ~2x faster to write than ASCII) or
-  // ASCII (shortest round-trip decimals). Sizes are similar: binary spends 8 bytes per tag as
-  // Gmsh's format demands (195 MB for the 4.19 M-tet CT head, ASCII 163 MB there because grid
-  // coordinates are short decimals; ASCII grows once simplification moves vertices).
+  // Binary (the default: coordinates as exact doubles, faster to write than ASCII) or ASCII
+  // (shortest round-trip decimals). Sizes are similar (README.md "Measured"): binary spends 8
+  // bytes per tag as Gmsh's format demands, ASCII is short for grid coordinates.
   bool binary = true;
 };
 

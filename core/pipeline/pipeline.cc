@@ -88,7 +88,6 @@ absl::Status WriteText(const std::filesystem::path& path, const std::string& tex
 
 }  // namespace
 
-
 absl::Status ValidateJobSpec(const JobSpec& spec, std::string* field) {
   // Each value goes through its module's validator on otherwise default options, so the
   // failing one is known by name and the ranges exist once, in the module that owns them.

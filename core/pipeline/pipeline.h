@@ -44,7 +44,6 @@ struct JobSpec {
 // ParseView and the transfer-function parser, so it accepts exactly what RunJob can run.
 absl::Status ValidateJobSpec(const JobSpec& spec, std::string* field = nullptr);
 
-
 struct Artifact {
   std::string name;  // "mesh.vtu", "diff.png", ...
   std::filesystem::path path;

@@ -139,10 +139,10 @@ bool IsPermanent(Outcome o) {
 CollapseEngine::CollapseEngine(TetMesh mesh, const SimplifyOptions& options, int threads)
     : mesh_(std::move(mesh)), options_(options) {
   const int64_t nv = mesh_.vertex_count(), nt = mesh_.tet_count();
-  if (options_.policy == SimplifyPolicy::kPaper && options_.feature_threshold_voxels >= 0) {
+  if (options_.policy == SimplifyPolicy::kPaper && options_.feature_threshold_voxels) {
     for (int64_t v = 0; v < nv; ++v) {
       const bool feature =
-          std::abs(mesh_.interface_distance[v]) <= options_.feature_threshold_voxels;
+          std::abs(mesh_.interface_distance[v]) <= *options_.feature_threshold_voxels;
       mesh_.vertex_flags[v] =
           (mesh_.vertex_flags[v] & ~kFeatureVertex) | (feature ? kFeatureVertex : 0);
     }
@@ -763,7 +763,7 @@ CollapseResult CollapseEngine::TryCollapse(int32_t cell, float next_key) {
   return result;
 }
 
-int64_t CollapseEngine::BeginRound(int threads) {
+int64_t CollapseEngine::BeginPass(int threads) {
   heap_.clear();
   locked_.ClearAll();
   const int64_t nt = mesh_.tet_count();
@@ -814,8 +814,8 @@ void CollapseEngine::PushKey(uint32_t key, int32_t cell) {
   std::push_heap(heap_.begin(), heap_.end(), std::greater<>());
 }
 
-absl::Status CollapseEngine::RunRound(int64_t max_removed, double tolerance,
-                                      const CancelToken* cancel, RoundStats* stats) {
+absl::Status CollapseEngine::RunPass(int64_t max_removed, double tolerance,
+                                     const CancelToken* cancel, EnginePassStats* stats) {
   stats->candidates = int64_t(order_.size());
   size_t i = 0;
   const size_t n = order_.size();

@@ -31,7 +31,7 @@ namespace decima::simplify_internal {
 enum class Outcome : uint8_t {
   kCollapsed,
   kDead,                   // the cell was deleted earlier
-  kLocked,                 // paper mode: in A(σ) of a collapse σ of this round (§2.2.4 step 2g)
+  kLocked,                 // paper mode: in A(σ) of a collapse σ of this pass (§2.2.4 step 2g)
   kUnchanged,              // rejected (rule 4 or 6) before, and nothing around it changed since
   kTwoFeatureVertices,     // rule 2
   kCrossRegion,            // rule 3
@@ -68,7 +68,7 @@ struct CollapseResult {
   int8_t merged = 4;  // vertices of τ merged (4 = the paper's collapse; 2 or 3 widened)
 };
 
-struct RoundStats {
+struct EnginePassStats {
   int64_t candidates = 0, collapses = 0, cells_removed = 0, rejected_flip = 0, rejected_rule4 = 0;
   int64_t requeued = 0;     // popped with a stale or too low key and pushed back
   int64_t other_point = 0;  // collapses to a point other than the centroid / pinned vertex
@@ -79,18 +79,18 @@ struct RoundStats {
 class CollapseEngine {
  public:
   // `mesh` must be valid (checked by Simplify). Feature flags are re-derived here if
-  // options.feature_threshold_voxels >= 0. `threads` only speeds up the set-up.
+  // options.feature_threshold_voxels is set. `threads` only speeds up the set-up.
   CollapseEngine(TetMesh mesh, const SimplifyOptions& options, int threads = 1);
 
-  // Starts a round: every live cell that may collapse and was not rejected since its
+  // Starts a pass: every live cell that may collapse and was not rejected since its
   // neighbourhood last changed is scored (in parallel) and sorted by (Δε, cell id); locks are
   // cleared. Returns the number of queued cells.
-  int64_t BeginRound(int threads);
+  int64_t BeginPass(int threads);
 
-  // Runs the greedy loop of §2.2.4 on the round's queue until `max_removed` cells were removed
+  // Runs the greedy loop of §2.2.4 on the pass's queue until `max_removed` cells were removed
   // in total, the queue is empty, or the next Δε exceeds `tolerance` (> 0). Errors: Cancelled.
-  absl::Status RunRound(int64_t max_removed, double tolerance, const CancelToken* cancel,
-                        RoundStats* stats);
+  absl::Status RunPass(int64_t max_removed, double tolerance, const CancelToken* cancel,
+                       EnginePassStats* stats);
 
   // Own-vertex rules (2, 3, 5; rule 4 estimated from the set-up marks) and Δε on the current
   // mesh.
@@ -186,9 +186,9 @@ class CollapseEngine {
   std::vector<uint8_t> permanent_;  // an IsPermanent outcome: never queued again
   std::vector<float> cell_volume_;
   std::vector<uint32_t> scored_at_, rejected_at_;
-  BitSet locked_;  // paper mode: locked in this round
+  BitSet locked_;  // paper mode: locked in this pass
 
-  // The round's queue: cells sorted by (key, id), then a min-heap of re-pushed (key, id).
+  // The pass's queue: cells sorted by (key, id), then a min-heap of re-pushed (key, id).
   std::vector<int32_t> order_;
   std::vector<uint32_t> order_keys_;
   std::vector<std::pair<uint32_t, int32_t>> heap_;

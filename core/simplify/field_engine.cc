@@ -238,12 +238,12 @@ void FieldEngine::Setup() {
   nt_ = in_.tet_count();
   pos_ = in_.positions.data();
   flags_ = in_.vertex_flags;
-  if (options_.feature_threshold_voxels >= 0) {
+  if (options_.feature_threshold_voxels) {
     for (int64_t v = 0; v < nv_; ++v) {
-      flags_[v] =
-          uint8_t(flags_[v] & ~kFeatureVertex) |
-          (std::abs(in_.interface_distance[v]) <= options_.feature_threshold_voxels ? kFeatureVertex
-                                                                                    : 0);
+      flags_[v] = uint8_t(flags_[v] & ~kFeatureVertex) |
+                  (std::abs(in_.interface_distance[v]) <= *options_.feature_threshold_voxels
+                       ? kFeatureVertex
+                       : 0);
     }
   }
   tets_ = in_.tets;

@@ -60,7 +60,7 @@ absl::Status ValidateMesh(const TetMesh& m) {
   return absl::OkStatus();
 }
 
-// The paper's and TetFusion's greedy cell collapse, round after round (collapse_engine.h).
+// The paper's and TetFusion's greedy cell collapse, pass after pass (collapse_engine.h).
 absl::Status RunCellCollapse(const TetMesh& mesh, const SimplifyOptions& options, int threads,
                              int64_t target, bool has_target, const ProgressFn& progress,
                              const CancelToken* cancel, SimplifyResult* result) {
@@ -70,27 +70,27 @@ absl::Status RunCellCollapse(const TetMesh& mesh, const SimplifyOptions& options
   for (int pass = 1; pass <= options.max_passes && !stopped; ++pass) {
     if (engine.removed_cells() >= target) break;
     DECIMA_RETURN_IF_ERROR(CheckCancelled(cancel, "simplify"));
-    engine.BeginRound(threads);
-    simplify_internal::RoundStats round;
+    engine.BeginPass(threads);
+    simplify_internal::EnginePassStats run;
     DECIMA_RETURN_IF_ERROR(
-        engine.RunRound(target, has_tolerance ? options.error_tolerance : 0, cancel, &round));
+        engine.RunPass(target, has_tolerance ? options.error_tolerance : 0, cancel, &run));
     SimplifyPassStats stats;
-    stats.candidates = round.candidates;
-    stats.collapses = round.collapses;
-    stats.cells_removed = round.cells_removed;
-    stats.rejected_flip = round.rejected_flip;
-    stats.rejected_rule4 = round.rejected_rule4;
-    stats.requeued = round.requeued;
-    stats.other_point = round.other_point;
-    stats.last_error = round.last_error;
-    result->max_error = std::max(result->max_error, round.max_error);
+    stats.candidates = run.candidates;
+    stats.collapses = run.collapses;
+    stats.cells_removed = run.cells_removed;
+    stats.rejected_flip = run.rejected_flip;
+    stats.rejected_rule4 = run.rejected_rule4;
+    stats.requeued = run.requeued;
+    stats.other_point = run.other_point;
+    stats.last_error = run.last_error;
+    result->max_error = std::max(result->max_error, run.max_error);
     const int64_t removed = engine.removed_cells();
     result->passes = pass;
     result->collapses += stats.collapses;
     result->pass_stats.push_back(stats);
     Report(progress, {"simplify",
                       has_target ? std::min(1.0, double(removed) / double(target)) : 0.0,
-                      absl::StrFormat("round %d: %d collapses removed %d cells (%.1f%% so far)",
+                      absl::StrFormat("pass %d: %d collapses removed %d cells (%.1f%% so far)",
                                       pass, stats.collapses, stats.cells_removed,
                                       100.0 * double(removed) /
                                           double(std::max<int64_t>(1, result->input_cells))),
@@ -100,8 +100,8 @@ absl::Status RunCellCollapse(const TetMesh& mesh, const SimplifyOptions& options
     if (stats.collapses == 0) {
       stopped = true;
       result->stop_reason =
-          round.tolerance_hit ? StopReason::kErrorTolerance : StopReason::kNoValidCollapse;
-    } else if (round.tolerance_hit) {
+          run.tolerance_hit ? StopReason::kErrorTolerance : StopReason::kNoValidCollapse;
+    } else if (run.tolerance_hit) {
       stopped = true;
       result->stop_reason = StopReason::kErrorTolerance;
     } else if (removed < target &&
@@ -147,8 +147,10 @@ absl::Status ValidateSimplifyOptions(const SimplifyOptions& o) {
       return bad(absl::StrCat(name, " = ", w, ": expected a finite weight >= 0"));
     }
   }
-  if (!std::isfinite(o.feature_threshold_voxels)) {
-    return bad("feature_threshold_voxels must be finite (< 0 to use the vertex flags)");
+  if (o.feature_threshold_voxels &&
+      !(*o.feature_threshold_voxels >= 0 && std::isfinite(*o.feature_threshold_voxels))) {
+    return bad(absl::StrCat("feature_threshold_voxels = ", *o.feature_threshold_voxels,
+                            ": expected a finite distance >= 0 voxels (unset: the mesh's flags)"));
   }
   if (!(o.voxel_size_mm >= 0 && std::isfinite(o.voxel_size_mm))) {
     return bad(absl::StrCat("voxel_size_mm = ", o.voxel_size_mm, ": expected >= 0 mm"));

@@ -64,13 +64,14 @@ struct SimplifyOptions {
   // Fraction of the input cells to remove, in [0, 0.99]. 0 = no target: run until the error
   // tolerance or no collapsible cell remains.
   double target_reduction = 0.5;
-  // Largest predicted error a collapse may have, finite >= 0; 0 means no tolerance. kPaper/kTetFusion:
-  // Δε of Eq. (8). kField: the RMS field deviation its quadric predicts, in image units.
+  // Largest predicted error a collapse may have, finite >= 0; 0 means no tolerance.
+  // kPaper/kTetFusion: Δε of Eq. (8). kField: the RMS field deviation its quadric predicts, in
+  // image units.
   double error_tolerance = 0;
   ErrorWeights weights;
-  // Feature vertices (kPaper): < 0 uses the kFeatureVertex flags as Tetrahedralize set them;
-  // >= 0 re-derives them as |interface_distance| <= this many voxels.
-  float feature_threshold_voxels = -1;
+  // Feature vertices: unset, the kFeatureVertex flags as Tetrahedralize set them (with its own
+  // feature_threshold_voxels); set, re-derived as |interface_distance| <= this many voxels.
+  std::optional<float> feature_threshold_voxels;
   // Grid spacing in mm that makes ε_s, ε_v and the volume guard unit-free ("voxel units": the
   // mean of the three spacings). 0 = estimate as cbrt(5 * mean cell volume), exact for an
   // unsimplified 5-tets-per-cube mesh of an isotropic grid.
@@ -79,10 +80,10 @@ struct SimplifyOptions {
   // (rule 6's sign test plus a guard against slivers). Must be > 0.
   double min_volume_fraction = 1e-3;
   // §2.2.4 step 2g (default): after a collapse, lock the cells it changed for the rest of the
-  // round (a round is then an independent set of collapses; rounds repeat). false: no lock;
+  // pass (a pass is then an independent set of collapses; passes repeat). false: no lock;
   // cells whose neighbourhood changed are re-scored when they reach the front of the queue and
-  // pushed back if no longer the cheapest, so one round follows the error order as far as it
-  // goes: better fidelity (CT head at 50 %: PSNR 43.0 instead of 37.1 dB), about 2x the time.
+  // pushed back if no longer the cheapest, so one pass follows the error order as far as it
+  // goes: better fidelity, about 2x the time (README.md has the figures).
   bool lock_neighbours = true;
   // kPaper: when the paper's collapse of τ (all four vertices to the centroid, or onto the
   // vertex that must stay) would flip a neighbour, delete τ by the valid merge with the lowest
@@ -90,11 +91,11 @@ struct SimplifyOptions {
   // centroid, an edge midpoint or a vertex; two (an edge) at its midpoint or an end. A vertex
   // that must stay never moves (its merges end on it). false = the paper's collapse only.
   bool widen_collapse_point = true;
-  // Rounds: each re-queues the cells not collapsed yet whose neighbourhood changed since they
+  // Passes: each re-queues the cells not collapsed yet whose neighbourhood changed since they
   // were last rejected. 1..10000.
   int max_passes = 64;
-  // A round that removes fewer than this fraction of the input cells ends the loop (the mesh is
-  // jammed: later rounds gain almost nothing). 0 = run until a round removes nothing.
+  // A pass that removes fewer than this fraction of the input cells ends the loop (the mesh is
+  // jammed: later passes gain almost nothing). 0 = run until a pass removes nothing.
   // In [0, 0.5].
   double min_pass_gain = 1e-3;
   // kField: conjugate-gradient steps of the least-squares refit of the vertex values to the
@@ -121,14 +122,14 @@ std::optional<SimplifyPolicy> ParseSimplifyPolicy(std::string_view name);
 std::string SimplifyPolicyNames();
 
 struct SimplifyPassStats {
-  int64_t candidates = 0;      // cells the own-vertex rules allowed at the start of the round
+  int64_t candidates = 0;      // cells the own-vertex rules allowed at the start of the pass
   int64_t collapses = 0;       // collapses performed
   int64_t cells_removed = 0;   // cells removed by them (τ plus D(τ))
   int64_t rejected_flip = 0;   // rejected by rule 6 (sign or sliver) at every point tried
   int64_t rejected_rule4 = 0;  // rejected by rule 4 (cross-region / feature neighbourhood)
   int64_t requeued = 0;        // re-scored at the front of the queue and pushed back
   int64_t other_point = 0;     // free collapses made at a point other than the centroid
-  double last_error = 0;       // Δε of the last collapse of the round
+  double last_error = 0;       // Δε of the last collapse of the pass
 };
 
 struct SimplifyResult {

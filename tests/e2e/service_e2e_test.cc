@@ -120,9 +120,8 @@ TEST_F(ServiceE2E, SubmitWatchOutLeavesEveryArtifact) {
   if (auto ct = testing::SharedDataFile("ct-head-128x128x53.nii.gz")) inputs.push_back(*ct);
   for (const auto& input : inputs) {
     fs::path out = scratch_ / ("out-" + input.filename().string());
-    CliResult r =
-        RunCli(server.address(), {"submit", input.string(), "--watch", "--out",
-                                  out.string(), "--image-size", "64"});
+    CliResult r = RunCli(server.address(), {"submit", input.string(), "--watch", "--out",
+                                            out.string(), "--image-size", "64"});
     ASSERT_EQ(r.rc, 0) << r.err << server.Log();
     EXPECT_THAT(FirstLine(r.out), HasSubstr("jobs/"));
     EXPECT_THAT(r.err, HasSubstr("SUCCEEDED"));
@@ -141,8 +140,7 @@ TEST_F(ServiceE2E, SubmitWatchOutLeavesEveryArtifact) {
 
 TEST_F(ServiceE2E, CancelStopsARunningJobWithinASecondAndTheWorkerTakesTheNext) {
   ServerProcess server(scratch_ / "data", {"--workers", "1", "--allow-faults"});
-  CliResult a = RunCli(server.address(),
-                       {"submit", volume_.string(), "--fault", "sleep:40"});
+  CliResult a = RunCli(server.address(), {"submit", volume_.string(), "--fault", "sleep:40"});
   ASSERT_EQ(a.rc, 0) << a.err;
   std::string job_a = FirstLine(a.out);
   CliResult b = RunCli(server.address(), {"submit", volume_.string()});
@@ -175,8 +173,7 @@ TEST_F(ServiceE2E, ServerKilledWithJobsQueuedAndRunningCompletesEveryJobAfterRes
   {
     ServerProcess server(data, {"--workers", "1", "--allow-faults"});
     for (int i = 0; i < 3; ++i) {
-      CliResult r = RunCli(server.address(),
-                           {"submit", volume_.string(), "--fault", "sleep:1"});
+      CliResult r = RunCli(server.address(), {"submit", volume_.string(), "--fault", "sleep:1"});
       ASSERT_EQ(r.rc, 0) << r.err;
       jobs.push_back(FirstLine(r.out));
     }
@@ -199,16 +196,15 @@ TEST_F(ServiceE2E, ServerKilledWithJobsQueuedAndRunningCompletesEveryJobAfterRes
 
 TEST_F(ServiceE2E, CrashingPipelineFailsTheJobAndTheServerStaysUp) {
   ServerProcess server(scratch_ / "data", {"--allow-faults"});
-  CliResult r = RunCli(server.address(), {"submit", volume_.string(),
-                                          "--fault", "crash", "--watch"});
+  CliResult r =
+      RunCli(server.address(), {"submit", volume_.string(), "--fault", "crash", "--watch"});
   EXPECT_EQ(r.rc, 3) << r.err;
   std::string job = FirstLine(r.out);
   v1::Job j = GetJob(server.address(), job);
   EXPECT_EQ(j.state(), v1::FAILED);
   EXPECT_THAT(j.error().message(), HasSubstr("signal"));
   EXPECT_EQ(RunCli(server.address(), {"health"}).rc, 0);
-  CliResult ok =
-      RunCli(server.address(), {"submit", volume_.string(), "--watch"});
+  CliResult ok = RunCli(server.address(), {"submit", volume_.string(), "--watch"});
   EXPECT_EQ(ok.rc, 0) << ok.err;
 }
 
@@ -245,8 +241,8 @@ TEST_F(ServiceE2E, FourClientsTwentyJobsEachTwoWorkersAllSucceedOnceInOrder) {
     clients.emplace_back([&, c] {
       for (int i = 0; i < 20; ++i) {
         // Small renders keep 80 real pipeline runs within the watchers' deadline on 2 cores.
-        CliResult r = RunCli(server.address(), {"-q", "submit",
-                                                vols[c].string(), "--image-size", "32"});
+        CliResult r =
+            RunCli(server.address(), {"-q", "submit", vols[c].string(), "--image-size", "32"});
         if (r.rc != 0) {
           ADD_FAILURE() << r.err;
           return;
@@ -290,8 +286,7 @@ TEST_F(ServiceE2E, FourClientsTwentyJobsEachTwoWorkersAllSucceedOnceInOrder) {
 
 TEST_F(ServiceE2E, WatcherThatReconnectsWithItsLastSequenceSeesNoGap) {
   ServerProcess server(scratch_ / "data", {"--allow-faults"});
-  CliResult r = RunCli(server.address(),
-                       {"submit", volume_.string(), "--fault", "sleep:1.5"});
+  CliResult r = RunCli(server.address(), {"submit", volume_.string(), "--fault", "sleep:1.5"});
   ASSERT_EQ(r.rc, 0) << r.err;
   std::string job = FirstLine(r.out);
   // First connection: leave after 5 progress events.
@@ -427,8 +422,7 @@ TEST_F(ServiceE2E, BadRequestsGetTheirCodesAndStoreNothing) {
 TEST_F(ServiceE2E, FullQueueIsResourceExhaustedDrainingIsUnavailableAndSigtermRequeues) {
   ServerProcess server(scratch_ / "data", {"--workers", "1", "--max-queued", "1", "--allow-faults",
                                            "--drain-seconds", "3"});
-  CliResult a = RunCli(server.address(),
-                       {"submit", volume_.string(), "--fault", "sleep:30"});
+  CliResult a = RunCli(server.address(), {"submit", volume_.string(), "--fault", "sleep:30"});
   ASSERT_EQ(a.rc, 0) << a.err;
   ASSERT_TRUE(WaitFor(
       [&] { return GetJob(server.address(), FirstLine(a.out)).state() == v1::RUNNING; }, 30s));

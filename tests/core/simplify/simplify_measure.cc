@@ -8,7 +8,7 @@
 //   simplify-measure --phantom 128 --policy tetfusion --reductions 0.5 --no-metrics
 // --lock 1 / --widen 0 / --refit N switch SimplifyOptions::lock_neighbours /
 // widen_collapse_point / refit_iterations;
-// MEASURE_PASSES=1 prints the per-round statistics.
+// MEASURE_PASSES=1 prints the per-pass statistics.
 #include <sys/resource.h>
 
 #include <algorithm>
@@ -185,7 +185,7 @@ int Run(int argc, char** argv) {
     if (std::getenv("MEASURE_PASSES")) {
       for (const auto& ps : r->pass_stats) {
         std::printf(
-            "  round: candidates %lld collapses %lld removed %lld flip %lld rule4 %lld "
+            "  pass: candidates %lld collapses %lld removed %lld flip %lld rule4 %lld "
             "requeued %lld other-point %lld\n",
             (long long)ps.candidates, (long long)ps.collapses, (long long)ps.cells_removed,
             (long long)ps.rejected_flip, (long long)ps.rejected_rule4, (long long)ps.requeued,

@@ -162,7 +162,7 @@ TEST(CollapseRules, CellWithTwoFeatureVerticesIsNeverCollapsed) {
   m.vertex_flags[m.tets[4 * c]] |= kFeatureVertex;
   m.vertex_flags[m.tets[4 * c + 1]] |= kFeatureVertex;
   CollapseEngine e(m, {});
-  e.BeginRound(1);
+  e.BeginPass(1);
   EXPECT_EQ(e.TryCollapse(c).outcome, Outcome::kTwoFeatureVertices);
   EXPECT_EQ(Finish(e).mesh.tets, m.tets);
 }
@@ -177,7 +177,7 @@ TEST(CollapseRules, CellWithOneFeatureVertexCollapsesOntoIt) {
       const int32_t f = m.tets[4 * c + 2];
       m.vertex_flags[f] |= kFeatureVertex;
       CollapseEngine e(m, o);
-      e.BeginRound(1);
+      e.BeginPass(1);
       const auto r = e.TryCollapse(c);
       if (r.outcome == Outcome::kFlip) continue;
       ASSERT_EQ(r.outcome, Outcome::kCollapsed) << OutcomeName(r.outcome);
@@ -211,7 +211,7 @@ TEST(CollapseRules, CrossRegionCellIsNeverCollapsed) {
   const int32_t c = InteriorCells(m)[0];
   m.labels[m.tets[4 * c + 3]] = 1;  // two regions, no feature vertex
   CollapseEngine e(m, {});
-  e.BeginRound(1);
+  e.BeginPass(1);
   EXPECT_EQ(e.TryCollapse(c).outcome, Outcome::kCrossRegion);
   EXPECT_EQ(Finish(e).mesh.tets, m.tets);
 }
@@ -236,7 +236,7 @@ TEST(CollapseRules, NeighbourOfCrossRegionCellCollapsesOntoTheCommonVertex) {
     }
     if (crossing == 0) continue;
     CollapseEngine e(m, {});
-    e.BeginRound(1);
+    e.BeginPass(1);
     const auto r = e.TryCollapse(c);
     if (common == 0) {
       EXPECT_EQ(r.outcome, Outcome::kCrossRegionNeighbours);
@@ -265,7 +265,7 @@ TEST(CollapseRules, BoundaryCellNeverMovesItsBoundaryVertex) {
         if (m.vertex_flags[t[k]] & kExteriorBoundaryVertex) ++nb, b = t[k];
       if (nb == 0) continue;
       CollapseEngine e(m, o);
-      e.BeginRound(1);
+      e.BeginPass(1);
       const auto r = e.TryCollapse(int32_t(c));
       if (nb >= 2) {
         ++two;
@@ -296,7 +296,7 @@ TEST(CollapseRules, NormalCellCollapsesToItsCentroidKeepingVolumeAndConformity) 
   const TetMesh m = GridMesh();
   const int32_t c = InteriorCells(m)[0];
   CollapseEngine e(m, {});
-  e.BeginRound(1);
+  e.BeginPass(1);
   const auto r = e.TryCollapse(c);
   ASSERT_EQ(r.outcome, Outcome::kCollapsed) << OutcomeName(r.outcome);
   EXPECT_GE(r.cells_removed, 5);
@@ -348,7 +348,7 @@ TEST(CollapseRules, CollapseThatWouldFlipANeighbourIsRejectedAndMeshUntouched) {
           SimplifyOptions paper_only;
           paper_only.widen_collapse_point = false;
           CollapseEngine e(m, paper_only);
-          e.BeginRound(1);
+          e.BeginPass(1);
           EXPECT_EQ(e.TryCollapse(c).outcome, Outcome::kFlip);
           const Finished out = Finish(e);
           EXPECT_EQ(out.mesh.tets, m.tets);
@@ -356,7 +356,7 @@ TEST(CollapseRules, CollapseThatWouldFlipANeighbourIsRejectedAndMeshUntouched) {
           EXPECT_EQ(out.mesh.scalars, m.scalars);
           // The widened set may delete τ another way; then every cell is still positive.
           CollapseEngine wide(m, {});
-          wide.BeginRound(1);
+          wide.BeginPass(1);
           const auto r = wide.TryCollapse(c);
           const Finished w = Finish(wide);
           if (r.outcome == Outcome::kCollapsed) {
