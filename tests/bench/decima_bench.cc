@@ -38,22 +38,16 @@
 #include "core/segment/segment.h"
 #include "core/simplify/simplify.h"
 #include "core/volume/phantom.h"
+#include "tests/bench/bench_util.h"
 
 namespace decima {
 namespace {
 
+using bench::LoadAverage;
+using bench::ParsePhantom;
+using bench::PeakRssMb;
+
 using Json = nlohmann::ordered_json;
-
-double PeakRssMb() {
-  rusage usage{};
-  getrusage(RUSAGE_SELF, &usage);
-  return usage.ru_maxrss / 1024.0;  // Linux reports kilobytes
-}
-
-double LoadAverage() {
-  double load[1] = {0};
-  return getloadavg(load, 1) == 1 ? load[0] : -1.0;
-}
 
 // Runs `fn` `repeat` times and fills seconds (median) and seconds_all.
 absl::Status Time(int repeat, Json& out, const std::function<absl::Status()>& fn) {
@@ -69,24 +63,6 @@ absl::Status Time(int repeat, Json& out, const std::function<absl::Status()>& fn
   out["seconds"] = runs[runs.size() / 2];
   out["peak_rss_mb"] = PeakRssMb();
   return absl::OkStatus();
-}
-
-// "phantom:NxNxN" or "phantom:N" -> dims; nullopt if `input` is not a phantom spec.
-absl::StatusOr<std::optional<std::array<int64_t, 3>>> ParsePhantom(const std::string& input) {
-  if (input.rfind("phantom:", 0) != 0) return std::nullopt;
-  std::vector<std::string> parts = absl::StrSplit(input.substr(8), 'x');
-  std::array<int64_t, 3> dims{};
-  if (parts.size() == 1) parts = {parts[0], parts[0], parts[0]};
-  if (parts.size() != 3) {
-    return absl::InvalidArgumentError("--input: expected phantom:NxNxN, got '" + input + "'");
-  }
-  for (int c = 0; c < 3; ++c) {
-    if (!absl::SimpleAtoi(parts[c], &dims[c]) || dims[c] < 2) {
-      return absl::InvalidArgumentError("--input: phantom size '" + parts[c] +
-                                        "' is not an integer >= 2");
-    }
-  }
-  return std::optional<std::array<int64_t, 3>>(dims);
 }
 
 struct BenchOptions {

@@ -56,9 +56,13 @@
 #include "core/segment/segment.h"
 #include "core/simplify/simplify.h"
 #include "core/volume/phantom.h"
+#include "tests/bench/bench_util.h"
 
 namespace decima {
 namespace {
+
+using bench::LoadAverage;
+using bench::ParsePhantom;
 
 namespace fs = std::filesystem;
 using Json = nlohmann::ordered_json;
@@ -79,11 +83,6 @@ double CurrentRssMb() {
   return double(resident) * double(sysconf(_SC_PAGESIZE)) / (1024.0 * 1024.0);
 }
 
-double LoadAverage() {
-  double load[1] = {0};
-  return getloadavg(load, 1) == 1 ? load[0] : -1.0;
-}
-
 double Median(std::vector<double> v) {
   std::sort(v.begin(), v.end());
   return v.empty() ? 0 : v[v.size() / 2];
@@ -91,22 +90,6 @@ double Median(std::vector<double> v) {
 
 double SecondsSince(std::chrono::steady_clock::time_point start) {
   return std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
-}
-
-// "phantom:NxNxN" or "phantom:N" -> dims; nullopt if `input` is not a phantom spec.
-absl::StatusOr<std::optional<std::array<int64_t, 3>>> ParsePhantom(const std::string& input) {
-  if (input.rfind("phantom:", 0) != 0) return std::nullopt;
-  std::vector<std::string> parts = absl::StrSplit(input.substr(8), 'x');
-  if (parts.size() == 1) parts = {parts[0], parts[0], parts[0]};
-  if (parts.size() != 3)
-    return absl::InvalidArgumentError("--input: expected phantom:NxNxN, got '" + input + "'");
-  std::array<int64_t, 3> dims{};
-  for (int c = 0; c < 3; ++c) {
-    if (!absl::SimpleAtoi(parts[c], &dims[c]) || dims[c] < 2)
-      return absl::InvalidArgumentError("--input: phantom size '" + parts[c] +
-                                        "' is not an integer >= 2");
-  }
-  return std::optional<std::array<int64_t, 3>>(dims);
 }
 
 struct CompareOptions {
@@ -314,8 +297,8 @@ Json RunDecima(const CompareOptions& o, const Reference& ref, const std::string&
   Json head{{"method", name}, {"kind", "decima"}, {"target_reduction", reduction}};
   const std::optional<SimplifyPolicy> policy = ParseSimplifyPolicy(name);
   if (!policy) {
-    head["error"] = absl::StrCat("unknown policy '", name,
-                                 "' (this build knows: ", SimplifyPolicyNames(), ")");
+    head["error"] =
+        absl::StrCat("unknown policy '", name, "' (this build knows: ", SimplifyPolicyNames(), ")");
     return head;
   }
   Json r = RunInChild([&]() -> Json {
