@@ -8,6 +8,7 @@
 #include <vector>
 
 #include "absl/status/statusor.h"
+#include "core/common/parallel.h"
 #include "core/common/progress.h"
 #include "core/common/status.h"
 #include "core/segment/segment.h"
@@ -15,11 +16,7 @@
 
 namespace decima::segment_internal {
 
-// Number of worker threads for a `threads` option (0 = all hardware threads).
-inline int ResolveThreads(int threads) {
-  if (threads > 0) return threads;
-  return std::max(1u, std::thread::hardware_concurrency());
-}
+using ::decima::ResolveThreads;  // core/common/parallel.h
 
 // 1D k-means on the float intensities `v` (n values). `integer_valued`: the values are integers
 // (the image type is an integer type), which allows the exact histogram.

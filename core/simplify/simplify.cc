@@ -7,6 +7,7 @@
 
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_format.h"
+#include "core/common/parallel.h"
 #include "core/common/status.h"
 #include "core/simplify/collapse_engine.h"
 #include "core/simplify/field_engine.h"
@@ -226,8 +227,7 @@ absl::StatusOr<SimplifyResult> Simplify(const TetMesh& mesh, const SimplifyOptio
   DECIMA_RETURN_IF_ERROR(ValidateSimplifyOptions(options));
   DECIMA_RETURN_IF_ERROR(ValidateMesh(mesh));
   DECIMA_RETURN_IF_ERROR(CheckCancelled(cancel, "simplify"));
-  const int threads = options.threads > 0 ? options.threads
-                                          : int(std::max(1u, std::thread::hardware_concurrency()));
+  const int threads = ResolveThreads(options.threads);
 
   SimplifyResult result;
   result.input_cells = mesh.tet_count();
