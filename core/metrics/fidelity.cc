@@ -347,20 +347,35 @@ absl::StatusOr<FidelityMetrics> MeasureFidelity(const Volume& image, const TetMe
 
   if (options.original != nullptr) {
     const TetMesh& o = *options.original;
-    std::vector<uint8_t> taken(simplified.vertex_count(), 0);
+    // An output vertex that sits exactly where one of the feature vertices mapped to it was is
+    // that vertex, unmoved; the others mapped to it were merged into it (removed). Only an
+    // output vertex at none of their places counts one of them as moved. (Deciding by the
+    // first vertex in index order instead called a vertex merged into a later one "moved".)
+    const int64_t nout = simplified.vertex_count();
+    auto same_place = [&](int64_t v, int32_t n) {
+      return simplified.positions[3 * int64_t(n)] == o.positions[3 * v] &&
+             simplified.positions[3 * int64_t(n) + 1] == o.positions[3 * v + 1] &&
+             simplified.positions[3 * int64_t(n) + 2] == o.positions[3 * v + 2];
+    };
+    std::vector<uint8_t> kept(nout, 0);  // 1: a feature vertex stayed there; 2: one moved there
+    for (int64_t v = 0; v < o.vertex_count(); ++v) {
+      if (!(o.vertex_flags[v] & kFeatureVertex)) continue;
+      const int32_t n = (*options.vertex_map)[v];
+      if (n >= 0 && n < nout && same_place(v, n)) kept[n] = 1;
+    }
     for (int64_t v = 0; v < o.vertex_count(); ++v) {
       if (!(o.vertex_flags[v] & kFeatureVertex)) continue;
       ++m.feature_vertices;
       const int32_t n = (*options.vertex_map)[v];
-      if (n < 0 || n >= simplified.vertex_count() || taken[n]) {
+      if (n < 0 || n >= nout) {
         ++m.feature_vertices_removed;
-        continue;
-      }
-      taken[n] = 1;
-      if (simplified.positions[3 * int64_t(n)] != o.positions[3 * v] ||
-          simplified.positions[3 * int64_t(n) + 1] != o.positions[3 * v + 1] ||
-          simplified.positions[3 * int64_t(n) + 2] != o.positions[3 * v + 2]) {
+      } else if (kept[n] == 1) {
+        m.feature_vertices_removed += !same_place(v, n);
+      } else if (kept[n] == 0) {
+        kept[n] = 2;
         ++m.feature_vertices_moved;
+      } else {
+        ++m.feature_vertices_removed;
       }
     }
   }

@@ -128,13 +128,18 @@ TEST(Fidelity, CountsInvertedCellsAndMovedOrMergedFeatureVertices) {
   map[1] = 0;                              // feature 1 merged into feature 0
   map[2] = -1;                             // feature 2 removed
   orig.vertex_flags[5] |= kFeatureVertex;  // feature 5 moved
+  // Feature 3 merged into feature 7, which comes later in index order and stays in place: a
+  // removal, not a move (half-edge collapses merge in any order).
+  orig.vertex_flags[3] |= kFeatureVertex;
+  orig.vertex_flags[7] |= kFeatureVertex;
+  map[3] = 7;
   FidelityOptions o;
   o.original = &orig;
   o.vertex_map = &map;
   auto f = MeasureFidelity(v, out, o);
   ASSERT_TRUE(f.ok());
-  EXPECT_EQ(f->feature_vertices, 4);
-  EXPECT_EQ(f->feature_vertices_removed, 2);
+  EXPECT_EQ(f->feature_vertices, 6);
+  EXPECT_EQ(f->feature_vertices_removed, 3);
   EXPECT_EQ(f->feature_vertices_moved, 1);
   EXPECT_EQ(f->inverted_cells, 1);
   // The inverted cell lies on the same side of its interior faces as its neighbours.

@@ -319,6 +319,21 @@ TEST(FieldPolicy, ReportsProgressAndHonoursCancellation) {
   EXPECT_EQ(c.status().code(), absl::StatusCode::kCancelled);
 }
 
+// A single cube: every vertex is a box corner, so nothing may collapse; the loop says so and
+// returns the mesh unchanged.
+TEST(FieldPolicy, AMeshOfCornersStaysAsItIsAndSaysWhy) {
+  const Labeled cube = MakeLabeled(
+      2, [](int64_t i, int64_t j, int64_t k) { return double(i + 2 * j + 4 * k); },
+      [](int64_t, int64_t, int64_t) { return 0; });
+  auto r = Simplify(cube.mesh, Field(0.5));
+  ASSERT_TRUE(r.ok()) << r.status();
+  EXPECT_FALSE(r->reached_target);
+  EXPECT_EQ(r->stop_reason, StopReason::kNoValidCollapse) << r->stop_message;
+  EXPECT_EQ(r->output_cells, 5);
+  EXPECT_EQ(r->mesh.positions, cube.mesh.positions);
+  EXPECT_NE(r->stop_message.find("target not reached"), std::string::npos) << r->stop_message;
+}
+
 TEST(SimplifyPolicyNames, EveryNameRoundTripsAndNothingElseParses) {
   for (SimplifyPolicy p :
        {SimplifyPolicy::kField, SimplifyPolicy::kPaper, SimplifyPolicy::kTetFusion}) {
