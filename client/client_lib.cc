@@ -86,7 +86,17 @@ bool CollectInputs(const fs::path& input, std::vector<InputFile>* out, std::stri
       if (it->is_directory(ec)) it.disable_recursion_pending();
       continue;
     }
-    if (!it->is_regular_file(ec)) continue;
+    // Only the folder's own regular files go up: a symbolic link may point anywhere on this
+    // machine (x.zraw -> /etc/passwd), so it is refused by name rather than followed or
+    // silently skipped (the user can copy the file in if it belongs to the scan).
+    const fs::file_status link_status = it->symlink_status(ec);
+    if (ec) break;
+    if (fs::is_symlink(link_status)) {
+      *error = p.string() + ": is a symbolic link; only regular files inside " + input.string() +
+               " are uploaded (copy the file into the folder instead)";
+      return false;
+    }
+    if (!fs::is_regular_file(link_status)) continue;
     InputFile f;
     f.name = fs::relative(p, input, ec).generic_string();
     f.path = p;

@@ -44,6 +44,24 @@ TEST(CollectInputsTest, FolderGivesSortedRelativeNamesWithoutHiddenFiles) {
   EXPECT_EQ(files[0].size, 1);
 }
 
+TEST(CollectInputsTest, ASymbolicLinkInTheFolderIsRefusedByName) {
+  fs::path d = testing::MakeScratchDir("collect_link");
+  std::ofstream(d / "scan.mhd") << "NDims = 3";
+  fs::create_symlink("/etc/passwd", d / "scan.zraw");
+  std::vector<InputFile> files;
+  std::string err;
+  EXPECT_FALSE(CollectInputs(d, &files, &err));
+  EXPECT_THAT(err, HasSubstr("scan.zraw"));
+  EXPECT_THAT(err, HasSubstr("symbolic link"));
+  // A linked folder is refused too, instead of being skipped without a word.
+  fs::remove(d / "scan.zraw");
+  fs::create_directories(d / "real");
+  std::ofstream(d / "real" / "x.dcm") << "x";
+  fs::create_directory_symlink(d / "real", d / "linked");
+  EXPECT_FALSE(CollectInputs(d, &files, &err));
+  EXPECT_THAT(err, HasSubstr("linked"));
+}
+
 TEST(CollectInputsTest, MissingInputAndEmptyFolderAreErrors) {
   fs::path d = testing::MakeScratchDir("collect_empty");
   std::vector<InputFile> files;
