@@ -136,16 +136,22 @@ bool IsPermanent(Outcome o) {
          o == Outcome::kPinnedConflict;
 }
 
+void ApplyFeatureThreshold(const SimplifyOptions& options,
+                           const std::vector<float>& interface_distance,
+                           std::vector<uint8_t>* flags) {
+  if (!options.feature_threshold_voxels) return;
+  const float threshold = *options.feature_threshold_voxels;
+  for (size_t v = 0; v < flags->size(); ++v) {
+    const bool feature = std::abs(interface_distance[v]) <= threshold;
+    (*flags)[v] = uint8_t((*flags)[v] & ~kFeatureVertex) | (feature ? kFeatureVertex : 0);
+  }
+}
+
 CollapseEngine::CollapseEngine(TetMesh mesh, const SimplifyOptions& options, int threads)
     : mesh_(std::move(mesh)), options_(options) {
   const int64_t nv = mesh_.vertex_count(), nt = mesh_.tet_count();
-  if (options_.policy == SimplifyPolicy::kPaper && options_.feature_threshold_voxels) {
-    for (int64_t v = 0; v < nv; ++v) {
-      const bool feature =
-          std::abs(mesh_.interface_distance[v]) <= *options_.feature_threshold_voxels;
-      mesh_.vertex_flags[v] =
-          (mesh_.vertex_flags[v] & ~kFeatureVertex) | (feature ? kFeatureVertex : 0);
-    }
+  if (options_.policy == SimplifyPolicy::kPaper) {
+    ApplyFeatureThreshold(options_, mesh_.interface_distance, &mesh_.vertex_flags);
   }
   mesh_.cell_regions.clear();  // recomputed by Finish()
 

@@ -45,6 +45,12 @@ enum class Outcome : uint8_t {
 };
 const char* OutcomeName(Outcome o);
 
+// With SimplifyOptions::feature_threshold_voxels set, re-derives the kFeatureVertex bit of every
+// vertex from its interface distance (both engines see features through this); unset: no-op.
+void ApplyFeatureThreshold(const SimplifyOptions& options,
+                           const std::vector<float>& interface_distance,
+                           std::vector<uint8_t>* flags);
+
 // True for the outcomes that can never change for a cell (its vertices can only gain feature
 // or boundary vertices, and cross-region cells are never created): such cells leave the queue
 // for good.

@@ -24,6 +24,7 @@
 #include "core/common/parallel.h"
 #include "core/common/status.h"
 #include "core/mesh/tetrahedralize.h"
+#include "core/simplify/collapse_engine.h"
 
 namespace decima::simplify_internal {
 namespace {
@@ -104,13 +105,18 @@ struct Candidate {
   int32_t target;
 };
 
+// The order of candidates everywhere: cost, then the lower target id (determinism).
+inline bool Cheaper(const Candidate& a, const Candidate& b) {
+  return a.cost < b.cost || (a.cost == b.cost && a.target < b.target);
+}
+
 struct Face {
   int32_t a, b, cell;
 };
 
 // Per-thread working memory of the scoring functions (the initial scoring runs in parallel).
 struct Scratch {
-  std::vector<int32_t> star, neighbours, patch;
+  std::vector<int32_t> star, patch;
   std::vector<Face> faces;
   std::vector<Candidate> candidates;
   std::vector<uint32_t> mark;  // mark[v] == stamp: v already listed in this call
@@ -238,14 +244,7 @@ void FieldEngine::Setup() {
   nt_ = in_.tet_count();
   pos_ = in_.positions.data();
   flags_ = in_.vertex_flags;
-  if (options_.feature_threshold_voxels) {
-    for (int64_t v = 0; v < nv_; ++v) {
-      flags_[v] = uint8_t(flags_[v] & ~kFeatureVertex) |
-                  (std::abs(in_.interface_distance[v]) <= *options_.feature_threshold_voxels
-                       ? kFeatureVertex
-                       : 0);
-    }
-  }
+  ApplyFeatureThreshold(options_, in_.interface_distance, &flags_);
   tets_ = in_.tets;
   dead_ = BitSet(nt_);
 
@@ -459,15 +458,12 @@ void FieldEngine::Candidates(int32_t u, Scratch& s) {
 bool FieldEngine::Score(int32_t u, Scratch& s, double* cost, int32_t* best) {
   GatherStar(u, &s.star);
   Candidates(u, s);
-  auto better = [](const Candidate& a, const Candidate& b) {
-    return a.cost < b.cost || (a.cost == b.cost && a.target < b.target);
-  };
   Candidate first{std::numeric_limits<double>::infinity(), -1}, second = first;
   for (const Candidate& c : s.candidates) {
-    if (first.target < 0 || better(c, first)) {
+    if (first.target < 0 || Cheaper(c, first)) {
       second = first;
       first = c;
-    } else if (second.target < 0 || better(c, second)) {
+    } else if (second.target < 0 || Cheaper(c, second)) {
       second = c;
     }
   }
@@ -584,7 +580,6 @@ absl::Status FieldEngine::Run(int64_t target, double tolerance, const ProgressFn
   bool tolerance_hit = false;
   double last_error = 0, max_error = 0;
   int64_t next_report = std::max<int64_t>(1, target / 50);
-  std::vector<int32_t> star;
   while (removed < target && !heap_.empty()) {
     const HeapEntry e = heap_.top();
     heap_.pop();
@@ -608,17 +603,15 @@ absl::Status FieldEngine::Run(int64_t target, double tolerance, const ProgressFn
         continue;
       }
     }
-    GatherStar(u, &star);
+    // u's cells, once: the validity checks, the fallback's candidates and the collapse share it.
+    const std::vector<int32_t>& star = scratch_.star;
+    GatherStar(u, &scratch_.star);
     int32_t v = best_[u];
     double cost = cost_[u];
     if (!Valid(u, v, star)) {
       ++invalid_tries_;
-      GatherStar(u, &scratch_.star);
       Candidates(u, scratch_);
-      std::sort(scratch_.candidates.begin(), scratch_.candidates.end(),
-                [](const Candidate& a, const Candidate& b) {
-                  return a.cost != b.cost ? a.cost < b.cost : a.target < b.target;
-                });
+      std::sort(scratch_.candidates.begin(), scratch_.candidates.end(), Cheaper);
       v = -1;
       for (const Candidate& c : scratch_.candidates) {
         if (Valid(u, c.target, star)) {

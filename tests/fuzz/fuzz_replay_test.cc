@@ -31,26 +31,23 @@ std::string Bytes(const fs::path& p) {
   return {std::istreambuf_iterator<char>(in), std::istreambuf_iterator<char>()};
 }
 
-TEST(FuzzReplay, EveryVtuSeedRunsThroughReadVtuEntry) {
-  const auto seeds = Seeds("vtu");
+// Every seed of corpus/<dir> (at least 4), and the empty input, through `entry` as the fuzzer
+// would feed them; the entry aborts on a broken invariant and returns 0 otherwise.
+void ReplayCorpus(const char* dir, int (*entry)(const uint8_t*, size_t)) {
+  const auto seeds = Seeds(dir);
   ASSERT_GE(seeds.size(), 4u);
   for (const fs::path& p : seeds) {
     SCOPED_TRACE(p.string());
     const std::string b = Bytes(p);
-    EXPECT_EQ(ReadVtuEntry(reinterpret_cast<const uint8_t*>(b.data()), b.size()), 0);
+    EXPECT_EQ(entry(reinterpret_cast<const uint8_t*>(b.data()), b.size()), 0);
   }
-  EXPECT_EQ(ReadVtuEntry(nullptr, 0), 0);
+  EXPECT_EQ(entry(nullptr, 0), 0);
 }
 
+TEST(FuzzReplay, EveryVtuSeedRunsThroughReadVtuEntry) { ReplayCorpus("vtu", ReadVtuEntry); }
+
 TEST(FuzzReplay, EveryTransferFunctionSeedRunsThroughItsEntry) {
-  const auto seeds = Seeds("transfer_function");
-  ASSERT_GE(seeds.size(), 4u);
-  for (const fs::path& p : seeds) {
-    SCOPED_TRACE(p.string());
-    const std::string b = Bytes(p);
-    EXPECT_EQ(TransferFunctionEntry(reinterpret_cast<const uint8_t*>(b.data()), b.size()), 0);
-  }
-  EXPECT_EQ(TransferFunctionEntry(nullptr, 0), 0);
+  ReplayCorpus("transfer_function", TransferFunctionEntry);
 }
 
 // The corpus must keep files the readers accept (named ok-*), so the fuzzer starts past the
