@@ -605,6 +605,8 @@ int Main(int argc, char** argv) {
   if (o.vtk) {
     if (absl::Status s = WriteVtu(ref.original, original_vtu); !s.ok()) {
       std::cerr << "decima-compare: " << s << "\n";
+      std::error_code ec;
+      if (temporary) fs::remove_all(dir, ec);  // leave no half-written export behind
       return 1;
     }
   }
