@@ -242,8 +242,15 @@ absl::StatusOr<SimplifyResult> Simplify(const TetMesh& mesh, const SimplifyOptio
         mesh, options, threads, target, has_tolerance ? options.error_tolerance : 0, progress,
         cancel, &result));
     if (options.refit_iterations > 0) {
+      simplify_internal::RefitStats refit;
       DECIMA_RETURN_IF_ERROR(simplify_internal::RefitValues(
-          mesh, &result.mesh, options.refit_iterations, threads, cancel, nullptr));
+          mesh, &result.mesh, options.refit_iterations, threads, cancel, &refit));
+      Report(progress,
+             {"simplify",
+              1.0,
+              absl::StrFormat("values refit to %d samples in %d steps: RMS %.3g -> %.3g",
+                              refit.samples, refit.iterations, refit.rms_before, refit.rms_after),
+              {{"refit_rms_before", refit.rms_before}, {"refit_rms_after", refit.rms_after}}});
     }
   } else {
     DECIMA_RETURN_IF_ERROR(

@@ -155,7 +155,9 @@ struct SimplifyResult {
 absl::Status ValidateSimplifyOptions(const SimplifyOptions& options);
 
 // Simplifies `mesh` (a valid TetMesh, see tet_mesh.h; every cell positively oriented). Progress
-// stage "simplify": once per pass with metrics {"pass", "cells_removed", "error"}. Returns
+// stage "simplify": once per pass (kField: about every 2 % of the target) with metrics {"pass",
+// "cells_removed", "error"}; kField adds one event after its set-up and, with the refit, a last
+// one with {"refit_rms_before", "refit_rms_after"}. Returns
 // InvalidArgument (naming the field) for an invalid mesh or options, Cancelled if `cancel`
 // fired (checked every pass and every 65536 queue entries). Not reaching the target is not an
 // error: the result says so (reached_target, stop_reason, stop_message). Thread-safe for

@@ -304,15 +304,20 @@ TEST(FieldPolicy, ReportsProgressAndHonoursCancellation) {
   int reports = 0;
   double last = -1;
   bool monotone = true;
+  std::string last_message;
   auto r = Simplify(pm.mesh, Field(0.5), [&](const Progress& e) {
     EXPECT_EQ(e.stage, "simplify");
     monotone &= e.fraction >= last;
     last = e.fraction;
+    last_message = e.message;
     ++reports;
   });
   ASSERT_TRUE(r.ok());
   EXPECT_GE(reports, 10);
   EXPECT_TRUE(monotone);
+  // The refit says what it did last: the RMS at the samples before and after.
+  EXPECT_NE(last_message.find("refit"), std::string::npos) << last_message;
+  EXPECT_DOUBLE_EQ(last, 1.0);
   CancelToken cancel;
   cancel.Cancel();
   auto c = Simplify(pm.mesh, Field(0.5), nullptr, &cancel);
