@@ -11,6 +11,7 @@
 #include <thread>
 
 #include "client/client_lib.h"
+#include "client/dicomweb.h"
 #include "grpc/health/v1/health.grpc.pb.h"
 
 namespace fs = std::filesystem;
@@ -297,9 +298,33 @@ int main(int argc, char** argv) {
   std::vector<double> means;
   std::vector<std::string> weights, views;
   bool watch_flag = false;
-  submit
-      ->add_option("INPUT", input, "volume file (.nii, .nii.gz, .mha, .mhd, .nrrd) or DICOM folder")
-      ->required();
+  submit->add_option("INPUT", input,
+                     "volume file (.nii, .nii.gz, .mha, .mhd, .nrrd) or DICOM folder (or "
+                     "--dicomweb)");
+  // DICOMweb pull (client/dicomweb.h): shared by `submit --dicomweb` and `pull`.
+  DicomWebPull web;
+  std::string web_token_file;
+  fs::path pull_out;
+  auto add_dicomweb = [&](CLI::App* cmd, bool required) {
+    auto* url = cmd->add_option("--dicomweb", web.base_url,
+                                "DICOMweb base URL: pull the series by WADO-RS instead of INPUT");
+    auto* study = cmd->add_option("--study", web.study_uid, "StudyInstanceUID to pull");
+    cmd->add_option("--series", web.series_uid, "SeriesInstanceUID (default: the whole study)")
+        ->needs(study);
+    cmd->add_option("--dicomweb-user", web.user, "NAME:PASSWORD for HTTP basic auth")
+        ->envname("DECIMA_DICOMWEB_USER");
+    cmd->add_option("--dicomweb-token-file", web_token_file, "bearer token for the DICOMweb server")
+        ->check(CLI::ExistingFile);
+    cmd->add_option("--dicomweb-ca", web.ca_file, "PEM roots for https (default: the system's)")
+        ->check(CLI::ExistingFile);
+    url->needs(study);
+    study->needs(url);
+    if (required) {
+      url->required();
+      study->required();
+    }
+  };
+  add_dicomweb(submit, false);
   submit->add_option("--regions,-k", regions, "K regions of the segmentation (2..8, default 3)");
   submit->add_option("--class-means", means, "K class means instead of k-means")->delimiter(',');
   submit->add_option("--label-map", label_map,
@@ -347,6 +372,9 @@ int main(int argc, char** argv) {
   fetch->add_option("JOB", job_arg, "job id or jobs/{id}")->required();
   fetch->add_option("--out", out, "destination folder")->required();
   auto* health = app.add_subcommand("health", "check that the server is serving");
+  auto* pull = app.add_subcommand("pull", "download a DICOM series or study by WADO-RS");
+  add_dicomweb(pull, true);
+  pull->add_option("--out", pull_out, "destination folder")->required();
 
   try {
     app.parse(argc, argv);
@@ -354,6 +382,63 @@ int main(int argc, char** argv) {
     int rc = app.exit(e);
     return rc == 0 ? kOk : kUsage;
   }
+
+  // DICOMweb: pull into a folder first; `submit` then uploads it like any DICOM folder.
+  std::optional<fs::path> pulled_dir;
+  if ((*pull || *submit) && !web.base_url.empty()) {
+    if (*submit && !input.empty()) {
+      std::fprintf(stderr, "decima: submit: give INPUT or --dicomweb, not both\n");
+      return kUsage;
+    }
+    if (!web_token_file.empty()) {
+      std::ifstream in(web_token_file);
+      std::getline(in, web.bearer_token);
+      if (web.bearer_token.empty()) {
+        std::fprintf(stderr, "decima: --dicomweb-token-file %s: empty\n", web_token_file.c_str());
+        return kUsage;
+      }
+    }
+    fs::path dir = pull_out;
+    if (*submit) {
+      char tmpl[] = "/tmp/decima-dicomweb-XXXXXX";
+      if (::mkdtemp(tmpl) == nullptr) {
+        std::fprintf(stderr, "decima: cannot create a temporary folder\n");
+        return kError;
+      }
+      dir = tmpl;
+      pulled_dir = dir;
+    }
+    DicomWebResult pulled;
+    std::string err;
+    const bool ok = PullDicomWeb(web, dir, &pulled, &err);
+    if (!ok) {
+      if (pulled_dir) fs::remove_all(*pulled_dir);
+      std::fprintf(stderr, "decima: dicomweb: %s\n", err.c_str());
+      return kError;
+    }
+    if (g.json && *pull) {
+      std::printf("{\"instances\":%d,\"bytes\":%lld,\"seconds\":%.4f,\"out\":\"%s\"}\n",
+                  pulled.instances, static_cast<long long>(pulled.bytes), pulled.seconds,
+                  dir.c_str());
+    } else if (!g.quiet) {
+      std::fprintf(stderr, "decima: pulled %d instances (%lld bytes) by WADO-RS in %.3f s\n",
+                   pulled.instances, static_cast<long long>(pulled.bytes), pulled.seconds);
+    }
+    if (*pull) return kOk;
+    input = dir.string();
+  }
+  if (*submit && input.empty()) {
+    std::fprintf(stderr, "decima: submit: INPUT or --dicomweb URL --study UID is required\n");
+    return kUsage;
+  }
+  // The pulled copy is only needed until the upload is done.
+  struct RemovePulled {
+    std::optional<fs::path>* dir;
+    ~RemovePulled() {
+      std::error_code ec;
+      if (*dir) fs::remove_all(**dir, ec);
+    }
+  } remove_pulled{&pulled_dir};
 
   conn = Connect(g.server, g.token, g.tls, g.ca_file,
                  std::chrono::milliseconds(static_cast<int64_t>(g.timeout_s * 1000)));

@@ -23,6 +23,12 @@ packages=(
   python3 python3-vtk9 python3-numpy gmsh
   # the real MRI the demo and tests use
   mricron-data
+  # PACS side (issue 13): DCMTK for the C-STORE receiver/sender and the DICOM SEG writer
+  # (dcmnet, dcmseg, dcmiod), libcurl for STOW-RS and the CLI's WADO-RS pull
+  libdcmtk-dev libcurl4-openssl-dev
+  # ... and the real PACS and checkers of the PACS end-to-end test: Orthanc with its DICOMweb
+  # plugin, dciodvfy (dicom3tools) to validate the SEG, pydicom to read it back, dcmtk tools
+  orthanc orthanc-dicomweb dicom3tools python3-pydicom dcmtk
 )
 
 missing=()

@@ -9,6 +9,7 @@
 //   jobs/<id>/worker.log     the child's stdout and stderr
 //   jobs/<id>/fault          test-only fault (faults.h), written only with --allow-faults
 //   jobs/<id>/out/           the artifacts of the current attempt
+//   dicom-spool/             C-STORE instances being received (dicom_receiver.h), then blobs
 // Thread-safety: immutable after construction; the file operations touch one job or volume.
 #pragma once
 
@@ -27,6 +28,7 @@ class DataDir {
   std::filesystem::path lock_file() const { return root_ / "LOCK"; }
   std::filesystem::path job_store() const { return root_ / "jobs.sqlite"; }
   std::filesystem::path blobs() const { return root_ / "blobs"; }
+  std::filesystem::path dicom_spool() const { return root_ / "dicom-spool"; }
 
   std::filesystem::path volume_dir(const std::string& id) const { return root_ / "volumes" / id; }
   std::filesystem::path volume_files(const std::string& id) const {

@@ -60,6 +60,28 @@ struct Recovered {
   std::vector<std::string> failed;
 };
 
+// The PACS receiver's state (server/dicom_receiver.h), kept in the job store so that a restart
+// loses neither instances received but not yet grouped into a job nor results not yet sent.
+struct DicomInstanceRecord {
+  std::string series_instance_uid;
+  std::string sop_instance_uid;  // unique: storing the same instance again replaces the row
+  std::string sha256;            // the instance's file in the blob store
+  std::string calling_ae, called_ae;
+  int64_t received_ms = 0;  // wall clock, ms since the epoch
+};
+
+// One completeness check of a series: queued as a job, or not and why.
+struct DicomSeriesRecord {
+  std::string instance_set;  // key: sha256 of the sorted SOP Instance UIDs checked
+  std::string series_instance_uid;
+  std::string job;               // "jobs/{id}" when a job was queued, else ""
+  std::string reason;            // why no job was queued ("" when one was)
+  std::string route;             // the route that chose the spec and destination
+  bool results_pending = false;  // results still to be sent to the route's destination
+  std::string send_status;       // last send attempt: "" none, "sent ...", or the error
+  int64_t update_ms = 0;
+};
+
 bool IsFinal(v1::JobState state);
 
 // The wall clock with nanoseconds (protobuf 3.21's TimeUtil::GetCurrentTime drops them here).
@@ -126,8 +148,23 @@ class JobStore {
   virtual absl::StatusOr<VolumePage> ListVolumes(int page_size, const std::string& page_token) = 0;
   // FAILED_PRECONDITION while a QUEUED or RUNNING job reads it.
   virtual absl::Status DeleteVolume(const std::string& id) = 0;
-  // True if any stored volume lists blob `sha256`.
+  // True if any stored volume lists blob `sha256` (or a received DICOM instance holds it).
   virtual absl::StatusOr<bool> BlobInUse(const std::string& sha256) = 0;
+
+  // PACS receiver state. Not pure: a store without them answers UNIMPLEMENTED, and
+  // decima-server refuses --dicom-listen on it at start-up (the PostgreSQL store can add them
+  // as two small tables, see sqlite_job_store.cc).
+  // Inserts or replaces (by SOP Instance UID) a received instance.
+  virtual absl::Status PutDicomInstance(const DicomInstanceRecord& instance);
+  // Every received instance not yet consumed by a job, in arrival order.
+  virtual absl::StatusOr<std::vector<DicomInstanceRecord>> ListDicomInstances();
+  // Inserts or replaces (by instance_set) a check's outcome and, in the same transaction,
+  // removes the instances `consumed` (SOP Instance UIDs) from the received ones.
+  virtual absl::Status PutDicomSeries(const DicomSeriesRecord& series,
+                                      const std::vector<std::string>& consumed);
+  // Newest first, at most `limit`; only those with results_pending when `pending_only`.
+  virtual absl::StatusOr<std::vector<DicomSeriesRecord>> ListDicomSeries(bool pending_only,
+                                                                         int limit);
 };
 
 // The embedded store: one SQLite database file in WAL mode.

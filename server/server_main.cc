@@ -22,7 +22,10 @@
 #include <thread>
 
 #include "absl/strings/ascii.h"
+#include "absl/strings/numbers.h"
 #include "absl/strings/str_cat.h"
+#include "server/dicom_receiver.h"
+#include "server/dicom_sender.h"
 #include "server/grpc_util.h"
 #include "server/lease_reaper.h"
 #include "server/service.h"
@@ -55,6 +58,7 @@ int RunJobMode(const char* request_file) { return RunJobProcess(request_file, kW
 
 int main(int argc, char** argv) {
   if (argc == 3 && std::string(argv[1]) == "--run-job") return RunJobMode(argv[2]);
+  EnableDcmtkTcpNoDelay();  // before any thread: setenv is not thread-safe
 
   CLI::App app{
       "decima-server: turns uploaded medical volumes into simplified tetrahedral "
@@ -123,7 +127,59 @@ int main(int argc, char** argv) {
       ->envname("DECIMA_NO_FSYNC");
   app.add_option("--port-file", port_file, "write the bound port here once serving (tests)")
       ->envname("DECIMA_PORT_FILE");
+  std::string dicom_listen, dicom_aet = "DECIMA", dicom_routes;
+  double dicom_quiet_seconds = 3;
+  int64_t dicom_min_free_mb = 1024;
+  app.add_option("--dicom-listen", dicom_listen,
+                 "receive DICOM by C-STORE on HOST:PORT (off when unset)")
+      ->envname("DECIMA_DICOM_LISTEN");
+  app.add_option("--dicom-aet", dicom_aet, "our DICOM AE title (the called AE title accepted)")
+      ->envname("DECIMA_DICOM_AET")
+      ->capture_default_str();
+  app.add_option("--dicom-quiet-seconds", dicom_quiet_seconds,
+                 "a received series is checked once no instance came for this long")
+      ->envname("DECIMA_DICOM_QUIET_SECONDS")
+      ->check(CLI::Range(0.1, 3600.0))
+      ->capture_default_str();
+  app.add_option("--dicom-routes", dicom_routes,
+                 "JSON file: job spec and result destination per calling/called AE title")
+      ->envname("DECIMA_DICOM_ROUTES")
+      ->check(CLI::ExistingFile);
+  app.add_option("--dicom-min-free-mb", dicom_min_free_mb,
+                 "refuse DICOM associations when the data dir has less free disk, MiB")
+      ->envname("DECIMA_DICOM_MIN_FREE_MB")
+      ->check(CLI::Range(int64_t{0}, int64_t{1} << 40))
+      ->capture_default_str();
   CLI11_PARSE(app, argc, argv);
+
+  DicomReceiverOptions dicom;
+  if (!dicom_listen.empty()) {
+    const size_t colon = dicom_listen.rfind(':');
+    int dport = 0;
+    if (colon == std::string::npos || colon == 0 ||
+        !absl::SimpleAtoi(dicom_listen.substr(colon + 1), &dport) || dport < 1 || dport > 65535) {
+      spdlog::error("--dicom-listen {}: expected HOST:PORT with a port 1..65535", dicom_listen);
+      return 1;
+    }
+    if (dicom_aet.empty() || dicom_aet.size() > 16) {
+      spdlog::error("--dicom-aet '{}': expected 1..16 characters", dicom_aet);
+      return 1;
+    }
+    dicom.host = dicom_listen.substr(0, colon);
+    dicom.port = dport;
+    dicom.aet = dicom_aet;
+    dicom.quiet_seconds = dicom_quiet_seconds;
+    dicom.min_free_mb = dicom_min_free_mb;
+    dicom.max_queued = max_queued;
+    if (!dicom_routes.empty()) {
+      auto routes = LoadDicomRoutes(dicom_routes);
+      if (!routes.ok()) {
+        spdlog::error("{}", std::string(routes.status().message()));
+        return 1;
+      }
+      dicom.routes = std::move(*routes);
+    }
+  }
 
   spdlog::set_pattern("%Y-%m-%dT%H:%M:%S.%e %^%l%$ %v");
 
@@ -243,6 +299,15 @@ int main(int argc, char** argv) {
   }
   server->GetHealthCheckService()->SetServingStatus(true);
   pool.Start();
+  std::unique_ptr<DicomReceiver> receiver;
+  if (!dicom_listen.empty()) {
+    receiver =
+        std::make_unique<DicomReceiver>(dicom, &so.data_dir, store->get(), blobs->get(), &pool);
+    if (auto st = receiver->Start(); !st.ok()) {
+      spdlog::error("{}", st.ToString());
+      return 1;
+    }
+  }
   spdlog::info("decima-server listening on {} (port {}), data {}, {} worker(s){}{}", listen, port,
                data.string(), workers, token.empty() ? "" : ", token required",
                tls_cert.empty() ? "" : ", TLS");
@@ -265,6 +330,7 @@ int main(int argc, char** argv) {
       "get {} s)",
       sig, drain_seconds);
   services.StartDraining();
+  if (receiver) receiver->Stop();  // no new series while draining
   server->GetHealthCheckService()->SetServingStatus(false);
   bus.Close();
   pool.Drain(std::chrono::milliseconds(static_cast<int64_t>(drain_seconds * 1000)));

@@ -130,6 +130,21 @@ class SqliteJobStore : public JobStore {
         volume_id TEXT NOT NULL, sha256 TEXT NOT NULL,
         PRIMARY KEY(volume_id, sha256)) WITHOUT ROWID;
       CREATE INDEX IF NOT EXISTS volume_blobs_by_sha ON volume_blobs(sha256);
+      CREATE TABLE IF NOT EXISTS dicom_instances(
+        ord INTEGER PRIMARY KEY AUTOINCREMENT,
+        sop_instance_uid TEXT UNIQUE NOT NULL,
+        series_instance_uid TEXT NOT NULL,
+        sha256 TEXT NOT NULL,
+        calling_ae TEXT NOT NULL, called_ae TEXT NOT NULL,
+        received_ms INTEGER NOT NULL);
+      CREATE INDEX IF NOT EXISTS dicom_instances_by_sha ON dicom_instances(sha256);
+      CREATE TABLE IF NOT EXISTS dicom_series(
+        ord INTEGER PRIMARY KEY AUTOINCREMENT,
+        instance_set TEXT UNIQUE NOT NULL,
+        series_instance_uid TEXT NOT NULL,
+        job TEXT NOT NULL, reason TEXT NOT NULL, route TEXT NOT NULL,
+        results_pending INTEGER NOT NULL, send_status TEXT NOT NULL,
+        update_ms INTEGER NOT NULL);
     )sql";
     DECIMA_RETURN_IF_ERROR_LOCAL(Exec(kSchema));
     // Data dirs created before leases had epochs: add the column (0 for every job).
@@ -568,10 +583,82 @@ class SqliteJobStore : public JobStore {
 
   absl::StatusOr<bool> BlobInUse(const std::string& sha256) override {
     std::lock_guard<std::mutex> lock(mu_);
-    Stmt q(db_, "SELECT COUNT(*) FROM volume_blobs WHERE sha256=?");
+    Stmt q(db_,
+           "SELECT (SELECT COUNT(*) FROM volume_blobs WHERE sha256=?1) + "
+           "(SELECT COUNT(*) FROM dicom_instances WHERE sha256=?1)");
     q.Bind(1, sha256);
     if (q.Step() != SQLITE_ROW) return q.Error("checking blob use");
     return q.Int(0) > 0;
+  }
+
+  absl::Status PutDicomInstance(const DicomInstanceRecord& r) override {
+    std::lock_guard<std::mutex> lock(mu_);
+    // REPLACE gives a re-sent instance a new ord: the series order stays "as last received".
+    Stmt q(db_,
+           "INSERT OR REPLACE INTO dicom_instances(sop_instance_uid, series_instance_uid, sha256, "
+           "calling_ae, called_ae, received_ms) VALUES(?,?,?,?,?,?)");
+    q.Bind(1, r.sop_instance_uid).Bind(2, r.series_instance_uid).Bind(3, r.sha256);
+    q.Bind(4, r.calling_ae).Bind(5, r.called_ae).Bind(6, r.received_ms);
+    if (q.Step() != SQLITE_DONE) return q.Error("storing a DICOM instance");
+    return absl::OkStatus();
+  }
+
+  absl::StatusOr<std::vector<DicomInstanceRecord>> ListDicomInstances() override {
+    std::lock_guard<std::mutex> lock(mu_);
+    Stmt q(db_,
+           "SELECT series_instance_uid, sop_instance_uid, sha256, calling_ae, called_ae, "
+           "received_ms FROM dicom_instances ORDER BY ord");
+    std::vector<DicomInstanceRecord> out;
+    int rc;
+    while ((rc = q.Step()) == SQLITE_ROW) {
+      out.push_back({q.Text(0), q.Text(1), q.Text(2), q.Text(3), q.Text(4), q.Int(5)});
+    }
+    if (rc != SQLITE_DONE) return q.Error("listing DICOM instances");
+    return out;
+  }
+
+  absl::Status PutDicomSeries(const DicomSeriesRecord& r,
+                              const std::vector<std::string>& consumed) override {
+    std::lock_guard<std::mutex> lock(mu_);
+    Tx tx(this);
+    if (!tx.ok()) return tx.status();
+    Stmt q(db_,
+           "INSERT INTO dicom_series(instance_set, series_instance_uid, job, reason, route, "
+           "results_pending, send_status, update_ms) VALUES(?1,?2,?3,?4,?5,?6,?7,?8) "
+           "ON CONFLICT(instance_set) DO UPDATE SET job=?3, reason=?4, route=?5, "
+           "results_pending=?6, send_status=?7, update_ms=?8");
+    q.Bind(1, r.instance_set).Bind(2, r.series_instance_uid).Bind(3, r.job).Bind(4, r.reason);
+    q.Bind(5, r.route).Bind(6, int64_t{r.results_pending ? 1 : 0}).Bind(7, r.send_status);
+    q.Bind(8, r.update_ms);
+    if (q.Step() != SQLITE_DONE) return q.Error("storing a DICOM series outcome");
+    for (const auto& uid : consumed) {
+      Stmt d(db_, "DELETE FROM dicom_instances WHERE sop_instance_uid=?");
+      d.Bind(1, uid);
+      if (d.Step() != SQLITE_DONE) return d.Error("removing consumed DICOM instances");
+    }
+    DECIMA_TX_COMMIT(tx);
+    return absl::OkStatus();
+  }
+
+  absl::StatusOr<std::vector<DicomSeriesRecord>> ListDicomSeries(bool pending_only,
+                                                                 int limit) override {
+    std::lock_guard<std::mutex> lock(mu_);
+    Stmt q(db_,
+           pending_only
+               ? "SELECT instance_set, series_instance_uid, job, reason, route, results_pending, "
+                 "send_status, update_ms FROM dicom_series WHERE results_pending=1 "
+                 "ORDER BY ord DESC LIMIT ?"
+               : "SELECT instance_set, series_instance_uid, job, reason, route, results_pending, "
+                 "send_status, update_ms FROM dicom_series ORDER BY ord DESC LIMIT ?");
+    q.Bind(1, int64_t{limit});
+    std::vector<DicomSeriesRecord> out;
+    int rc;
+    while ((rc = q.Step()) == SQLITE_ROW) {
+      out.push_back({q.Text(0), q.Text(1), q.Text(2), q.Text(3), q.Text(4), q.Int(5) != 0,
+                     q.Text(6), q.Int(7)});
+    }
+    if (rc != SQLITE_DONE) return q.Error("listing DICOM series");
+    return out;
   }
 
  private:

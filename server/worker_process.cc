@@ -9,6 +9,7 @@
 
 #include "core/common/progress.h"
 #include "core/pipeline/pipeline.h"
+#include "server/dicom_results.h"
 #include "server/faults.h"
 #include "server/job_spec.h"
 #include "server/worker.pb.h"
@@ -77,6 +78,10 @@ int RunJobProcess(const std::filesystem::path& request_file, int fd) {
 
   auto result = pipeline::RunJob(*spec, request.out_dir(), progress, &g_cancel);
   if (!result.ok()) return SendError(fd, result.status());
+  // A DICOM input also gets its results as DICOM (SEG + Secondary Capture) for the PACS.
+  if (auto st = AddDicomResults(*spec, request.out_dir(), &*result); !st.ok()) {
+    return SendError(fd, st);
+  }
   worker::WorkerMessage m;
   for (const auto& a : result->artifacts) {
     worker::Artifact* out = m.mutable_result()->add_artifacts();

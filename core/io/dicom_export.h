@@ -1,0 +1,57 @@
+// Job results as DICOM objects a PACS stores and its viewers open (DCMTK: dcmseg, dcmiod):
+//  - a Segmentation (SEG, 1.2.840.10008.5.1.4.1.1.66.4), BINARY, one segment per region of the
+//    label map, on the geometry of the source series: one frame per (segment, source slice)
+//    where the segment is present, each frame referencing its source instance (Derivation Image
+//    and Frame Content functional groups, Plane Position = the source slice's position) and the
+//    source series listed in ReferencedSeriesSequence (OHIF does not overlay a SEG without it);
+//  - Secondary Capture images (SC, 1.2.840.10008.5.1.4.1.1.7, RGB) of rendered PNGs, for the
+//    many viewers that cannot display a SEG.
+// Both go in the source's study: patient and study attributes are copied from the source
+// instances; every new UID (series, instance) is a UUID-derived "2.25." UID (ISO/IEC 9834-8,
+// no registered root needed).
+// Thread-safety: the functions are independent; DCMTK's dictionary is loaded once, thread-safe.
+#pragma once
+
+#include <filesystem>
+#include <string>
+#include <vector>
+
+#include "absl/status/statusor.h"
+#include "core/volume/volume.h"
+
+namespace decima::io {
+
+// A new DICOM UID: "2.25." followed by the decimal value of a random (version 4) UUID.
+std::string NewDicomUid();
+
+struct DicomExportOptions {
+  // The folder holding the source series (the files the job read) and its uid ("" = the only
+  // series in the folder).
+  std::filesystem::path source_dir;
+  std::string series_instance_uid;
+  // Region labels (uint8, 0..K-1, as the job's labels.nii.gz) on the source's grid. Region r
+  // becomes segment r+1 labelled `region_names[r]` (default "region r+1").
+  const Volume* labels = nullptr;
+  std::vector<std::string> region_names;
+  // Rendered PNGs (any PNG libpng reads) written as Secondary Capture, one instance each, in one
+  // new series, in this order (InstanceNumber 1, 2, ...).
+  std::vector<std::filesystem::path> renders;
+  std::filesystem::path out_dir;  // created if missing
+};
+
+struct DicomExportResult {
+  std::filesystem::path segmentation;            // out_dir/segmentation.dcm
+  std::vector<std::filesystem::path> secondary;  // out_dir/sc-<n>.dcm
+  std::string study_instance_uid;                // of the source, shared by all outputs
+  int segments = 0;                              // regions present in the label map
+  int frames = 0;                                // SEG frames written
+};
+
+// Writes the SEG and the SC files. InvalidArgument (naming the file and field) when the source
+// folder holds no single-frame image series with that uid, slices lack ImagePositionPatient /
+// ImageOrientationPatient, the label map's grid differs from the source (dims, orientation, a
+// source slice not on a label slice), or a label is outside 0..254; Internal for DCMTK errors
+// (its message included).
+absl::StatusOr<DicomExportResult> WriteDicomResults(const DicomExportOptions& options);
+
+}  // namespace decima::io

@@ -1,0 +1,604 @@
+#include "server/dicom_receiver.h"
+
+// clang-format off
+#include "dcmtk/config/osconfig.h"  // must come first
+// clang-format on
+#include "dcmtk/dcmdata/dcdeftag.h"
+#include "dcmtk/dcmdata/dcfilefo.h"
+#include "dcmtk/dcmdata/dcuid.h"
+#include "dcmtk/dcmnet/diutil.h"
+#include "dcmtk/dcmnet/scp.h"
+#include "dcmtk/oflog/oflog.h"
+
+#include <sys/statvfs.h>
+
+#include <algorithm>
+#include <chrono>
+#include <cmath>
+#include <fstream>
+
+#include <Eigen/Core>
+#include <Eigen/Geometry>
+
+#include "absl/strings/numbers.h"
+#include "absl/strings/str_cat.h"
+#include "absl/strings/str_format.h"
+#include "absl/strings/str_join.h"
+#include "absl/strings/str_split.h"
+#include "server/dicom_sender.h"
+#include "server/grpc_util.h"
+#include "server/job_spec.h"
+#include "server/sha256.h"
+#include "server/volume_catalog.h"
+#include "spdlog/spdlog.h"
+
+namespace decima::server {
+namespace fs = std::filesystem;
+namespace {
+
+int64_t WallMs() {
+  return std::chrono::duration_cast<std::chrono::milliseconds>(
+             std::chrono::system_clock::now().time_since_epoch())
+      .count();
+}
+
+bool IsLoopbackHost(const std::string& host) {
+  return host == "127.0.0.1" || host == "localhost" || host == "::1";
+}
+
+// Transfer syntaxes accepted for every storage SOP class: uncompressed, then the compressed
+// ones GDCM (the job's reader) decodes.
+const char* const kTransferSyntaxes[] = {
+    UID_LittleEndianExplicitTransferSyntax, UID_LittleEndianImplicitTransferSyntax,
+    UID_BigEndianExplicitTransferSyntax,    UID_DeflatedExplicitVRLittleEndianTransferSyntax,
+    UID_JPEGProcess1TransferSyntax,         UID_JPEGProcess2_4TransferSyntax,
+    UID_JPEGProcess14SV1TransferSyntax,     UID_JPEGProcess14TransferSyntax,
+    UID_JPEGLSLosslessTransferSyntax,       UID_JPEGLSLossyTransferSyntax,
+    UID_JPEG2000LosslessOnlyTransferSyntax, UID_JPEG2000TransferSyntax,
+    UID_RLELosslessTransferSyntax};
+
+struct Header {
+  std::string series_uid, sop_uid;
+};
+
+absl::StatusOr<Header> ReadUids(const fs::path& file) {
+  DcmFileFormat ff;
+  OFCondition c = ff.loadFileUntilTag(file.c_str(), EXS_Unknown, EGL_noChange, DCM_MaxReadLength,
+                                      ERM_autoDetect, DCM_PixelData);
+  if (c.bad()) return absl::InvalidArgumentError(absl::StrCat(file.string(), ": ", c.text()));
+  OFString series, sop;
+  ff.getDataset()->findAndGetOFString(DCM_SeriesInstanceUID, series);
+  ff.getDataset()->findAndGetOFString(DCM_SOPInstanceUID, sop);
+  if (series.empty() || sop.empty()) {
+    return absl::InvalidArgumentError("no SeriesInstanceUID or SOPInstanceUID");
+  }
+  return Header{series.c_str(), sop.c_str()};
+}
+
+absl::Status CopyIntoBlobs(BlobStore* blobs, const fs::path& file, const std::string& sha,
+                           int64_t size) {
+  if (blobs->Has(sha)) return absl::OkStatus();
+  const BlobStatus held = blobs->Status(sha, size);
+  auto writer = blobs->OpenWriter(sha, size, held.committed_size);
+  if (!writer.ok()) return writer.status();
+  std::ifstream in(file, std::ios::binary);
+  in.seekg(held.committed_size);
+  std::vector<char> buf(1 << 20);
+  while (in) {
+    in.read(buf.data(), static_cast<std::streamsize>(buf.size()));
+    const std::streamsize n = in.gcount();
+    if (n <= 0) break;
+    if (auto st = (*writer)->Append(buf.data(), static_cast<size_t>(n)); !st.ok()) return st;
+  }
+  if (in.bad()) return absl::InternalError(absl::StrCat(file.string(), ": read failed"));
+  return (*writer)->Commit();
+}
+
+std::string InstanceSetKey(std::vector<std::string> sop_uids) {
+  std::sort(sop_uids.begin(), sop_uids.end());
+  Sha256 h;
+  for (const auto& u : sop_uids) {
+    h.Update(u.data(), u.size());
+    h.Update("\n", 1);
+  }
+  return h.HexDigest();
+}
+
+}  // namespace
+
+// The DCMTK storage SCP. Runs on the receiver's SCP thread only.
+class StorageScp : public DcmSCP {
+ public:
+  explicit StorageScp(DicomReceiver* r) : r_(r) {}
+
+  OFBool stopAfterConnectionTimeout() override { return r_->stopping(); }
+  OFBool stopAfterCurrentAssociation() override { return r_->stopping(); }
+
+ protected:
+  OFBool checkCalledAETitleAccepted(const OFString& called) override {
+    if (called == r_->options().aet.c_str()) return OFTrue;
+    spdlog::warn("dicom: association refused: called AE title '{}' is not ours ('{}')",
+                 called.c_str(), r_->options().aet);
+    return OFFalse;
+  }
+  OFBool checkCallingAETitleAccepted(const OFString& calling) override {
+    if (r_->options().routes.Match(calling.c_str(), r_->options().aet) != nullptr) return OFTrue;
+    spdlog::warn("dicom: association refused: no route for calling AE title '{}'", calling.c_str());
+    return OFFalse;
+  }
+  OFBool checkCallingHostAccepted(const OFString& host_or_ip) override {
+    if (!IsLoopbackHost(r_->options().host)) return OFTrue;
+    // With host lookup off DCMTK passes an empty name: the peer's address decides.
+    const std::string host = host_or_ip.empty() ? getPeerIP().c_str() : host_or_ip.c_str();
+    const bool ok = host == "127.0.0.1" || host == "::1" || host == "::ffff:127.0.0.1";
+    if (!ok) spdlog::warn("dicom: association from '{}' refused: listening on loopback", host);
+    return ok ? OFTrue : OFFalse;
+  }
+  void notifyAssociationRequest(const T_ASC_Parameters& params, DcmSCPActionType& action) override {
+    std::string why;
+    if (!r_->DiskSpaceAllows(&why)) {
+      spdlog::warn("dicom: association from '{}' refused: {}", params.DULparams.callingAPTitle,
+                   why);
+      action = DCMSCP_ACTION_REFUSE_ASSOCIATION;
+    }
+  }
+  void notifyAssociationAcknowledge() override {
+    released_ = false;
+    series_.clear();
+  }
+  void notifyReleaseRequest() override { released_ = true; }
+  void notifyAssociationTermination() override {
+    // Aborted or broken off: what it sent may be a part of what was due.
+    if (!released_ && !series_.empty()) r_->MarkAborted(series_);
+    series_.clear();
+  }
+  OFCondition handleIncomingCommand(T_DIMSE_Message* msg,
+                                    const DcmPresentationContextInfo& info) override {
+    if (msg->CommandField != DIMSE_C_STORE_RQ) return DcmSCP::handleIncomingCommand(msg, info);
+    T_DIMSE_C_StoreRQ& req = msg->msg.CStoreRQ;
+    const fs::path tmp = r_->spool() / absl::StrCat(NewId(), ".dcm");
+    OFCondition c = receiveSTORERequest(req, info.presentationContextID, OFString(tmp.c_str()));
+    if (c.bad()) {
+      std::error_code ec;
+      fs::remove(tmp, ec);
+      return c;
+    }
+    std::string series;
+    const Uint16 status =
+        r_->StoreInstance(tmp, getPeerAETitle().c_str(), getCalledAETitle().c_str(), &series);
+    if (!series.empty()) series_.insert(series);
+    std::error_code ec;
+    fs::remove(tmp, ec);
+    return sendSTOREResponse(info.presentationContextID, req, status);
+  }
+
+ private:
+  DicomReceiver* r_;
+  bool released_ = false;
+  std::set<std::string> series_;  // series of the current association
+};
+
+absl::Status CheckSeriesComplete(const std::vector<fs::path>& files) {
+  struct Slice {
+    fs::path file;
+    Eigen::Vector3d position;
+    double z = 0;
+  };
+  std::vector<Slice> slices;
+  std::string orientation, spacing;
+  long rows = -1, cols = -1;
+  Eigen::Vector3d normal(0, 0, 1);
+  for (const auto& f : files) {
+    DcmFileFormat ff;
+    OFCondition c = ff.loadFileUntilTag(f.c_str(), EXS_Unknown, EGL_noChange, DCM_MaxReadLength,
+                                        ERM_autoDetect, DCM_PixelData);
+    if (c.bad()) return absl::InvalidArgumentError(absl::StrCat(f.string(), ": ", c.text()));
+    DcmDataset& d = *ff.getDataset();
+    OFString ipp, iop, ps, frames, images_in_acquisition;
+    Uint16 r = 0, co = 0;
+    d.findAndGetOFStringArray(DCM_ImagePositionPatient, ipp);
+    d.findAndGetOFStringArray(DCM_ImageOrientationPatient, iop);
+    d.findAndGetOFStringArray(DCM_PixelSpacing, ps);
+    d.findAndGetUint16(DCM_Rows, r);
+    d.findAndGetUint16(DCM_Columns, co);
+    d.findAndGetOFString(DCM_NumberOfFrames, frames);
+    d.findAndGetOFString(DCM_ImagesInAcquisition, images_in_acquisition);
+    long expected = 0;
+    if (!images_in_acquisition.empty() &&
+        absl::SimpleAtoi(images_in_acquisition.c_str(), &expected) && expected > 0 &&
+        static_cast<size_t>(expected) > files.size()) {
+      return absl::InvalidArgumentError(absl::StrCat(files.size(), " of ", expected,
+                                                     " instances (ImagesInAcquisition of ",
+                                                     f.filename().string(), ")"));
+    }
+    auto name = f.filename().string();
+    if (ipp.empty() || iop.empty() || ps.empty() || r == 0 || co == 0) {
+      return absl::InvalidArgumentError(
+          absl::StrCat("instance ", name,
+                       " lacks ImagePositionPatient, ImageOrientationPatient, PixelSpacing, "
+                       "Rows or Columns: not a slice of a volume"));
+    }
+    if (!frames.empty() && frames != "1") {
+      return absl::InvalidArgumentError(
+          absl::StrCat("instance ", name, " has ", frames.c_str(), " frames; expected 1"));
+    }
+    std::vector<double> p, o;
+    for (absl::string_view s : absl::StrSplit(ipp.c_str(), '\\')) {
+      double v = 0;
+      if (absl::SimpleAtod(s, &v)) p.push_back(v);
+    }
+    for (absl::string_view s : absl::StrSplit(iop.c_str(), '\\')) {
+      double v = 0;
+      if (absl::SimpleAtod(s, &v)) o.push_back(v);
+    }
+    if (p.size() != 3 || o.size() != 6) {
+      return absl::InvalidArgumentError(
+          absl::StrCat("instance ", name, ": malformed ImagePositionPatient or orientation"));
+    }
+    if (slices.empty()) {
+      orientation = iop.c_str();
+      spacing = ps.c_str();
+      rows = r;
+      cols = co;
+      normal = Eigen::Vector3d(o[0], o[1], o[2]).cross(Eigen::Vector3d(o[3], o[4], o[5]));
+      if (normal.norm() < 1e-6) {
+        return absl::InvalidArgumentError(
+            absl::StrCat("instance ", name, ": degenerate orientation"));
+      }
+      normal.normalize();
+    } else if (orientation != iop.c_str()) {
+      return absl::InvalidArgumentError(absl::StrCat("more than one orientation: ", orientation,
+                                                     " and ", iop.c_str(), " (", name, ")"));
+    } else if (rows != r || cols != co || spacing != ps.c_str()) {
+      return absl::InvalidArgumentError(absl::StrCat("inconsistent size: ", cols, "x", rows,
+                                                     " spacing ", spacing, " and ", co, "x", r,
+                                                     " spacing ", ps.c_str(), " (", name, ")"));
+    }
+    Slice s{f, Eigen::Vector3d(p[0], p[1], p[2]), 0};
+    s.z = s.position.dot(normal);
+    slices.push_back(std::move(s));
+  }
+  if (slices.size() < 2) {
+    return absl::InvalidArgumentError(
+        absl::StrCat(slices.size(), " slice(s): a volume needs 2 or more"));
+  }
+  std::sort(slices.begin(), slices.end(), [](const Slice& a, const Slice& b) { return a.z < b.z; });
+  double min_gap = INFINITY;
+  for (size_t i = 1; i < slices.size(); ++i) {
+    const double gap = slices[i].z - slices[i - 1].z;
+    if (gap < 1e-3) {
+      return absl::InvalidArgumentError(absl::StrFormat(
+          "two instances at the same position z=%g mm (%s, %s)", slices[i].z,
+          slices[i - 1].file.filename().string(), slices[i].file.filename().string()));
+    }
+    min_gap = std::min(min_gap, gap);
+    // Every slice on the line through the first along the normal (no gantry tilt, no shift).
+    const Eigen::Vector3d off = slices[i].position - slices[0].position;
+    if ((off - off.dot(normal) * normal).norm() > 0.01 + 0.01 * min_gap) {
+      return absl::InvalidArgumentError(absl::StrCat("slices not stacked along their normal (",
+                                                     slices[i].file.filename().string(),
+                                                     "): tilted or shifted series"));
+    }
+  }
+  for (size_t i = 1; i < slices.size(); ++i) {
+    const double gap = slices[i].z - slices[i - 1].z;
+    if (std::abs(gap - min_gap) > 0.01 * min_gap + 0.01) {
+      const long missing = std::lround(gap / min_gap) - 1;
+      return absl::InvalidArgumentError(absl::StrFormat(
+          "%s between z=%g and z=%g mm (gap %g mm, expected %g mm); %d instances received",
+          missing >= 1 ? absl::StrCat(missing, " slice(s) missing") : std::string("uneven spacing"),
+          slices[i - 1].z, slices[i].z, gap, min_gap, slices.size()));
+    }
+  }
+  return absl::OkStatus();
+}
+
+DicomReceiver::DicomReceiver(DicomReceiverOptions options, const DataDir* data_dir, JobStore* store,
+                             BlobStore* blobs, WorkerPool* pool)
+    : options_(std::move(options)),
+      data_dir_(data_dir),
+      store_(store),
+      blobs_(blobs),
+      pool_(pool) {}
+
+DicomReceiver::~DicomReceiver() { Stop(); }
+
+fs::path DicomReceiver::spool() const { return data_dir_->dicom_spool(); }
+
+bool DicomReceiver::DiskSpaceAllows(std::string* why) const {
+  struct statvfs s {};
+  if (::statvfs(data_dir_->root().c_str(), &s) != 0) {
+    *why = absl::StrCat("statvfs ", data_dir_->root().string(), " failed");
+    return false;
+  }
+  const int64_t free_mb =
+      static_cast<int64_t>(s.f_bavail) * static_cast<int64_t>(s.f_frsize) / (1 << 20);
+  if (free_mb >= options_.min_free_mb) return true;
+  *why = absl::StrCat("only ", free_mb, " MiB free under ", data_dir_->root().string(),
+                      " (--dicom-min-free-mb ", options_.min_free_mb, ")");
+  return false;
+}
+
+absl::Status DicomReceiver::Start() {
+  if (auto probe = store_->ListDicomInstances(); !probe.ok()) return probe.status();
+  // DCMTK logs every C-STORE at INFO and every header-only read at WARN on stdout; our own
+  // lines say what matters.
+  OFLog::configure(OFLogger::ERROR_LOG_LEVEL);
+  std::error_code ec;
+  fs::create_directories(spool(), ec);
+  if (ec) return absl::InternalError(absl::StrCat(spool().string(), ": ", ec.message()));
+  scp_ = std::make_unique<StorageScp>(this);
+  DcmSCPConfig& cfg = scp_->getConfig();
+  cfg.setPort(static_cast<Uint16>(options_.port));
+  cfg.setAETitle(options_.aet.c_str());
+  cfg.setHostLookupEnabled(OFFalse);
+  // Non-blocking accept with a 1 s timeout: the SCP thread sees Stop() within a second.
+  cfg.setConnectionBlockingMode(DUL_NOBLOCK);
+  cfg.setConnectionTimeout(1);
+  cfg.setDIMSEBlockingMode(DIMSE_NONBLOCKING);
+  cfg.setDIMSETimeout(60);
+  cfg.setACSETimeout(30);
+  cfg.setMaxReceivePDULength(ASC_MAXIMUMPDUSIZE);
+  OFList<OFString> syntaxes;
+  for (const char* ts : kTransferSyntaxes) syntaxes.push_back(ts);
+  for (int i = 0; i < numberOfDcmAllStorageSOPClassUIDs; ++i) {
+    cfg.addPresentationContext(dcmAllStorageSOPClassUIDs[i], syntaxes);
+  }
+  OFList<OFString> echo_syntaxes;
+  echo_syntaxes.push_back(UID_LittleEndianExplicitTransferSyntax);
+  echo_syntaxes.push_back(UID_LittleEndianImplicitTransferSyntax);
+  cfg.addPresentationContext(UID_VerificationSOPClass, echo_syntaxes);
+  if (OFCondition c = scp_->openListenPort(); c.bad()) {
+    return absl::UnavailableError(
+        absl::StrCat("--dicom-listen ", options_.host, ":", options_.port, ": ", c.text()));
+  }
+  stop_ = false;
+  scp_thread_ = std::thread([this] {
+    OFCondition c = scp_->acceptAssociations();
+    if (c.bad() && !stop_) spdlog::error("dicom: the storage SCP stopped: {}", c.text());
+  });
+  settle_thread_ = std::thread([this] { SettleLoop(); });
+  spdlog::info("dicom: storage SCP {} listening on {}:{} (quiet {} s, {} route(s))", options_.aet,
+               options_.host, options_.port, options_.quiet_seconds, options_.routes.routes.size());
+  return absl::OkStatus();
+}
+
+void DicomReceiver::Stop() {
+  stop_ = true;
+  {
+    std::lock_guard<std::mutex> lock(mu_);
+    wake_ = true;
+  }
+  cv_.notify_all();
+  if (scp_thread_.joinable()) scp_thread_.join();
+  if (settle_thread_.joinable()) settle_thread_.join();
+}
+
+void DicomReceiver::MarkAborted(const std::set<std::string>& series) {
+  std::lock_guard<std::mutex> lock(mu_);
+  for (const auto& s : series) {
+    aborted_[s] = WallMs();
+    spdlog::warn("dicom: the association sending series {} was aborted", s);
+  }
+}
+
+uint16_t DicomReceiver::StoreInstance(const fs::path& file, const std::string& calling_ae,
+                                      const std::string& called_ae, std::string* series_uid) {
+  std::string why;
+  if (!DiskSpaceAllows(&why)) {
+    spdlog::warn("dicom: instance from {} refused: {}", calling_ae, why);
+    return STATUS_STORE_Refused_OutOfResources;
+  }
+  auto header = ReadUids(file);
+  if (!header.ok()) {
+    spdlog::warn("dicom: instance from {} refused: {}", calling_ae,
+                 std::string(header.status().message()));
+    return STATUS_STORE_Error_CannotUnderstand;
+  }
+  auto sha = Sha256OfFile(file);
+  std::error_code ec;
+  const int64_t size = static_cast<int64_t>(fs::file_size(file, ec));
+  absl::Status st = sha.ok() ? CopyIntoBlobs(blobs_, file, *sha, size) : sha.status();
+  if (st.ok()) {
+    st = store_->PutDicomInstance(
+        {header->series_uid, header->sop_uid, *sha, calling_ae, called_ae, WallMs()});
+  }
+  if (!st.ok()) {
+    spdlog::error("dicom: storing instance {}: {}", header->sop_uid, st.ToString());
+    return STATUS_STORE_Refused_OutOfResources;
+  }
+  *series_uid = header->series_uid;
+  return STATUS_Success;
+}
+
+void DicomReceiver::SettleLoop() {
+  const auto period = std::chrono::milliseconds(
+      std::max<int64_t>(10, static_cast<int64_t>(options_.poll_seconds * 1000)));
+  while (!stop_) {
+    {
+      std::unique_lock<std::mutex> lock(mu_);
+      cv_.wait_for(lock, period, [this] { return wake_; });
+      wake_ = false;
+    }
+    if (stop_) break;
+    auto instances = store_->ListDicomInstances();
+    if (!instances.ok()) {
+      spdlog::error("dicom: {}", instances.status().ToString());
+      continue;
+    }
+    std::map<std::string, std::vector<DicomInstanceRecord>> by_series;
+    for (auto& i : *instances) by_series[i.series_instance_uid].push_back(std::move(i));
+    const int64_t now = WallMs();
+    const auto quiet_ms = static_cast<int64_t>(options_.quiet_seconds * 1000);
+    std::set<std::string> pending_keys;
+    for (const auto& [series, list] : by_series) {
+      int64_t newest = 0;
+      std::vector<std::string> uids;
+      for (const auto& i : list) {
+        newest = std::max(newest, i.received_ms);
+        uids.push_back(i.sop_instance_uid);
+      }
+      const std::string key = InstanceSetKey(uids);
+      pending_keys.insert(key);
+      if (now - newest < quiet_ms || checked_.count(key) > 0) continue;
+      checked_.insert(key);
+      SettleSeries(series, list, key);
+    }
+    for (auto it = checked_.begin(); it != checked_.end();) {
+      it = pending_keys.count(*it) > 0 ? std::next(it) : checked_.erase(it);
+    }
+    SendPendingResults();
+  }
+}
+
+void DicomReceiver::SettleSeries(const std::string& series_uid,
+                                 const std::vector<DicomInstanceRecord>& instances,
+                                 const std::string& key) {
+  const DicomInstanceRecord& last = instances.back();
+  const DicomRoute* route = options_.routes.Match(last.calling_ae, last.called_ae);
+  DicomSeriesRecord rec;
+  rec.instance_set = key;
+  rec.series_instance_uid = series_uid;
+  rec.route = route != nullptr ? route->name : "";
+  rec.update_ms = WallMs();
+  auto not_queued = [&](const std::string& reason) {
+    rec.reason = reason;
+    spdlog::warn("dicom: series {} ({} instances from {}) not queued: {}", series_uid,
+                 instances.size(), last.calling_ae, reason);
+    if (auto st = store_->PutDicomSeries(rec, {}); !st.ok()) {
+      spdlog::error("dicom: recording series {}: {}", series_uid, st.ToString());
+    }
+  };
+  if (route == nullptr) return not_queued("no route for its AE titles any more");
+  {
+    // An aborted association may have cut a series short anywhere, also after a contiguous
+    // run of slices that the geometry check cannot tell from a whole series: wait for more.
+    int64_t newest = 0;
+    for (const auto& i : instances) newest = std::max(newest, i.received_ms);
+    std::lock_guard<std::mutex> lock(mu_);
+    auto it = aborted_.find(series_uid);
+    if (it != aborted_.end() && it->second >= newest) {
+      return not_queued(absl::StrCat("the association that sent it was aborted after ",
+                                     instances.size(), " instances; waiting for the rest"));
+    }
+  }
+  std::vector<fs::path> files;
+  v1::CreateVolumeRequest vreq;
+  std::vector<std::string> uids;
+  for (const auto& i : instances) {
+    auto path = blobs_->LocalPath(i.sha256);
+    if (!path.ok())
+      return not_queued(
+          absl::StrCat("instance ", i.sop_instance_uid, ": ", path.status().message()));
+    files.push_back(*path);
+    uids.push_back(i.sop_instance_uid);
+    auto* f = vreq.mutable_volume()->add_files();
+    f->set_path(absl::StrCat(i.sop_instance_uid, ".dcm"));
+    f->set_blob(absl::StrCat("blobs/", i.sha256));
+  }
+  if (auto st = CheckSeriesComplete(files); !st.ok()) {
+    return not_queued(absl::StrCat("incomplete: ", st.message()));
+  }
+  const std::string request_id = absl::StrCat("dicom-", key);
+  vreq.set_request_id(request_id);
+  vreq.mutable_volume()->set_display_name(absl::StrCat("DICOM series ", series_uid));
+  VolumeCatalog catalog(data_dir_, store_, blobs_);
+  v1::ErrorDetail detail;
+  auto volume = catalog.Create(vreq, &detail);
+  if (!volume.ok()) return not_queued(absl::StrCat("volume: ", volume.status().message()));
+  v1::JobSpec spec = route->spec;
+  spec.set_volume(volume->name());
+  auto normalized = NormalizeJobSpec(spec);
+  if (!normalized.ok()) return not_queued(absl::StrCat("spec: ", normalized.status().message()));
+  bool created = false;
+  const std::string id = NewId();
+  auto job = store_->CreateJob(id, *normalized, request_id, options_.max_queued, &created);
+  if (!created) data_dir_->RemoveJob(id);
+  if (!job.ok()) return not_queued(absl::StrCat("job: ", job.status().ToString()));
+  rec.job = job->name();
+  rec.results_pending = route->destination.configured();
+  if (!created) {
+    // The same instances again: the first job stands, and so does its record.
+    auto known = store_->ListDicomSeries(false, 1000);
+    if (known.ok()) {
+      for (const auto& k : *known) {
+        if (k.instance_set == key) rec = k;
+      }
+    }
+    spdlog::info("dicom: series {} re-sent ({} instances): same set as {}, no new job", series_uid,
+                 instances.size(), job->name());
+  } else {
+    spdlog::info("job {} QUEUED from DICOM series {} ({} instances from {}, route {})", id,
+                 series_uid, instances.size(), last.calling_ae, route->name);
+  }
+  if (auto st = store_->PutDicomSeries(rec, uids); !st.ok()) {
+    spdlog::error("dicom: recording series {}: {}", series_uid, st.ToString());
+  }
+  if (created) pool_->Notify();
+}
+
+void DicomReceiver::SendPendingResults() {
+  auto pending = store_->ListDicomSeries(/*pending_only=*/true, 100);
+  if (!pending.ok()) {
+    spdlog::error("dicom: {}", pending.status().ToString());
+    return;
+  }
+  const int64_t now = WallMs();
+  for (DicomSeriesRecord rec : *pending) {
+    if (stop_) return;
+    auto id = ParseName(rec.job, "jobs", "job");
+    if (!id.ok()) continue;
+    auto job = store_->GetJob(*id);
+    if (!job.ok() || !IsFinal(job->state())) continue;
+    if (next_send_ms_.count(*id) > 0 && now < next_send_ms_[*id]) continue;
+    rec.update_ms = now;
+    rec.results_pending = false;
+    if (job->state() != v1::SUCCEEDED) {
+      rec.send_status = absl::StrCat("nothing sent: job ", v1::JobState_Name(job->state()), ": ",
+                                     job->error().message());
+    } else {
+      const DicomRoute* route = options_.routes.Find(rec.route);
+      std::vector<fs::path> files;
+      for (const auto& a : job->artifacts()) {
+        const std::string& n = a.file_name();
+        if (n.size() > 4 && n.compare(n.size() - 4, 4, ".dcm") == 0) {
+          files.push_back(data_dir_->job_out(*id) / n);
+        }
+      }
+      if (route == nullptr || !route->destination.configured()) {
+        rec.send_status = absl::StrCat("nothing sent: route '", rec.route, "' has no destination");
+      } else if (files.empty()) {
+        rec.send_status = "nothing sent: the job has no DICOM artifact";
+      } else {
+        DicomDestination dest = route->destination;
+        dest.calling_aet = options_.aet;
+        const auto t0 = std::chrono::steady_clock::now();
+        auto sent = SendDicomFiles(dest, files);
+        const double secs =
+            std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
+        if (sent.ok()) {
+          rec.send_status = absl::StrCat("sent: ", *sent);
+          spdlog::info("dicom: results of {} {} in {:.3f} s", rec.job, *sent, secs);
+        } else {
+          const int attempts = ++send_attempts_[*id];
+          rec.send_status =
+              absl::StrCat("attempt ", attempts, " failed: ", sent.status().ToString());
+          spdlog::warn("dicom: results of {}: {}", rec.job, rec.send_status);
+          if (attempts < 3) {
+            rec.results_pending = true;
+            next_send_ms_[*id] = now + 5000;
+          }
+        }
+      }
+    }
+    if (!rec.results_pending) {
+      send_attempts_.erase(*id);
+      next_send_ms_.erase(*id);
+    }
+    if (auto st = store_->PutDicomSeries(rec, {}); !st.ok()) {
+      spdlog::error("dicom: recording the send of {}: {}", rec.job, st.ToString());
+    }
+  }
+}
+
+}  // namespace decima::server

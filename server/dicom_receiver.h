@@ -1,0 +1,125 @@
+// The PACS side of decima-server (off by default; --dicom-listen turns it on):
+//
+//   C-STORE in  a DCMTK storage SCP (one association at a time) accepts every storage SOP class
+//               in the common transfer syntaxes; each instance is written to dicom-spool/,
+//               stored as a blob (blob_store.h) and recorded in the job store
+//               (JobStore::PutDicomInstance) before the C-STORE response says success, so an
+//               acknowledged instance survives a restart.
+//   group       instances are grouped by SeriesInstanceUID. A series whose newest instance is
+//               older than the quiet time is checked once per set of SOP Instance UIDs
+//               (CheckSeriesComplete): quiet alone does not mean complete (Orthanc's "stable"
+//               fired after 1 of 113 instances, and an aborted send looked stable at 79).
+//   job         a complete series becomes a volume and a job with the route's spec; both use
+//               the request id "dicom-<sha256 of the sorted SOP Instance UIDs>", so the same
+//               set sent again returns the first job instead of making a second one. An
+//               incomplete series queues nothing: the reason is logged and stored
+//               (JobStore::PutDicomSeries), its instances wait for more (a resumed send).
+//               Nor does a series whose last association was aborted (a send cut short after
+//               a contiguous run of slices looks geometrically whole) until more arrives; that
+//               mark is kept in memory only, so after a restart such a series is judged by
+//               its geometry alone.
+//   results     when the route has a destination, the job's DICOM artifacts (segmentation.dcm,
+//               sc-*.dcm; dicom_results.h) are sent there once it SUCCEEDED (dicom_sender.h),
+//               at most 3 attempts 5 s apart; the outcome is stored with the series.
+// Associations are refused when the data dir's file system has less than min_free_mb free,
+// when the called AE title is not ours, and (routes "refuse_unknown_calling_ae") when no route
+// names the calling AE title. DCMTK 3.6.7 listens on all interfaces: with a loopback --dicom-
+// listen host, peers other than loopback are refused at association time.
+// Thread-safety: Start/Stop from one thread; the SCP and the settle loop run on their own.
+#pragma once
+
+#include <atomic>
+#include <condition_variable>
+#include <filesystem>
+#include <map>
+#include <memory>
+#include <mutex>
+#include <set>
+#include <string>
+#include <thread>
+#include <vector>
+
+#include "absl/status/statusor.h"
+#include "server/blob_store.h"
+#include "server/data_dir.h"
+#include "server/dicom_routes.h"
+#include "server/job_store.h"
+#include "server/worker_pool.h"
+
+namespace decima::server {
+
+struct DicomReceiverOptions {
+  std::string host = "127.0.0.1";
+  int port = 11112;
+  std::string aet = "DECIMA";  // our AE title: the called AE title we answer to
+  double quiet_seconds = 3;    // a series is checked once no instance came for this long
+  int64_t min_free_mb = 1024;  // refuse associations / instances below this much free disk
+  int max_queued = 1000;       // as --max-queued
+  double poll_seconds = 0.2;   // settle loop period
+  DicomRoutes routes;
+};
+
+// Checks that `files` (one series) form a volume: each a single-frame image with
+// ImagePositionPatient, ImageOrientationPatient, PixelSpacing, Rows and Columns; one
+// orientation, one size, one pixel spacing; at least 2 slices; no fewer instances than an
+// ImagesInAcquisition (0020,1002) that is present says; no duplicate position; every
+// slice on the normal through the first (no tilt); and consecutive gaps along the normal equal
+// to the smallest gap within 1% + 0.01 mm (a missing slice shows as a double gap).
+// INVALID_ARGUMENT saying what is wrong, e.g. "1 slice missing between z=22 and z=26 mm (gap
+// 4 mm, expected 2 mm); 112 instances".
+absl::Status CheckSeriesComplete(const std::vector<std::filesystem::path>& files);
+
+class DicomReceiver {
+ public:
+  DicomReceiver(DicomReceiverOptions options, const DataDir* data_dir, JobStore* store,
+                BlobStore* blobs, WorkerPool* pool);
+  ~DicomReceiver();
+
+  // Opens the port and starts the SCP and the settle loop. UNIMPLEMENTED if the job store
+  // keeps no receiver state; UNAVAILABLE if the port cannot be opened.
+  absl::Status Start();
+  // Stops accepting (the current association finishes within about a second) and joins.
+  void Stop();
+
+  // Called by the SCP thread for each received file (spool path): stores it (blob + store row).
+  // Returns the DIMSE status for the C-STORE response.
+  // `*series_uid` receives the instance's series when stored.
+  uint16_t StoreInstance(const std::filesystem::path& file, const std::string& calling_ae,
+                         const std::string& called_ae, std::string* series_uid);
+  // Called by the SCP thread when an association that brought these series ended without a
+  // release: they are not queued until an instance newer than the abort arrives.
+  void MarkAborted(const std::set<std::string>& series);
+  // True when the data dir has at least min_free_mb free.
+  bool DiskSpaceAllows(std::string* why) const;
+  const DicomReceiverOptions& options() const { return options_; }
+  bool stopping() const { return stop_.load(); }
+  std::filesystem::path spool() const;
+
+ private:
+  void SettleLoop();
+  void SettleSeries(const std::string& series_uid,
+                    const std::vector<DicomInstanceRecord>& instances, const std::string& key);
+  void SendPendingResults();
+
+  const DicomReceiverOptions options_;
+  const DataDir* data_dir_;
+  JobStore* store_;
+  BlobStore* blobs_;
+  WorkerPool* pool_;
+
+  std::atomic<bool> stop_{false};
+  std::thread scp_thread_, settle_thread_;
+  std::mutex mu_;
+  std::condition_variable cv_;
+  bool wake_ = false;
+  std::map<std::string, int64_t> aborted_;  // series -> wall ms of the abort (in memory only)
+  // Settle-loop only: instance sets already checked (pruned to those still pending), send
+  // attempts per job.
+  std::set<std::string> checked_;
+  std::map<std::string, int> send_attempts_;
+  std::map<std::string, int64_t> next_send_ms_;
+  absl::Status scp_status_;
+  std::unique_ptr<class StorageScp> scp_;
+};
+
+}  // namespace decima::server

@@ -1,0 +1,27 @@
+// The JobStore's PACS receiver methods for stores that do not keep that state (yet): they say
+// so, and decima-server refuses --dicom-listen on such a store at start-up.
+#include "absl/strings/str_cat.h"
+#include "server/job_store.h"
+
+namespace decima::server {
+namespace {
+absl::Status NotKept(const char* method) {
+  return absl::UnimplementedError(
+      absl::StrCat("job store: ", method, ": this store keeps no DICOM receiver state"));
+}
+}  // namespace
+
+absl::Status JobStore::PutDicomInstance(const DicomInstanceRecord&) {
+  return NotKept("PutDicomInstance");
+}
+absl::StatusOr<std::vector<DicomInstanceRecord>> JobStore::ListDicomInstances() {
+  return NotKept("ListDicomInstances");
+}
+absl::Status JobStore::PutDicomSeries(const DicomSeriesRecord&, const std::vector<std::string>&) {
+  return NotKept("PutDicomSeries");
+}
+absl::StatusOr<std::vector<DicomSeriesRecord>> JobStore::ListDicomSeries(bool, int) {
+  return NotKept("ListDicomSeries");
+}
+
+}  // namespace decima::server

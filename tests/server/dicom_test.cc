@@ -1,0 +1,160 @@
+// The PACS side's pieces on their own: routes file, series completeness, the job store's
+// receiver state, the SEG/SC writer's refusals. The whole loop against Orthanc is
+// tests/e2e/pacs_e2e_test.py.
+#include <fstream>
+
+#include "core/io/dicom.h"
+#include "core/io/dicom_export.h"
+#include "gmock/gmock.h"
+#include "gtest/gtest.h"
+#include "server/dicom_receiver.h"
+#include "server/dicom_routes.h"
+#include "server/job_store.h"
+#include "tests/testing/test_data.h"
+
+namespace decima::server {
+namespace {
+namespace fs = std::filesystem;
+using ::testing::HasSubstr;
+
+constexpr char kSeries[] = "ct-head-256x256x113-dicom";
+
+std::vector<fs::path> SeriesFiles(const fs::path& dir) {
+  std::vector<fs::path> files;
+  for (const auto& e : fs::directory_iterator(dir)) {
+    if (e.path().extension() == ".dcm") files.push_back(e.path());
+  }
+  std::sort(files.begin(), files.end());
+  return files;
+}
+
+TEST(DicomRoutesTest, FirstMatchingRouteWinsAndUnknownCallersAreRefusedWhenConfigured) {
+  auto routes = ParseDicomRoutes(R"({
+    "refuse_unknown_calling_ae": true,
+    "routes": [
+      {"name": "ct", "calling_ae": "ORTHANC", "called_ae": "DECIMA",
+       "spec": {"regions": 2, "imageSize": 64},
+       "destination": {"stow_url": "http://127.0.0.1:8042/dicom-web/studies",
+                       "username": "u", "password": "p"}},
+      {"name": "any-to-decima", "called_ae": "DECIMA",
+       "destination": {"dicom": "127.0.0.1:4242", "aet": "PACS"}}]})",
+                                 "routes.json");
+  ASSERT_TRUE(routes.ok()) << routes.status();
+  ASSERT_NE(routes->Match("ORTHANC", "DECIMA"), nullptr);
+  EXPECT_EQ(routes->Match("ORTHANC", "DECIMA")->name, "ct");
+  EXPECT_EQ(routes->Match("ORTHANC", "DECIMA")->spec.regions(), 2);
+  EXPECT_EQ(routes->Match("MODALITY", "DECIMA")->name, "any-to-decima");
+  EXPECT_EQ(routes->Match("MODALITY", "DECIMA")->destination.port, 4242);
+  EXPECT_EQ(routes->Match("MODALITY", "OTHER"), nullptr);
+  DicomRoutes open;
+  EXPECT_EQ(open.Match("X", "Y")->name, "default");
+  EXPECT_FALSE(open.Match("X", "Y")->destination.configured());
+}
+
+TEST(DicomRoutesTest, BadFilesNameTheField) {
+  struct Case {
+    const char* json;
+    const char* expected;
+  } cases[] = {
+      {"[]", "not a JSON object"},
+      {R"({"routes": [], "extra": 1})", "extra: unknown key"},
+      {R"({"routes": [{"spec": {"regions": 99}}]})", "routes[0].spec"},
+      {R"({"routes": [{"spec": {"volume": "volumes/x"}}]})", "routes[0].spec.volume"},
+      {R"({"routes": [{"destination": {}}]})", "set exactly one of stow_url and dicom"},
+      {R"({"routes": [{"destination": {"dicom": "host"}}]})", "expected host:port"},
+      {R"({"routes": [{"destination": {"dicom": "h:104"}}]})", "routes[0].destination.aet"},
+      {R"({"routes": [{"name": "a"}, {"name": "a"}]})", "not unique"},
+  };
+  for (const auto& c : cases) {
+    auto r = ParseDicomRoutes(c.json, "routes.json");
+    ASSERT_FALSE(r.ok()) << c.json;
+    EXPECT_EQ(r.status().code(), absl::StatusCode::kInvalidArgument);
+    EXPECT_THAT(r.status().message(), HasSubstr(c.expected)) << c.json;
+    EXPECT_THAT(r.status().message(), HasSubstr("routes.json")) << c.json;
+  }
+}
+
+TEST(CheckSeriesCompleteTest, TheSharedSeriesIsCompleteAndOneMissingSliceIsNamed) {
+  DECIMA_REQUIRE_SHARED_DATA(dir, kSeries);
+  std::vector<fs::path> files = SeriesFiles(dir);
+  ASSERT_EQ(files.size(), 113u);
+  EXPECT_TRUE(CheckSeriesComplete(files).ok()) << CheckSeriesComplete(files);
+  files.erase(files.begin() + 50);
+  absl::Status st = CheckSeriesComplete(files);
+  EXPECT_EQ(st.code(), absl::StatusCode::kInvalidArgument);
+  EXPECT_THAT(st.message(), HasSubstr("1 slice(s) missing"));
+  EXPECT_THAT(st.message(), HasSubstr("gap 4 mm, expected 2 mm"));
+  // A contiguous run of slices is geometrically a volume: the receiver tells a send cut short
+  // by its aborted association (DicomReceiver::MarkAborted), not by this check.
+  std::vector<fs::path> prefix(files.begin(), files.begin() + 40);
+  EXPECT_TRUE(CheckSeriesComplete(prefix).ok());
+  EXPECT_THAT(CheckSeriesComplete({files[0]}).message(), HasSubstr("needs 2 or more"));
+  std::vector<fs::path> twice = {files[0], files[0]};
+  EXPECT_THAT(CheckSeriesComplete(twice).message(), HasSubstr("same position"));
+}
+
+TEST(DicomJobStoreTest, InstancesAndSeriesOutcomesPersistAndConsumeInOneStep) {
+  const std::string path = (testing::MakeScratchDir("dicom_store") / "jobs.sqlite").string();
+  {
+    auto store = OpenSqliteJobStore(path);
+    ASSERT_TRUE(store.ok()) << store.status();
+    ASSERT_TRUE((*store)->PutDicomInstance({"s1", "i1", "aa", "ORTHANC", "DECIMA", 1}).ok());
+    ASSERT_TRUE((*store)->PutDicomInstance({"s1", "i2", "bb", "ORTHANC", "DECIMA", 2}).ok());
+    // The same SOP instance again replaces its row.
+    ASSERT_TRUE((*store)->PutDicomInstance({"s1", "i1", "aa", "ORTHANC", "DECIMA", 3}).ok());
+    EXPECT_TRUE(*(*store)->BlobInUse("aa"));
+    EXPECT_FALSE(*(*store)->BlobInUse("cc"));
+  }
+  auto store = OpenSqliteJobStore(path);  // reopened: a restart
+  ASSERT_TRUE(store.ok());
+  auto instances = (*store)->ListDicomInstances();
+  ASSERT_TRUE(instances.ok());
+  ASSERT_EQ(instances->size(), 2u);
+  EXPECT_EQ((*instances)[0].sop_instance_uid, "i2");  // arrival order, i1 re-sent last
+  EXPECT_EQ((*instances)[1].received_ms, 3);
+
+  DicomSeriesRecord incomplete{"set-a", "s1",  "", "incomplete: 1 slice(s) missing",
+                               "r",     false, "", 10};
+  ASSERT_TRUE((*store)->PutDicomSeries(incomplete, {}).ok());
+  EXPECT_EQ((*store)->ListDicomInstances()->size(), 2u);
+  DicomSeriesRecord queued{"set-b", "s1", "jobs/j1", "", "r", true, "", 11};
+  ASSERT_TRUE((*store)->PutDicomSeries(queued, {"i1", "i2"}).ok());
+  EXPECT_TRUE((*store)->ListDicomInstances()->empty());
+  EXPECT_FALSE(*(*store)->BlobInUse("aa"));
+  auto pending = (*store)->ListDicomSeries(true, 10);
+  ASSERT_TRUE(pending.ok());
+  ASSERT_EQ(pending->size(), 1u);
+  EXPECT_EQ((*pending)[0].job, "jobs/j1");
+  queued.results_pending = false;
+  queued.send_status = "sent: 3 instances";
+  ASSERT_TRUE((*store)->PutDicomSeries(queued, {}).ok());
+  EXPECT_TRUE((*store)->ListDicomSeries(true, 10)->empty());
+  auto all = (*store)->ListDicomSeries(false, 10);
+  ASSERT_EQ(all->size(), 2u);
+  EXPECT_EQ((*all)[0].send_status, "sent: 3 instances");
+  EXPECT_EQ((*all)[1].reason, "incomplete: 1 slice(s) missing");
+}
+
+TEST(DicomExportTest, RefusesALabelMapOnAnotherGrid) {
+  DECIMA_REQUIRE_SHARED_DATA(dir, kSeries);
+  auto labels = MakeVolume({128, 128, 113}, VoxelType::kUInt8);
+  ASSERT_TRUE(labels.ok());
+  io::DicomExportOptions o;
+  o.source_dir = dir;
+  o.labels = &*labels;
+  o.out_dir = testing::MakeScratchDir("dicom_export");
+  auto r = io::WriteDicomResults(o);
+  EXPECT_EQ(r.status().code(), absl::StatusCode::kInvalidArgument);
+  EXPECT_THAT(r.status().message(), HasSubstr("does not match the source series"));
+}
+
+TEST(DicomExportTest, NewUidsAreUuidDerivedAndDistinct) {
+  const std::string a = io::NewDicomUid(), b = io::NewDicomUid();
+  EXPECT_NE(a, b);
+  EXPECT_EQ(a.rfind("2.25.", 0), 0u);
+  EXPECT_LE(a.size(), 64u);
+  EXPECT_EQ(a.find_first_not_of("0123456789.", 0), std::string::npos);
+}
+
+}  // namespace
+}  // namespace decima::server
