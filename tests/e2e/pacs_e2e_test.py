@@ -15,6 +15,7 @@ and stopped by its PID; every wait is bounded.
          passes dciodvfy without errors, and pydicom reads its segments back onto the source
          geometry with Dice 1.0 against the job's own label map (labels.nii.gz artifact: the
          shared data has no label map of this series);
+     Another copy comes in as calling AE ORTHANC2, whose route sends the results by C-STORE.
   C  DICOMweb: `decima pull` of the 113-slice series (timed), `decima submit --dicomweb` of the
      small one runs as a job.
 Prints one JSON object of figures on the last line. Exit 77 (ctest: skipped) when a tool or the
@@ -373,7 +374,11 @@ def main():
                        "routes": [{"name": "orthanc", "calling_ae": "ORTHANC",
                                    "called_ae": "DECIMA", "spec": spec,
                                    "destination": {"stow_url": f"{orthanc.url}/dicom-web/studies",
-                                                   "username": USER, "password": PASSWORD}}]}, f)
+                                                   "username": USER, "password": PASSWORD}},
+                                  {"name": "orthanc-cstore", "calling_ae": "ORTHANC2",
+                                   "called_ae": "DECIMA", "spec": spec,
+                                   "destination": {"dicom": f"127.0.0.1:{orthanc.dicom}",
+                                                   "aet": "ORTHANC"}}]}, f)
         quiet = 1.0
         b = Decima(server_bin, cli_bin, tmp, "b", dicom_port, quiet, routes)
         procs.append(b.proc)
@@ -464,6 +469,24 @@ def main():
         sent = b.db(f"SELECT send_status FROM dicom_series WHERE job='{job_name}'")
         check(sent and sent[0][0].startswith("sent: 3 instances stored by STOW-RS"), f"{sent}")
 
+        # Results by C-STORE: another copy (new UIDs) through the route of calling AE ORTHANC2.
+        files2, study2, _ = make_small_series(series_dir, os.path.join(tmp, "small2"), 8)
+        ids2 = orthanc.upload(files2)
+        ok, _, answer = orthanc.store_to_decima(
+            [orthanc.json("GET", f"/instances/{ids2[0]}")["ParentSeries"]], local_aet="ORTHANC2")
+        check(ok, f"C-STORE as ORTHANC2 failed: {answer}")
+        wait_for("the C-STORE route's job", lambda: len(b.jobs()) == 2, 30, 0.1)
+        job2 = [j["name"] for j in b.jobs() if j["name"] != job_name][0]
+        sent2 = wait_for("results sent by C-STORE", lambda: [
+            r for r in b.db(f"SELECT send_status FROM dicom_series WHERE job='{job2}'")
+            if r[0]], 600, 0.2)
+        check(sent2[0][0].startswith("sent: 3 instances stored by C-STORE at ORTHANC@"),
+              f"C-STORE send: {sent2}")
+        mods2 = json.loads(orthanc.request("GET", f"/dicom-web/studies/{study2}/series",
+                                           accept="application/dicom+json"))
+        mods2 = sorted(x["00080060"]["Value"][0] for x in mods2)
+        check(mods2 == ["CT", "OT", "SEG"], f"series after C-STORE: {mods2}")
+
         # --- C: DICOMweb pull ---------------------------------------------------------------------
         base = f"{orthanc.url}/dicom-web"
         pulls = []
@@ -484,7 +507,7 @@ def main():
                   "--dicomweb-user", f"{USER}:{PASSWORD}", "--regions", "2", "--image-size", "32",
                   "--policy", "paper", "--reduction", "0.2", "--watch", timeout=600)
         check(r.returncode == 0, f"decima submit --dicomweb: {r.returncode} {r.stderr[-500:]}")
-        check(len(b.jobs()) == 2, "the DICOMweb job is not there")
+        check(len(b.jobs()) == 3, "the DICOMweb job is not there")
         print(json.dumps(figures))
     finally:
         for p in reversed(procs):
