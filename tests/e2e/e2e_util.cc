@@ -5,6 +5,8 @@
 #include <sys/wait.h>
 #include <unistd.h>
 
+#include <algorithm>
+#include <atomic>
 #include <cstring>
 #include <fstream>
 #include <sstream>
@@ -75,9 +77,12 @@ ServerProcess::ServerProcess(fs::path data_dir, std::vector<std::string> extra)
   fs::path port_file = data_dir_.parent_path() / ("port-" + tag);
   log_ = data_dir_.parent_path() / ("server-" + tag + ".log");
   fs::remove(port_file);
-  std::vector<std::string> args = {
-      ServerBinary().string(), "--listen",    "127.0.0.1:0",     "--data-dir",
-      data_dir_.string(),      "--port-file", port_file.string()};
+  std::vector<std::string> args = {ServerBinary().string(), "--data-dir", data_dir_.string(),
+                                   "--port-file", port_file.string()};
+  // A test may pin the address (a restart on the same port); else a free port.
+  if (std::find(extra.begin(), extra.end(), "--listen") == extra.end()) {
+    args.insert(args.end(), {"--listen", "127.0.0.1:0"});
+  }
   args.insert(args.end(), extra.begin(), extra.end());
   pid_ = Spawn(args, log_, log_.string() + ".err", {});
   bool up = WaitFor(
@@ -105,6 +110,22 @@ void ServerProcess::Signal(int sig) {
 }
 
 std::string ServerProcess::Log() const { return ReadAll(log_) + ReadAll(log_.string() + ".err"); }
+
+CliResult RunProgram(const std::vector<std::string>& argv, std::chrono::seconds timeout) {
+  static std::atomic<int> counter{0};
+  fs::path dir = fs::temp_directory_path() / ("decima-run-" + std::to_string(getpid()));
+  fs::create_directories(dir);
+  std::string tag = std::to_string(++counter);
+  fs::path out = dir / (tag + ".out"), err = dir / (tag + ".err");
+  pid_t pid = Spawn(argv, out, err, {});
+  CliResult r;
+  r.rc = Reap(pid, timeout);
+  r.out = ReadAll(out);
+  r.err = ReadAll(err);
+  fs::remove(out);
+  fs::remove(err);
+  return r;
+}
 
 CliResult RunCli(const std::string& address, const std::vector<std::string>& args,
                  std::chrono::seconds timeout, const std::map<std::string, std::string>& env) {

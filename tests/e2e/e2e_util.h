@@ -19,7 +19,8 @@ struct CliResult {
 
 class ServerProcess {
  public:
-  // Starts decima-server with --data-dir `data_dir`, --listen 127.0.0.1:0, `extra` flags;
+  // Starts decima-server with --data-dir `data_dir`, --listen 127.0.0.1:0 (unless `extra`
+  // names --listen), `extra` flags;
   // waits until it wrote its port (fails the test after 30 s).
   ServerProcess(std::filesystem::path data_dir, std::vector<std::string> extra = {});
   ~ServerProcess();  // SIGKILL if still running
@@ -41,6 +42,10 @@ class ServerProcess {
 CliResult RunCli(const std::string& address, const std::vector<std::string>& args,
                  std::chrono::seconds timeout = std::chrono::seconds(60),
                  const std::map<std::string, std::string>& env = {});
+
+// Runs `argv` (argv[0] a path) to its end (killed after `timeout`), capturing its output.
+CliResult RunProgram(const std::vector<std::string>& argv,
+                     std::chrono::seconds timeout = std::chrono::seconds(60));
 
 // Polls `pred` every 20 ms until true or `timeout`; returns the last value.
 template <typename Pred>
