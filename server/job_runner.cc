@@ -188,7 +188,14 @@ JobRunner::ChildEnd JobRunner::Relay(ChildProcess& child, const Lease& lease, St
 
 void JobRunner::Fail(const Lease& lease, absl::StatusCode code, const std::string& message,
                      double seconds) {
-  auto r = store_->Finish(lease, v1::FAILED, Outcome(code, message));
+  // Clients see data-dir paths relative to the data dir ("volumes/<id>/files/head.nii"): where
+  // the server keeps its files is the operator's business (the log keeps the full message).
+  std::string shown = message;
+  const std::string root = options_.data_dir.root().string() + "/";
+  for (size_t at; !root.empty() && (at = shown.find(root)) != std::string::npos;) {
+    shown.erase(at, root.size());
+  }
+  auto r = store_->Finish(lease, v1::FAILED, Outcome(code, shown));
   if (!r.ok()) spdlog::error("job {}: recording failure: {}", lease.job_id, r.status().ToString());
   if (r.ok()) options_.data_dir.RemoveJobOut(lease.job_id);
   spdlog::info("job {} FAILED after {:.3f} s: {}", lease.job_id, seconds, message);

@@ -426,6 +426,19 @@ TEST_F(HardeningE2E, LeftoversOfRefusedCancelledAndFailedWork) {
   EXPECT_EQ(r.rc, 3);
   EXPECT_THAT(r.err, HasSubstr("FAILED"));
   EXPECT_THAT(r.err, HasSubstr("signal"));
+  // A job failing on its input (a DICOM series missing a slice: only the job's load stage
+  // sees it) names the files relative to the data dir, not where the server keeps them.
+  const fs::path gap = scratch_ / "gap";
+  fs::create_directories(gap);
+  testing::SliceSpec slice;
+  slice.rows = slice.columns = 16;
+  testing::WriteSeries(gap, slice, {1.0, 1.0, 2.0, 1.0});
+  r = RunCli(server.address(), {"-q", "submit", gap.string(), "--watch"}, 120s);
+  EXPECT_EQ(r.rc, 3) << r.err;
+  EXPECT_THAT(r.err, HasSubstr("missing slice"));
+  EXPECT_THAT(r.err, Not(HasSubstr(server.data_dir().string())));
+  const v1::Job failing = GetJob(server.address(), FirstLine(r.out));
+  EXPECT_THAT(failing.error().message(), Not(HasSubstr(server.data_dir().string())));
 }
 
 }  // namespace
