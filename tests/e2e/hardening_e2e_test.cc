@@ -85,16 +85,6 @@ grpc::Status CreateVolume(const std::string& address, const std::string& path,
   return stub->CreateVolume(Ctx().get(), req, out);
 }
 
-v1::Job GetJob(const std::string& address, const std::string& name) {
-  auto stub = v1::Jobs::NewStub(Channel(address));
-  v1::GetJobRequest req;
-  req.set_name(name);
-  v1::Job job;
-  grpc::Status s = stub->GetJob(Ctx().get(), req, &job);
-  EXPECT_TRUE(s.ok()) << s.error_message();
-  return job;
-}
-
 grpc::Status DeleteJob(const std::string& address, const std::string& name) {
   auto stub = v1::Jobs::NewStub(Channel(address));
   v1::DeleteJobRequest req;
@@ -154,30 +144,10 @@ int64_t PeakRss(pid_t pid) {
 // A gzip-compressed NIfTI-1 of uint8 zeros, nx*ny*nz voxels: a few hundred KB that declare
 // hundreds of MB.
 void WriteNiftiGzBomb(const fs::path& path, int nx, int ny, int nz) {
-  char hdr[352] = {};
-  auto put32 = [&](int off, int32_t v) { std::memcpy(hdr + off, &v, 4); };
-  auto put16 = [&](int off, int16_t v) { std::memcpy(hdr + off, &v, 2); };
-  auto putf = [&](int off, float v) { std::memcpy(hdr + off, &v, 4); };
-  put32(0, 348);
-  put16(40, 3);
-  put16(42, static_cast<int16_t>(nx));
-  put16(44, static_cast<int16_t>(ny));
-  put16(46, static_cast<int16_t>(nz));
-  put16(48, 1);
-  put16(50, 1);
-  put16(52, 1);
-  put16(70, 2);  // DT_UINT8
-  put16(72, 8);
-  putf(76, 1);
-  putf(80, 1);
-  putf(84, 1);
-  putf(88, 1);
-  putf(108, 352);
-  putf(112, 1);
-  std::memcpy(hdr + 344, "n+1\0", 4);
+  const std::string hdr = NiftiHeader(nx, ny, nz, /*uint8*/ 2, 8, 1.0f);
   gzFile gz = gzopen(path.c_str(), "wb1");
   ASSERT_NE(gz, nullptr);
-  gzwrite(gz, hdr, sizeof hdr);
+  gzwrite(gz, hdr.data(), static_cast<unsigned>(hdr.size()));
   const std::vector<char> zeros(1 << 20, 0);
   int64_t left = int64_t{nx} * ny * nz;
   while (left > 0) {

@@ -51,16 +51,6 @@ std::unique_ptr<grpc::ClientContext> Ctx(const std::string& token = "") {
   return ctx;
 }
 
-v1::Job GetJob(const std::string& address, const std::string& name) {
-  auto stub = v1::Jobs::NewStub(grpc::CreateChannel(address, grpc::InsecureChannelCredentials()));
-  v1::GetJobRequest req;
-  req.set_name(name);
-  v1::Job job;
-  grpc::Status s = stub->GetJob(Ctx().get(), req, &job);
-  EXPECT_TRUE(s.ok()) << s.error_message();
-  return job;
-}
-
 // Every event of a job, read by a watcher from after_sequence = 0 to the end of the stream.
 std::vector<v1::JobEvent> WatchAll(const std::string& address, const std::string& name,
                                    int64_t after = 0, int stop_after = -1) {
