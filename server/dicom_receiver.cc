@@ -294,11 +294,12 @@ absl::Status CheckSeriesComplete(const std::vector<fs::path>& files) {
 }
 
 DicomReceiver::DicomReceiver(DicomReceiverOptions options, const DataDir* data_dir, JobStore* store,
-                             BlobStore* blobs, WorkerPool* pool)
+                             BlobStore* blobs, VolumeCatalog* catalog, WorkerPool* pool)
     : options_(std::move(options)),
       data_dir_(data_dir),
       store_(store),
       blobs_(blobs),
+      catalog_(catalog),
       pool_(pool) {}
 
 DicomReceiver::~DicomReceiver() { Stop(); }
@@ -400,6 +401,9 @@ uint16_t DicomReceiver::StoreInstance(const fs::path& file, const std::string& c
   const int64_t size = static_cast<int64_t>(fs::file_size(file, ec));
   absl::Status st = sha.ok() ? CopyIntoBlobs(blobs_, file, *sha, size) : sha.status();
   if (st.ok()) {
+    // Held by its upload claim until the store row below holds it (BlobInUse counts received
+    // instances), so the blob collector cannot take it in between.
+    blobs_->Claim(*sha);
     st = store_->PutDicomInstance(
         {header->series_uid, header->sop_uid, *sha, calling_ae, called_ae, WallMs()});
   }
@@ -502,9 +506,8 @@ void DicomReceiver::SettleSeries(const std::string& series_uid,
   const std::string request_id = absl::StrCat("dicom-", key);
   vreq.set_request_id(request_id);
   vreq.mutable_volume()->set_display_name(absl::StrCat("DICOM series ", series_uid));
-  VolumeCatalog catalog(data_dir_, store_, blobs_);
   v1::ErrorDetail detail;
-  auto volume = catalog.Create(vreq, &detail);
+  auto volume = catalog_->Create(vreq, &detail);
   if (!volume.ok()) return not_queued(absl::StrCat("volume: ", volume.status().message()));
   v1::JobSpec spec = route->spec;
   spec.set_volume(volume->name());

@@ -44,6 +44,7 @@
 #include "server/data_dir.h"
 #include "server/dicom_routes.h"
 #include "server/job_store.h"
+#include "server/volume_catalog.h"
 #include "server/worker_pool.h"
 
 namespace decima::server {
@@ -72,7 +73,7 @@ absl::Status CheckSeriesComplete(const std::vector<std::filesystem::path>& files
 class DicomReceiver {
  public:
   DicomReceiver(DicomReceiverOptions options, const DataDir* data_dir, JobStore* store,
-                BlobStore* blobs, WorkerPool* pool);
+                BlobStore* blobs, VolumeCatalog* catalog, WorkerPool* pool);
   ~DicomReceiver();
 
   // Opens the port and starts the SCP and the settle loop. UNIMPLEMENTED if the job store
@@ -105,6 +106,7 @@ class DicomReceiver {
   const DataDir* data_dir_;
   JobStore* store_;
   BlobStore* blobs_;
+  VolumeCatalog* catalog_;
   WorkerPool* pool_;
 
   std::atomic<bool> stop_{false};
