@@ -326,6 +326,9 @@ absl::Status DicomReceiver::Start() {
   // lines say what matters.
   OFLog::configure(OFLogger::ERROR_LOG_LEVEL);
   std::error_code ec;
+  // What a previous process was receiving when it stopped was never acknowledged: the sender
+  // sends it again.
+  fs::remove_all(spool(), ec);
   fs::create_directories(spool(), ec);
   if (ec) return absl::InternalError(absl::StrCat(spool().string(), ": ", ec.message()));
   scp_ = std::make_unique<StorageScp>(this);

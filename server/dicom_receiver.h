@@ -39,6 +39,7 @@
 #include <thread>
 #include <vector>
 
+#include "absl/base/thread_annotations.h"
 #include "absl/status/statusor.h"
 #include "server/blob_store.h"
 #include "server/data_dir.h"
@@ -113,8 +114,9 @@ class DicomReceiver {
   std::thread scp_thread_, settle_thread_;
   std::mutex mu_;
   std::condition_variable cv_;
-  bool wake_ = false;
-  std::map<std::string, int64_t> aborted_;  // series -> wall ms of the abort (in memory only)
+  bool wake_ ABSL_GUARDED_BY(mu_) = false;
+  // series -> wall ms of the abort (in memory only)
+  std::map<std::string, int64_t> aborted_ ABSL_GUARDED_BY(mu_);
   // Settle-loop only: instance sets already checked (pruned to those still pending), send
   // attempts per job.
   std::set<std::string> checked_;

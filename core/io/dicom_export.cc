@@ -325,7 +325,20 @@ absl::StatusOr<DicomExportResult> WriteDicomResults(const DicomExportOptions& o)
     return DcmError("creating the segmentation", c);
   }
   std::unique_ptr<DcmSegmentation> seg(raw);
-  if (auto st = Check(seg->importFromSourceImage(*src.first->getDataset(), OFTrue),
+  // A source that left out type 2 attributes of the Patient and General Study modules (allowed
+  // to be empty, not absent), or the Frame of Reference, still gets a valid SEG: they are
+  // imported empty, and the frame of reference gets a new UID (the SEG's frames are placed by
+  // the source's positions and reference the source instances).
+  DcmDataset source_header(*src.first->getDataset());
+  for (const DcmTagKey& tag :
+       {DCM_PatientName, DCM_PatientID, DCM_PatientBirthDate, DCM_PatientSex, DCM_StudyDate,
+        DCM_StudyTime, DCM_ReferringPhysicianName, DCM_StudyID, DCM_AccessionNumber}) {
+    if (!source_header.tagExists(tag)) source_header.insertEmptyElement(tag);
+  }
+  if (!source_header.tagExistsWithValue(DCM_FrameOfReferenceUID)) {
+    source_header.putAndInsertString(DCM_FrameOfReferenceUID, NewDicomUid().c_str());
+  }
+  if (auto st = Check(seg->importFromSourceImage(source_header, OFTrue),
                       "importing patient/study from " + where);
       !st.ok()) {
     return st;
