@@ -119,10 +119,10 @@ Image DiffHeatMap(const DiffResult& diff, const DiffImageOptions& options) {
   Canvas c(diff.width + BarPanelWidth(s, top), diff.height + footer, kPanel);
   c.Blit(HeatPixels(diff, top), 0, 0);
   DrawBar(c, diff.width + 4 * s, pad + 7 * s + 3 * s, diff.height - pad, s, top);
-  c.Text(pad, diff.height + pad,
-         absl::StrCat("MEAN COLOUR DIFFERENCE ", FormatNumber(diff.diff1), "  MAX ",
-                      FormatNumber(diff.max_diff2), "  SCALE 0-", FormatNumber(top)),
-         kText, s);
+  c.Text(
+      pad, diff.height + pad,
+      absl::StrCat("MEAN DIFF ", FormatNumber(diff.diff1), "  MAX ", FormatNumber(diff.max_diff2)),
+      kText, s);
   return c.Take();
 }
 
