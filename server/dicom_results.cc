@@ -13,6 +13,8 @@ absl::Status AddDicomResults(const pipeline::JobSpec& spec, const fs::path& out_
   std::error_code ec;
   if (!fs::is_directory(spec.input, ec)) return absl::OkStatus();
   const fs::path labels_path = out_dir / "labels.nii.gz";
+  // The SEG is made from the label map: a job whose outputs leave out "labels" gets none.
+  if (!fs::exists(labels_path, ec)) return absl::OkStatus();
   auto labels = io::ReadVolume(labels_path);
   if (!labels.ok()) {
     return absl::Status(labels.status().code(), absl::StrCat("dicom: ", labels.status().message()));

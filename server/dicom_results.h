@@ -12,7 +12,9 @@
 
 namespace decima::server {
 
-// Appends the DICOM artifacts to `result` for a folder input; does nothing for a volume file.
+// Appends the DICOM artifacts to `result` for a folder input; does nothing for a volume file or
+// when the job's outputs (JobSpec.outputs) left out "labels" (no label map, no SEG); without
+// "images" the SEG comes alone.
 // Errors name the stage ("dicom: ...") and come from WriteDicomResults or the label map read.
 absl::Status AddDicomResults(const pipeline::JobSpec& spec, const std::filesystem::path& out_dir,
                              pipeline::JobResult* result);
