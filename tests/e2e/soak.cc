@@ -58,6 +58,7 @@ struct Options {
   int clients = 4;
   int workers = 2;
   double chaos_seconds = 8;
+  double blob_grace_seconds = 5;  // the server's --blob-grace-seconds (default there: 1 hour)
   int in_flight = 2;  // unfinished jobs per client before it waits: submits spread over the run
   double timeout_seconds = 7200;
   bool keep = false;
@@ -260,6 +261,10 @@ int main(int argc, char** argv) {
       o.workers = std::atoi(next());
     else if (a == "--chaos-seconds")
       o.chaos_seconds = std::atof(next());
+    else if (a == "--blob-grace-seconds")
+      o.blob_grace_seconds = std::atof(next());
+    else if (a == "--in-flight")
+      o.in_flight = std::atoi(next());
     else if (a == "--timeout-seconds")
       o.timeout_seconds = std::atof(next());
     else if (a == "--keep")
@@ -267,7 +272,8 @@ int main(int argc, char** argv) {
     else {
       std::fprintf(stderr,
                    "usage: decima-soak [--jobs N] [--clients M] [--workers W] "
-                   "[--chaos-seconds S] [--in-flight K] [--timeout-seconds T] [--keep]\n");
+                   "[--chaos-seconds S] [--in-flight K] [--blob-grace-seconds G] "
+                   "[--timeout-seconds T] [--keep]\n");
       return 2;
     }
   }
@@ -283,8 +289,9 @@ int main(int argc, char** argv) {
   const fs::path data_dir = scratch / "data";
   const std::string run = std::to_string(::getpid()) + "-" + std::to_string(std::time(nullptr));
 
-  ServerSlot server(data_dir, {"--workers", std::to_string(o.workers), "--drain-seconds", "2",
-                               "--lease-seconds", "3", "--no-fsync"});
+  ServerSlot server(
+      data_dir, {"--workers", std::to_string(o.workers), "--drain-seconds", "2", "--lease-seconds",
+                 "3", "--no-fsync", "--blob-grace-seconds", std::to_string(o.blob_grace_seconds)});
   // The empty size is measured with the server stopped, as the final one is (SQLite's WAL is
   // checkpointed into jobs.sqlite on a clean stop).
   server.Stop();
@@ -533,6 +540,15 @@ int main(int argc, char** argv) {
         &retries);
     if (!s.ok()) ++delete_errors;
   }
+  // The blob collector removes unused blobs once their grace has passed (it runs every quarter
+  // of the grace, at least every second): wait for it, bounded.
+  const double collect_until = Now() + 4 * o.blob_grace_seconds + 30;
+  auto blobs_left = [&] {
+    const json d = DirSize(data_dir / "blobs");
+    return d["files"].get<int64_t>();
+  };
+  while (blobs_left() > 0 && Now() < collect_until) std::this_thread::sleep_for(500ms);
+  done = true;
   monitor.join();
   auto [rss_end, fds_end] = Usage(server.pid());
   server.Stop();
@@ -544,6 +560,7 @@ int main(int argc, char** argv) {
                     {"workers", o.workers},
                     {"chaos_seconds", o.chaos_seconds},
                     {"in_flight_per_client", o.in_flight},
+                    {"server_blob_grace_seconds", o.blob_grace_seconds},
                     {"volume", "12x10x8 int16 NIfTI, one distinct blob per job"}};
   out["jobs"] = {{"requested", o.jobs},
                  {"submitted", o.jobs - submit_errors.load()},
@@ -586,6 +603,16 @@ int main(int argc, char** argv) {
       {"at_end", at_end},
       {"after_deleting_everything", after_delete},
       {"delete_errors", delete_errors},
+      {"growth_by_entry",
+       [&] {
+         json g = json::object();
+         for (auto& [k, v] : after_delete["by_entry"].items()) {
+           const int64_t before =
+               empty["by_entry"].contains(k) ? empty["by_entry"][k]["bytes"].get<int64_t>() : 0;
+           if (v["bytes"].get<int64_t>() != before) g[k] = v["bytes"].get<int64_t>() - before;
+         }
+         return g;
+       }()},
       {"returns_to_empty", after_delete["bytes"].get<int64_t>() <= empty["bytes"].get<int64_t>()}};
   std::printf("%s\n", out.dump(2).c_str());
   if (!o.keep) fs::remove_all(scratch);
