@@ -153,8 +153,16 @@ TEST_F(ServiceE2E, CancelStopsARunningJobWithinASecondAndTheWorkerTakesTheNext) 
   auto cancel_time = std::chrono::steady_clock::now() - t0;
   ASSERT_EQ(c.rc, 0) << c.err;
   EXPECT_THAT(c.out, HasSubstr("CANCELLED"));
-  EXPECT_LT(cancel_time, 1s) << "cancel took " << std::chrono::duration<double>(cancel_time).count()
-                             << " s";
+#ifdef __SANITIZE_THREAD__
+  // The time includes starting the CLI process, which under ThreadSanitizer (its runtime set-up,
+  // every gRPC call instrumented) took 1.17 s on a loaded machine; the promise is checked at 1 s
+  // by the plain and ASan builds.
+  constexpr auto kCancelBound = 3s;
+#else
+  constexpr auto kCancelBound = 1s;
+#endif
+  EXPECT_LT(cancel_time, kCancelBound)
+      << "cancel took " << std::chrono::duration<double>(cancel_time).count() << " s";
   EXPECT_EQ(GetJob(server.address(), job_a).state(), v1::CANCELLED);
 
   CliResult w = RunCli(server.address(), {"watch", job_b});

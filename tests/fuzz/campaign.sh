@@ -30,7 +30,8 @@ run_target() {  # target
         -timeout=10 -max_len="${max_len[$t]}" -print_final_stats=1 \
         -artifact_prefix="$work/artifacts/$t/" "$work/corpus/$t" "$repo/tests/fuzz/corpus/$t" \
         >"$work/logs/$t.log.$runs" 2>&1 || true
-    cpu=$(awk -v c="$cpu" '{print c + $1 + $2}' "$work/logs/$t.time.$runs")
+    # The last line: /usr/bin/time writes "Command exited with non-zero status N" before it.
+    cpu=$(tail -n 1 "$work/logs/$t.time.$runs" | awk -v c="$cpu" '{print c + $1 + $2}')
   done
   local execs
   execs=$(grep -h "stat::number_of_executed_units" "$work/logs/$t.log."* |
