@@ -1,6 +1,7 @@
 #include "server/blob_store.h"
 
 #include <fcntl.h>
+#include <sys/file.h>
 #include <unistd.h>
 
 #include <cerrno>
@@ -16,17 +17,19 @@ namespace fs = std::filesystem;
 class LocalBlobWriter : public BlobWriter {
  public:
   LocalBlobWriter(LocalBlobStore* store, std::string sha, int64_t size, fs::path partial, int fd,
-                  int64_t offset, std::unique_ptr<Sha256> hash)
+                  int lock_fd, int64_t offset, std::unique_ptr<Sha256> hash)
       : store_(store),
         sha_(std::move(sha)),
         size_(size),
         partial_(std::move(partial)),
         fd_(fd),
+        lock_fd_(lock_fd),
         written_(offset),
         hash_(std::move(hash)) {}
 
   ~LocalBlobWriter() override {
     if (fd_ >= 0) ::close(fd_);
+    ::close(lock_fd_);  // releases the flock: the next writer, on any replica, may start
     store_->Release(sha_);
   }
 
@@ -83,6 +86,7 @@ class LocalBlobWriter : public BlobWriter {
       return absl::InternalError(
           absl::StrCat("committing ", final_path.string(), ": ", ec.message()));
     }
+    fs::remove(partial_.string() + ".lock", ec);
     return absl::OkStatus();
   }
 
@@ -91,6 +95,7 @@ class LocalBlobWriter : public BlobWriter {
     fd_ = -1;
     std::error_code ec;
     fs::remove(partial_, ec);
+    fs::remove(partial_.string() + ".lock", ec);
   }
 
  private:
@@ -99,6 +104,7 @@ class LocalBlobWriter : public BlobWriter {
   int64_t size_;
   fs::path partial_;
   int fd_;
+  int lock_fd_;
   int64_t written_;
   std::unique_ptr<Sha256> hash_;
 };
@@ -161,18 +167,37 @@ absl::StatusOr<std::unique_ptr<BlobWriter>> LocalBlobStore::OpenWriter(const std
     return s;
   };
   fs::path partial = PartialPath(sha, size);
+  // Writers in other processes (replicas sharing this folder) are excluded by an flock on a
+  // lock file beside the partial: released by the kernel when the writer's process dies, and
+  // honoured across NFS clients (Linux maps flock to NFS byte-range locks).
+  const fs::path lock_path = partial.string() + ".lock";
+  int lock_fd = ::open(lock_path.c_str(), O_RDWR | O_CREAT | O_CLOEXEC, 0644);
+  if (lock_fd < 0) {
+    return fail(absl::InternalError(
+        absl::StrCat("opening ", lock_path.string(), ": ", std::strerror(errno))));
+  }
+  if (::flock(lock_fd, LOCK_EX | LOCK_NB) != 0) {
+    ::close(lock_fd);
+    return fail(absl::AbortedError(absl::StrCat(
+        "another upload of blob ", sha, " is in progress (perhaps through another replica); "
+        "retry later")));
+  }
+  auto fail_locked = [&](absl::Status s) {
+    ::close(lock_fd);
+    return fail(std::move(s));
+  };
   std::error_code ec;
   int64_t held = 0;
   if (fs::exists(partial, ec)) held = static_cast<int64_t>(fs::file_size(partial, ec));
   if (offset != held) {
-    return fail(absl::FailedPreconditionError(
+    return fail_locked(absl::FailedPreconditionError(
         absl::StrCat("upload of ", sha, " starts at byte ", offset, " but the server holds ", held,
                      " bytes; resume with write_offset=", held)));
   }
   int flags = O_WRONLY | O_CREAT | O_CLOEXEC | (offset == 0 ? O_TRUNC : O_APPEND);
   int fd = ::open(partial.c_str(), flags, 0644);
   if (fd < 0) {
-    return fail(absl::InternalError(
+    return fail_locked(absl::InternalError(
         absl::StrCat("opening ", partial.string(), ": ", std::strerror(errno))));
   }
   auto hash = std::make_unique<Sha256>();
@@ -180,12 +205,12 @@ absl::StatusOr<std::unique_ptr<BlobWriter>> LocalBlobStore::OpenWriter(const std
     absl::Status s = HashFilePrefix(partial, offset, *hash);
     if (!s.ok()) {
       ::close(fd);
-      return fail(s);
+      return fail_locked(s);
     }
   }
   // The writer releases the digest when destroyed.
   return std::unique_ptr<BlobWriter>(
-      new LocalBlobWriter(this, sha, size, partial, fd, offset, std::move(hash)));
+      new LocalBlobWriter(this, sha, size, partial, fd, lock_fd, offset, std::move(hash)));
 }
 
 absl::StatusOr<fs::path> LocalBlobStore::LocalPath(const std::string& sha) const {

@@ -2,8 +2,9 @@
 // temp-then-rename, so a reader never sees a partial blob and the same scan is stored once.
 // Interrupted uploads keep their prefix ("partial") so the client can resume.
 //
-// Thread-safety: a BlobStore may be used from many threads. Writing the same digest from two
-// writers at once is refused (ABORTED) by OpenWriter.
+// Thread-safety: a BlobStore may be used from many threads, and a LocalBlobStore folder by many
+// processes (replicas on a shared volume). Writing the same digest from two writers at once is
+// refused (ABORTED) by OpenWriter, also when the other writer is in another process.
 #pragma once
 
 #include <cstdint>
@@ -53,7 +54,8 @@ class BlobStore {
   virtual absl::Status Delete(const std::string& sha256) = 0;
 };
 
-// Blobs under `root`: root/sha256/ab/abcdef... and partials under root/partial/.
+// Blobs under `root`: root/sha256/ab/abcdef... and partials under root/partial/ (with a
+// <partial>.lock flocked by its writer).
 class LocalBlobStore : public BlobStore {
  public:
   // Creates the folders; `fsync` makes Commit() flush data before the rename (durable blobs).

@@ -1,5 +1,5 @@
 // Runs one claimed job to its recorded outcome, in four steps:
-//   Prepare  a fresh jobs/<id>/out/, the volumes resolved to files, jobs/<id>/request.pb;
+//   Prepare  a fresh jobs/<id>/attempts/<epoch>/out/, the volumes resolved to files, jobs/<id>/request.pb;
 //   Spawn    the child `decima-server --run-job jobs/<id>/request.pb` (child_process.h);
 //   Relay    its length-delimited messages (worker_protocol.h) into the store as progress
 //            events, renewing the lease every third of it and polling the store for a cancel
@@ -47,7 +47,7 @@ class JobRunner {
 
  private:
   struct ChildEnd;
-  absl::StatusOr<std::filesystem::path> Prepare(const v1::Job& job);
+  absl::StatusOr<std::filesystem::path> Prepare(const v1::Job& job, int64_t epoch);
   ChildEnd Relay(class ChildProcess& child, const Lease& lease, StopFlags& stop);
   void RecordOutcome(const v1::Job& job, const Lease& lease, const ChildEnd& end,
                      const StopFlags& stop, double seconds);
