@@ -705,9 +705,10 @@ class PostgresJobStore : public JobStore {
       } catch (const pqxx::sql_error& e) {
         // 40001 serialization failure, 40P01 deadlock: run the transaction again. 57P01 etc.
         // (admin shutdown) and 08xxx (connection exceptions) mean the server went away.
+        // No SQLSTATE or a closed connection: the server went away mid-statement.
         const std::string& state = e.sqlstate();
-        if (state == "40001" || state == "40P01" || state.rfind("57P", 0) == 0 ||
-            state.rfind("08", 0) == 0) {
+        if (state.empty() || (conn && !conn->is_open()) || state == "40001" || state == "40P01" ||
+            state.rfind("57P", 0) == 0 || state.rfind("08", 0) == 0) {
           error = e.what();
         } else {
           if (conn) pool_.Release(std::move(conn), !conn->is_open());
