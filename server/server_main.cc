@@ -18,6 +18,7 @@
 #include <grpcpp/grpcpp.h>
 #include <grpcpp/health_check_service_interface.h>
 #include <CLI/CLI.hpp>
+#include <atomic>
 #include <cstdlib>
 #include <fstream>
 #include <sstream>
@@ -226,8 +227,17 @@ int main(int argc, char** argv) {
     return 1;
   }
   EventBus bus;
+  // A job queued anywhere (another replica's CreateJob, Retry or reaper) wakes an idle worker
+  // here at once instead of at its next 1 s poll. The pool is made below; the listener may
+  // already run on the store's event thread.
+  std::atomic<WorkerPool*> wake_pool{nullptr};
   (*store)->SetListener(
-      [&bus](const std::string& id, const decima::v1::JobEvent& ev) { bus.Publish(id, ev); });
+      [&bus, &wake_pool](const std::string& id, const decima::v1::JobEvent& ev) {
+        bus.Publish(id, ev);
+        if (ev.has_state_change() && ev.state_change().state() == decima::v1::QUEUED) {
+          if (WorkerPool* p = wake_pool.load()) p->Notify();
+        }
+      });
   (*store)->SetWatchedJobs([&bus] { return bus.ActiveJobs(); });
 
   // Only an exclusive store (ours, under LOCK) knows its RUNNING jobs are orphans; a shared store
@@ -255,6 +265,7 @@ int main(int argc, char** argv) {
   wo.runner.worker_memory_mb = worker_memory_mb;
   wo.runner.allow_faults = allow_faults;
   WorkerPool pool(store->get(), wo);
+  wake_pool = &pool;
 
   ServiceOptions so;
   so.data_dir = DataDir(data);
@@ -304,8 +315,9 @@ int main(int argc, char** argv) {
   }
 
   // Lease expiry on its own timer: lapsed leases (a worker lost in another replica, a stuck
-  // store) go back to the queue twice per lease period.
-  LeaseReaper reaper(store->get(), std::chrono::milliseconds(wo.runner.lease_ms / 2), max_attempts,
+  // store) go back to the queue eight times per lease period, so a lost job runs again within
+  // lease + lease/8 of its holder's last renewal (one indexed query per sweep).
+  LeaseReaper reaper(store->get(), std::chrono::milliseconds(wo.runner.lease_ms / 8), max_attempts,
                      [&pool] { pool.Notify(); });
   reaper.Start();
 
@@ -318,6 +330,7 @@ int main(int argc, char** argv) {
   services.StartDraining();
   server->GetHealthCheckService()->SetServingStatus(false);
   bus.Close();
+  wake_pool = nullptr;
   pool.Drain(std::chrono::milliseconds(static_cast<int64_t>(drain_seconds * 1000)));
   reaper.Stop();
   server->Shutdown(std::chrono::system_clock::now() + std::chrono::seconds(2));
