@@ -21,6 +21,8 @@
 #include <atomic>
 #include <chrono>
 #include <condition_variable>
+#include <deque>
+#include <tuple>
 #include <map>
 #include <mutex>
 #include <set>
@@ -887,13 +889,21 @@ class PostgresJobStore : public JobStore {
       auto it = delivered_.find(id);
       if (it != delivered_.end() && ev.sequence() <= it->second) continue;
       if (listener) listener(id, ev);
+      delivered_[id] = ev.sequence();
       if (ev.has_state_change() && IsFinal(ev.state_change().state())) {
-        delivered_.erase(id);  // a retried job is followed again from its next notification
-      } else {
-        delivered_[id] = ev.sequence();
+        finals_.emplace_back(std::chrono::steady_clock::now(), id, ev.sequence());
       }
     }
-    // Bounded memory: jobs that never end (deleted while followed) would otherwise stay.
+    // Bounded memory. A final job is forgotten a minute after its last event (notifications
+    // read ahead of arrive well before that; a job retried later is read from its new
+    // notification on). Jobs that never end (deleted while followed) are dropped wholesale.
+    const auto cutoff = std::chrono::steady_clock::now() - std::chrono::minutes(1);
+    while (!finals_.empty() && std::get<0>(finals_.front()) < cutoff) {
+      const auto& [t, id, seq] = finals_.front();
+      auto it = delivered_.find(id);
+      if (it != delivered_.end() && it->second == seq) delivered_.erase(it);
+      finals_.pop_front();
+    }
     if (delivered_.size() > 100000) delivered_.clear();
   }
 
@@ -908,7 +918,9 @@ class PostgresJobStore : public JobStore {
   std::mutex listener_mu_;
   EventListener listener_;
   std::function<std::vector<std::string>()> watched_;
-  std::map<std::string, int64_t> delivered_;  // listen thread only: job -> newest delivered seq
+  // Listen thread only: job -> newest delivered sequence; final events by delivery time.
+  std::map<std::string, int64_t> delivered_;
+  std::deque<std::tuple<std::chrono::steady_clock::time_point, std::string, int64_t>> finals_;
 };
 
 }  // namespace

@@ -34,6 +34,9 @@ class JobStoreTest : public ::testing::TestWithParam<std::string> {
       published_.emplace_back(id, ev.sequence());
     });
   }
+  // A shared store calls the listener from its own thread until it is destroyed: before the
+  // members the listener uses.
+  void TearDown() override { store_.reset(); }
   absl::StatusOr<std::unique_ptr<JobStore>> Reopen() {
     return GetParam() == "postgresql" ? OpenPostgres(path_) : OpenSqliteJobStore(path_);
   }
@@ -152,7 +155,9 @@ TEST_P(JobStoreTest, EventsAreGaplessAndPublishedInOrder) {
   for (size_t i = 0; i < events->size(); ++i) EXPECT_EQ((*events)[i].sequence(), int64_t(i + 1));
   EXPECT_EQ(events->back().state_change().state(), v1::SUCCEEDED);
   const auto published = Published(8);
-  ASSERT_EQ(published.size(), 8u);
+  std::string order;
+  for (const auto& [id, seq] : published) order += id + ":" + std::to_string(seq) + " ";
+  ASSERT_EQ(published.size(), 8u) << order;
   for (size_t i = 0; i < published.size(); ++i) EXPECT_EQ(published[i].second, int64_t(i + 1));
   auto tail = store_->ListEvents("a", 6, 100);
   ASSERT_EQ(tail->size(), 2u);
