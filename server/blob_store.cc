@@ -2,6 +2,7 @@
 
 #include <fcntl.h>
 #include <sys/file.h>
+#include <sys/stat.h>
 #include <unistd.h>
 
 #include <cerrno>
@@ -13,6 +14,29 @@
 
 namespace decima::server {
 namespace fs = std::filesystem;
+
+namespace {
+// root/partial/<sha>-<size> -> root/locks/<sha>-<size>.lock: the flock its writer holds, kept
+// out of partial/ so that folder holds upload data only.
+fs::path LockOf(const fs::path& partial) {
+  return partial.parent_path().parent_path() / "locks" / (partial.filename().string() + ".lock");
+}
+}  // namespace
+namespace {
+
+// A write error as a status: a full disk (or quota) is RESOURCE_EXHAUSTED, everything else
+// INTERNAL. Names the blob, not the server's path.
+absl::Status WriteError(const std::string& what, const std::string& sha, int err) {
+  if (err == ENOSPC || err == EDQUOT) {
+    return absl::ResourceExhaustedError(
+        absl::StrCat(what, " blob ", sha,
+                     ": the server's disk is full; nothing was kept, retry after "
+                     "deleting jobs or volumes"));
+  }
+  return absl::InternalError(absl::StrCat(what, " blob ", sha, ": ", std::strerror(err)));
+}
+
+}  // namespace
 
 class LocalBlobWriter : public BlobWriter {
  public:
@@ -48,8 +72,10 @@ class LocalBlobWriter : public BlobWriter {
       ssize_t n = ::write(fd_, p, left);
       if (n < 0) {
         if (errno == EINTR) continue;
-        return absl::InternalError(
-            absl::StrCat("writing ", partial_.string(), ": ", std::strerror(errno)));
+        const int err = errno;
+        // A full disk is not healed by keeping a prefix the client cannot finish now.
+        if (err == ENOSPC || err == EDQUOT) Discard();
+        return WriteError("writing", sha_, err);
       }
       p += n;
       left -= static_cast<size_t>(n);
@@ -73,8 +99,9 @@ class LocalBlobWriter : public BlobWriter {
                                                      "; nothing was stored"));
     }
     if (store_->fsync_ && ::fdatasync(fd_) != 0) {
-      return absl::InternalError(
-          absl::StrCat("fdatasync ", partial_.string(), ": ", std::strerror(errno)));
+      const int err = errno;
+      if (err == ENOSPC || err == EDQUOT) Discard();
+      return WriteError("flushing", sha_, err);
     }
     ::close(fd_);
     fd_ = -1;
@@ -82,11 +109,10 @@ class LocalBlobWriter : public BlobWriter {
     std::error_code ec;
     fs::create_directories(final_path.parent_path(), ec);
     fs::rename(partial_, final_path, ec);
-    if (ec) {
-      return absl::InternalError(
-          absl::StrCat("committing ", final_path.string(), ": ", ec.message()));
-    }
-    fs::remove(partial_.string() + ".lock", ec);
+    if (ec) return WriteError("committing", sha_, ec.value());
+    // The upload's claim starts now (rename kept the partial's times).
+    ::utimensat(AT_FDCWD, final_path.c_str(), nullptr, 0);
+    fs::remove(LockOf(partial_), ec);
     return absl::OkStatus();
   }
 
@@ -95,7 +121,7 @@ class LocalBlobWriter : public BlobWriter {
     fd_ = -1;
     std::error_code ec;
     fs::remove(partial_, ec);
-    fs::remove(partial_.string() + ".lock", ec);
+    fs::remove(LockOf(partial_), ec);
   }
 
  private:
@@ -114,6 +140,7 @@ absl::StatusOr<std::unique_ptr<LocalBlobStore>> LocalBlobStore::Open(const fs::p
   std::error_code ec;
   fs::create_directories(root / "sha256", ec);
   if (!ec) fs::create_directories(root / "partial", ec);
+  if (!ec) fs::create_directories(root / "locks", ec);
   if (ec) {
     return absl::InternalError(
         absl::StrCat("creating blob store ", root.string(), ": ", ec.message()));
@@ -170,7 +197,7 @@ absl::StatusOr<std::unique_ptr<BlobWriter>> LocalBlobStore::OpenWriter(const std
   // Writers in other processes (replicas sharing this folder) are excluded by an flock on a
   // lock file beside the partial: released by the kernel when the writer's process dies, and
   // honoured across NFS clients (Linux maps flock to NFS byte-range locks).
-  const fs::path lock_path = partial.string() + ".lock";
+  const fs::path lock_path = LockOf(partial);
   int lock_fd = ::open(lock_path.c_str(), O_RDWR | O_CREAT | O_CLOEXEC, 0644);
   if (lock_fd < 0) {
     return fail(absl::InternalError(
@@ -178,9 +205,10 @@ absl::StatusOr<std::unique_ptr<BlobWriter>> LocalBlobStore::OpenWriter(const std
   }
   if (::flock(lock_fd, LOCK_EX | LOCK_NB) != 0) {
     ::close(lock_fd);
-    return fail(absl::AbortedError(absl::StrCat(
-        "another upload of blob ", sha, " is in progress (perhaps through another replica); "
-        "retry later")));
+    return fail(
+        absl::AbortedError(absl::StrCat("another upload of blob ", sha,
+                                        " is in progress (perhaps through another replica); "
+                                        "retry later")));
   }
   auto fail_locked = [&](absl::Status s) {
     ::close(lock_fd);
@@ -196,10 +224,7 @@ absl::StatusOr<std::unique_ptr<BlobWriter>> LocalBlobStore::OpenWriter(const std
   }
   int flags = O_WRONLY | O_CREAT | O_CLOEXEC | (offset == 0 ? O_TRUNC : O_APPEND);
   int fd = ::open(partial.c_str(), flags, 0644);
-  if (fd < 0) {
-    return fail_locked(absl::InternalError(
-        absl::StrCat("opening ", partial.string(), ": ", std::strerror(errno))));
-  }
+  if (fd < 0) return fail_locked(WriteError("opening", sha, errno));
   auto hash = std::make_unique<Sha256>();
   if (offset > 0) {
     absl::Status s = HashFilePrefix(partial, offset, *hash);
@@ -218,12 +243,72 @@ absl::StatusOr<fs::path> LocalBlobStore::LocalPath(const std::string& sha) const
   return BlobPath(sha);
 }
 
-absl::Status LocalBlobStore::Delete(const std::string& sha) {
-  if (!IsSha256Hex(sha)) return absl::InvalidArgumentError("bad sha256");
+void LocalBlobStore::Claim(const std::string& sha) {
+  if (!IsSha256Hex(sha)) return;
+  std::lock_guard<std::mutex> lock(sweep_mu_);
+  ::utimensat(AT_FDCWD, BlobPath(sha).c_str(), nullptr, 0);
+}
+
+BlobSweepStats LocalBlobStore::Sweep(const BlobSweepPolicy& policy,
+                                     const std::function<bool(const std::string&)>& in_use,
+                                     const std::vector<std::string>* only) {
+  BlobSweepStats stats;
+  const auto now = fs::file_time_type::clock::now();
+  auto idle_past = [&](const fs::path& p, std::chrono::seconds limit, uintmax_t* size) {
+    std::error_code ec;
+    const auto t = fs::last_write_time(p, ec);
+    if (ec) return false;
+    *size = fs::file_size(p, ec);
+    return !ec && now - t >= limit;
+  };
+  auto sweep_blob = [&](const std::string& sha) {
+    std::lock_guard<std::mutex> lock(sweep_mu_);
+    const fs::path p = BlobPath(sha);
+    uintmax_t size = 0;
+    if (!idle_past(p, policy.grace, &size) || in_use(sha)) return;
+    std::error_code ec;
+    if (fs::remove(p, ec)) {
+      ++stats.blobs_removed;
+      stats.bytes_freed += static_cast<int64_t>(size);
+    }
+  };
   std::error_code ec;
-  fs::remove(BlobPath(sha), ec);
-  if (ec) return absl::InternalError(absl::StrCat("deleting blob ", sha, ": ", ec.message()));
-  return absl::OkStatus();
+  if (only != nullptr) {
+    for (const auto& sha : *only)
+      if (IsSha256Hex(sha)) sweep_blob(sha);
+    return stats;
+  }
+  for (fs::recursive_directory_iterator it(root_ / "sha256", ec), end; !ec && it != end;
+       it.increment(ec)) {
+    const std::string name = it->path().filename().string();
+    if (it->is_regular_file(ec) && IsSha256Hex(name)) sweep_blob(name);
+  }
+  for (fs::directory_iterator it(root_ / "partial", ec), end; !ec && it != end; it.increment(ec)) {
+    const std::string name = it->path().filename().string();
+    const std::string sha = name.substr(0, name.find('-'));
+    // Held across the check and the removal: an upload that resumes now either is seen here or
+    // finds the partial gone (and is told to start at 0).
+    std::lock_guard<std::mutex> lock(mu_);
+    if (writing_.count(sha)) continue;  // an upload is appending to it now
+    uintmax_t size = 0;
+    if (!idle_past(it->path(), policy.partial_expiry, &size)) continue;
+    // A writer in another process (a replica sharing this folder) holds the partial's flock.
+    const std::string lock_path = LockOf(it->path()).string();
+    const int lock_fd = ::open(lock_path.c_str(), O_RDWR | O_CREAT | O_CLOEXEC, 0644);
+    if (lock_fd < 0) continue;
+    if (::flock(lock_fd, LOCK_EX | LOCK_NB) != 0) {
+      ::close(lock_fd);
+      continue;
+    }
+    std::error_code rec;
+    if (fs::remove(it->path(), rec)) {
+      ++stats.partials_removed;
+      stats.bytes_freed += static_cast<int64_t>(size);
+    }
+    fs::remove(lock_path, rec);
+    ::close(lock_fd);
+  }
+  return stats;
 }
 
 void LocalBlobStore::Release(const std::string& sha) {

@@ -63,6 +63,9 @@ class DataDir {
   int64_t LatestAttempt(const std::string& id) const;
   // Removes the folder of one claim (a runner that lost its lease; best effort).
   void RemoveAttempt(const std::string& id, int64_t epoch) const;
+  // Removes the out/ of claim `epoch`: a job that did not succeed serves no artifact, and its
+  // partial output would only hold disk space (its worker.log stays for the record).
+  void RemoveJobOut(const std::string& id, int64_t epoch) const;
   // Writes `bytes` to `path` through a temporary file and a rename.
   absl::Status WriteFileAtomically(const std::filesystem::path& path,
                                    const std::string& bytes) const;

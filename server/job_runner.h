@@ -1,7 +1,8 @@
 // Runs one claimed job to its recorded outcome, in four steps:
-//   Prepare  a fresh jobs/<id>/attempts/<epoch>/out/, the volumes resolved to files, jobs/<id>/request.pb;
-//   Spawn    the child `decima-server --run-job jobs/<id>/request.pb` (child_process.h);
-//   Relay    its length-delimited messages (worker_protocol.h) into the store as progress
+//   Prepare  a fresh jobs/<id>/attempts/<epoch>/out/, the volumes resolved to files,
+//   jobs/<id>/request.pb; Spawn    the child `decima-server --run-job jobs/<id>/request.pb`
+//   (child_process.h); Relay    its length-delimited messages (worker_protocol.h) into the store as
+//   progress
 //            events, renewing the lease every third of it and polling the store for a cancel
 //            that arrived through another replica; a stop request terminates the child;
 //   Outcome  SUCCEEDED (artifacts checked to be plain files in out/ and hashed), FAILED (the
@@ -28,8 +29,11 @@ struct JobRunnerOptions {
   int64_t lease_ms = 15000;            // renewed every lease_ms / 3
   int64_t cancel_grace_ms = 500;       // SIGTERM -> SIGKILL
   int64_t progress_interval_ms = 100;  // progress events stored at most this often per stage
-  int64_t worker_memory_mb = 0;        // RLIMIT_AS of the child, 0 = unlimited
-  bool allow_faults = false;           // hand jobs/<id>/fault to the child (tests only)
+  // The most one job may use (job_memory.h); 0 = DefaultJobMemoryCapBytes(). The child runs
+  // under RLIMIT_AS = JobAddressSpaceLimitBytes(estimate, cap), except in sanitizer builds
+  // (their shadow memory needs terabytes of address space).
+  int64_t worker_memory_mb = 0;
+  bool allow_faults = false;  // hand jobs/<id>/fault to the child (tests only)
 };
 
 // Set from other threads to stop a running job early.
@@ -47,7 +51,11 @@ class JobRunner {
 
  private:
   struct ChildEnd;
-  absl::StatusOr<std::filesystem::path> Prepare(const v1::Job& job, int64_t epoch);
+  struct Prepared {
+    std::filesystem::path request;
+    int64_t memory_limit_bytes = 0;  // 0: none
+  };
+  absl::StatusOr<Prepared> Prepare(const v1::Job& job, int64_t epoch);
   ChildEnd Relay(class ChildProcess& child, const Lease& lease, StopFlags& stop);
   void RecordOutcome(const v1::Job& job, const Lease& lease, const ChildEnd& end,
                      const StopFlags& stop, double seconds);

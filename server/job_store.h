@@ -76,9 +76,7 @@ class JobStore {
   // The jobs watched in this process (EventBus::ActiveJobs). A shared store whose event feed
   // was interrupted re-reads their events from the store when it is back. Set once, before
   // serving; an embedded store never loses its feed and ignores it.
-  virtual void SetWatchedJobs(std::function<std::vector<std::string>()> watched) {
-    (void)watched;
-  }
+  virtual void SetWatchedJobs(std::function<std::vector<std::string>()> watched) { (void)watched; }
 
   // Queues a job with `id`. With a non-empty `request_id` already used, returns the job created
   // then and `*created` = false. RESOURCE_EXHAUSTED when `max_queued` jobs are already queued.

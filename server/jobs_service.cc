@@ -144,6 +144,7 @@ class JobsService final : public v1::Jobs::Service {
     if (auto g = d_.guard->Check(ctx); !g.ok()) return g;
     auto id = ParseName(req->name(), "jobs", "name");
     if (!id.ok()) return ToGrpc(id.status());
+    d_.disk->BeforeDelete();
     if (auto st = d_.jobs->DeleteJob(*id); !st.ok()) return ToGrpc(st);
     d_.options->data_dir.RemoveJob(*id);
     spdlog::info("job {} deleted", *id);

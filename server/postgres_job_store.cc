@@ -22,11 +22,11 @@
 #include <chrono>
 #include <condition_variable>
 #include <deque>
-#include <tuple>
 #include <map>
 #include <mutex>
 #include <set>
 #include <thread>
+#include <tuple>
 #include <utility>
 
 #include "absl/strings/numbers.h"
@@ -119,7 +119,8 @@ std::string TextArray(const std::vector<std::string>& items) {
 // one is dropped (the next caller makes a new one).
 class ConnectionPool {
  public:
-  ConnectionPool(std::string dsn, std::string app, int max) : dsn_(std::move(dsn)), app_(app), max_(max) {}
+  ConnectionPool(std::string dsn, std::string app, int max)
+      : dsn_(std::move(dsn)), app_(app), max_(max) {}
 
   // Blocks while all `max` connections are in use. Throws pqxx::broken_connection when the
   // server cannot be reached.
@@ -228,12 +229,12 @@ class PostgresJobStore : public JobStore {
           "CREATE TABLE IF NOT EXISTS decima_schema_migrations("
           "version INTEGER PRIMARY KEY, applied_at TIMESTAMPTZ NOT NULL DEFAULT now())");
       const int known = static_cast<int>(std::size(kMigrations));
-      const int have = w.exec("SELECT COALESCE(MAX(version), 0) FROM decima_schema_migrations")[0][0]
-                           .as<int>();
+      const int have =
+          w.exec("SELECT COALESCE(MAX(version), 0) FROM decima_schema_migrations")[0][0].as<int>();
       if (have > known) {
-        return absl::FailedPreconditionError(absl::StrCat(
-            "the database's schema is version ", have, ", newer than this server's (", known,
-            "); run a newer decima-server"));
+        return absl::FailedPreconditionError(absl::StrCat("the database's schema is version ", have,
+                                                          ", newer than this server's (", known,
+                                                          "); run a newer decima-server"));
       }
       for (int v = have + 1; v <= known; ++v) {
         w.exec(kMigrations[v - 1]);
@@ -277,8 +278,8 @@ class PostgresJobStore : public JobStore {
       return ParseJob(r[0][0]);
     };
     bool made = false;
-    auto out = Run<absl::StatusOr<v1::Job>>("creating a job", [&](pqxx::work& w)
-                                                                   -> absl::StatusOr<v1::Job> {
+    auto out = Run<
+        absl::StatusOr<v1::Job>>("creating a job", [&](pqxx::work& w) -> absl::StatusOr<v1::Job> {
       made = false;
       if (auto e = existing(w)) return *e;
       const int64_t queued =
@@ -302,8 +303,7 @@ class PostgresJobStore : public JobStore {
       auto ins = w.exec_params(
           "INSERT INTO jobs(id, request_id, state, volume, job) VALUES($1,NULLIF($2,''),$3,$4,$5) "
           "ON CONFLICT (request_id) DO NOTHING RETURNING ord",
-          id, request_id, int{v1::QUEUED}, spec.volume(),
-          Bytes(job));
+          id, request_id, int{v1::QUEUED}, spec.volume(), Bytes(job));
       if (ins.empty()) {
         if (auto e = existing(w)) return *e;
         return absl::AbortedError("job store: request_id conflict without a row; retry");
@@ -317,7 +317,8 @@ class PostgresJobStore : public JobStore {
   }
 
   absl::StatusOr<v1::Job> GetJob(const std::string& id) override {
-    return Run<absl::StatusOr<v1::Job>>("reading a job", [&](pqxx::work& w) { return LoadJob(w, id, false); });
+    return Run<absl::StatusOr<v1::Job>>("reading a job",
+                                        [&](pqxx::work& w) { return LoadJob(w, id, false); });
   }
 
   absl::StatusOr<JobPage> ListJobs(const std::vector<v1::JobState>& states, int page_size,
@@ -327,32 +328,34 @@ class PostgresJobStore : public JobStore {
     const int limit = ClampPageSize(page_size);
     std::vector<std::string> parts;
     for (auto s : states) parts.push_back(absl::StrCat(static_cast<int>(s)));
-    return Run<absl::StatusOr<JobPage>>("listing jobs", [&](pqxx::work& w) -> absl::StatusOr<JobPage> {
-      auto r = w.exec_params(
-          "SELECT ord, job FROM jobs WHERE ord < $1 AND ($2 OR state = ANY($3::int[])) "
-          "ORDER BY ord DESC LIMIT $4",
-          *before, states.empty(), TextArray(parts), limit + 1);
-      JobPage page;
-      int64_t last_ord = 0;
-      for (const auto& row : r) {
-        if (static_cast<int>(page.jobs.size()) == limit) {
-          page.next_page_token = EncodeToken(last_ord);
-          break;
-        }
-        last_ord = row[0].as<int64_t>();
-        auto job = ParseJob(row[1]);
-        if (!job.ok()) return job.status();
-        page.jobs.push_back(std::move(*job));
-      }
-      return page;
-    });
+    return Run<absl::StatusOr<JobPage>>(
+        "listing jobs", [&](pqxx::work& w) -> absl::StatusOr<JobPage> {
+          auto r = w.exec_params(
+              "SELECT ord, job FROM jobs WHERE ord < $1 AND ($2 OR state = ANY($3::int[])) "
+              "ORDER BY ord DESC LIMIT $4",
+              *before, states.empty(), TextArray(parts), limit + 1);
+          JobPage page;
+          int64_t last_ord = 0;
+          for (const auto& row : r) {
+            if (static_cast<int>(page.jobs.size()) == limit) {
+              page.next_page_token = EncodeToken(last_ord);
+              break;
+            }
+            last_ord = row[0].as<int64_t>();
+            auto job = ParseJob(row[1]);
+            if (!job.ok()) return job.status();
+            page.jobs.push_back(std::move(*job));
+          }
+          return page;
+        });
   }
 
   absl::StatusOr<int64_t> CountJobs(v1::JobState state) override {
-    return Run<absl::StatusOr<int64_t>>("counting jobs", [&](pqxx::work& w) -> absl::StatusOr<int64_t> {
-      return w.exec_params("SELECT COUNT(*) FROM jobs WHERE state=$1", int{state})[0][0]
-          .as<int64_t>();
-    });
+    return Run<absl::StatusOr<int64_t>>(
+        "counting jobs", [&](pqxx::work& w) -> absl::StatusOr<int64_t> {
+          return w.exec_params("SELECT COUNT(*) FROM jobs WHERE state=$1", int{state})[0][0]
+              .as<int64_t>();
+        });
   }
 
   absl::StatusOr<std::optional<Claim>> ClaimNext(const std::string& owner,
@@ -419,139 +422,144 @@ class PostgresJobStore : public JobStore {
 
   absl::StatusOr<v1::Job> Finish(const Lease& lease, v1::JobState state,
                                  const v1::Job& outcome) override {
-    return Run<absl::StatusOr<v1::Job>>("finishing a job", [&](pqxx::work& w) -> absl::StatusOr<v1::Job> {
-      auto job = LoadHeld(w, lease);
-      if (!job.ok()) return job.status();
-      job->set_state(state);
-      *job->mutable_end_time() = NowTimestamp();
-      if (outcome.has_error()) *job->mutable_error() = outcome.error();
-      *job->mutable_artifacts() = outcome.artifacts();
-      job->set_metrics_json(outcome.metrics_json());
-      TxEvents tx;
-      tx.AddState(*job, state, outcome.has_error() ? &outcome.error() : nullptr);
-      SaveJob(w, *job, false);
-      tx.Save(w);
-      return *job;
-    });
+    return Run<absl::StatusOr<v1::Job>>(
+        "finishing a job", [&](pqxx::work& w) -> absl::StatusOr<v1::Job> {
+          auto job = LoadHeld(w, lease);
+          if (!job.ok()) return job.status();
+          job->set_state(state);
+          *job->mutable_end_time() = NowTimestamp();
+          if (outcome.has_error()) *job->mutable_error() = outcome.error();
+          *job->mutable_artifacts() = outcome.artifacts();
+          job->set_metrics_json(outcome.metrics_json());
+          TxEvents tx;
+          tx.AddState(*job, state, outcome.has_error() ? &outcome.error() : nullptr);
+          SaveJob(w, *job, false);
+          tx.Save(w);
+          return *job;
+        });
   }
 
   absl::StatusOr<v1::Job> Requeue(const Lease& lease, const std::string& reason) override {
-    return Run<absl::StatusOr<v1::Job>>("requeueing a job", [&](pqxx::work& w) -> absl::StatusOr<v1::Job> {
-      auto job = LoadHeld(w, lease);
-      if (!job.ok()) return job.status();
-      job->set_state(v1::QUEUED);
-      job->set_attempts(std::max(0, job->attempts() - 1));
-      job->mutable_progress()->set_message(reason);
-      TxEvents tx;
-      tx.AddState(*job, v1::QUEUED, nullptr);
-      SaveJob(w, *job, false);
-      tx.Save(w);
-      return *job;
-    });
+    return Run<absl::StatusOr<v1::Job>>("requeueing a job",
+                                        [&](pqxx::work& w) -> absl::StatusOr<v1::Job> {
+                                          auto job = LoadHeld(w, lease);
+                                          if (!job.ok()) return job.status();
+                                          job->set_state(v1::QUEUED);
+                                          job->set_attempts(std::max(0, job->attempts() - 1));
+                                          job->mutable_progress()->set_message(reason);
+                                          TxEvents tx;
+                                          tx.AddState(*job, v1::QUEUED, nullptr);
+                                          SaveJob(w, *job, false);
+                                          tx.Save(w);
+                                          return *job;
+                                        });
   }
 
   absl::StatusOr<Recovered> RecoverLeases(bool all, int max_attempts) override {
-    return Run<absl::StatusOr<Recovered>>("recovering lapsed leases", [&](pqxx::work& w)
-                                                                          -> absl::StatusOr<Recovered> {
-      // SKIP LOCKED: the reapers of several replicas split the lapsed jobs instead of queueing
-      // behind each other, and a job whose holder is finishing it right now is left alone.
-      auto r = w.exec_params(
-          "SELECT job, cancel_requested FROM jobs WHERE state=$1 AND "
-          "($2 OR lease_expiry < clock_timestamp()) FOR UPDATE SKIP LOCKED",
-          int{v1::RUNNING}, all);
-      Recovered out;
-      TxEvents tx;
-      for (const auto& row : r) {
-        auto parsed = ParseJob(row[0]);
-        if (!parsed.ok()) return parsed.status();
-        v1::Job& job = *parsed;
-        const std::string id = job.name().substr(5);
-        if (row[1].as<bool>()) {
-          job.set_state(v1::CANCELLED);
-          job.mutable_error()->set_code(static_cast<int>(absl::StatusCode::kCancelled));
-          job.mutable_error()->set_message("cancelled by request (its worker was lost)");
-          *job.mutable_end_time() = NowTimestamp();
-          tx.AddState(job, v1::CANCELLED, &job.error());
-          out.failed.push_back(id);
-        } else if (job.attempts() >= max_attempts) {
-          job.set_state(v1::FAILED);
-          job.mutable_error()->set_code(static_cast<int>(absl::StatusCode::kUnavailable));
-          job.mutable_error()->set_message(absl::StrCat("the worker was lost ", job.attempts(),
-                                                        " times (lease lapsed); giving up"));
-          *job.mutable_end_time() = NowTimestamp();
-          tx.AddState(job, v1::FAILED, &job.error());
-          out.failed.push_back(id);
-        } else {
-          job.set_state(v1::QUEUED);
-          job.mutable_progress()->set_message("requeued: the lease of its worker lapsed");
-          tx.AddState(job, v1::QUEUED, nullptr);
-          out.requeued.push_back(id);
-        }
-        SaveJob(w, job, false);
-      }
-      tx.Save(w);
-      return out;
-    });
+    return Run<absl::StatusOr<Recovered>>(
+        "recovering lapsed leases", [&](pqxx::work& w) -> absl::StatusOr<Recovered> {
+          // SKIP LOCKED: the reapers of several replicas split the lapsed jobs instead of queueing
+          // behind each other, and a job whose holder is finishing it right now is left alone.
+          auto r = w.exec_params(
+              "SELECT job, cancel_requested FROM jobs WHERE state=$1 AND "
+              "($2 OR lease_expiry < clock_timestamp()) FOR UPDATE SKIP LOCKED",
+              int{v1::RUNNING}, all);
+          Recovered out;
+          TxEvents tx;
+          for (const auto& row : r) {
+            auto parsed = ParseJob(row[0]);
+            if (!parsed.ok()) return parsed.status();
+            v1::Job& job = *parsed;
+            const std::string id = job.name().substr(5);
+            if (row[1].as<bool>()) {
+              job.set_state(v1::CANCELLED);
+              job.mutable_error()->set_code(static_cast<int>(absl::StatusCode::kCancelled));
+              job.mutable_error()->set_message("cancelled by request (its worker was lost)");
+              *job.mutable_end_time() = NowTimestamp();
+              tx.AddState(job, v1::CANCELLED, &job.error());
+              out.failed.push_back(id);
+            } else if (job.attempts() >= max_attempts) {
+              job.set_state(v1::FAILED);
+              job.mutable_error()->set_code(static_cast<int>(absl::StatusCode::kUnavailable));
+              job.mutable_error()->set_message(absl::StrCat("the worker was lost ", job.attempts(),
+                                                            " times (lease lapsed); giving up"));
+              *job.mutable_end_time() = NowTimestamp();
+              tx.AddState(job, v1::FAILED, &job.error());
+              out.failed.push_back(id);
+            } else {
+              job.set_state(v1::QUEUED);
+              job.mutable_progress()->set_message("requeued: the lease of its worker lapsed");
+              tx.AddState(job, v1::QUEUED, nullptr);
+              out.requeued.push_back(id);
+            }
+            SaveJob(w, job, false);
+          }
+          tx.Save(w);
+          return out;
+        });
   }
 
   absl::StatusOr<v1::Job> Cancel(const std::string& id) override {
-    return Run<absl::StatusOr<v1::Job>>("cancelling a job", [&](pqxx::work& w) -> absl::StatusOr<v1::Job> {
-      auto job = LoadJob(w, id, true);
-      if (!job.ok()) return job.status();
-      if (job->state() == v1::QUEUED) {
-        job->set_state(v1::CANCELLED);
-        job->mutable_error()->set_code(static_cast<int>(absl::StatusCode::kCancelled));
-        job->mutable_error()->set_message("cancelled by request while queued");
-        *job->mutable_end_time() = NowTimestamp();
-        TxEvents tx;
-        tx.AddState(*job, v1::CANCELLED, &job->error());
-        SaveJob(w, *job, false);
-        tx.Save(w);
-      } else if (job->state() == v1::RUNNING) {
-        w.exec_params("UPDATE jobs SET cancel_requested=TRUE WHERE id=$1", id);
-      }
-      return *job;
-    });
+    return Run<absl::StatusOr<v1::Job>>(
+        "cancelling a job", [&](pqxx::work& w) -> absl::StatusOr<v1::Job> {
+          auto job = LoadJob(w, id, true);
+          if (!job.ok()) return job.status();
+          if (job->state() == v1::QUEUED) {
+            job->set_state(v1::CANCELLED);
+            job->mutable_error()->set_code(static_cast<int>(absl::StatusCode::kCancelled));
+            job->mutable_error()->set_message("cancelled by request while queued");
+            *job->mutable_end_time() = NowTimestamp();
+            TxEvents tx;
+            tx.AddState(*job, v1::CANCELLED, &job->error());
+            SaveJob(w, *job, false);
+            tx.Save(w);
+          } else if (job->state() == v1::RUNNING) {
+            w.exec_params("UPDATE jobs SET cancel_requested=TRUE WHERE id=$1", id);
+          }
+          return *job;
+        });
   }
 
   absl::StatusOr<bool> CancelRequested(const std::string& id) override {
-    return Run<absl::StatusOr<bool>>("reading a cancel request", [&](pqxx::work& w) -> absl::StatusOr<bool> {
-      auto r = w.exec_params("SELECT cancel_requested FROM jobs WHERE id=$1", id);
-      if (r.empty()) return absl::NotFoundError(absl::StrCat("job ", id, " not found"));
-      return r[0][0].as<bool>();
-    });
+    return Run<absl::StatusOr<bool>>(
+        "reading a cancel request", [&](pqxx::work& w) -> absl::StatusOr<bool> {
+          auto r = w.exec_params("SELECT cancel_requested FROM jobs WHERE id=$1", id);
+          if (r.empty()) return absl::NotFoundError(absl::StrCat("job ", id, " not found"));
+          return r[0][0].as<bool>();
+        });
   }
 
   absl::StatusOr<v1::Job> Retry(const std::string& id, int max_queued) override {
-    return Run<absl::StatusOr<v1::Job>>("retrying a job", [&](pqxx::work& w) -> absl::StatusOr<v1::Job> {
-      auto job = LoadJob(w, id, true);
-      if (!job.ok()) return job.status();
-      if (job->state() != v1::FAILED && job->state() != v1::CANCELLED) {
-        return absl::FailedPreconditionError(
-            absl::StrCat("job ", id, " is ", v1::JobState_Name(job->state()),
-                         "; only FAILED or CANCELLED jobs can be retried"));
-      }
-      const int64_t queued =
-          w.exec_params("SELECT COUNT(*) FROM jobs WHERE state=$1", int{v1::QUEUED})[0][0]
-              .as<int64_t>();
-      if (max_queued > 0 && queued >= max_queued) {
-        return absl::ResourceExhaustedError(
-            absl::StrCat("the queue is full (--max-queued ", max_queued, "); retry later"));
-      }
-      job->set_state(v1::QUEUED);
-      job->set_attempts(0);
-      job->clear_error();
-      job->clear_artifacts();
-      job->clear_metrics_json();
-      job->clear_progress();
-      job->clear_start_time();
-      job->clear_end_time();
-      TxEvents tx;
-      tx.AddState(*job, v1::QUEUED, nullptr);
-      SaveJob(w, *job, false);
-      tx.Save(w);
-      return *job;
-    });
+    return Run<absl::StatusOr<v1::Job>>(
+        "retrying a job", [&](pqxx::work& w) -> absl::StatusOr<v1::Job> {
+          auto job = LoadJob(w, id, true);
+          if (!job.ok()) return job.status();
+          if (job->state() != v1::FAILED && job->state() != v1::CANCELLED) {
+            return absl::FailedPreconditionError(
+                absl::StrCat("job ", id, " is ", v1::JobState_Name(job->state()),
+                             "; only FAILED or CANCELLED jobs can be retried"));
+          }
+          const int64_t queued =
+              w.exec_params("SELECT COUNT(*) FROM jobs WHERE state=$1", int{v1::QUEUED})[0][0]
+                  .as<int64_t>();
+          if (max_queued > 0 && queued >= max_queued) {
+            return absl::ResourceExhaustedError(
+                absl::StrCat("the queue is full (--max-queued ", max_queued, "); retry later"));
+          }
+          job->set_state(v1::QUEUED);
+          job->set_attempts(0);
+          job->clear_error();
+          job->clear_artifacts();
+          job->clear_metrics_json();
+          job->clear_progress();
+          job->clear_start_time();
+          job->clear_end_time();
+          TxEvents tx;
+          tx.AddState(*job, v1::QUEUED, nullptr);
+          SaveJob(w, *job, false);
+          tx.Save(w);
+          return *job;
+        });
   }
 
   absl::Status DeleteJob(const std::string& id) override {
@@ -572,9 +580,9 @@ class PostgresJobStore : public JobStore {
                                                        int limit) override {
     using Out = absl::StatusOr<std::vector<v1::JobEvent>>;
     return Run<Out>("listing events", [&](pqxx::work& w) -> Out {
-      auto r = w.exec_params(
-          "SELECT event FROM events WHERE job_id=$1 AND seq>$2 ORDER BY seq LIMIT $3", id, after,
-          limit);
+      auto r =
+          w.exec_params("SELECT event FROM events WHERE job_id=$1 AND seq>$2 ORDER BY seq LIMIT $3",
+                        id, after, limit);
       std::vector<v1::JobEvent> out;
       for (const auto& row : r) {
         v1::JobEvent ev;
@@ -591,80 +599,89 @@ class PostgresJobStore : public JobStore {
                                           const std::string& request_id, bool* created) override {
     *created = false;
     bool made = false;
-    auto out = Run<absl::StatusOr<v1::Volume>>("creating a volume", [&](pqxx::work& w)
-                                                                         -> absl::StatusOr<v1::Volume> {
-      made = false;
-      auto existing = [&]() -> std::optional<absl::StatusOr<v1::Volume>> {
-        if (request_id.empty()) return std::nullopt;
-        auto r = w.exec_params("SELECT volume FROM volumes WHERE request_id=$1", request_id);
-        if (r.empty()) return std::nullopt;
-        return ParseVolume(r[0][0]);
-      };
-      if (auto e = existing()) return *e;
-      auto ins = w.exec_params(
-          "INSERT INTO volumes(id, request_id, volume) VALUES($1,NULLIF($2,''),$3) "
-          "ON CONFLICT (request_id) DO NOTHING RETURNING ord",
-          id, request_id, Bytes(volume));
-      if (ins.empty()) {
-        if (auto e = existing()) return *e;
-        return absl::AbortedError("job store: request_id conflict without a row; retry");
-      }
-      for (const auto& f : volume.files()) {
-        w.exec_params(
-            "INSERT INTO volume_blobs(volume_id, sha256) VALUES($1,$2) ON CONFLICT DO NOTHING", id,
-            f.blob().substr(6));
-      }
-      made = true;
-      return volume;
-    });
+    auto out = Run<absl::StatusOr<v1::Volume>>(
+        "creating a volume", [&](pqxx::work& w) -> absl::StatusOr<v1::Volume> {
+          made = false;
+          auto existing = [&]() -> std::optional<absl::StatusOr<v1::Volume>> {
+            if (request_id.empty()) return std::nullopt;
+            auto r = w.exec_params("SELECT volume FROM volumes WHERE request_id=$1", request_id);
+            if (r.empty()) return std::nullopt;
+            return ParseVolume(r[0][0]);
+          };
+          if (auto e = existing()) return *e;
+          auto ins = w.exec_params(
+              "INSERT INTO volumes(id, request_id, volume) VALUES($1,NULLIF($2,''),$3) "
+              "ON CONFLICT (request_id) DO NOTHING RETURNING ord",
+              id, request_id, Bytes(volume));
+          if (ins.empty()) {
+            if (auto e = existing()) return *e;
+            return absl::AbortedError("job store: request_id conflict without a row; retry");
+          }
+          for (const auto& f : volume.files()) {
+            w.exec_params(
+                "INSERT INTO volume_blobs(volume_id, sha256) VALUES($1,$2) ON CONFLICT DO NOTHING",
+                id, f.blob().substr(6));
+          }
+          made = true;
+          return volume;
+        });
     *created = out.ok() && made;
     return out;
   }
 
   absl::StatusOr<v1::Volume> GetVolume(const std::string& id) override {
-    return Run<absl::StatusOr<v1::Volume>>("reading a volume", [&](pqxx::work& w) -> absl::StatusOr<v1::Volume> {
-      auto r = w.exec_params("SELECT volume FROM volumes WHERE id=$1", id);
-      if (r.empty()) return absl::NotFoundError(absl::StrCat("volumes/", id, " not found"));
-      return ParseVolume(r[0][0]);
-    });
+    return Run<absl::StatusOr<v1::Volume>>(
+        "reading a volume", [&](pqxx::work& w) -> absl::StatusOr<v1::Volume> {
+          auto r = w.exec_params("SELECT volume FROM volumes WHERE id=$1", id);
+          if (r.empty()) return absl::NotFoundError(absl::StrCat("volumes/", id, " not found"));
+          return ParseVolume(r[0][0]);
+        });
   }
 
   absl::StatusOr<VolumePage> ListVolumes(int page_size, const std::string& page_token) override {
     auto before = DecodeToken(page_token);
     if (!before.ok()) return before.status();
     const int limit = ClampPageSize(page_size);
-    return Run<absl::StatusOr<VolumePage>>("listing volumes", [&](pqxx::work& w)
-                                                                   -> absl::StatusOr<VolumePage> {
-      auto r = w.exec_params(
-          "SELECT ord, volume FROM volumes WHERE ord < $1 ORDER BY ord DESC LIMIT $2", *before,
-          limit + 1);
-      VolumePage page;
-      int64_t last_ord = 0;
-      for (const auto& row : r) {
-        if (static_cast<int>(page.volumes.size()) == limit) {
-          page.next_page_token = EncodeToken(last_ord);
-          break;
-        }
-        last_ord = row[0].as<int64_t>();
-        auto v = ParseVolume(row[1]);
-        if (!v.ok()) return v.status();
-        page.volumes.push_back(std::move(*v));
-      }
-      return page;
-    });
+    return Run<absl::StatusOr<VolumePage>>(
+        "listing volumes", [&](pqxx::work& w) -> absl::StatusOr<VolumePage> {
+          auto r = w.exec_params(
+              "SELECT ord, volume FROM volumes WHERE ord < $1 ORDER BY ord DESC LIMIT $2", *before,
+              limit + 1);
+          VolumePage page;
+          int64_t last_ord = 0;
+          for (const auto& row : r) {
+            if (static_cast<int>(page.volumes.size()) == limit) {
+              page.next_page_token = EncodeToken(last_ord);
+              break;
+            }
+            last_ord = row[0].as<int64_t>();
+            auto v = ParseVolume(row[1]);
+            if (!v.ok()) return v.status();
+            page.volumes.push_back(std::move(*v));
+          }
+          return page;
+        });
   }
 
   absl::Status DeleteVolume(const std::string& id) override {
     return Run<absl::Status>("deleting a volume", [&](pqxx::work& w) -> absl::Status {
       auto v = w.exec_params("SELECT 1 FROM volumes WHERE id=$1 FOR UPDATE", id);
       if (v.empty()) return absl::NotFoundError(absl::StrCat("volumes/", id, " not found"));
-      const int64_t users =
-          w.exec_params("SELECT COUNT(*) FROM jobs WHERE volume=$1 AND state IN ($2,$3)",
-                        absl::StrCat("volumes/", id), int{v1::QUEUED}, int{v1::RUNNING})[0][0]
-              .as<int64_t>();
-      if (users > 0) {
-        return absl::FailedPreconditionError(
-            absl::StrCat("volumes/", id, " is read by ", users, " queued or running jobs"));
+      // A queued or running job reads the volume as its input or its label map (the label map
+      // lives only in the stored spec, so the active jobs' specs are read: at most max_queued
+      // plus the running ones).
+      const std::string name = absl::StrCat("volumes/", id);
+      auto active = w.exec_params("SELECT job FROM jobs WHERE state IN ($1,$2)", int{v1::QUEUED},
+                                  int{v1::RUNNING});
+      int64_t readers = 0;
+      for (const auto& row : active) {
+        auto job = ParseJob(row[0]);
+        if (!job.ok()) return job.status();
+        if (job->spec().volume() == name || job->spec().label_map() == name) ++readers;
+      }
+      if (readers > 0) {
+        return absl::FailedPreconditionError(absl::StrCat(
+            name, " is read by ", readers, " queued or running job(s) (as volume or label map)"));
       }
       w.exec_params("DELETE FROM volumes WHERE id=$1", id);
       w.exec_params("DELETE FROM volume_blobs WHERE volume_id=$1", id);
@@ -673,9 +690,11 @@ class PostgresJobStore : public JobStore {
   }
 
   absl::StatusOr<bool> BlobInUse(const std::string& sha256) override {
-    return Run<absl::StatusOr<bool>>("checking blob use", [&](pqxx::work& w) -> absl::StatusOr<bool> {
-      return !w.exec_params("SELECT 1 FROM volume_blobs WHERE sha256=$1 LIMIT 1", sha256).empty();
-    });
+    return Run<absl::StatusOr<bool>>(
+        "checking blob use", [&](pqxx::work& w) -> absl::StatusOr<bool> {
+          return !w.exec_params("SELECT 1 FROM volume_blobs WHERE sha256=$1 LIMIT 1", sha256)
+                      .empty();
+        });
   }
 
  private:

@@ -4,12 +4,22 @@ namespace decima::server {
 
 Services::Services(ServiceOptions options, JobStore* jobs, BlobStore* blobs, EventBus* bus,
                    WorkerPool* pool)
-    : options_(std::move(options)), guard_(options_.token) {
-  const ServiceDeps deps{&options_, jobs, blobs, bus, pool, &guard_};
+    : options_(std::move(options)),
+      guard_(options_.token),
+      disk_(options_.data_dir.root(), options_.disk_reserve_bytes),
+      catalog_(&options_.data_dir, jobs, blobs, &disk_, options_.blob_sweep) {
+  disk_.Refill();
+  const ServiceDeps deps{&options_, jobs, blobs, bus, pool, &guard_, &disk_, &catalog_};
   uploads_ = MakeUploadsService(deps);
   volumes_ = MakeVolumesService(deps);
   jobs_ = MakeJobsService(deps);
   artifacts_ = MakeArtifactsService(deps);
+}
+
+BlobSweepStats Services::CollectGarbage() {
+  BlobSweepStats stats = catalog_.CollectGarbage();
+  disk_.Refill();
+  return stats;
 }
 
 }  // namespace decima::server

@@ -16,8 +16,10 @@
 #include "server/blob_store.h"
 #include "server/call_guard.h"
 #include "server/data_dir.h"
+#include "server/disk_space.h"
 #include "server/event_bus.h"
 #include "server/job_store.h"
+#include "server/volume_catalog.h"
 #include "server/worker_pool.h"
 
 namespace decima::server {
@@ -29,6 +31,8 @@ struct ServiceOptions {
   int max_queued = 1000;
   bool allow_faults = false;    // read the test fault seam (faults.h), tests only
   int64_t heartbeat_ms = 5000;  // WatchJob heartbeat period
+  BlobSweepPolicy blob_sweep;   // upload claims and partial-upload expiry (blob_store.h)
+  int64_t disk_reserve_bytes = int64_t{64} << 20;  // disk_space.h; 0 = none
 };
 
 inline constexpr size_t kMaxChunkBytes = size_t{1} << 20;
@@ -41,6 +45,8 @@ struct ServiceDeps {
   EventBus* bus;
   WorkerPool* pool;
   const CallGuard* guard;
+  DiskSpace* disk;
+  VolumeCatalog* volumes;
 };
 
 std::unique_ptr<grpc::Service> MakeUploadsService(const ServiceDeps& deps);
@@ -63,9 +69,16 @@ class Services {
   grpc::Service* jobs() { return jobs_.get(); }
   grpc::Service* artifacts() { return artifacts_.get(); }
 
+  // One collector pass: blobs nobody holds and abandoned partial uploads are removed, the disk
+  // reserve is allocated again if there is room. Called by the server's collector timer.
+  BlobSweepStats CollectGarbage();
+  DiskSpace& disk() { return disk_; }
+
  private:
   const ServiceOptions options_;
   CallGuard guard_;
+  DiskSpace disk_;
+  VolumeCatalog catalog_;
   std::unique_ptr<grpc::Service> uploads_, volumes_, jobs_, artifacts_;
 };
 

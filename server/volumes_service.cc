@@ -2,21 +2,19 @@
 #include "decima/v1/volumes.grpc.pb.h"
 #include "server/grpc_util.h"
 #include "server/service.h"
-#include "server/volume_catalog.h"
 
 namespace decima::server {
 namespace {
 
 class VolumesService final : public v1::Volumes::Service {
  public:
-  explicit VolumesService(const ServiceDeps& d)
-      : d_(d), catalog_(&d.options->data_dir, d.jobs, d.blobs) {}
+  explicit VolumesService(const ServiceDeps& d) : d_(d) {}
 
   grpc::Status CreateVolume(grpc::ServerContext* ctx, const v1::CreateVolumeRequest* req,
                             v1::Volume* resp) override {
     if (auto g = d_.guard->Check(ctx); !g.ok()) return g;
     v1::ErrorDetail detail;
-    auto vol = catalog_.Create(*req, &detail);
+    auto vol = d_.volumes->Create(*req, &detail);
     if (!vol.ok())
       return detail.field().empty() ? ToGrpc(vol.status()) : Fail(ctx, vol.status(), detail);
     *resp = std::move(*vol);
@@ -50,12 +48,11 @@ class VolumesService final : public v1::Volumes::Service {
     if (auto g = d_.guard->Check(ctx); !g.ok()) return g;
     auto id = ParseName(req->name(), "volumes", "name");
     if (!id.ok()) return ToGrpc(id.status());
-    return ToGrpc(catalog_.Delete(*id));
+    return ToGrpc(d_.volumes->Delete(*id));
   }
 
  private:
   const ServiceDeps d_;
-  VolumeCatalog catalog_;
 };
 
 }  // namespace

@@ -23,8 +23,8 @@
 #include <cstdio>
 #include <map>
 #include <mutex>
-#include <sstream>
 #include <nlohmann/json.hpp>
+#include <sstream>
 #include <thread>
 
 #include "decima/v1/jobs.grpc.pb.h"
@@ -47,8 +47,7 @@ double Percentile(std::vector<double> v, double p) {
 }
 
 double NowSeconds() {
-  return std::chrono::duration<double>(std::chrono::system_clock::now().time_since_epoch())
-      .count();
+  return std::chrono::duration<double>(std::chrono::system_clock::now().time_since_epoch()).count();
 }
 
 double Seconds(const google::protobuf::Timestamp& t) { return t.seconds() + t.nanos() * 1e-9; }
@@ -78,10 +77,9 @@ struct Cluster {
 
   void Add(int workers) {
     replicas.push_back(std::make_unique<e2e::ServerProcess>(
-        data, std::vector<std::string>{"--store", pg->Dsn(db), "--workers",
-                                       std::to_string(workers), "--lease-seconds",
-                                       std::to_string(lease_seconds), "--allow-faults",
-                                       "--drain-seconds", "1"}));
+        data, std::vector<std::string>{"--store", pg->Dsn(db), "--workers", std::to_string(workers),
+                                       "--lease-seconds", std::to_string(lease_seconds),
+                                       "--allow-faults", "--drain-seconds", "1"}));
   }
   std::string Submit(size_t i, const fs::path& volume, const std::string& fault,
                      int image_size = 64) {
@@ -142,7 +140,8 @@ nlohmann::json Failover(testing::PostgresServer& pg, const fs::path& scratch,
           return j && j->state() == v1::RUNNING && j->attempts() == 2;
         },
         std::chrono::milliseconds(static_cast<int64_t>(lease * 4000)));
-    if (moved) secs.push_back(std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count());
+    if (moved)
+      secs.push_back(std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count());
   }
   double worst = secs.empty() ? 0 : *std::max_element(secs.begin(), secs.end());
   return {{"runs", secs},
@@ -297,12 +296,9 @@ nlohmann::json CtHead(testing::PostgresServer& pg, const fs::path& scratch, cons
     postgres.push_back(JobSeconds(c.replicas[(i + 1) % 3]->address(), e2e::FirstLine(r.out)));
   }
   const double a = Percentile(sqlite, 0.5), b = Percentile(postgres, 0.5);
-  return {{"volume", ct.filename().string()},
-          {"sqlite_single_server_s", sqlite},
-          {"postgres_replica_s", postgres},
-          {"median_sqlite_s", a},
-          {"median_postgres_s", b},
-          {"postgres_over_sqlite", a > 0 ? b / a - 1 : 0}};
+  return {{"volume", ct.filename().string()}, {"sqlite_single_server_s", sqlite},
+          {"postgres_replica_s", postgres},   {"median_sqlite_s", a},
+          {"median_postgres_s", b},           {"postgres_over_sqlite", a > 0 ? b / a - 1 : 0}};
 }
 
 }  // namespace

@@ -68,9 +68,7 @@ v1::Job GetJob(const std::string& address, const std::string& name) {
   return j.ok() ? *j : v1::Job();
 }
 
-bool IsFinal(v1::JobState s) {
-  return s == v1::SUCCEEDED || s == v1::FAILED || s == v1::CANCELLED;
-}
+bool IsFinal(v1::JobState s) { return s == v1::SUCCEEDED || s == v1::FAILED || s == v1::CANCELLED; }
 
 // Every event of a job a watcher reads from `after` to the end of the stream; stops after
 // `stop_after` progress events when >= 0.
@@ -230,7 +228,8 @@ TEST_F(ScaleE2E, KilledReplicasJobRunsElsewhereOnceWithinLeaseAndReaperPeriod) {
         return j.state() == v1::RUNNING && j.attempts() == 2;
       },
       30s));
-  const double failover = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
+  const double failover =
+      std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
   // The bound, lease + lease / 4, plus 1 s for a loaded 2-core machine.
   EXPECT_LT(failover, kLeaseSeconds * 1.25 + 1.0) << "failover took " << failover << " s";
   const int second = RunnerOf(job, 2);
@@ -248,8 +247,7 @@ TEST_F(ScaleE2E, ReplicaPausedPastItsLeaseIsRefusedWhenItWakes) {
   ASSERT_GE(runner, 0) << AllLogs();
   replicas_[runner]->Signal(SIGSTOP);
   const size_t other = (runner + 1) % 3;
-  ASSERT_TRUE(WaitFor([&] { return GetJob(addr(other), job).attempts() == 2; }, 30s))
-      << AllLogs();
+  ASSERT_TRUE(WaitFor([&] { return GetJob(addr(other), job).attempts() == 2; }, 30s)) << AllLogs();
   std::this_thread::sleep_for(1s);
   replicas_[runner]->Signal(SIGCONT);
   v1::Job done = WaitFinal(job);
@@ -435,8 +433,10 @@ TEST_F(ScaleE2E, UploadBegunOnOneReplicaResumesOnAnotherAndConcurrentWritersAreA
   const std::string bytes = ReadFile(big);
   auto sha = server::Sha256OfFile(big);
   ASSERT_TRUE(sha.ok());
-  auto stub_a = v1::Uploads::NewStub(grpc::CreateChannel(addr(0), grpc::InsecureChannelCredentials()));
-  auto stub_b = v1::Uploads::NewStub(grpc::CreateChannel(addr(1), grpc::InsecureChannelCredentials()));
+  auto stub_a =
+      v1::Uploads::NewStub(grpc::CreateChannel(addr(0), grpc::InsecureChannelCredentials()));
+  auto stub_b =
+      v1::Uploads::NewStub(grpc::CreateChannel(addr(1), grpc::InsecureChannelCredentials()));
   auto chunk = [&](int64_t offset, bool first) {
     v1::UploadRequest req;
     if (first) {

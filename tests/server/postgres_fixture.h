@@ -46,10 +46,10 @@ inline absl::StatusOr<std::unique_ptr<JobStore>> OpenPostgres(const std::string&
 }  // namespace decima::server
 
 // Skips the test when PostgreSQL is not installed; fails it if the server did not start.
-#define DECIMA_REQUIRE_POSTGRES()                                                   \
-  do {                                                                              \
-    if (!::decima::testing::PostgresServer::BinDir()) {                             \
-      GTEST_SKIP() << ::decima::testing::PostgresServer::WhyAbsent();               \
-    }                                                                               \
+#define DECIMA_REQUIRE_POSTGRES()                                                     \
+  do {                                                                                \
+    if (!::decima::testing::PostgresServer::BinDir()) {                               \
+      GTEST_SKIP() << ::decima::testing::PostgresServer::WhyAbsent();                 \
+    }                                                                                 \
     ASSERT_EQ(::decima::server::SharedPostgres()->error(), "") << "PostgreSQL start"; \
   } while (0)

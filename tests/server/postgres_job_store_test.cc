@@ -40,8 +40,9 @@ TEST(PostgresJobStoreTest, ReplicasStartingTogetherApplyTheSchemaOnce) {
   auto stores = OpenReplicas(dsn, 4);
   ASSERT_EQ(stores.size(), 4u);
   const std::string db = dsn.substr(dsn.rfind('/') + 1);
-  EXPECT_EQ(SharedPostgres()->Sql("SELECT COUNT(*), MAX(version) FROM decima_schema_migrations", db),
-            "1|1");
+  EXPECT_EQ(
+      SharedPostgres()->Sql("SELECT COUNT(*), MAX(version) FROM decima_schema_migrations", db),
+      "1|1");
 }
 
 TEST(PostgresJobStoreTest, ConcurrentClaimersTakeEveryJobExactlyOnce) {

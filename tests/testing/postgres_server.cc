@@ -79,8 +79,8 @@ std::string ReadText(const fs::path& p) {
 }  // namespace
 
 std::optional<fs::path> PostgresServer::BinDir() {
-  for (const char* d : {"/usr/lib/postgresql/15/bin", "/usr/lib/postgresql/16/bin",
-                        "/usr/lib/postgresql/17/bin"}) {
+  for (const char* d :
+       {"/usr/lib/postgresql/15/bin", "/usr/lib/postgresql/16/bin", "/usr/lib/postgresql/17/bin"}) {
     std::error_code ec;
     if (fs::exists(fs::path(d) / "initdb", ec) && fs::exists(fs::path(d) / "postgres", ec)) {
       return fs::path(d);
@@ -119,8 +119,8 @@ PostgresServer::PostgresServer(bool durable) : durable_(durable) {
       return;
     }
   }
-  error_ = RunAsOwner({(bin_ / "initdb").string(), "-D", (dir_ / "data").string(), "-U",
-                       "postgres", "--auth=trust", "-E", "UTF8", "--no-sync"},
+  error_ = RunAsOwner({(bin_ / "initdb").string(), "-D", (dir_ / "data").string(), "-U", "postgres",
+                       "--auth=trust", "-E", "UTF8", "--no-sync"},
                       (dir_ / "initdb.log").string());
   if (!error_.empty()) return;
   port_ = FreePort();
@@ -182,9 +182,9 @@ std::string PostgresServer::Start() {
       pid_ = -1;
       return "postgres exited at start: " + ReadText(dir_ / "postgres.log");
     }
-    pid_t p = Spawn({(bin_ / "pg_isready").string(), "-q", "-h", "127.0.0.1", "-p",
-                     std::to_string(port_)},
-                    "/dev/null");
+    pid_t p = Spawn(
+        {(bin_ / "pg_isready").string(), "-q", "-h", "127.0.0.1", "-p", std::to_string(port_)},
+        "/dev/null");
     if (WaitExit(p, std::chrono::seconds(10)) == 0) return {};
     std::this_thread::sleep_for(std::chrono::milliseconds(100));
   }
@@ -207,13 +207,14 @@ std::string PostgresServer::CreateDatabase(const std::string& name) {
   return r ? std::string() : "CREATE DATABASE " + name + " failed";
 }
 
-std::optional<std::string> PostgresServer::Sql(const std::string& sql, const std::string& db) const {
-  const fs::path out = dir_ / ("psql-" + std::to_string(::getpid()) + "-" +
-                               std::to_string(std::hash<std::thread::id>()(std::this_thread::get_id())) +
-                               ".out");
-  pid_t p = Spawn({"/usr/bin/psql", "-X", "-q", "-A", "-t", "-v", "ON_ERROR_STOP=1", "-d", Dsn(db),
-                   "-c", sql},
-                  out.string());
+std::optional<std::string> PostgresServer::Sql(const std::string& sql,
+                                               const std::string& db) const {
+  const fs::path out =
+      dir_ / ("psql-" + std::to_string(::getpid()) + "-" +
+              std::to_string(std::hash<std::thread::id>()(std::this_thread::get_id())) + ".out");
+  pid_t p = Spawn(
+      {"/usr/bin/psql", "-X", "-q", "-A", "-t", "-v", "ON_ERROR_STOP=1", "-d", Dsn(db), "-c", sql},
+      out.string());
   const int rc = WaitExit(p, std::chrono::seconds(60));
   std::string text = ReadText(out);
   std::error_code ec;
