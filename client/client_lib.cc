@@ -3,7 +3,9 @@
 #include <openssl/evp.h>
 
 #include <algorithm>
+#include <cctype>
 #include <cstdio>
+#include <cstdlib>
 #include <fstream>
 #include <sstream>
 #include <thread>
@@ -337,6 +339,268 @@ std::string ProgressBar(const v1::Progress& p, int width) {
   stage.resize(std::max<size_t>(stage.size(), 9), ' ');
   std::string msg = p.message().substr(0, 40);
   return stage + " [" + bar + "] " + pct + " " + msg;
+}
+
+}  // namespace decima::client
+
+namespace decima::client {
+namespace {
+
+std::string Trim(const std::string& s) {
+  size_t a = s.find_first_not_of(" \t\r\n"), b = s.find_last_not_of(" \t\r\n");
+  return a == std::string::npos ? "" : s.substr(a, b - a + 1);
+}
+
+std::string Lower(std::string s) {
+  for (char& c : s) c = static_cast<char>(std::tolower(static_cast<unsigned char>(c)));
+  return s;
+}
+
+bool EndsWith(const std::string& s, const std::string& suffix) {
+  return s.size() >= suffix.size() &&
+         s.compare(s.size() - suffix.size(), suffix.size(), suffix) == 0;
+}
+
+}  // namespace
+
+bool AddHeaderDataFiles(std::vector<InputFile>* files, std::string* error) {
+  if (files->size() != 1) return true;
+  const InputFile header = (*files)[0];
+  const std::string lname = Lower(header.name);
+  const bool mhd = EndsWith(lname, ".mhd"), nhdr = EndsWith(lname, ".nhdr");
+  if (!mhd && !nhdr) return true;
+  std::ifstream in(header.path);
+  if (!in) {
+    *error = header.path.string() + ": cannot open";
+    return false;
+  }
+  std::vector<std::string> names;
+  std::string line;
+  int lineno = 0;
+  bool list = false;
+  while (std::getline(in, line) && lineno < 10000) {
+    ++lineno;
+    if (list) {
+      if (!Trim(line).empty()) names.push_back(Trim(line));
+      continue;
+    }
+    std::string key, value;
+    if (mhd) {
+      auto eq = line.find('=');
+      if (eq == std::string::npos) continue;
+      key = Lower(Trim(line.substr(0, eq)));
+      value = Trim(line.substr(eq + 1));
+      if (key != "elementdatafile") continue;
+    } else {
+      if (Trim(line).empty()) break;  // the blank line ends an NRRD header
+      auto colon = line.find(':');
+      if (colon == std::string::npos) continue;
+      key = Lower(Trim(line.substr(0, colon)));
+      value = Trim(line.substr(colon + 1));
+      if (!value.empty() && value[0] == '=') continue;  // key:=value pairs
+      if (key != "data file" && key != "datafile") continue;
+    }
+    const std::string lv = Lower(value);
+    if (lv == "local") return true;
+    if (lv.rfind("list", 0) == 0) {
+      list = true;
+      continue;
+    }
+    if (value.find('%') != std::string::npos || value.find(' ') != std::string::npos) {
+      *error = header.path.string() + ":" + std::to_string(lineno) + ": data file '" + value +
+               "' is a pattern; copy the slices and a LIST header into one folder";
+      return false;
+    }
+    names.push_back(value);
+    if (mhd) break;
+  }
+  if (names.empty()) {
+    if (mhd) {
+      *error = header.path.string() +
+               ": no ElementDataFile line (a MetaImage header names its "
+               "data file)";
+      return false;
+    }
+    return true;  // an NRRD with attached data
+  }
+  const fs::path dir = header.path.parent_path();
+  for (const auto& n : names) {
+    const fs::path rel = fs::path(n).lexically_normal();
+    if (rel.is_absolute() || rel.empty() || *rel.begin() == "..") {
+      *error = header.path.string() + ": data file '" + n +
+               "' is outside the header's folder; copy it beside the header";
+      return false;
+    }
+    InputFile f;
+    f.name = rel.generic_string();
+    f.path = dir / rel;
+    std::error_code ec;
+    const fs::file_status st = fs::symlink_status(f.path, ec);
+    if (ec || !fs::is_regular_file(st)) {
+      *error = header.path.string() + ": its data file " + f.path.string() +
+               (fs::is_symlink(st) ? " is a symbolic link (copy the file instead)"
+                                   : " does not exist or is not a regular file");
+      return false;
+    }
+    f.size = static_cast<int64_t>(fs::file_size(f.path, ec));
+    files->push_back(std::move(f));
+  }
+  return true;
+}
+
+std::vector<std::string> KeepDicomFiles(std::vector<InputFile>* files) {
+  std::vector<std::string> dropped;
+  std::vector<InputFile> kept;
+  for (auto& f : *files) {
+    bool dicom = false;
+    if (Lower(f.path.filename().string()) != "dicomdir") {
+      std::ifstream in(f.path, std::ios::binary);
+      char magic[132] = {};
+      dicom = in.read(magic, sizeof magic) && std::string(magic + 128, 4) == "DICM";
+    }
+    if (dicom) {
+      kept.push_back(std::move(f));
+    } else {
+      dropped.push_back(f.name);
+    }
+  }
+  *files = std::move(kept);
+  return dropped;
+}
+
+namespace {
+// Seconds of each stage of the CT head job (128x128x53, 4.2 M cells, field policy, 50 %, one
+// 512 px view) at the commit that added this table; the MRI demo has the same order of shares.
+struct StageWeight {
+  const char* stage;
+  double seconds;
+};
+constexpr StageWeight kStageWeights[] = {{"load", 0.03},     {"segment", 2.24}, {"tetra", 1.74},
+                                         {"simplify", 14.8}, {"write", 0.85},   {"render", 7.16},
+                                         {"diff", 0.05}};
+}  // namespace
+
+double OverallFraction(const std::string& stage, double stage_fraction) {
+  double total = 0, before = 0, own = 0;
+  bool found = false;
+  for (const auto& w : kStageWeights) {
+    if (stage == w.stage) {
+      found = true;
+      own = w.seconds;
+    } else if (!found) {
+      before += w.seconds;
+    }
+    total += w.seconds;
+  }
+  if (!found) return 0;
+  return std::clamp((before + own * std::clamp(stage_fraction, 0.0, 1.0)) / total, 0.0, 1.0);
+}
+
+std::string FormatDuration(double seconds) {
+  if (!(seconds >= 0)) return "-";
+  const long long s = static_cast<long long>(seconds + 0.5);
+  char buf[32];
+  if (s >= 3600) {
+    std::snprintf(buf, sizeof buf, "%lld:%02lld:%02lld", s / 3600, s / 60 % 60, s % 60);
+  } else {
+    std::snprintf(buf, sizeof buf, "%lld:%02lld", s / 60, s % 60);
+  }
+  return buf;
+}
+
+std::string FormatBytes(int64_t bytes) {
+  char buf[32];
+  if (bytes >= 1000 * 1000 * 1000) {
+    std::snprintf(buf, sizeof buf, "%.2f GB", bytes / 1e9);
+  } else if (bytes >= 1000 * 1000) {
+    std::snprintf(buf, sizeof buf, "%.1f MB", bytes / 1e6);
+  } else if (bytes >= 1000) {
+    std::snprintf(buf, sizeof buf, "%.0f KB", bytes / 1e3);
+  } else {
+    std::snprintf(buf, sizeof buf, "%lld B", static_cast<long long>(bytes));
+  }
+  return buf;
+}
+
+std::string OverallBar(const v1::Progress& p, double elapsed_s, int width) {
+  const double f = OverallFraction(p.stage(), p.fraction());
+  const int filled = static_cast<int>(f * width + 0.5);
+  std::string bar(static_cast<size_t>(filled), '#');
+  bar.append(static_cast<size_t>(width - filled), '.');
+  char head[64];
+  std::snprintf(head, sizeof head, "[%s] %3d%% ", bar.c_str(), static_cast<int>(f * 100));
+  std::string out = head;
+  out += p.stage() + " " + std::to_string(static_cast<int>(p.fraction() * 100)) + "%";
+  out += "  elapsed " + FormatDuration(elapsed_s);
+  if (f >= 0.02 && f < 1) out += "  ETA " + FormatDuration(elapsed_s * (1 - f) / f);
+  return out;
+}
+
+JobSummary SummarizeJob(const v1::Job& job, int64_t input_bytes) {
+  JobSummary s;
+  s.input_bytes = input_bytes;
+  for (const auto& a : job.artifacts()) s.artifact_bytes += a.size_bytes();
+  s.target_reduction = job.spec().target_reduction();
+  // metrics.json is ours; a few fields are read with plain string search so the client keeps
+  // depending on the proto library only.
+  const std::string& m = job.metrics_json();
+  auto number = [&](const std::string& key, double* out) {
+    size_t at = m.find("\"" + key + "\"");
+    if (at == std::string::npos) return;
+    at = m.find(':', at);
+    if (at == std::string::npos) return;
+    *out = std::strtod(m.c_str() + at + 1, nullptr);
+  };
+  double before = 0, after = 0;
+  number("achieved_reduction", &s.achieved_reduction);
+  number("cells_before", &before);
+  number("cells_after", &after);
+  s.cells_before = static_cast<int64_t>(before);
+  s.cells_after = static_cast<int64_t>(after);
+  size_t at = m.find("\"reached_target\"");
+  if (at != std::string::npos) {
+    size_t v = m.find_first_not_of(" :", at + 16);
+    s.reached_target = v == std::string::npos || m.compare(v, 5, "false") != 0;
+  }
+  at = m.find("\"stop_message\"");
+  if (at != std::string::npos) {
+    size_t q = m.find('"', m.find(':', at) + 1);
+    size_t e = q == std::string::npos ? q : m.find('"', q + 1);
+    if (e != std::string::npos) s.stop_message = m.substr(q + 1, e - q - 1);
+  }
+  return s;
+}
+
+std::vector<std::string> SummaryLines(const JobSummary& s) {
+  std::vector<std::string> out;
+  char buf[512];
+  std::snprintf(buf, sizeof buf,
+                "reduction: %.1f%% of the cells removed (target %.1f%%), %lld -> %lld cells",
+                100 * s.achieved_reduction, 100 * s.target_reduction,
+                static_cast<long long>(s.cells_before), static_cast<long long>(s.cells_after));
+  out.push_back(buf);
+  std::string sizes = "sizes: artifacts " + FormatBytes(s.artifact_bytes);
+  if (s.input_bytes > 0) {
+    std::snprintf(buf, sizeof buf, " for %s of input (%.1fx the input's bytes)",
+                  FormatBytes(s.input_bytes).c_str(),
+                  static_cast<double>(s.artifact_bytes) / static_cast<double>(s.input_bytes));
+    sizes += buf;
+  }
+  out.push_back(sizes);
+  if (!s.reached_target) {
+    out.push_back("WARNING: the reduction target was not reached (" + s.stop_message +
+                  "); exit code 10");
+  }
+  return out;
+}
+
+bool ParseJobState(const std::string& name, v1::JobState* state) {
+  std::string upper = name;
+  for (char& c : upper) c = static_cast<char>(std::toupper(static_cast<unsigned char>(c)));
+  v1::JobState v;
+  if (!v1::JobState_Parse(upper, &v) || v == v1::JOB_STATE_UNSPECIFIED) return false;
+  *state = v;
+  return true;
 }
 
 }  // namespace decima::client

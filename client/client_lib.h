@@ -31,6 +31,9 @@ enum ExitCode : int {
   kNotFound = 6,
   kUnauthenticated = 7,
   kUnavailable = 8,
+  // The job SUCCEEDED but simplification stopped before the target reduction (metrics.json
+  // "reached_target": false); the artifacts are fetched as usual.
+  kTargetNotReached = 10,
 };
 
 // The exit code for a failed call.
@@ -53,6 +56,43 @@ struct InputFile {
 bool CollectInputs(const std::filesystem::path& input, std::vector<InputFile>* out,
                    std::string* error);
 bool HashInputs(std::vector<InputFile>* files, std::string* error);
+
+// For a single .mhd or .nhdr header in `*files`: adds the data file(s) it names
+// (MetaImage ElementDataFile, NRRD "data file:", single names or LIST) with manifest names
+// relative to the header's folder. A header with LOCAL data or an attached NRRD adds nothing.
+// False with a message naming the header and the line when a data file is missing, outside
+// the header's folder, or given as a pattern.
+bool AddHeaderDataFiles(std::vector<InputFile>* files, std::string* error);
+
+// Keeps the DICOM files of a folder: drops DICOMDIR and files without the "DICM" marker at
+// byte 128 (notes, checksums, thumbnails). Returns the names dropped, for a warning.
+std::vector<std::string> KeepDicomFiles(std::vector<InputFile>* files);
+
+// Overall progress of a running job across its stages, from the stage's own fraction and the
+// stage weights measured on a CT job (client/README.md "Progress"). 0..1.
+double OverallFraction(const std::string& stage, double stage_fraction);
+// "1:05", "12:03:09"; "-" for a negative value.
+std::string FormatDuration(double seconds);
+// "15.6 MB", "812 KB", "73 B".
+std::string FormatBytes(int64_t bytes);
+// One status line for a TTY (no newline): "[#####.....]  45% simplify  elapsed 0:12  ETA 0:15".
+// ETA is left out while the overall fraction is below 2 % (too early to say).
+std::string OverallBar(const v1::Progress& p, double elapsed_s, int width);
+
+// After a succeeded job: achieved against target reduction, cells, the artifacts' total size
+// and its ratio to the input's bytes. `target_reached` false when metrics say so.
+struct JobSummary {
+  double target_reduction = 0, achieved_reduction = 0;
+  int64_t cells_before = 0, cells_after = 0;
+  bool reached_target = true;
+  std::string stop_message;
+  int64_t artifact_bytes = 0, input_bytes = 0;
+};
+JobSummary SummarizeJob(const v1::Job& job, int64_t input_bytes);
+std::vector<std::string> SummaryLines(const JobSummary& s);
+
+// Case-insensitive parse of a job state name ("succeeded" -> SUCCEEDED); false if unknown.
+bool ParseJobState(const std::string& name, v1::JobState* state);
 
 // Connection settings and a context factory that sets the token and a deadline.
 struct Connection {

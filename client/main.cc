@@ -1,17 +1,29 @@
 // decima: the command-line client of decima-server. Data on stdout, progress on stderr.
+#include <signal.h>
+#include <sys/ioctl.h>
 #include <unistd.h>
 
 #include <google/protobuf/util/json_util.h>
+#include <google/protobuf/util/time_util.h>
 #include <CLI/CLI.hpp>
+#include <algorithm>
 #include <cstdio>
+#include <cstring>
+#include <ctime>
 #include <fstream>
 #include <iostream>
+#include <map>
 #include <optional>
 #include <random>
+#include <set>
 #include <thread>
 
 #include "client/client_lib.h"
 #include "grpc/health/v1/health.grpc.pb.h"
+
+#ifndef DECIMA_VERSION
+#define DECIMA_VERSION "unknown"
+#endif
 
 namespace fs = std::filesystem;
 using namespace decima;
@@ -24,13 +36,18 @@ Exit codes:
   0 success            1 error              2 usage
   3 job failed         4 job cancelled      5 timeout (deadline exceeded)
   6 not found          7 not authenticated  8 server unavailable
+  10 job succeeded but the reduction target was not reached (see the warning)
 
-Environment: DECIMA_SERVER (default 127.0.0.1:50051), DECIMA_TOKEN.)";
+Environment: DECIMA_SERVER (default 127.0.0.1:50051), DECIMA_TOKEN, DECIMA_TIMEOUT,
+DECIMA_CA_CERT.)";
+
+constexpr const char* kDefaultServer = "127.0.0.1:50051";
 
 struct Globals {
-  std::string server = "127.0.0.1:50051";
+  std::string server = kDefaultServer;
   std::string token;
   bool json = false;
+  std::string output;  // "", "json" or "wide" (-o)
   bool tls = false;
   std::string ca_file;
   double timeout_s = 30;
@@ -41,6 +58,12 @@ struct Globals {
 Globals g;
 Connection conn;
 bool stderr_tty = false;
+// Set after the first answer from the server: from then on UNAVAILABLE means "restarting" and
+// is retried; before it, the address is probably wrong and the command fails at once.
+bool ever_connected = false;
+
+bool JsonOut() { return g.json || g.output == "json"; }
+bool Quiet() { return g.quiet || JsonOut(); }
 
 std::string ToJson(const google::protobuf::Message& m) {
   std::string out;
@@ -50,11 +73,79 @@ std::string ToJson(const google::protobuf::Message& m) {
   return out;
 }
 
-// Prints a failed call as "error: CODE: message" and returns its exit code.
+std::string JsonString(const std::string& s) {
+  std::string out = "\"";
+  for (char c : s) {
+    if (c == '"' || c == '\\') {
+      out += '\\';
+      out += c;
+    } else if (static_cast<unsigned char>(c) < 0x20) {
+      char buf[8];
+      std::snprintf(buf, sizeof buf, "\\u%04x", c);
+      out += buf;
+    } else {
+      out += c;
+    }
+  }
+  return out + "\"";
+}
+
+// Where the address came from, for the hint.
+std::string ServerSource() {
+  if (const char* env = std::getenv("DECIMA_SERVER"); env != nullptr && g.server == env) {
+    return "from DECIMA_SERVER";
+  }
+  return g.server == kDefaultServer ? "the default" : "from --server";
+}
+
+void PrintUnreachable(const std::string& what, const std::string& detail) {
+  std::fprintf(stderr,
+               "decima: %s: cannot reach decima-server at %s (%s): %s\n"
+               "  hint: is the server running there? Start it with `decima-server --listen %s`, "
+               "or point the client at it with --server HOST:PORT or DECIMA_SERVER.\n",
+               what.c_str(), g.server.c_str(), ServerSource().c_str(), detail.c_str(),
+               g.server.c_str());
+}
+
+// Prints a failed call as "decima: WHAT: CODE: message" and returns its exit code.
 int Report(const grpc::Status& s, const std::string& what) {
-  std::fprintf(stderr, "decima: %s: %s: %s\n", what.c_str(), StatusCodeName(s.error_code()).c_str(),
+  const auto code = s.error_code();
+  if (!ever_connected &&
+      (code == grpc::StatusCode::UNAVAILABLE || code == grpc::StatusCode::DEADLINE_EXCEEDED)) {
+    PrintUnreachable(what, StatusCodeName(code) + ": " + s.error_message());
+    return kUnavailable;
+  }
+  std::fprintf(stderr, "decima: %s: %s: %s\n", what.c_str(), StatusCodeName(code).c_str(),
                s.error_message().c_str());
-  return ExitCodeFor(s.error_code());
+  if (code == grpc::StatusCode::FAILED_PRECONDITION &&
+      s.error_message().find("active") != std::string::npos) {
+    std::fprintf(stderr, "  hint: cancel it first (decima cancel JOB)\n");
+  }
+  return ExitCodeFor(code);
+}
+
+// Before the first call: wait (at most 5 s, or --timeout if shorter) until the channel is
+// connected, and fail at once with a hint when the address refuses connections or does not
+// answer, instead of retrying for a minute and then printing gRPC's text.
+int EnsureReachable(const std::string& what) {
+  const auto limit = std::chrono::milliseconds(
+      static_cast<int64_t>(std::min(5.0, std::max(0.1, g.timeout_s)) * 1000));
+  const auto deadline = std::chrono::system_clock::now() + limit;
+  grpc_connectivity_state st = conn.channel->GetState(/*try_to_connect=*/true);
+  // Bounded by the deadline: WaitForStateChange returns false when it passes.
+  while (st != GRPC_CHANNEL_READY) {
+    if (st == GRPC_CHANNEL_TRANSIENT_FAILURE || st == GRPC_CHANNEL_SHUTDOWN) {
+      PrintUnreachable(what, "connection refused or failed");
+      return kUnavailable;
+    }
+    if (!conn.channel->WaitForStateChange(st, deadline)) {
+      PrintUnreachable(what, "no answer within " + FormatDuration(limit.count() / 1000.0));
+      return kUnavailable;
+    }
+    st = conn.channel->GetState(true);
+  }
+  ever_connected = true;
+  return kOk;
 }
 
 std::string NewRequestId() {
@@ -69,47 +160,371 @@ std::string NewRequestId() {
   return buf;
 }
 
-std::string JobName(const std::string& arg) {
-  return arg.rfind("jobs/", 0) == 0 ? arg : "jobs/" + arg;
-}
-
-// Retries a unary call while the server is UNAVAILABLE (restarting), up to --reconnect.
+// Retries a unary call while the server is UNAVAILABLE (restarting), up to --reconnect, saying
+// so once; never before the first answer (then the address is wrong: fail fast).
 template <typename F>
 grpc::Status WithRetry(F call) {
   auto until = std::chrono::steady_clock::now() +
                std::chrono::milliseconds(static_cast<int64_t>(g.reconnect_s * 1000));
   int wait_ms = 100;
+  bool said = false;
   for (;;) {
     grpc::Status s = call();
-    if (s.error_code() != grpc::StatusCode::UNAVAILABLE ||
-        std::chrono::steady_clock::now() > until) {
+    if (s.error_code() != grpc::StatusCode::UNAVAILABLE) {
+      if (s.ok()) ever_connected = true;
       return s;
+    }
+    if (!ever_connected || std::chrono::steady_clock::now() > until) return s;
+    if (!said && !Quiet()) {
+      std::fprintf(stderr, "decima: server unavailable (%s); retrying for up to %s\n",
+                   s.error_message().c_str(), FormatDuration(g.reconnect_s).c_str());
+      said = true;
     }
     std::this_thread::sleep_for(std::chrono::milliseconds(wait_ms));
     wait_ms = std::min(wait_ms * 2, 2000);
   }
 }
 
+int TerminalColumns() {
+  struct winsize ws {};
+  if (::ioctl(2, TIOCGWINSZ, &ws) == 0 && ws.ws_col > 20) return ws.ws_col;
+  return 100;
+}
+
 void ByteBar(const std::string& what, int64_t done, int64_t total) {
-  if (g.quiet || g.json) return;
-  if (stderr_tty) {
-    double f = total > 0 ? static_cast<double>(done) / total : 1.0;
-    std::fprintf(stderr, "\r%s %6.1f%% of %.1f MB", what.c_str(), f * 100, total / 1e6);
-    if (done >= total) std::fprintf(stderr, "\n");
+  if (Quiet() || !stderr_tty) return;
+  double f = total > 0 ? static_cast<double>(done) / total : 1.0;
+  std::fprintf(stderr, "\r\033[K%s %5.1f%% of %s", what.c_str(), f * 100,
+               FormatBytes(total).c_str());
+  // A finished bar is erased: the path on stdout or the summary line is the record.
+  if (done >= total) std::fprintf(stderr, "\r\033[K");
+}
+
+double SecondsSince(const google::protobuf::Timestamp& t) {
+  if (t.seconds() == 0 && t.nanos() == 0) return -1;
+  const auto now = std::chrono::system_clock::now().time_since_epoch();
+  return std::chrono::duration<double>(now).count() - (t.seconds() + t.nanos() / 1e9);
+}
+
+double Between(const google::protobuf::Timestamp& a, const google::protobuf::Timestamp& b) {
+  if (a.seconds() == 0 || b.seconds() == 0) return -1;
+  return (b.seconds() - a.seconds()) + (b.nanos() - a.nanos()) / 1e9;
+}
+
+std::string FormatTime(const google::protobuf::Timestamp& t) {
+  if (t.seconds() == 0) return "-";
+  std::time_t secs = static_cast<std::time_t>(t.seconds());
+  std::tm tm{};
+  localtime_r(&secs, &tm);
+  char buf[32];
+  std::strftime(buf, sizeof buf, "%Y-%m-%d %H:%M:%S", &tm);
+  return buf;
+}
+
+std::string ShortId(const std::string& name) {
+  return name.rfind("jobs/", 0) == 0 ? name.substr(5) : name;
+}
+
+// The command that re-attaches to a job, with --server when it is not the default.
+std::string Command(const std::string& verb, const std::string& job) {
+  std::string s = "decima ";
+  if (g.server != kDefaultServer) s += "--server " + g.server + " ";
+  return s + verb + " " + ShortId(job);
+}
+
+// Ctrl-C while watching: the job goes on on the server; say so and how to come back.
+char g_interrupt_message[1024];
+void OnInterrupt(int) {
+  ssize_t n = ::write(2, g_interrupt_message, std::strlen(g_interrupt_message));
+  (void)n;
+  ::_exit(130);
+}
+void ArmInterrupt(const std::string& job) {
+  std::snprintf(g_interrupt_message, sizeof g_interrupt_message,
+                "\ndecima: stopped watching %s; the job goes on on the server.\n"
+                "  re-attach: %s\n  cancel it: %s\n",
+                job.c_str(), Command("watch", job).c_str(), Command("cancel", job).c_str());
+  struct sigaction sa {};
+  sa.sa_handler = OnInterrupt;
+  sigemptyset(&sa.sa_mask);
+  sigaction(SIGINT, &sa, nullptr);
+}
+
+// Resolves JOB: "jobs/{id}", a full id, or a unique prefix of an id (as docker does).
+int ResolveJob(const std::string& arg, std::string* name) {
+  if (arg.rfind("jobs/", 0) == 0 || arg.size() >= 16) {
+    *name = arg.rfind("jobs/", 0) == 0 ? arg : "jobs/" + arg;
+    return kOk;
   }
+  if (arg.empty()) {
+    std::fprintf(stderr, "decima: JOB is empty\n");
+    return kUsage;
+  }
+  auto stub = v1::Jobs::NewStub(conn.channel);
+  std::vector<std::string> matches;
+  v1::ListJobsRequest req;
+  req.set_page_size(1000);
+  for (int page = 0; page < 1000; ++page) {  // bounded: a million jobs
+    v1::ListJobsResponse resp;
+    grpc::Status s = WithRetry([&] { return stub->ListJobs(conn.Context().get(), req, &resp); });
+    if (!s.ok()) return Report(s, "resolve " + arg);
+    for (const auto& j : resp.jobs()) {
+      if (ShortId(j.name()).rfind(arg, 0) == 0) matches.push_back(j.name());
+    }
+    if (resp.next_page_token().empty()) break;
+    req.set_page_token(resp.next_page_token());
+  }
+  if (matches.size() == 1) {
+    *name = matches[0];
+    return kOk;
+  }
+  if (matches.empty()) {
+    std::fprintf(stderr, "decima: no job id starts with '%s' (decima list shows the jobs)\n",
+                 arg.c_str());
+    return kNotFound;
+  }
+  std::fprintf(stderr, "decima: '%s' is ambiguous: %zu jobs start with it:", arg.c_str(),
+               matches.size());
+  for (size_t i = 0; i < matches.size() && i < 10; ++i) {
+    std::fprintf(stderr, " %s", ShortId(matches[i]).c_str());
+  }
+  std::fprintf(stderr, "%s\n", matches.size() > 10 ? " ..." : "");
+  return kUsage;
+}
+
+// Volume display names by volume name, fetched once per command.
+std::map<std::string, v1::Volume> g_volumes;
+const v1::Volume* GetVolume(const std::string& name) {
+  if (name.empty()) return nullptr;
+  auto it = g_volumes.find(name);
+  if (it != g_volumes.end()) return &it->second;
+  auto stub = v1::Volumes::NewStub(conn.channel);
+  v1::GetVolumeRequest req;
+  req.set_name(name);
+  v1::Volume vol;
+  if (!stub->GetVolume(conn.Context().get(), req, &vol).ok()) return nullptr;
+  return &(g_volumes[name] = vol);
+}
+
+std::string Percent(double f, int decimals = 0) {
+  char buf[32];
+  std::snprintf(buf, sizeof buf, "%.*f%%", decimals, 100 * f);
+  return buf;
+}
+
+double JobSeconds(const v1::Job& j) {
+  if (j.start_time().seconds() == 0) return -1;
+  if (j.end_time().seconds() != 0) return Between(j.start_time(), j.end_time());
+  return SecondsSince(j.start_time());
+}
+
+// A table printed with columns as wide as their widest cell (kubectl's plain output).
+void PrintTable(const std::vector<std::vector<std::string>>& rows) {
+  std::vector<size_t> width;
+  for (const auto& r : rows) {
+    if (width.size() < r.size()) width.resize(r.size(), 0);
+    for (size_t c = 0; c < r.size(); ++c) width[c] = std::max(width[c], r[c].size());
+  }
+  for (const auto& r : rows) {
+    std::string line;
+    for (size_t c = 0; c < r.size(); ++c) {
+      line += r[c];
+      if (c + 1 < r.size()) line.append(width[c] - r[c].size() + 3, ' ');
+    }
+    std::printf("%s\n", line.c_str());
+  }
+}
+
+std::vector<std::string> JobHeader(bool wide) {
+  std::vector<std::string> h = {"NAME", "STATE",     "STAGE %", "INPUT",
+                                "K",    "REDUCTION", "CREATED", "DURATION"};
+  if (wide) {
+    for (const char* c : {"ACHIEVED", "POLICY", "VIEWS", "ARTIFACTS", "MESSAGE"}) h.push_back(c);
+  }
+  return h;
+}
+
+std::vector<std::string> JobRow(const v1::Job& j, bool wide) {
+  const v1::Volume* vol = GetVolume(j.spec().volume());
+  std::string stage = "-";
+  if (j.state() == v1::RUNNING && !j.progress().stage().empty()) {
+    stage = j.progress().stage() + " " + Percent(j.progress().fraction());
+  }
+  std::vector<std::string> r = {ShortId(j.name()),
+                                v1::JobState_Name(j.state()),
+                                stage,
+                                vol != nullptr ? vol->display_name() : j.spec().volume(),
+                                std::to_string(j.spec().regions()),
+                                Percent(j.spec().target_reduction()),
+                                FormatTime(j.create_time()),
+                                FormatDuration(JobSeconds(j))};
+  if (wide) {
+    const JobSummary s = SummarizeJob(j, 0);
+    r.push_back(j.state() == v1::SUCCEEDED
+                    ? Percent(s.achieved_reduction, 1) + (s.reached_target ? "" : " (short)")
+                    : "-");
+    std::string policy = v1::SimplifyPolicy_Name(j.spec().policy());
+    for (char& c : policy) c = static_cast<char>(std::tolower(static_cast<unsigned char>(c)));
+    r.push_back(policy);
+    std::string views;
+    for (const auto& v : j.spec().views()) views += (views.empty() ? "" : " ") + v;
+    r.push_back(views.empty() ? "-" : views);
+    r.push_back(j.artifacts_size() > 0 ? std::to_string(j.artifacts_size()) + " files, " +
+                                             FormatBytes(s.artifact_bytes)
+                                       : "-");
+    r.push_back(j.error().message().empty() ? "-" : j.error().message().substr(0, 80));
+  }
+  return r;
+}
+
+// `decima status`: kubectl describe for one job.
+void DescribeJob(const v1::Job& j) {
+  auto line = [](const char* key, const std::string& value) {
+    std::printf("%-14s %s\n", key, value.c_str());
+  };
+  line("Name:", j.name());
+  line("State:", v1::JobState_Name(j.state()));
+  if (j.state() == v1::RUNNING || j.state() == v1::QUEUED) {
+    const v1::Progress& p = j.progress();
+    line("Progress:", p.stage().empty()
+                          ? "-"
+                          : Percent(OverallFraction(p.stage(), p.fraction())) + " overall, " +
+                                p.stage() + " " + Percent(p.fraction()) + " " + p.message());
+  }
+  if (!j.error().message().empty()) line("Error:", j.error().message());
+  const v1::Volume* vol = GetVolume(j.spec().volume());
+  if (vol != nullptr) {
+    std::string desc =
+        vol->display_name() + " (" + vol->name() + ", " + v1::VolumeFormat_Name(vol->format());
+    if (vol->dims_size() == 3) {
+      char buf[128];
+      std::snprintf(buf, sizeof buf, ", %lldx%lldx%lld voxels, %.3gx%.3gx%.3g mm",
+                    static_cast<long long>(vol->dims(0)), static_cast<long long>(vol->dims(1)),
+                    static_cast<long long>(vol->dims(2)), vol->spacing(0), vol->spacing(1),
+                    vol->spacing(2));
+      desc += buf;
+    }
+    if (!vol->modality().empty()) desc += ", " + vol->modality();
+    desc += ", " + FormatBytes(vol->size_bytes()) + ")";
+    line("Input:", desc);
+  } else {
+    line("Input:", j.spec().volume());
+  }
+  line("Request id:", j.request_id().empty() ? "-" : j.request_id());
+  std::printf("Spec:\n");
+  const v1::JobSpec& s = j.spec();
+  std::printf("  regions %d, target_reduction %s, policy %s, error_tolerance %g\n", s.regions(),
+              Percent(s.target_reduction(), 1).c_str(), v1::SimplifyPolicy_Name(s.policy()).c_str(),
+              s.error_tolerance());
+  std::string views, outputs;
+  for (const auto& v : s.views()) views += (views.empty() ? "" : ", ") + v;
+  for (const auto& o : s.outputs()) outputs += (outputs.empty() ? "" : ", ") + o;
+  std::printf("  views %s, image_size %d, transfer_function %s\n", views.c_str(), s.image_size(),
+              s.transfer_function().size() > 40 ? "(JSON)" : s.transfer_function().c_str());
+  std::printf("  outputs %s, vtu_compression_level %d\n",
+              outputs.empty() ? "(default)" : outputs.c_str(), s.vtu_compression_level());
+  if (!s.label_map().empty()) std::printf("  label_map %s\n", s.label_map().c_str());
+  std::printf("Times:\n");
+  std::printf("  created %s, started %s, ended %s\n", FormatTime(j.create_time()).c_str(),
+              FormatTime(j.start_time()).c_str(), FormatTime(j.end_time()).c_str());
+  std::printf("  duration %s, attempts %d\n", FormatDuration(JobSeconds(j)).c_str(), j.attempts());
+  if (j.state() == v1::SUCCEEDED) {
+    std::printf("Result:\n");
+    for (const auto& l : SummaryLines(SummarizeJob(j, vol != nullptr ? vol->size_bytes() : 0))) {
+      std::printf("  %s\n", l.c_str());
+    }
+    // A few fidelity figures from metrics.json (plain search keeps the client proto-only).
+    const std::string& m = j.metrics_json();
+    for (const char* key : {"diff1", "psnr_db", "mean_dice"}) {
+      size_t at = m.find(std::string("\"") + key + "\"");
+      if (at == std::string::npos) continue;
+      at = m.find(':', at);
+      std::printf("  %s %g\n", key, std::strtod(m.c_str() + at + 1, nullptr));
+    }
+    std::printf("Artifacts:\n");
+    std::vector<std::vector<std::string>> rows = {{"  FILE", "SIZE", "SHA256"}};
+    for (const auto& a : j.artifacts()) {
+      rows.push_back({"  " + a.file_name(), FormatBytes(a.size_bytes()), a.sha256().substr(0, 12)});
+    }
+    PrintTable(rows);
+  }
+}
+
+// The end of a watch: achieved reduction, sizes, bytes ratio, and the warning. Returns
+// kTargetNotReached when the target was missed, kOk otherwise.
+int PrintSummary(const v1::Job& job) {
+  const v1::Volume* vol = GetVolume(job.spec().volume());
+  const JobSummary s = SummarizeJob(job, vol != nullptr ? vol->size_bytes() : 0);
+  if (JsonOut()) {
+    std::printf(
+        "{\"summary\":{\"job\":%s,\"target_reduction\":%g,\"achieved_reduction\":%g,"
+        "\"reached_target\":%s,\"cells_before\":%lld,\"cells_after\":%lld,"
+        "\"artifact_bytes\":%lld,\"input_bytes\":%lld}}\n",
+        JsonString(job.name()).c_str(), s.target_reduction, s.achieved_reduction,
+        s.reached_target ? "true" : "false", static_cast<long long>(s.cells_before),
+        static_cast<long long>(s.cells_after), static_cast<long long>(s.artifact_bytes),
+        static_cast<long long>(s.input_bytes));
+    std::fflush(stdout);
+  }
+  // The warning is printed even with -q: it changes the exit code.
+  for (const auto& l : SummaryLines(s)) {
+    if (!g.quiet || l.rfind("WARNING", 0) == 0) std::fprintf(stderr, "decima: %s\n", l.c_str());
+  }
+  return s.reached_target ? kOk : kTargetNotReached;
 }
 
 // Watches a job until a final state, reconnecting with the last sequence on UNAVAILABLE.
 // Returns the exit code and the final job in *final.
 int Watch(const std::string& name, v1::Job* final) {
   auto stub = v1::Jobs::NewStub(conn.channel);
+  ArmInterrupt(name);
   int64_t last = 0;
   bool bar_open = false;
   auto give_up = std::chrono::steady_clock::now() +
                  std::chrono::milliseconds(static_cast<int64_t>(g.reconnect_s * 1000));
   int wait_ms = 100;
-  std::string last_reconnect_reason;  // said once, not at every retry
-  v1::JobState state = v1::JOB_STATE_UNSPECIFIED;
+  int attempts = 0;
+  const auto watch_start = std::chrono::steady_clock::now();
+  google::protobuf::Timestamp start_time;
+  v1::Progress current;
+  int64_t replay_until = 0;  // the snapshot's last_sequence: events up to it are replayed
+  // Plain (non-TTY) lines: one per stage change, every 10 points of overall progress, or every
+  // 15 s, so a log shows motion without one line per event.
+  std::string plain_stage;
+  int plain_decile = -1;
+  auto plain_at = std::chrono::steady_clock::now();
+  auto elapsed = [&] {
+    const double s = SecondsSince(start_time);
+    return s >= 0 ? s
+                  : std::chrono::duration<double>(std::chrono::steady_clock::now() - watch_start)
+                        .count();
+  };
+  auto draw = [&] {
+    if (Quiet() || current.stage().empty()) return;
+    if (stderr_tty) {
+      std::string l = OverallBar(current, elapsed(), 24) + "  " + current.message();
+      l.resize(std::min<size_t>(l.size(), static_cast<size_t>(TerminalColumns() - 1)));
+      std::fprintf(stderr, "\r\033[K%s", l.c_str());
+      bar_open = true;
+      return;
+    }
+    const int decile = static_cast<int>(OverallFraction(current.stage(), current.fraction()) * 10);
+    if (current.stage() == plain_stage && decile == plain_decile &&
+        std::chrono::steady_clock::now() - plain_at < std::chrono::seconds(15)) {
+      return;
+    }
+    plain_stage = current.stage();
+    plain_decile = decile;
+    plain_at = std::chrono::steady_clock::now();
+    std::fprintf(stderr, "%s %s %s\n", ShortId(name).c_str(),
+                 OverallBar(current, elapsed(), 0).substr(3).c_str(), current.message().c_str());
+  };
+  auto say = [&](const std::string& text) {
+    if (Quiet()) return;
+    if (bar_open) std::fprintf(stderr, "\r\033[K");
+    bar_open = false;
+    std::fprintf(stderr, "%s\n", text.c_str());
+  };
   for (;;) {
     v1::WatchJobRequest req;
     req.set_name(name);
@@ -118,34 +533,70 @@ int Watch(const std::string& name, v1::Job* final) {
     auto reader = stub->WatchJob(ctx.get(), req);
     v1::JobEvent ev;
     while (reader->Read(&ev)) {
+      ever_connected = true;
+      if (attempts > 0) {
+        say("decima: reconnected to " + g.server + " after " + std::to_string(attempts) +
+            " attempt(s)");
+        attempts = 0;
+      }
       give_up = std::chrono::steady_clock::now() +
                 std::chrono::milliseconds(static_cast<int64_t>(g.reconnect_s * 1000));
       wait_ms = 100;
-      if (ev.has_snapshot()) {
-        *final = ev.snapshot();
-        state = ev.snapshot().state();
-        if (last == 0) last = 0;  // events follow from after_sequence
-      } else if (!ev.has_heartbeat()) {
-        last = ev.sequence();
-      }
-      if (ev.has_state_change()) state = ev.state_change().state();
-      if (ev.has_progress()) *final->mutable_progress() = ev.progress();
-      if (g.json) {
+      if (JsonOut()) {
         std::printf("%s\n", ToJson(ev).c_str());
         std::fflush(stdout);
-      } else if (!g.quiet) {
-        if (stderr_tty && ev.has_progress()) {
-          std::fprintf(stderr, "\r\033[K%s", ProgressBar(ev.progress(), 30).c_str());
-          bar_open = true;
-        } else if (!ev.has_heartbeat() || !stderr_tty) {
-          if (bar_open) std::fprintf(stderr, "\n");
-          bar_open = false;
-          std::fprintf(stderr, "%s\n", DescribeEvent(name, ev).c_str());
+      }
+      if (ev.has_snapshot()) {
+        *final = ev.snapshot();
+        start_time = ev.snapshot().start_time();
+        if (last == 0) replay_until = ev.snapshot().last_sequence();
+        if (last == 0) {
+          // The first contact: one line saying where the job is, no internal numbers.
+          const v1::Job& j = ev.snapshot();
+          std::string text = "decima: watching " + j.name() + ": " + v1::JobState_Name(j.state());
+          if (j.state() == v1::RUNNING && !j.progress().stage().empty()) {
+            text += ", " + j.progress().stage() + " " + Percent(j.progress().fraction());
+          }
+          if (j.start_time().seconds() != 0) {
+            text += ", started " + FormatDuration(SecondsSince(j.start_time())) + " ago";
+          }
+          say(text);
+          if (j.state() == v1::RUNNING) current = j.progress();
         }
+        continue;
+      }
+      if (!ev.has_heartbeat()) last = ev.sequence();
+      if (!ev.has_heartbeat() && ev.sequence() <= replay_until) {
+        // Stored events replayed after the snapshot: the snapshot line said where the job is,
+        // so they only bring the bar up to date.
+        if (ev.has_progress()) current = ev.progress();
+        if (ev.has_state_change() && ev.state_change().state() == v1::RUNNING) {
+          start_time = ev.time();
+        }
+        if (ev.sequence() == replay_until) draw();
+        continue;
+      }
+      if (ev.has_progress()) {
+        if (start_time.seconds() == 0) start_time = ev.time();
+        *final->mutable_progress() = ev.progress();
+        current = ev.progress();
+        draw();
+      } else if (ev.has_heartbeat()) {
+        if (stderr_tty) draw();  // the elapsed time moves while a stage is quiet
+      } else if (ev.has_state_change()) {
+        const auto& sc = ev.state_change();
+        std::string text = ShortId(name) + " " + v1::JobState_Name(sc.state());
+        if (sc.state() == v1::RUNNING) {
+          start_time = ev.time();
+        } else if (start_time.seconds() != 0) {
+          text += " after " + FormatDuration(Between(start_time, ev.time()));
+        }
+        if (!sc.error().message().empty()) text += ": " + sc.error().message();
+        say(text);
       }
     }
     grpc::Status s = reader->Finish();
-    if (bar_open) std::fprintf(stderr, "\n");
+    if (bar_open && !Quiet()) std::fprintf(stderr, "\n");
     bar_open = false;
     if (s.ok()) {
       // The stream ends after the final state (or at once for a job already final).
@@ -153,37 +604,64 @@ int Watch(const std::string& name, v1::Job* final) {
       greq.set_name(name);
       grpc::Status gs = WithRetry([&] { return stub->GetJob(conn.Context().get(), greq, final); });
       if (!gs.ok()) return Report(gs, "get " + name);
+      signal(SIGINT, SIG_DFL);
       // -q hides progress, never why a job did not succeed.
-      if (g.quiet && !g.json && final->state() != v1::SUCCEEDED) {
+      if (g.quiet && !JsonOut() && final->state() != v1::SUCCEEDED) {
         std::fprintf(
             stderr, "decima: %s %s%s%s\n", name.c_str(), v1::JobState_Name(final->state()).c_str(),
             final->error().message().empty() ? "" : ": ", final->error().message().c_str());
       }
+      if (final->state() == v1::SUCCEEDED) return PrintSummary(*final);
       return ExitCodeFor(final->state());
     }
     // UNAVAILABLE: the server is draining or restarting. CANCELLED: this client never cancels
     // a watch, so it is the server's shutdown cutting a call in flight; both end the same way.
     const bool server_went_away = s.error_code() == grpc::StatusCode::UNAVAILABLE ||
                                   s.error_code() == grpc::StatusCode::CANCELLED;
-    if (server_went_away && std::chrono::steady_clock::now() < give_up) {
+    if (server_went_away && ever_connected && std::chrono::steady_clock::now() < give_up) {
+      ++attempts;
       const std::string why = s.error_code() == grpc::StatusCode::CANCELLED
                                   ? "the server closed the stream"
                                   : s.error_message();
-      if (!g.quiet && !g.json && why != last_reconnect_reason) {
-        std::fprintf(stderr, "decima: watch %s: %s; reconnecting after #%lld\n", name.c_str(),
-                     why.c_str(), static_cast<long long>(last));
+      // One line per outage (the first reason), not one per attempt or per changing text.
+      if (attempts == 1) {
+        say("decima: watch " + name + ": server unavailable (" + why +
+            "); reconnecting for up to " + FormatDuration(g.reconnect_s));
       }
-      last_reconnect_reason = why;
       std::this_thread::sleep_for(std::chrono::milliseconds(wait_ms));
       wait_ms = std::min(wait_ms * 2, 1000);
       continue;
     }
-    (void)state;
+    if (attempts > 0) {
+      say("decima: watch " + name + ": gave up after " + std::to_string(attempts) +
+          " reconnection attempts");
+    }
     return Report(s, "watch " + name);
   }
 }
 
-int Fetch(const v1::Job& job, const fs::path& out) {
+// Artifact kinds (as in --outputs) to the file names they produce, for fetch --only.
+bool MatchesOnly(const std::string& file, const std::vector<std::string>& only) {
+  if (only.empty()) return true;
+  for (std::string o : only) {
+    for (char& c : o) c = static_cast<char>(std::tolower(static_cast<unsigned char>(c)));
+    if (o == file) return true;
+    if (o == "vtu" && file == "mesh.vtu") return true;
+    if (o == "msh" && file == "mesh.msh") return true;
+    if (o == "medit" && file == "mesh.mesh") return true;
+    if (o == "labels" && file == "labels.nii.gz") return true;
+    if (o == "segmentation" && file == "segmentation.png") return true;
+    if (o == "report" && file == "report.html") return true;
+    if (o == "metrics" && file == "metrics.json") return true;
+    if (o == "images" && file.size() > 4 && file.compare(file.size() - 4, 4, ".png") == 0 &&
+        file != "segmentation.png") {
+      return true;
+    }
+  }
+  return false;
+}
+
+int Fetch(const v1::Job& job, const fs::path& out, const std::vector<std::string>& only) {
   if (job.state() != v1::SUCCEEDED) {
     std::fprintf(stderr, "decima: fetch %s: the job is %s%s%s\n", job.name().c_str(),
                  v1::JobState_Name(job.state()).c_str(), job.error().message().empty() ? "" : ": ",
@@ -191,7 +669,23 @@ int Fetch(const v1::Job& job, const fs::path& out) {
     int code = ExitCodeFor(job.state());
     return code == kOk ? kError : code;
   }
+  // Every name given must select something, so a typo is an error and not an empty fetch.
+  for (const auto& o : only) {
+    bool any = false;
+    for (const auto& a : job.artifacts()) any = any || MatchesOnly(a.file_name(), {o});
+    if (!any) {
+      std::string names;
+      for (const auto& a : job.artifacts()) names += " " + a.file_name();
+      std::fprintf(stderr,
+                   "decima: fetch --only %s: no such artifact in %s; it has:%s (or the kinds "
+                   "vtu, msh, medit, labels, images, segmentation, report, metrics)\n",
+                   o.c_str(), job.name().c_str(), names.c_str());
+      return kUsage;
+    }
+  }
+  int64_t total = 0;
   for (const auto& a : job.artifacts()) {
+    if (!MatchesOnly(a.file_name(), only)) continue;
     fs::path path;
     grpc::Status s = WithRetry([&] {
       return DownloadArtifact(
@@ -199,71 +693,128 @@ int Fetch(const v1::Job& job, const fs::path& out) {
           &path);
     });
     if (!s.ok()) return Report(s, "fetch " + a.name());
-    if (g.json) {
-      std::printf("{\"artifact\":\"%s\",\"path\":\"%s\",\"size_bytes\":%lld}\n",
-                  a.file_name().c_str(), path.c_str(), static_cast<long long>(a.size_bytes()));
+    total += a.size_bytes();
+    if (JsonOut()) {
+      std::printf("{\"artifact\":%s,\"path\":%s,\"size_bytes\":%lld}\n",
+                  JsonString(a.file_name()).c_str(), JsonString(path.string()).c_str(),
+                  static_cast<long long>(a.size_bytes()));
     } else {
       std::printf("%s\n", path.c_str());
     }
   }
-  if (!job.metrics_json().empty() && !fs::exists(out / "metrics.json")) {
+  if (!job.metrics_json().empty() && MatchesOnly("metrics.json", only) &&
+      !fs::exists(out / "metrics.json")) {
     std::ofstream(out / "metrics.json") << job.metrics_json();
   }
+  if (!Quiet())
+    std::fprintf(stderr, "decima: fetched %s into %s\n", FormatBytes(total).c_str(), out.c_str());
   std::fflush(stdout);
   return kOk;
 }
 
-void PrintJob(const v1::Job& j) {
-  if (g.json) {
+void PrintJobLine(const v1::Job& j) {
+  if (JsonOut()) {
     std::printf("%s\n", ToJson(j).c_str());
     return;
   }
-  std::printf("%s %s", j.name().c_str(), v1::JobState_Name(j.state()).c_str());
-  if (!j.progress().stage().empty() && j.state() == v1::RUNNING) {
-    std::printf(" %s %d%%", j.progress().stage().c_str(),
-                static_cast<int>(j.progress().fraction() * 100));
-  }
-  if (!j.error().message().empty()) std::printf(" (%s)", j.error().message().c_str());
-  std::printf("\n");
+  PrintTable({JobHeader(false), JobRow(j, false)});
 }
 
-// Uploads the files of INPUT and creates a volume (of DICOM series `series` when not empty);
-// returns its name in *name.
-int MakeVolume(const fs::path& input, const std::string& series, std::string* name) {
+std::string Sha256Hex(const std::string& text) {
+  fs::path tmp = fs::temp_directory_path() / ("decima-id-" + std::to_string(::getpid()));
+  std::ofstream(tmp, std::ios::binary) << text;
+  std::vector<InputFile> one{InputFile{"id", tmp, 0, ""}};
+  std::string err;
+  HashInputs(&one, &err);
+  std::error_code ec;
+  fs::remove(tmp, ec);
+  return one[0].sha256;
+}
+
+// Uploads the files of INPUT and creates a volume; returns its name in *name. With a job
+// request id, the volume's request id is derived from it and the files, so a retried submit
+// finds the same volume (and the server can tell a retry from a different request).
+int MakeVolume(const fs::path& input, const std::string& series, const std::string& request_id,
+               std::string* name) {
   std::vector<InputFile> files;
   std::string err;
-  if (!CollectInputs(input, &files, &err) || !HashInputs(&files, &err)) {
+  if (!CollectInputs(input, &files, &err) || !AddHeaderDataFiles(&files, &err)) {
     std::fprintf(stderr, "decima: %s\n", err.c_str());
     return kUsage;
   }
+  std::error_code ec;
+  if (fs::is_directory(input, ec)) {
+    const std::vector<std::string> dropped = KeepDicomFiles(&files);
+    if (!dropped.empty() && !g.quiet) {
+      std::string list;
+      for (size_t i = 0; i < dropped.size() && i < 5; ++i) list += " " + dropped[i];
+      std::fprintf(stderr,
+                   "decima: warning: skipping %zu file(s) of %s that are not DICOM images:%s%s\n",
+                   dropped.size(), input.c_str(), list.c_str(), dropped.size() > 5 ? " ..." : "");
+    }
+    if (files.empty()) {
+      std::fprintf(stderr,
+                   "decima: %s: no DICOM file in the folder (none has the DICM marker); give a "
+                   "volume file or a folder of DICOM images\n",
+                   input.c_str());
+      return kUsage;
+    }
+  }
+  if (!HashInputs(&files, &err)) {
+    std::fprintf(stderr, "decima: %s\n", err.c_str());
+    return kUsage;
+  }
+  int64_t total = 0, sent = 0, present = 0;
+  for (const auto& f : files) total += f.size;
   v1::CreateVolumeRequest req;
+  std::string manifest;
   for (const auto& f : files) {
     int64_t resumed = 0;
-    grpc::Status s = UploadBlob(
-        conn, f, [&](int64_t d, int64_t t) { ByteBar("upload " + f.name, d, t); }, 4, &resumed);
+    // One bar for the whole volume: the bytes of all its files.
+    grpc::Status s = WithRetry([&] {
+      return UploadBlob(
+          conn, f,
+          [&](int64_t d, int64_t) {
+            if (d < f.size || resumed < f.size)
+              ByteBar("upload " + input.filename().string(), sent + d, total);
+          },
+          4, &resumed);
+    });
     if (!s.ok()) return Report(s, "upload " + f.path.string());
-    if (!g.quiet && !g.json) {
-      if (resumed == f.size) {
-        std::fprintf(stderr, "decima: %s already on the server (%lld bytes)\n", f.name.c_str(),
-                     static_cast<long long>(f.size));
-      } else if (resumed > 0) {
-        std::fprintf(stderr, "decima: resumed upload of %s at byte %lld of %lld\n", f.name.c_str(),
-                     static_cast<long long>(resumed), static_cast<long long>(f.size));
-      }
+    if (resumed == f.size) present += f.size;
+    if (resumed > 0 && resumed < f.size && !Quiet()) {
+      std::fprintf(stderr, "\ndecima: resumed upload of %s at byte %lld of %lld\n", f.name.c_str(),
+                   static_cast<long long>(resumed), static_cast<long long>(f.size));
     }
+    sent += f.size;
     auto* vf = req.mutable_volume()->add_files();
     vf->set_path(f.name);
     vf->set_blob("blobs/" + f.sha256);
+    manifest += f.name + "\n" + f.sha256 + "\n";
+  }
+  if (!Quiet()) {
+    if (present == total) {
+      std::fprintf(stderr, "decima: %s already on the server (%zu file(s), %s)\n", input.c_str(),
+                   files.size(), FormatBytes(total).c_str());
+    } else if (stderr_tty) {
+      std::fprintf(stderr, "\r\033[K");
+    } else {
+      std::fprintf(stderr, "decima: uploaded %s (%zu file(s), %s)\n", input.c_str(), files.size(),
+                   FormatBytes(total - present).c_str());
+    }
   }
   req.mutable_volume()->set_display_name(input.filename().string());
   req.mutable_volume()->set_series_instance_uid(series);
-  req.set_request_id(NewRequestId());
+  req.set_request_id(
+      request_id.empty()
+          ? NewRequestId()
+          : "vol-" + Sha256Hex(request_id + "\n" + series + "\n" + manifest).substr(0, 32));
   auto stub = v1::Volumes::NewStub(conn.channel);
   v1::Volume vol;
   grpc::Status s = WithRetry([&] { return stub->CreateVolume(conn.Context().get(), req, &vol); });
   if (!s.ok()) return Report(s, "create volume from " + input.string());
-  if (!g.quiet && !g.json) {
-    std::fprintf(stderr, "decima: %s = %s", vol.name().c_str(),
+  if (!Quiet()) {
+    std::fprintf(stderr, "decima: %s = %s %s", vol.name().c_str(), vol.display_name().c_str(),
                  v1::VolumeFormat_Name(vol.format()).c_str());
     if (vol.dims_size() == 3) {
       std::fprintf(stderr, " %lldx%lldx%lld voxels, %.3gx%.3gx%.3g mm",
@@ -272,10 +823,60 @@ int MakeVolume(const fs::path& input, const std::string& series, std::string* na
                    vol.spacing(2));
     }
     if (!vol.modality().empty()) std::fprintf(stderr, " %s", vol.modality().c_str());
-    std::fprintf(stderr, "\n");
+    std::fprintf(stderr, ", %s\n", FormatBytes(vol.size_bytes()).c_str());
   }
+  g_volumes[vol.name()] = vol;
   *name = vol.name();
   return kOk;
+}
+
+// Every page of ListJobs (bounded), newest first.
+int ListAllJobs(const std::vector<v1::JobState>& states, std::vector<v1::Job>* out) {
+  auto stub = v1::Jobs::NewStub(conn.channel);
+  v1::ListJobsRequest req;
+  for (auto s : states) req.add_states(s);
+  req.set_page_size(1000);
+  for (int page = 0; page < 1000; ++page) {
+    v1::ListJobsResponse resp;
+    grpc::Status s = WithRetry([&] { return stub->ListJobs(conn.Context().get(), req, &resp); });
+    if (!s.ok()) return Report(s, "list");
+    for (auto& j : *resp.mutable_jobs()) out->push_back(std::move(j));
+    if (resp.next_page_token().empty()) break;
+    req.set_page_token(resp.next_page_token());
+  }
+  return kOk;
+}
+
+// "7d", "12h", "30m", "45s" -> seconds; false if malformed.
+bool ParseAge(const std::string& s, double* seconds) {
+  if (s.size() < 2) return false;
+  char* end = nullptr;
+  const double v = std::strtod(s.c_str(), &end);
+  if (end != s.c_str() + s.size() - 1 || !(v >= 0)) return false;
+  switch (s.back()) {
+    case 's':
+      *seconds = v;
+      return true;
+    case 'm':
+      *seconds = v * 60;
+      return true;
+    case 'h':
+      *seconds = v * 3600;
+      return true;
+    case 'd':
+      *seconds = v * 86400;
+      return true;
+    default:
+      return false;
+  }
+}
+
+// -o FORMAT and --json on a subcommand (kubectl puts -o after the verb; the global --json of
+// earlier releases keeps working).
+void AddOutputFlags(CLI::App* cmd) {
+  cmd->add_option("-o,--output", g.output, "output format: json or wide")
+      ->transform(CLI::IsMember({"json", "wide"}, CLI::ignore_case));
+  cmd->add_flag("--json", g.json, "same as -o json");
 }
 
 }  // namespace
@@ -287,6 +888,7 @@ int main(int argc, char** argv) {
       "meshes and images"};
   app.footer(kExitCodes);
   app.require_subcommand(1);
+  app.set_version_flag("--version", std::string("decima ") + DECIMA_VERSION);
   app.add_option("--server", g.server, "host:port of decima-server")
       ->envname("DECIMA_SERVER")
       ->capture_default_str();
@@ -298,23 +900,25 @@ int main(int argc, char** argv) {
       ->envname("DECIMA_TIMEOUT")
       ->capture_default_str();
   app.add_option("--reconnect", g.reconnect_s,
-                 "how long to keep retrying an unavailable server, seconds")
+                 "how long to keep retrying a server that was reachable and went away, seconds")
       ->capture_default_str();
   app.add_flag("-q,--quiet", g.quiet, "no progress on stderr");
 
   // submit
   auto* submit =
       app.add_subcommand("submit", "upload a volume (file or DICOM folder) and queue a job");
-  std::string input, label_map, series, policy = "field", tf, fault, request_id;
+  std::string input, label_map, policy = "field", tf, fault, request_id, series;
   fs::path out;
   // Unset options stay unset in the request: the server owns the defaults.
-  std::optional<int> regions, image_size;
+  std::optional<int> regions, image_size, vtu_level;
   std::optional<double> reduction, tolerance;
   std::vector<double> means;
-  std::vector<std::string> weights, views;
+  std::vector<std::string> weights, views, view_list, outputs, only;
   bool watch_flag = false;
   submit
-      ->add_option("INPUT", input, "volume file (.nii, .nii.gz, .mha, .mhd, .nrrd) or DICOM folder")
+      ->add_option("INPUT", input,
+                   "volume file (.nii, .nii.gz, .mha, .mhd + data, .nrrd, .nhdr + data) or DICOM "
+                   "folder")
       ->required();
   submit->add_option("--regions,-k", regions, "K regions of the segmentation (2..8, default 3)");
   submit->add_option("--class-means", means, "K class means instead of k-means")->delimiter(',');
@@ -324,47 +928,107 @@ int main(int argc, char** argv) {
                      "target_reduction: fraction of cells to remove (0..0.99, default 0.5; 0 = "
                      "no target, stop on --tolerance)");
   submit->add_option("--policy", policy, "simplification policy: paper, tetfusion or field")
-      ->check(CLI::IsMember({"paper", "tetfusion", "field"}))
+      ->transform(CLI::IsMember({"paper", "tetfusion", "field"}, CLI::ignore_case))
       ->capture_default_str();
   submit->add_option("--tolerance", tolerance, "error tolerance (>= 0; default 0 = none)");
   submit->add_option("--weight", weights,
                      "weight override NAME=VALUE (w_r/regional, w_g/gradient, w_s/shape, "
                      "w_v/volume, w_n/neighbour)");
-  submit->add_option("--views", views, "render views (default anterior)")->delimiter(',');
+  submit
+      ->add_option("--views", view_list,
+                   "render views, comma-separated: anterior, posterior, left, lateral, right, "
+                   "superior, inferior, oblique or AZIMUTH:ELEVATION (default anterior)")
+      ->delimiter(',');
+  submit->add_option("--view", views, "one render view (repeatable), e.g. --view 30:20");
   submit->add_option("--image-size", image_size, "rendered image size, pixels (default 512)");
   submit->add_option("--transfer-function", tf, "preset name, auto, or JSON");
+  submit
+      ->add_option("--outputs", outputs,
+                   "artifacts to produce, comma-separated: vtu, msh, medit, labels, images, "
+                   "segmentation, report (default vtu,labels,images,segmentation,report; "
+                   "metrics.json always)")
+      ->delimiter(',')
+      ->transform(CLI::IsMember(
+          {"vtu", "msh", "medit", "labels", "images", "segmentation", "report"}, CLI::ignore_case));
+  submit
+      ->add_option("--vtu-level", vtu_level,
+                   "zlib level of mesh.vtu: 0 uncompressed, 1 fastest (default) .. 9 smallest")
+      ->check(CLI::Range(0, 9));
   submit->add_option("--series", series,
-                     "DICOM folder with several series: the SeriesInstanceUID to process");
-  submit->add_option("--request-id", request_id, "idempotency key (default: a new UUID)");
+                     "DICOM: the SeriesInstanceUID to use when the folder holds several series");
+  submit->add_option("--request-id", request_id,
+                     "idempotency key (default: a new UUID); reused with other parameters it is "
+                     "refused (ALREADY_EXISTS)");
   // Test seam (server/faults.h): sent as metadata, read only by a server run with --allow-faults.
   submit->add_option("--fault", fault, "test-only fault injection")->group("");
   submit->add_flag("--watch", watch_flag, "watch the job until it ends");
   submit->add_option("--out", out,
                      "download the artifacts here when it succeeds (implies --watch)");
+  submit->add_option("--only", only, "with --out: download only these artifacts");
+  AddOutputFlags(submit);
 
   auto* watch = app.add_subcommand("watch", "stream a job's progress until it ends");
   std::string job_arg;
-  watch->add_option("JOB", job_arg, "job id or jobs/{id}")->required();
-  auto* status = app.add_subcommand("status", "show a job");
-  status->add_option("JOB", job_arg, "job id or jobs/{id}")->required();
-  auto* list = app.add_subcommand("list", "list jobs, newest first");
+  std::vector<std::string> job_args;
+  watch->add_option("JOB", job_arg, "job id, unique id prefix, or jobs/{id}")->required();
+  AddOutputFlags(watch);
+  auto* status =
+      app.add_subcommand("status", "describe a job: spec, input, times, result, artifacts");
+  status->alias("describe");
+  status->add_option("JOB", job_arg, "job id, unique id prefix, or jobs/{id}")->required();
+  AddOutputFlags(status);
+  auto* list = app.add_subcommand("list", "list jobs as a table, newest first");
+  list->alias("ls");
   std::vector<std::string> states;
   int page_size = 50;
   std::string page_token;
   bool all = false;
-  list->add_option("--state", states, "only these states (QUEUED, RUNNING, ...)")->delimiter(',');
+  list->add_option("--state", states,
+                   "only these states (queued, running, succeeded, failed, cancelled; any case)")
+      ->delimiter(',');
   list->add_option("--page-size", page_size, "jobs per page")->capture_default_str();
   list->add_option("--page-token", page_token, "continue a listing");
   list->add_flag("--all", all, "follow every page");
+  AddOutputFlags(list);
   auto* cancel = app.add_subcommand("cancel", "cancel a job (waits until it stopped)");
-  cancel->add_option("JOB", job_arg, "job id or jobs/{id}")->required();
+  cancel->add_option("JOB", job_arg, "job id, unique id prefix, or jobs/{id}")->required();
+  AddOutputFlags(cancel);
   auto* retry = app.add_subcommand("retry", "queue a failed or cancelled job again");
-  retry->add_option("JOB", job_arg, "job id or jobs/{id}")->required();
+  retry->add_option("JOB", job_arg, "job id, unique id prefix, or jobs/{id}")->required();
   retry->add_flag("--watch", watch_flag, "watch the job until it ends");
+  AddOutputFlags(retry);
   auto* fetch = app.add_subcommand("fetch", "download a succeeded job's artifacts");
-  fetch->add_option("JOB", job_arg, "job id or jobs/{id}")->required();
+  fetch->add_option("JOB", job_arg, "job id, unique id prefix, or jobs/{id}")->required();
   fetch->add_option("--out", out, "destination folder")->required();
+  fetch->add_option("--only", only,
+                    "only these artifacts: file names (mesh.vtu) or kinds (vtu, msh, medit, "
+                    "labels, images, segmentation, report, metrics)");
+  AddOutputFlags(fetch);
+  auto* del = app.add_subcommand("delete", "delete finished jobs with their artifacts");
+  del->alias("rm");
+  bool with_volume = false;
+  del->add_option("JOB", job_args, "job ids, unique id prefixes, or jobs/{id}")->required();
+  del->add_flag("--volume", with_volume,
+                "also delete each job's input volume when no other job uses it");
+  AddOutputFlags(del);
+  auto* prune = app.add_subcommand(
+      "prune", "delete finished jobs and the volumes no job uses (a dry run unless --force)");
+  std::vector<std::string> prune_states;
+  std::string older_than;
+  bool force = false;
+  prune
+      ->add_option("--state", prune_states,
+                   "only jobs in these final states (succeeded, failed, cancelled; default all "
+                   "three)")
+      ->delimiter(',');
+  prune->add_option("--older-than", older_than,
+                    "only jobs that ended before this age: 30m, 12h, 7d");
+  prune->add_flag("-f,--force", force, "delete; without it prune only lists what it would delete");
+  AddOutputFlags(prune);
   auto* health = app.add_subcommand("health", "check that the server is serving");
+  AddOutputFlags(health);
+  auto* version = app.add_subcommand("version", "print the client's version and the server's");
+  AddOutputFlags(version);
 
   try {
     app.parse(argc, argv);
@@ -377,6 +1041,30 @@ int main(int argc, char** argv) {
                  std::chrono::milliseconds(static_cast<int64_t>(g.timeout_s * 1000)));
   auto jobs = v1::Jobs::NewStub(conn.channel);
 
+  if (*version) {
+    auto stub = grpc::health::v1::Health::NewStub(conn.channel);
+    grpc::health::v1::HealthCheckRequest req;
+    grpc::health::v1::HealthCheckResponse resp;
+    // At most 2 s: the client's version is the answer; the server's reachability an extra.
+    auto ctx = conn.Context();
+    ctx->set_deadline(
+        std::chrono::system_clock::now() +
+        std::chrono::milliseconds(static_cast<int64_t>(std::min(2.0, g.timeout_s) * 1000)));
+    grpc::Status s = stub->Check(ctx.get(), req, &resp);
+    if (JsonOut()) {
+      std::printf("{\"client\":%s,\"server\":%s,\"server_reachable\":%s}\n",
+                  JsonString(DECIMA_VERSION).c_str(), JsonString(g.server).c_str(),
+                  s.ok() ? "true" : "false");
+    } else {
+      std::printf("decima %s\nserver %s %s\n", DECIMA_VERSION, g.server.c_str(),
+                  s.ok() ? "reachable" : "unreachable");
+    }
+    return kOk;
+  }
+
+  // Fail fast with a hint when nothing answers at the address.
+  if (int rc = EnsureReachable(app.get_subcommands()[0]->get_name()); rc != kOk) return rc;
+
   if (*health) {
     auto stub = grpc::health::v1::Health::NewStub(conn.channel);
     grpc::health::v1::HealthCheckRequest req;
@@ -384,8 +1072,8 @@ int main(int argc, char** argv) {
     grpc::Status s = stub->Check(conn.Context().get(), req, &resp);
     if (!s.ok()) return Report(s, "health " + g.server);
     std::string st = grpc::health::v1::HealthCheckResponse::ServingStatus_Name(resp.status());
-    if (g.json) {
-      std::printf("{\"server\":\"%s\",\"status\":\"%s\"}\n", g.server.c_str(), st.c_str());
+    if (JsonOut()) {
+      std::printf("{\"server\":%s,\"status\":\"%s\"}\n", JsonString(g.server).c_str(), st.c_str());
     } else {
       std::printf("%s %s\n", g.server.c_str(), st.c_str());
     }
@@ -395,10 +1083,27 @@ int main(int argc, char** argv) {
   if (*submit) {
     v1::CreateJobRequest req;
     auto* spec = req.mutable_spec();
-    int rc = MakeVolume(input, series, spec->mutable_volume());
+    // "--views 30,20" splits into "30" and "20", never views on their own: join such pairs.
+    std::vector<std::string> all_views;
+    for (size_t i = 0; i < view_list.size(); ++i) {
+      auto number = [](const std::string& s) {
+        char* end = nullptr;
+        std::strtod(s.c_str(), &end);
+        return !s.empty() && end == s.c_str() + s.size();
+      };
+      if (number(view_list[i]) && i + 1 < view_list.size() && number(view_list[i + 1])) {
+        all_views.push_back(view_list[i] + ":" + view_list[i + 1]);
+        ++i;
+      } else {
+        all_views.push_back(view_list[i]);
+      }
+    }
+    all_views.insert(all_views.end(), views.begin(), views.end());
+    int rc = MakeVolume(input, series, request_id, spec->mutable_volume());
     if (rc != kOk) return rc;
     if (!label_map.empty()) {
-      rc = MakeVolume(label_map, "", spec->mutable_label_map());
+      rc = MakeVolume(label_map, "", request_id.empty() ? "" : request_id + "/label-map",
+                      spec->mutable_label_map());
       if (rc != kOk) return rc;
     }
     if (regions) spec->set_regions(*regions);
@@ -414,7 +1119,8 @@ int main(int argc, char** argv) {
         std::fprintf(stderr, "decima: --weight %s: expected NAME=VALUE\n", w.c_str());
         return kUsage;
       }
-      const std::string name = w.substr(0, eq);
+      std::string name = w.substr(0, eq);
+      for (char& c : name) c = static_cast<char>(std::tolower(static_cast<unsigned char>(c)));
       double value = 0;
       try {
         value = std::stod(w.substr(eq + 1));
@@ -439,9 +1145,11 @@ int main(int argc, char** argv) {
         return kUsage;
       }
     }
-    for (const auto& v : views) spec->add_views(v);
+    for (const auto& v : all_views) spec->add_views(v);
     if (image_size) spec->set_image_size(*image_size);
     spec->set_transfer_function(tf);
+    for (const auto& o : outputs) spec->add_outputs(o);
+    if (vtu_level) spec->set_vtu_compression_level(*vtu_level);
     req.set_request_id(request_id.empty() ? NewRequestId() : request_id);
     v1::Job job;
     grpc::Status s = WithRetry([&] {
@@ -450,18 +1158,21 @@ int main(int argc, char** argv) {
       return jobs->CreateJob(ctx.get(), req, &job);
     });
     if (!s.ok()) {
-      // The volumes were made for this job only: a refused job leaves none behind.
-      auto vstub = v1::Volumes::NewStub(conn.channel);
-      for (const std::string& name : {spec->volume(), spec->label_map()}) {
-        if (name.empty()) continue;
-        v1::DeleteVolumeRequest dreq;
-        dreq.set_name(name);
-        v1::DeleteVolumeResponse dresp;
-        (void)vstub->DeleteVolume(conn.Context().get(), dreq, &dresp);
+      // Volumes made for this job only (a fresh request id) are not left behind by a refused
+      // job; with --request-id they may belong to the job made first, so they stay.
+      if (request_id.empty()) {
+        auto vstub = v1::Volumes::NewStub(conn.channel);
+        for (const std::string& name : {spec->volume(), spec->label_map()}) {
+          if (name.empty()) continue;
+          v1::DeleteVolumeRequest dreq;
+          dreq.set_name(name);
+          v1::DeleteVolumeResponse dresp;
+          (void)vstub->DeleteVolume(conn.Context().get(), dreq, &dresp);
+        }
       }
       return Report(s, "submit");
     }
-    if (g.json) {
+    if (JsonOut()) {
       std::printf("%s\n", ToJson(job).c_str());
     } else {
       std::printf("%s\n", job.name().c_str());
@@ -470,22 +1181,29 @@ int main(int argc, char** argv) {
     if (!watch_flag && out.empty()) return kOk;
     v1::Job final;
     rc = Watch(job.name(), &final);
-    if (rc != kOk || out.empty()) return rc;
-    return Fetch(final, out);
+    if ((rc != kOk && rc != kTargetNotReached) || out.empty()) return rc;
+    const int frc = Fetch(final, out, only);
+    return frc != kOk ? frc : rc;
   }
 
   if (*watch) {
+    std::string name;
+    if (int rc = ResolveJob(job_arg, &name); rc != kOk) return rc;
     v1::Job final;
-    return Watch(JobName(job_arg), &final);
+    return Watch(name, &final);
   }
 
   if (*status) {
     v1::GetJobRequest req;
-    req.set_name(JobName(job_arg));
+    if (int rc = ResolveJob(job_arg, req.mutable_name()); rc != kOk) return rc;
     v1::Job job;
-    grpc::Status s = jobs->GetJob(conn.Context().get(), req, &job);
+    grpc::Status s = WithRetry([&] { return jobs->GetJob(conn.Context().get(), req, &job); });
     if (!s.ok()) return Report(s, "status " + req.name());
-    PrintJob(job);
+    if (JsonOut()) {
+      std::printf("%s\n", ToJson(job).c_str());
+    } else {
+      DescribeJob(job);
+    }
     return kOk;
   }
 
@@ -493,10 +1211,10 @@ int main(int argc, char** argv) {
     v1::ListJobsRequest req;
     for (const auto& st : states) {
       v1::JobState v;
-      if (!v1::JobState_Parse(st, &v) || v == v1::JOB_STATE_UNSPECIFIED) {
+      if (!ParseJobState(st, &v)) {
         std::fprintf(
             stderr,
-            "decima: --state %s: not one of QUEUED, RUNNING, SUCCEEDED, FAILED, CANCELLED\n",
+            "decima: --state %s: not one of queued, running, succeeded, failed, cancelled\n",
             st.c_str());
         return kUsage;
       }
@@ -504,28 +1222,44 @@ int main(int argc, char** argv) {
     }
     req.set_page_size(page_size);
     req.set_page_token(page_token);
-    for (;;) {
+    const bool wide = g.output == "wide";
+    std::vector<std::vector<std::string>> rows = {JobHeader(wide)};
+    for (int page = 0; page < 1000; ++page) {
       v1::ListJobsResponse resp;
-      grpc::Status s = jobs->ListJobs(conn.Context().get(), req, &resp);
+      grpc::Status s = WithRetry([&] { return jobs->ListJobs(conn.Context().get(), req, &resp); });
       if (!s.ok()) return Report(s, "list");
-      for (const auto& j : resp.jobs()) PrintJob(j);
+      for (const auto& j : resp.jobs()) {
+        if (JsonOut()) {
+          std::printf("%s\n", ToJson(j).c_str());
+        } else {
+          rows.push_back(JobRow(j, wide));
+        }
+      }
       if (resp.next_page_token().empty()) break;
       if (!all) {
-        if (g.json) {
-          std::printf("{\"next_page_token\":\"%s\"}\n", resp.next_page_token().c_str());
+        if (JsonOut()) {
+          std::printf("{\"next_page_token\":%s}\n", JsonString(resp.next_page_token()).c_str());
         } else {
-          std::fprintf(stderr, "more: --page-token %s\n", resp.next_page_token().c_str());
+          std::fprintf(stderr, "more: --page-token %s (or --all)\n",
+                       resp.next_page_token().c_str());
         }
         break;
       }
       req.set_page_token(resp.next_page_token());
+    }
+    if (!JsonOut()) {
+      if (rows.size() == 1) {
+        std::fprintf(stderr, "decima: no jobs%s\n", states.empty() ? "" : " in these states");
+      } else {
+        PrintTable(rows);
+      }
     }
     return kOk;
   }
 
   if (*cancel) {
     v1::CancelJobRequest req;
-    req.set_name(JobName(job_arg));
+    if (int rc = ResolveJob(job_arg, req.mutable_name()); rc != kOk) return rc;
     v1::Job job;
     grpc::Status s = jobs->CancelJob(conn.Context().get(), req, &job);
     if (!s.ok()) return Report(s, "cancel " + req.name());
@@ -534,7 +1268,7 @@ int main(int argc, char** argv) {
                  std::chrono::milliseconds(static_cast<int64_t>(g.timeout_s * 1000));
     while (job.state() == v1::RUNNING || job.state() == v1::QUEUED) {
       if (std::chrono::steady_clock::now() > until) {
-        PrintJob(job);
+        PrintJobLine(job);
         return kTimeout;
       }
       std::this_thread::sleep_for(std::chrono::milliseconds(50));
@@ -543,17 +1277,17 @@ int main(int argc, char** argv) {
       s = jobs->GetJob(conn.Context().get(), greq, &job);
       if (!s.ok()) return Report(s, "status " + req.name());
     }
-    PrintJob(job);
+    PrintJobLine(job);
     return kOk;
   }
 
   if (*retry) {
     v1::RetryJobRequest req;
-    req.set_name(JobName(job_arg));
+    if (int rc = ResolveJob(job_arg, req.mutable_name()); rc != kOk) return rc;
     v1::Job job;
     grpc::Status s = jobs->RetryJob(conn.Context().get(), req, &job);
     if (!s.ok()) return Report(s, "retry " + req.name());
-    PrintJob(job);
+    PrintJobLine(job);
     if (!watch_flag) return kOk;
     v1::Job final;
     return Watch(job.name(), &final);
@@ -561,11 +1295,175 @@ int main(int argc, char** argv) {
 
   if (*fetch) {
     v1::GetJobRequest req;
-    req.set_name(JobName(job_arg));
+    if (int rc = ResolveJob(job_arg, req.mutable_name()); rc != kOk) return rc;
     v1::Job job;
-    grpc::Status s = jobs->GetJob(conn.Context().get(), req, &job);
+    grpc::Status s = WithRetry([&] { return jobs->GetJob(conn.Context().get(), req, &job); });
     if (!s.ok()) return Report(s, "fetch " + req.name());
-    return Fetch(job, out);
+    return Fetch(job, out, only);
+  }
+
+  auto volumes = v1::Volumes::NewStub(conn.channel);
+  // Deletes the volumes in `candidates` that no remaining job uses; returns bytes freed.
+  auto delete_unused_volumes = [&](const std::set<std::string>& candidates, bool dry_run,
+                                   int64_t* freed) -> int {
+    std::vector<v1::Job> remaining;
+    if (int rc = ListAllJobs({}, &remaining); rc != kOk) return rc;
+    std::set<std::string> used;
+    for (const auto& j : remaining) {
+      used.insert(j.spec().volume());
+      if (!j.spec().label_map().empty()) used.insert(j.spec().label_map());
+    }
+    for (const auto& v : candidates) {
+      if (used.count(v) != 0) continue;
+      const v1::Volume* vol = GetVolume(v);
+      if (vol == nullptr) continue;
+      if (!dry_run) {
+        v1::DeleteVolumeRequest dreq;
+        dreq.set_name(v);
+        v1::DeleteVolumeResponse dresp;
+        grpc::Status s = volumes->DeleteVolume(conn.Context().get(), dreq, &dresp);
+        if (!s.ok()) return Report(s, "delete " + v);
+      }
+      *freed += vol->size_bytes();
+      if (JsonOut()) {
+        std::printf("{\"deleted\":%s,\"dry_run\":%s,\"bytes\":%lld}\n", JsonString(v).c_str(),
+                    dry_run ? "true" : "false", static_cast<long long>(vol->size_bytes()));
+      } else {
+        std::printf("%s%s (%s, %s)\n", dry_run ? "would delete " : "deleted ", v.c_str(),
+                    vol->display_name().c_str(), FormatBytes(vol->size_bytes()).c_str());
+      }
+    }
+    return kOk;
+  };
+
+  if (*del) {
+    int64_t freed = 0;
+    std::set<std::string> vols;
+    for (const auto& arg : job_args) {
+      std::string name;
+      if (int rc = ResolveJob(arg, &name); rc != kOk) return rc;
+      v1::GetJobRequest greq;
+      greq.set_name(name);
+      v1::Job job;
+      grpc::Status s = jobs->GetJob(conn.Context().get(), greq, &job);
+      if (!s.ok()) return Report(s, "delete " + name);
+      v1::DeleteJobRequest dreq;
+      dreq.set_name(name);
+      v1::DeleteJobResponse dresp;
+      s = jobs->DeleteJob(conn.Context().get(), dreq, &dresp);
+      if (!s.ok()) return Report(s, "delete " + name);
+      const int64_t bytes = SummarizeJob(job, 0).artifact_bytes;
+      freed += bytes;
+      if (JsonOut()) {
+        std::printf("{\"deleted\":%s,\"bytes\":%lld}\n", JsonString(name).c_str(),
+                    static_cast<long long>(bytes));
+      } else {
+        std::printf("deleted %s (%s of artifacts)\n", name.c_str(), FormatBytes(bytes).c_str());
+      }
+      vols.insert(job.spec().volume());
+      if (!job.spec().label_map().empty()) vols.insert(job.spec().label_map());
+    }
+    if (with_volume) {
+      if (int rc = delete_unused_volumes(vols, false, &freed); rc != kOk) return rc;
+    }
+    if (!Quiet()) std::fprintf(stderr, "decima: freed %s\n", FormatBytes(freed).c_str());
+    return kOk;
+  }
+
+  if (*prune) {
+    std::vector<v1::JobState> want;
+    for (const auto& st : prune_states) {
+      v1::JobState v;
+      if (!ParseJobState(st, &v) || v == v1::QUEUED || v == v1::RUNNING) {
+        std::fprintf(stderr, "decima: prune --state %s: not one of succeeded, failed, cancelled\n",
+                     st.c_str());
+        return kUsage;
+      }
+      want.push_back(v);
+    }
+    if (want.empty()) want = {v1::SUCCEEDED, v1::FAILED, v1::CANCELLED};
+    double age = 0;
+    if (!older_than.empty() && !ParseAge(older_than, &age)) {
+      std::fprintf(stderr, "decima: prune --older-than %s: expected a number and s, m, h or d\n",
+                   older_than.c_str());
+      return kUsage;
+    }
+    std::vector<v1::Job> found;
+    if (int rc = ListAllJobs(want, &found); rc != kOk) return rc;
+    int64_t freed = 0;
+    int count = 0;
+    std::set<std::string> vols;
+    // Every volume is a candidate: one left by a deleted job earlier is unused as well.
+    {
+      auto stub = v1::Volumes::NewStub(conn.channel);
+      v1::ListVolumesRequest vreq;
+      vreq.set_page_size(1000);
+      for (int page = 0; page < 1000; ++page) {
+        v1::ListVolumesResponse vresp;
+        grpc::Status s = stub->ListVolumes(conn.Context().get(), vreq, &vresp);
+        if (!s.ok()) return Report(s, "prune: list volumes");
+        for (const auto& v : vresp.volumes()) {
+          g_volumes[v.name()] = v;
+          vols.insert(v.name());
+        }
+        if (vresp.next_page_token().empty()) break;
+        vreq.set_page_token(vresp.next_page_token());
+      }
+    }
+    std::set<std::string> pruned;
+    for (const auto& j : found) {
+      if (age > 0 && SecondsSince(j.end_time()) < age) continue;
+      const int64_t bytes = SummarizeJob(j, 0).artifact_bytes;
+      if (force) {
+        v1::DeleteJobRequest dreq;
+        dreq.set_name(j.name());
+        v1::DeleteJobResponse dresp;
+        grpc::Status s = jobs->DeleteJob(conn.Context().get(), dreq, &dresp);
+        if (!s.ok()) return Report(s, "prune " + j.name());
+      }
+      pruned.insert(j.name());
+      freed += bytes;
+      ++count;
+      if (JsonOut()) {
+        std::printf("{\"deleted\":%s,\"dry_run\":%s,\"bytes\":%lld}\n",
+                    JsonString(j.name()).c_str(), force ? "false" : "true",
+                    static_cast<long long>(bytes));
+      } else {
+        std::printf("%s%s (%s, %s)\n", force ? "deleted " : "would delete ", j.name().c_str(),
+                    v1::JobState_Name(j.state()).c_str(), FormatBytes(bytes).c_str());
+      }
+    }
+    if (force) {
+      if (int rc = delete_unused_volumes(vols, false, &freed); rc != kOk) return rc;
+    } else {
+      // Dry run: the volumes that would be unused once these jobs are gone.
+      std::vector<v1::Job> remaining;
+      if (int rc = ListAllJobs({}, &remaining); rc != kOk) return rc;
+      std::set<std::string> used;
+      for (const auto& j : remaining) {
+        if (pruned.count(j.name()) != 0) continue;
+        used.insert(j.spec().volume());
+        if (!j.spec().label_map().empty()) used.insert(j.spec().label_map());
+      }
+      for (const auto& v : vols) {
+        if (used.count(v) != 0) continue;
+        const v1::Volume& vol = g_volumes[v];
+        freed += vol.size_bytes();
+        if (JsonOut()) {
+          std::printf("{\"deleted\":%s,\"dry_run\":true,\"bytes\":%lld}\n", JsonString(v).c_str(),
+                      static_cast<long long>(vol.size_bytes()));
+        } else {
+          std::printf("would delete %s (%s, %s)\n", v.c_str(), vol.display_name().c_str(),
+                      FormatBytes(vol.size_bytes()).c_str());
+        }
+      }
+    }
+    if (!Quiet()) {
+      std::fprintf(stderr, "decima: %s %d job(s) and the unused volumes, %s%s\n",
+                   force ? "deleted" : "would delete", count, FormatBytes(freed).c_str(),
+                   force ? " freed" : "; run with --force to delete");
+    }
+    return kOk;
   }
   return kUsage;
 }

@@ -24,6 +24,8 @@ packages=(
   clang libclang-rt-14-dev
   # independent tools that prove our files are readable by others
   python3 python3-vtk9 python3-numpy gmsh
+  # a real browser (headless) that opens report.html in tests/e2e/cli_e2e_test.cc
+  chromium
   # the real MRI the demo and tests use
   mricron-data
 )

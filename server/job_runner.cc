@@ -101,6 +101,8 @@ absl::StatusOr<JobRunner::Prepared> JobRunner::Prepare(const v1::Job& job, int64
   prepared.memory_limit_bytes = JobAddressSpaceLimitBytes(needed, cap);
 #endif
   request.set_memory_limit_bytes(prepared.memory_limit_bytes);
+  request.set_job_name(job.name());
+  request.set_input_name(volume.display_name());
   if (!job.spec().label_map().empty()) {
     auto label_map = resolve(job.spec().label_map(), "spec.label_map");
     if (!label_map.ok()) return label_map.status();

@@ -1,5 +1,8 @@
 #include "server/job_spec.h"
 
+#include <algorithm>
+
+#include "absl/strings/ascii.h"
 #include "absl/strings/str_cat.h"
 #include "server/job_store.h"
 
@@ -11,6 +14,7 @@ constexpr size_t kMaxViewNameBytes = 64;
 // A transfer function in JSON has at most 256 points (core/render); 64 KiB holds them with room.
 constexpr size_t kMaxTransferFunctionBytes = 64 << 10;
 constexpr int kMaxClassMeans = 8;
+constexpr int kMaxOutputs = 16;
 
 absl::Status Invalid(std::string* field, const std::string& name, const std::string& message) {
   if (field != nullptr) *field = name;
@@ -100,6 +104,27 @@ absl::StatusOr<pipeline::JobSpec> JobSpecFromProto(const v1::JobSpec& spec, std:
                                 kMaxTransferFunctionBytes));
   }
   if (!spec.transfer_function().empty()) p.transfer_function = spec.transfer_function();
+  if (spec.outputs_size() > kMaxOutputs) {
+    return Invalid(field, "spec.outputs",
+                   absl::StrCat(spec.outputs_size(), " outputs, at most ", kMaxOutputs));
+  }
+  if (!spec.outputs().empty()) {
+    // Case-insensitive names, stored lower case in the order RunJob writes them; duplicates and
+    // unknown names are refused by ValidateJobSpec with the name.
+    std::vector<std::string> asked;
+    for (const auto& o : spec.outputs()) asked.push_back(absl::AsciiStrToLower(o.substr(0, 64)));
+    p.outputs.clear();
+    for (const char* kind : pipeline::kOutputKinds) {
+      if (std::find(asked.begin(), asked.end(), kind) != asked.end()) p.outputs.push_back(kind);
+    }
+    for (const auto& o : asked) {
+      if (std::find(p.outputs.begin(), p.outputs.end(), o) == p.outputs.end() ||
+          std::count(asked.begin(), asked.end(), o) > 1) {
+        p.outputs.push_back(o);  // unknown or repeated: let the validator name it
+      }
+    }
+  }
+  if (spec.has_vtu_compression_level()) p.vtu_compression_level = spec.vtu_compression_level();
 
   std::string bad;
   absl::Status st = pipeline::ValidateJobSpec(p, &bad);
@@ -127,6 +152,8 @@ absl::StatusOr<v1::JobSpec> NormalizeJobSpec(const v1::JobSpec& spec, std::strin
   for (const auto& v : p->views) out.add_views(v);
   out.set_image_size(p->image_size);
   out.set_transfer_function(p->transfer_function);
+  for (const auto& o : p->outputs) out.add_outputs(o);
+  out.set_vtu_compression_level(p->vtu_compression_level);
   return out;
 }
 

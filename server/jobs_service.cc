@@ -1,4 +1,6 @@
 // decima.v1.Jobs: queue, cancel, retry, delete, watch.
+#include <google/protobuf/util/message_differencer.h>
+
 #include "absl/strings/str_cat.h"
 #include "decima/v1/jobs.grpc.pb.h"
 #include "server/faults.h"
@@ -53,6 +55,14 @@ absl::StatusOr<v1::Job> SubmitJob(const ServiceDeps& d, const v1::CreateJobReque
       detail->set_limit_value(d.options->max_queued);
     }
     return job.status();
+  }
+  // AIP-155: a request id names one request. Reused with another spec it is a client error,
+  // not a retry: answering with the old job would silently run other parameters.
+  if (!created && !google::protobuf::util::MessageDifferencer::Equals(job->spec(), *spec)) {
+    detail->set_field("request_id");
+    return absl::AlreadyExistsError(
+        absl::StrCat("request_id: '", req.request_id(), "' was used for ", job->name(),
+                     " with a different spec; use a new request id for a different job"));
   }
   if (created) {
     spdlog::info("job {} QUEUED volume {}", id, spec->volume());

@@ -157,6 +157,10 @@ class ConnectionPool {
   }
 
   static std::unique_ptr<pqxx::connection> Connect(const std::string& dsn, const std::string& app) {
+    // libpqxx 6.4 races with itself when connections are set up on several threads at once
+    // (ThreadSanitizer: shared state written in its connection start-up); setting up is rare.
+    static std::mutex setup_mu;
+    std::lock_guard<std::mutex> setup_lock(setup_mu);
     auto c = std::make_unique<pqxx::connection>(dsn);
     // A connection libpqxx silently re-opened would have lost its LISTEN and its session state:
     // we replace broken connections ourselves.

@@ -65,6 +65,7 @@ int main(int argc, char** argv) {
   CLI::App app{
       "decima-server: turns uploaded medical volumes into simplified tetrahedral "
       "meshes, as queued jobs (gRPC API decima.v1)"};
+  app.set_version_flag("--version", std::string("decima-server ") + DECIMA_VERSION);
   std::string listen = "127.0.0.1:50051", data_dir = DefaultDataDir(), token_file, tls_cert,
               tls_key, port_file;
   std::string store_spec = "sqlite", store_file;

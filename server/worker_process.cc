@@ -69,6 +69,8 @@ int RunJobProcess(const std::filesystem::path& request_file, int fd) {
   if (!spec.ok()) return SendError(fd, spec.status());
   spec->input = request.input();
   spec->series_instance_uid = request.series_instance_uid();
+  spec->job_name = request.job_name();
+  spec->input_name = request.input_name();
   if (!request.label_map().empty()) spec->label_map = request.label_map();
 
   auto progress = [fd](const Progress& p) { SendProgress(fd, p); };

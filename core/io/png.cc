@@ -3,10 +3,15 @@
 #include <png.h>
 #include <unistd.h>
 
+#include <zlib.h>
+
 #include <cstring>
+#include <fstream>
+#include <sstream>
 #include <system_error>
 
 #include "absl/strings/str_cat.h"
+#include "core/common/status.h"
 
 namespace decima {
 namespace {
@@ -105,6 +110,111 @@ absl::StatusOr<Image> ReadPng(const std::filesystem::path& path) {
     png_image_free(&image);
     return absl::InvalidArgumentError(
         absl::StrCat("ReadPng ", path.string(), ": corrupt PNG data (", why, ")"));
+  }
+  return out;
+}
+
+}  // namespace decima
+
+namespace decima {
+namespace {
+
+void PutU32(std::string* s, uint32_t v) {
+  for (int k = 3; k >= 0; --k) s->push_back(static_cast<char>((v >> (8 * k)) & 0xff));
+}
+
+uint32_t GetU32(const std::string& s, size_t at) {
+  uint32_t v = 0;
+  for (int k = 0; k < 4; ++k) v = (v << 8) | static_cast<unsigned char>(s[at + k]);
+  return v;
+}
+
+}  // namespace
+
+absl::Status WritePng(const std::filesystem::path& path, const Image& image,
+                      const std::vector<std::pair<std::string, std::string>>& text) {
+  for (const auto& [key, value] : text) {
+    bool ok = !key.empty() && key.size() <= 79 && key.front() != ' ' && key.back() != ' ';
+    for (unsigned char c : key) ok = ok && c >= 32 && c != 127;
+    if (!ok) {
+      return absl::InvalidArgumentError(
+          absl::StrCat("WritePng ", path.string(), ": text keyword '", key,
+                       "' is not 1..79 printable characters without leading/trailing space"));
+    }
+    if (value.find('\0') != std::string::npos) {
+      return absl::InvalidArgumentError(
+          absl::StrCat("WritePng ", path.string(), ": text of '", key, "' holds a NUL byte"));
+    }
+  }
+  // Encoded in memory by the simplified API (no longjmp), then the chunks are spliced in after
+  // IHDR (8-byte signature + 25-byte IHDR chunk), which the PNG spec allows for tEXt.
+  std::filesystem::path tmp = path;
+  tmp += absl::StrCat(".tmp", ::getpid(), "t");
+  DECIMA_RETURN_IF_ERROR(WritePng(tmp, image));
+  std::string bytes;
+  {
+    std::ifstream in(tmp, std::ios::binary);
+    std::stringstream ss;
+    ss << in.rdbuf();
+    bytes = ss.str();
+  }
+  std::error_code ec;
+  std::filesystem::remove(tmp, ec);
+  if (bytes.size() < 33)
+    return absl::InternalError(absl::StrCat("WritePng ", path.string(), ": short"));
+  std::string chunks;
+  for (const auto& [key, value] : text) {
+    const std::string data = key + std::string(1, '\0') + value;
+    PutU32(&chunks, static_cast<uint32_t>(data.size()));
+    const std::string body = "tEXt" + data;
+    chunks += body;
+    PutU32(&chunks, static_cast<uint32_t>(
+                        crc32(0, reinterpret_cast<const Bytef*>(body.data()), body.size())));
+  }
+  bytes.insert(33, chunks);
+  std::filesystem::path tmp2 = path;
+  tmp2 += absl::StrCat(".tmp", ::getpid());
+  {
+    std::ofstream out(tmp2, std::ios::binary | std::ios::trunc);
+    out.write(bytes.data(), static_cast<std::streamsize>(bytes.size()));
+    if (!out.good()) {
+      return absl::InternalError(absl::StrCat("WritePng ", path.string(), ": write failed"));
+    }
+  }
+  std::filesystem::rename(tmp2, path, ec);
+  if (ec) {
+    std::filesystem::remove(tmp2, ec);
+    return absl::InternalError(absl::StrCat("WritePng ", path.string(), ": rename failed"));
+  }
+  return absl::OkStatus();
+}
+
+absl::StatusOr<std::vector<std::pair<std::string, std::string>>> ReadPngText(
+    const std::filesystem::path& path) {
+  std::ifstream in(path, std::ios::binary);
+  if (!in) return absl::NotFoundError(absl::StrCat("ReadPngText ", path.string(), ": cannot open"));
+  std::stringstream ss;
+  ss << in.rdbuf();
+  const std::string b = ss.str();
+  if (b.size() < 8 || b.compare(0, 8, "\x89PNG\r\n\x1a\n") != 0) {
+    return absl::InvalidArgumentError(absl::StrCat("ReadPngText ", path.string(), ": not a PNG"));
+  }
+  std::vector<std::pair<std::string, std::string>> out;
+  size_t at = 8;
+  while (at + 12 <= b.size()) {
+    const uint32_t len = GetU32(b, at);
+    if (len > b.size() - at - 12) {
+      return absl::InvalidArgumentError(
+          absl::StrCat("ReadPngText ", path.string(), ": chunk at ", at, " runs past the end"));
+    }
+    const std::string type = b.substr(at + 4, 4);
+    if (type == "tEXt") {
+      const std::string data = b.substr(at + 8, len);
+      const size_t nul = data.find('\0');
+      if (nul != std::string::npos) out.emplace_back(data.substr(0, nul), data.substr(nul + 1));
+    }
+    if (type == "IEND") break;
+    at += 12 + len;
   }
   return out;
 }

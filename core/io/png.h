@@ -6,6 +6,8 @@
 
 #include <cstdint>
 #include <filesystem>
+#include <string>
+#include <utility>
 #include <vector>
 
 #include "absl/status/status.h"
@@ -31,6 +33,15 @@ inline constexpr int64_t kMaxPngPixels = int64_t{1} << 26;
 absl::Status WritePng(const std::filesystem::path& path, int width, int height, int channels,
                       const uint8_t* pixels);
 absl::Status WritePng(const std::filesystem::path& path, const Image& image);
+
+// The same with tEXt chunks (keyword, Latin-1 text) after the header, e.g. {"Software",
+// "decima"}, {"decima:job", "jobs/abc"}: the parameters travel with the picture. Keywords are
+// 1..79 printable characters (PNG spec 11.3.4.3); InvalidArgument otherwise.
+absl::Status WritePng(const std::filesystem::path& path, const Image& image,
+                      const std::vector<std::pair<std::string, std::string>>& text);
+// Reads the tEXt chunks of a PNG file (keyword -> text); NotFound / InvalidArgument as ReadPng.
+absl::StatusOr<std::vector<std::pair<std::string, std::string>>> ReadPngText(
+    const std::filesystem::path& path);
 
 // Reads any PNG libpng understands (gray, palette, 16-bit, with or without alpha) as 8-bit RGB,
 // or RGBA when the file has an alpha channel or transparency. Errors: NotFound when the file

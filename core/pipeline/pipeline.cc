@@ -1,9 +1,13 @@
 #include "core/pipeline/pipeline.h"
 
+#include <algorithm>
 #include <chrono>
 #include <cmath>
+#include <cstdio>
 #include <fstream>
+#include <iterator>
 #include <limits>
+#include <sstream>
 #include <utility>
 
 #include <nlohmann/json.hpp>
@@ -11,15 +15,19 @@
 #include "absl/strings/str_cat.h"
 #include "core/common/status.h"
 #include "core/io/dicom.h"
+#include "core/io/png.h"
 #include "core/io/volume_io.h"
 #include "core/mesh/mesh_io.h"
 #include "core/mesh/tetrahedralize.h"
 #include "core/metrics/fidelity.h"
 #include "core/metrics/fidelity_json.h"
+#include "core/render/annotate.h"
 #include "core/render/camera.h"
+#include "core/render/canvas.h"
 #include "core/render/diff.h"
 #include "core/render/renderer.h"
 #include "core/render/transfer_function.h"
+#include "core/segment/montage.h"
 #include "core/segment/segment.h"
 #include "core/simplify/simplify.h"
 
@@ -60,6 +68,176 @@ absl::StatusOr<TransferFunction> ChooseTransferFunction(const std::string& tf, c
   if (tf != "auto") return TransferFunctionPreset(tf, range);
   const bool ct = image.modality == "CT" || (image.modality.empty() && range.max > 1500);
   return TransferFunctionPreset(ct ? "ct" : "mri-t1", range);
+}
+
+// The preset a transfer-function spec resolves to, for captions ("ct", "mri-t1", "custom").
+std::string ChosenPresetName(const std::string& tf, const Volume& image, const ScalarRange& range) {
+  if (!tf.empty() && tf.front() == '{') return "custom";
+  if (tf != "auto") return tf;
+  const bool ct = image.modality == "CT" || (image.modality.empty() && range.max > 1500);
+  return ct ? "ct" : "mri-t1";
+}
+
+// File-name part of a view: named views as they are, "30:20" / "30,20" as "az30_el20".
+std::string ViewFileSuffix(const std::string& view) {
+  const size_t sep = view.find_first_of(",:");
+  std::string out = sep == std::string::npos
+                        ? view
+                        : absl::StrCat("az", view.substr(0, sep), "_el", view.substr(sep + 1));
+  for (char& c : out) {
+    if (!std::isalnum(static_cast<unsigned char>(c)) && c != '_' && c != '-' && c != '.') c = '_';
+  }
+  return out;
+}
+
+std::string FormatPercent(double f) {
+  char buf[32];
+  std::snprintf(buf, sizeof buf, "%.1f%%", 100 * f);
+  return buf;
+}
+
+struct ReportPicture {
+  std::string caption;
+  std::filesystem::path path;
+};
+
+std::string Base64(const std::string& in) {
+  static const char kAlphabet[] =
+      "ABCDEFGHIJKLMNOPQRSTUVWXYZabcdefghijklmnopqrstuvwxyz0123456789+/";
+  std::string out;
+  out.reserve((in.size() + 2) / 3 * 4);
+  size_t i = 0;
+  for (; i + 2 < in.size(); i += 3) {
+    const uint32_t v = (uint8_t(in[i]) << 16) | (uint8_t(in[i + 1]) << 8) | uint8_t(in[i + 2]);
+    for (int k = 18; k >= 0; k -= 6) out.push_back(kAlphabet[(v >> k) & 63]);
+  }
+  if (i < in.size()) {
+    uint32_t v = uint8_t(in[i]) << 16;
+    if (i + 1 < in.size()) v |= uint8_t(in[i + 1]) << 8;
+    out.push_back(kAlphabet[(v >> 18) & 63]);
+    out.push_back(kAlphabet[(v >> 12) & 63]);
+    out.push_back(i + 1 < in.size() ? kAlphabet[(v >> 6) & 63] : '=');
+    out.push_back('=');
+  }
+  return out;
+}
+
+std::string Html(const std::string& s) {
+  std::string out;
+  for (char c : s) {
+    switch (c) {
+      case '&':
+        out += "&amp;";
+        break;
+      case '<':
+        out += "&lt;";
+        break;
+      case '>':
+        out += "&gt;";
+        break;
+      case '"':
+        out += "&quot;";
+        break;
+      default:
+        out.push_back(c);
+    }
+  }
+  return out;
+}
+
+std::string JsonCell(const Json& v) {
+  if (v.is_number_float()) {
+    char buf[64];
+    std::snprintf(buf, sizeof buf, "%.6g", v.get<double>());
+    return buf;
+  }
+  if (v.is_string()) return Html(v.get<std::string>());
+  return Html(v.dump());
+}
+
+// Rows "key | value" of a JSON object (nested objects flattened with dots).
+void JsonRows(const Json& j, const std::string& prefix, std::string* out) {
+  for (auto it = j.begin(); it != j.end(); ++it) {
+    const std::string key = prefix.empty() ? it.key() : absl::StrCat(prefix, ".", it.key());
+    if (it->is_object()) {
+      JsonRows(*it, key, out);
+    } else {
+      absl::StrAppend(out, "<tr><th>", Html(key), "</th><td>", JsonCell(*it), "</td></tr>\n");
+    }
+  }
+}
+
+// report.html: one self-contained page (pictures inline as data: URIs, no script, no outside
+// resource) that any browser opens from a mail attachment or a PACS note.
+absl::StatusOr<std::string> ReportHtml(const JobSpec& spec, const std::string& input_name,
+                                       const Json& metrics,
+                                       const std::vector<ReportPicture>& pictures) {
+  const std::string title =
+      absl::StrCat("Decima report: ", input_name, spec.job_name.empty() ? "" : " (", spec.job_name,
+                   spec.job_name.empty() ? "" : ")");
+  std::string h = absl::StrCat(
+      "<!DOCTYPE html>\n<html lang=\"en\"><head><meta charset=\"utf-8\">\n"
+      "<meta name=\"viewport\" content=\"width=device-width\">\n"
+      "<link rel=\"icon\" href=\"data:,\">\n<title>",
+      Html(title),
+      "</title>\n<style>body{font-family:sans-serif;margin:2em;max-width:80em;color:#222}"
+      "table{border-collapse:collapse;margin:0 0 1.5em}th,td{border:1px solid #ccc;padding:"
+      ".2em .6em;text-align:left;font-size:.9em}th{background:#f3f3f3}img{max-width:100%;"
+      "border:1px solid #888}figure{margin:0 0 1.5em}.warn{color:#a00;font-weight:bold}"
+      "</style></head><body>\n<h1>",
+      Html(title), "</h1>\n");
+  const Json& simp = metrics["simplification"];
+  const double achieved = simp["achieved_reduction"].get<double>();
+  absl::StrAppend(&h, "<p>", FormatPercent(achieved), " of the ", simp["cells_before"].dump(),
+                  " cells removed (target ", FormatPercent(spec.target_reduction), ", policy ",
+                  Html(simp["policy"].get<std::string>()),
+                  "); mean colour difference of the renders (diff1) ", JsonCell(metrics["diff1"]),
+                  " on 0-442.</p>\n");
+  if (!simp["reached_target"].get<bool>()) {
+    absl::StrAppend(&h, "<p class=\"warn\">The reduction target was not reached: ",
+                    Html(simp["stop_message"].get<std::string>()), "</p>\n");
+  }
+  h += "<h2>Pictures</h2>\n";
+  for (const auto& pic : pictures) {
+    std::ifstream in(pic.path, std::ios::binary);
+    std::stringstream ss;
+    ss << in.rdbuf();
+    if (!in)
+      return absl::InternalError(absl::StrCat(pic.path.string(), ": cannot read for the report"));
+    absl::StrAppend(&h, "<figure><img alt=\"", Html(pic.caption), "\" src=\"data:image/png;base64,",
+                    Base64(ss.str()), "\"><figcaption>", Html(pic.caption),
+                    "</figcaption></figure>\n");
+  }
+  Json params;
+  params["input"] = input_name;
+  params["job"] = spec.job_name;
+  params["regions"] = spec.regions;
+  params["class_means"] = spec.class_means;
+  params["label_map"] = spec.label_map.has_value();
+  params["target_reduction"] = spec.target_reduction;
+  params["policy"] = SimplifyPolicyName(spec.policy);
+  params["error_tolerance"] = spec.error_tolerance;
+  params["views"] = spec.views;
+  params["image_size"] = spec.image_size;
+  params["transfer_function"] =
+      spec.transfer_function.size() > 80 ? "custom JSON" : spec.transfer_function;
+  params["outputs"] = spec.outputs;
+  params["vtu_compression_level"] = spec.vtu_compression_level;
+  std::string rows;
+  JsonRows(params, "", &rows);
+  absl::StrAppend(&h, "<h2>Parameters</h2>\n<table>\n", rows, "</table>\n");
+  for (const char* section : {"input", "segmentation", "simplification", "fidelity", "render"}) {
+    if (!metrics.contains(section)) continue;
+    rows.clear();
+    JsonRows(metrics[section], "", &rows);
+    absl::StrAppend(&h, "<h2>", section, "</h2>\n<table>\n", rows, "</table>\n");
+  }
+  rows.clear();
+  JsonRows(metrics["seconds"], "", &rows);
+  absl::StrAppend(&h, "<h2>Timings (seconds)</h2>\n<table>\n", rows, "</table>\n");
+  h += "<p>Written by decima. Meanings of the metrics: core/metrics/README.md; diff1 and the "
+       "colour difference: core/render/README.md.</p>\n</body></html>\n";
+  return h;
 }
 
 Json SegmentJson(const SegmentResult& seg, bool from_label_map) {
@@ -135,6 +313,29 @@ absl::Status ValidateJobSpec(const JobSpec& spec, std::string* field) {
     return check("image_size", absl::InvalidArgumentError(
                                    absl::StrCat(spec.image_size, " pixels, expected 16..4096")));
   }
+  if (spec.outputs.size() > std::size(kOutputKinds)) {
+    return check("outputs",
+                 absl::InvalidArgumentError(absl::StrCat(spec.outputs.size(), " outputs, at most ",
+                                                         std::size(kOutputKinds))));
+  }
+  for (size_t i = 0; i < spec.outputs.size(); ++i) {
+    const std::string& o = spec.outputs[i];
+    if (std::find_if(std::begin(kOutputKinds), std::end(kOutputKinds),
+                     [&](const char* k) { return o == k; }) == std::end(kOutputKinds)) {
+      return check("outputs", absl::InvalidArgumentError(absl::StrCat(
+                                  "'", o.substr(0, 32),
+                                  "' is not an output (vtu, msh, medit, labels, images, "
+                                  "segmentation, report)")));
+    }
+    if (std::find(spec.outputs.begin(), spec.outputs.begin() + i, o) != spec.outputs.begin() + i) {
+      return check("outputs", absl::InvalidArgumentError(absl::StrCat("'", o, "' appears twice")));
+    }
+  }
+  if (spec.vtu_compression_level < 0 || spec.vtu_compression_level > 9) {
+    return check("vtu_compression_level",
+                 absl::InvalidArgumentError(
+                     absl::StrCat(spec.vtu_compression_level, ", expected 0 (uncompressed) .. 9")));
+  }
   // The data range is unknown before load; any valid range tells a bad name or document apart.
   const ScalarRange probe{0, 1};
   const std::string& tf = spec.transfer_function;
@@ -195,8 +396,10 @@ absl::StatusOr<JobResult> RunJob(const JobSpec& spec, const std::filesystem::pat
   }
   timings["segment"] = Seconds(t);
   metrics["segmentation"] = SegmentJson(seg, spec.label_map.has_value());
-  DECIMA_RETURN_IF_ERROR(io::WriteNifti(seg.labels, out_dir / "labels.nii.gz"));
-  add_artifact("labels.nii.gz");
+  if (std::find(spec.outputs.begin(), spec.outputs.end(), "labels") != spec.outputs.end()) {
+    DECIMA_RETURN_IF_ERROR(io::WriteNifti(seg.labels, out_dir / "labels.nii.gz"));
+    add_artifact("labels.nii.gz");
+  }
   DECIMA_RETURN_IF_ERROR(CheckCancelled(cancel, "segment"));
 
   // tetra
@@ -231,31 +434,60 @@ absl::StatusOr<JobResult> RunJob(const JobSpec& spec, const std::filesystem::pat
                                {"vertices_before", original.vertex_count()},
                                {"vertices_after", simplified.mesh.vertex_count()}};
 
-  // write
+  // write: only the mesh formats the spec asks for
   t = Clock::now();
-  Report(progress, {"write", 0, "mesh.vtu, mesh.msh", {}});
-  DECIMA_RETURN_IF_ERROR(WriteVtu(simplified.mesh, out_dir / "mesh.vtu"));
-  add_artifact("mesh.vtu");
-  DECIMA_RETURN_IF_ERROR(WriteGmsh(simplified.mesh, out_dir / "mesh.msh"));
-  add_artifact("mesh.msh");
+  const auto wants = [&](const char* kind) {
+    return std::find(spec.outputs.begin(), spec.outputs.end(), kind) != spec.outputs.end();
+  };
+  struct MeshFile {
+    const char* kind;
+    const char* name;
+  };
+  std::vector<MeshFile> mesh_files;
+  for (const MeshFile& f :
+       {MeshFile{"vtu", "mesh.vtu"}, MeshFile{"msh", "mesh.msh"}, MeshFile{"medit", "mesh.mesh"}}) {
+    if (wants(f.kind)) mesh_files.push_back(f);
+  }
+  int64_t mesh_bytes = 0;
+  for (size_t i = 0; i < mesh_files.size(); ++i) {
+    Report(progress, {"write", double(i) / mesh_files.size(), mesh_files[i].name, {}});
+    const std::filesystem::path p = out_dir / mesh_files[i].name;
+    if (std::string(mesh_files[i].kind) == "vtu") {
+      VtuWriteOptions wo;
+      wo.compress = spec.vtu_compression_level > 0;
+      wo.level = std::max(1, spec.vtu_compression_level);
+      DECIMA_RETURN_IF_ERROR(WriteVtu(simplified.mesh, p, wo));
+    } else if (std::string(mesh_files[i].kind) == "msh") {
+      DECIMA_RETURN_IF_ERROR(WriteGmsh(simplified.mesh, p));
+    } else {
+      DECIMA_RETURN_IF_ERROR(WriteMedit(simplified.mesh, p));
+    }
+    add_artifact(mesh_files[i].name);
+    if (mesh_bytes == 0) mesh_bytes = static_cast<int64_t>(result.artifacts.back().size_bytes);
+    DECIMA_RETURN_IF_ERROR(CheckCancelled(cancel, "write"));
+  }
   timings["write"] = Seconds(t);
-  Report(progress, {"write", 1, "mesh written", {}});
-  DECIMA_RETURN_IF_ERROR(CheckCancelled(cancel, "write"));
+  Report(progress,
+         {"write", 1, mesh_files.empty() ? "no mesh file asked for" : "mesh written", {}});
 
   // fidelity (part of the diff stage's numbers, measured before rendering so a render failure
   // still leaves the field metrics in the log)
   t = Clock::now();
+  // Reported under "render" (the next stage): its seconds belong to the picture-and-numbers
+  // part of the job, and a silent gap after "write 100%" looked like a hang.
+  Report(progress, {"render", 0, "measuring fidelity", {}});
   FidelityOptions fo;
   fo.labels = &seg.labels;
   fo.original = &original;
   fo.vertex_map = &simplified.vertex_map;
-  fo.mesh_bytes = static_cast<int64_t>(result.artifacts[1].size_bytes);
+  fo.mesh_bytes = mesh_bytes;
   DECIMA_ASSIGN_OR_RETURN(const FidelityMetrics fidelity,
                           MeasureFidelity(image, simplified.mesh, fo, cancel));
   metrics["fidelity"] = FidelityToJson(fidelity);
   timings["fidelity"] = Seconds(t);
 
-  // render
+  // render: every view is rendered and measured (diff1 is part of metrics.json); the pictures
+  // are written when "images" or "report" is asked for.
   t = Clock::now();
   Report(progress, {"render", 0, "building renderable meshes", {}});
   DECIMA_ASSIGN_OR_RETURN(const RenderableMesh original_r,
@@ -265,47 +497,153 @@ absl::StatusOr<JobResult> RunJob(const JobSpec& spec, const std::filesystem::pat
   DECIMA_ASSIGN_OR_RETURN(
       const TransferFunction tf,
       ChooseTransferFunction(spec.transfer_function, image, original_r.scalar_range));
+  const std::string preset =
+      ChosenPresetName(spec.transfer_function, image, original_r.scalar_range);
   ViewOptions vo;
   vo.width = vo.height = spec.image_size;
-  Json views = Json::array();
+  struct ViewRenders {
+    std::string name;
+    Camera camera;
+    RenderedImage a, b;
+    DiffResult diff;
+  };
+  std::vector<ViewRenders> renders;
+  const double steps = 2.0 * spec.views.size();
   for (size_t i = 0; i < spec.views.size(); ++i) {
-    const std::string& view_name = spec.views[i];
-    DECIMA_ASSIGN_OR_RETURN(const ViewDirection view, ParseView(view_name));
+    ViewRenders v;
+    v.name = spec.views[i];
+    DECIMA_ASSIGN_OR_RETURN(const ViewDirection view, ParseView(v.name));
     // Both renders use the original's bounds so the pictures align pixel by pixel.
-    DECIMA_ASSIGN_OR_RETURN(const Camera camera, MakeViewCamera(view, original_r.bounds, vo));
-    DECIMA_ASSIGN_OR_RETURN(const RenderedImage a, Render(original_r, camera, tf, {}, cancel));
-    DECIMA_ASSIGN_OR_RETURN(const RenderedImage b, Render(simplified_r, camera, tf, {}, cancel));
-    DECIMA_ASSIGN_OR_RETURN(const DiffResult diff, Diff(a, b));
-    // The first view gets the plain names the API documents; further views a suffix.
-    const std::string suffix = i == 0 ? "" : absl::StrCat("-", view_name);
+    DECIMA_ASSIGN_OR_RETURN(v.camera, MakeViewCamera(view, original_r.bounds, vo));
+    DECIMA_ASSIGN_OR_RETURN(v.a, Render(original_r, v.camera, tf, {}, cancel));
+    Report(
+        progress,
+        {"render", (2.0 * i + 1) / (steps + 1), absl::StrCat(v.name, ": original rendered"), {}});
+    DECIMA_ASSIGN_OR_RETURN(v.b, Render(simplified_r, v.camera, tf, {}, cancel));
+    DECIMA_ASSIGN_OR_RETURN(v.diff, Diff(v.a, v.b));
+    Report(progress, {"render",
+                      (2.0 * i + 2) / (steps + 1),
+                      absl::StrCat(v.name, ": simplified rendered"),
+                      {{"diff1", v.diff.diff1}}});
+    renders.push_back(std::move(v));
+  }
+  // One heat-map scale for every view of the job, stated on the pictures, so colours compare.
+  double heat_top = 0;
+  for (const auto& v : renders) heat_top = std::max(heat_top, v.diff.max_diff2);
+  DiffImageOptions dio;
+  dio.max_value = heat_top > 0 ? heat_top : 1;
+  const std::string input_name =
+      spec.input_name.empty() ? spec.input.filename().string() : spec.input_name;
+  const bool write_pictures = wants("images") || wants("report");
+  Json views = Json::array();
+  std::vector<ReportPicture> pictures;
+  for (size_t i = 0; i < renders.size(); ++i) {
+    const ViewRenders& v = renders[i];
+    const std::string suffix = i == 0 ? "" : absl::StrCat("-", ViewFileSuffix(v.name));
+    views.push_back({{"view", v.name},
+                     {"diff1", v.diff.diff1},
+                     {"max_diff2", v.diff.max_diff2},
+                     {"changed_pixels", v.diff.changed_pixels}});
+    if (!write_pictures) continue;
+    const std::vector<std::string> footer = {
+        absl::StrCat("INPUT ", input_name, spec.job_name.empty() ? "" : "  JOB ", spec.job_name),
+        absl::StrCat("K ", seg.class_means.size(), "  REDUCTION ",
+                     FormatPercent(simplified.achieved_reduction), " OF ",
+                     FormatPercent(spec.target_reduction), "  POLICY ",
+                     SimplifyPolicyName(spec.policy), "  PRESET ", preset, "  VIEW ", v.name)};
+    const std::vector<std::pair<std::string, std::string>> text = {
+        {"Software", "decima"},
+        {"Source", input_name},
+        {"decima:job", spec.job_name},
+        {"decima:view", v.name},
+        {"decima:regions", absl::StrCat(seg.class_means.size())},
+        {"decima:target_reduction", absl::StrCat(spec.target_reduction)},
+        {"decima:achieved_reduction", absl::StrCat(simplified.achieved_reduction)},
+        {"decima:policy", std::string(SimplifyPolicyName(spec.policy))},
+        {"decima:transfer_function", preset},
+        {"decima:diff1", absl::StrCat(v.diff.diff1)},
+        {"decima:heat_scale_max", absl::StrCat(dio.max_value)}};
     const std::string names[4] = {
         absl::StrCat("original", suffix, ".png"), absl::StrCat("simplified", suffix, ".png"),
         absl::StrCat("diff", suffix, ".png"), absl::StrCat("comparison", suffix, ".png")};
-    DECIMA_RETURN_IF_ERROR(WriteRenderedPng(a, out_dir / names[0]));
-    DECIMA_RETURN_IF_ERROR(WriteRenderedPng(b, out_dir / names[1]));
-    DECIMA_RETURN_IF_ERROR(WriteDiffImage(diff, out_dir / names[2]));
-    DECIMA_RETURN_IF_ERROR(WriteComparison(a, b, diff, out_dir / names[3]));
-    for (const auto& n : names) add_artifact(n);
-    views.push_back({{"view", view_name},
-                     {"diff1", diff.diff1},
-                     {"max_diff2", diff.max_diff2},
-                     {"changed_pixels", diff.changed_pixels}});
-    Report(progress,
-           {"render", double(i + 1) / spec.views.size(), view_name, {{"diff1", diff.diff1}}});
+    std::vector<std::string> fo_orig = footer, fo_simp = footer, fo_diff = footer;
+    fo_orig.insert(fo_orig.begin(), "ORIGINAL MESH");
+    fo_simp.insert(fo_simp.begin(), "SIMPLIFIED MESH");
+    fo_diff.insert(fo_diff.begin(),
+                   absl::StrCat("COLOUR DIFFERENCE PER PIXEL (RGB DISTANCE 0-442), SCALE 0-",
+                                FormatNumber(dio.max_value), " FOR ALL VIEWS OF THIS JOB"));
+    DECIMA_RETURN_IF_ERROR(
+        WritePng(out_dir / names[0], AnnotateRender(v.a.ToImage(), v.camera, fo_orig), text));
+    DECIMA_RETURN_IF_ERROR(
+        WritePng(out_dir / names[1], AnnotateRender(v.b.ToImage(), v.camera, fo_simp), text));
+    DECIMA_RETURN_IF_ERROR(
+        WritePng(out_dir / names[2], AddFooter(DiffHeatMap(v.diff, dio), fo_diff), text));
+    DECIMA_ASSIGN_OR_RETURN(const Image comparison, ComparisonImage(v.a, v.b, v.diff, dio));
+    DECIMA_RETURN_IF_ERROR(WritePng(out_dir / names[3], AddFooter(comparison, footer), text));
+    if (wants("images")) {
+      for (const auto& n : names) add_artifact(n);
+    }
+    pictures.push_back(
+        {absl::StrCat("View ", v.name, ": original, simplified, difference"), out_dir / names[3]});
   }
   timings["render"] = Seconds(t);
-  metrics["render"] = {
-      {"size", spec.image_size}, {"transfer_function", spec.transfer_function}, {"views", views}};
+  metrics["render"] = {{"size", spec.image_size},
+                       {"transfer_function", spec.transfer_function},
+                       {"preset", preset},
+                       {"heat_scale_max", dio.max_value},
+                       {"views", views}};
   metrics["diff1"] = views[0]["diff1"];
+  metrics["outputs"] = spec.outputs;
 
-  // diff: the summary file
-  Report(progress, {"diff", 0, "metrics.json", {}});
+  // segmentation.png: what a clinician checks first, the labels over the slices.
+  if (wants("segmentation") || wants("report")) {
+    Report(progress, {"diff", 0.2, "segmentation.png", {}});
+    const std::filesystem::path seg_png = out_dir / "segmentation.png";
+    DECIMA_RETURN_IF_ERROR(WriteSegmentationMontage(image, seg.labels, seg_png));
+    DECIMA_ASSIGN_OR_RETURN(Image montage, ReadPng(seg_png));
+    DECIMA_RETURN_IF_ERROR(WritePng(
+        seg_png,
+        AddFooter(montage, {"SEGMENTATION: AXIAL | CORONAL | SAGITTAL THROUGH THE CENTRE",
+                            absl::StrCat("INPUT ", input_name, "  K ", seg.class_means.size(),
+                                         spec.label_map ? "  FROM LABEL MAP" : "  LEVEL SET")}),
+        {{"Software", "decima"},
+         {"Source", input_name},
+         {"decima:job", spec.job_name},
+         {"decima:regions", absl::StrCat(seg.class_means.size())}}));
+    if (wants("segmentation")) add_artifact("segmentation.png");
+    pictures.insert(pictures.begin(), ReportPicture{"Segmentation", seg_png});
+  }
+
+  // diff: the summary file and the report page
+  Report(progress, {"diff", 0.5, "metrics.json", {}});
   result.seconds = Seconds(job_start);
   timings["total"] = result.seconds;
   metrics["seconds"] = timings;
   result.metrics_json = metrics.dump(2);
   DECIMA_RETURN_IF_ERROR(WriteText(out_dir / "metrics.json", result.metrics_json));
   add_artifact("metrics.json");
+  if (wants("report")) {
+    DECIMA_ASSIGN_OR_RETURN(const std::string html,
+                            ReportHtml(spec, input_name, metrics, pictures));
+    DECIMA_RETURN_IF_ERROR(WriteText(out_dir / "report.html", html));
+    add_artifact("report.html");
+  }
+  // Pictures written only for the report are not artifacts: remove them.
+  std::vector<std::filesystem::path> keep;
+  for (const auto& a : result.artifacts) keep.push_back(a.path);
+  for (const auto& pic : pictures) {
+    if (std::find(keep.begin(), keep.end(), pic.path) == keep.end()) {
+      std::filesystem::remove(pic.path, ec);
+    }
+  }
+  if (write_pictures && !wants("images")) {
+    for (size_t i = 0; i < renders.size(); ++i) {
+      const std::string suffix = i == 0 ? "" : absl::StrCat("-", ViewFileSuffix(renders[i].name));
+      for (const char* base : {"original", "simplified", "diff", "comparison"}) {
+        std::filesystem::remove(out_dir / absl::StrCat(base, suffix, ".png"), ec);
+      }
+    }
+  }
   Report(progress, {"diff", 1, absl::StrCat("diff1 ", views[0]["diff1"].get<double>()), {}});
   return result;
 }

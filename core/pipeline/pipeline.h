@@ -36,7 +36,17 @@ struct JobSpec {
   std::vector<std::string> views{"anterior"};  // 1..16 names ParseView accepts
   int image_size = 512;                        // pixels, 16..4096
   std::string transfer_function = "auto";      // preset name, "auto" (from modality), or JSON text
+  // Artifacts (kOutputKinds), in that order; metrics.json is always written.
+  std::vector<std::string> outputs{"vtu", "labels", "images", "segmentation", "report"};
+  int vtu_compression_level = 1;  // 0 = uncompressed, 1..9 zlib
+  // Captions only (picture footers, report.html); empty: the input's file name / nothing.
+  std::string job_name;
+  std::string input_name;
 };
+
+// Every artifact kind a JobSpec may ask for, in the order RunJob writes them.
+inline constexpr const char* kOutputKinds[] = {"vtu",    "msh",          "medit", "labels",
+                                               "images", "segmentation", "report"};
 
 // OK, or InvalidArgument for the first parameter out of range; `*field` (when given) receives
 // its JobSpec member name ("target_reduction", "weights.shape", ...). Checks the parameters

@@ -58,7 +58,8 @@ absl::StatusOr<ViewDirection> ParseView(absl::string_view name) {
   for (const Named& v : kViews) {
     if (n == v.name) return ViewDirection{v.az, v.el};
   }
-  std::vector<std::string> parts = absl::StrSplit(n, ',');
+  // "AZ,EL" or "AZ:EL" (the colon survives command lines that split lists on commas).
+  std::vector<std::string> parts = absl::StrSplit(n, absl::ByAnyChar(",:"));
   ViewDirection d;
   if (parts.size() == 2 && absl::SimpleAtod(absl::StripAsciiWhitespace(parts[0]), &d.azimuth_deg) &&
       absl::SimpleAtod(absl::StripAsciiWhitespace(parts[1]), &d.elevation_deg) &&
@@ -68,7 +69,7 @@ absl::StatusOr<ViewDirection> ParseView(absl::string_view name) {
   return absl::InvalidArgumentError(absl::StrCat(
       "view '", name,
       "': expected anterior, posterior, left, lateral, right, superior, inferior, oblique or "
-      "'AZIMUTH,ELEVATION' in degrees with |elevation| <= 90"));
+      "'AZIMUTH:ELEVATION' (or 'AZIMUTH,ELEVATION') in degrees with |elevation| <= 90"));
 }
 
 absl::StatusOr<Camera> MakeViewCamera(const ViewDirection& view, const Bounds& bounds,

@@ -48,14 +48,14 @@ Image HeatPixels(const DiffResult& d, double top) {
 int BarPanelWidth(int s, double top) {
   const int labels = std::max({Canvas::TextWidth(FormatNumber(top), s),
                                Canvas::TextWidth(FormatNumber(top / 2), s),
-                               Canvas::TextWidth("DIFF2", s) - 10 * s});
+                               Canvas::TextWidth("RGB DIST", s) - 10 * s});
   return 4 * s + 10 * s + 3 * s + labels + 4 * s;
 }
 
 // Vertical colour bar from y0 (top, = `top`) to y1 (bottom, = 0), with its range printed.
 void DrawBar(Canvas& c, int x, int y0, int y1, int s, double top) {
   const int bar_w = 10 * s;
-  c.Text(x, y0 - 7 * s - 4 * s, "DIFF2", kText, s);
+  c.Text(x, y0 - 7 * s - 4 * s, "RGB DIST", kText, s);
   for (int y = y0; y <= y1; ++y) {
     const double t = y1 > y0 ? double(y1 - y) / (y1 - y0) : 0;
     c.FillRect(x, y, bar_w, 1, HeatColor(t));
@@ -119,10 +119,10 @@ Image DiffHeatMap(const DiffResult& diff, const DiffImageOptions& options) {
   Canvas c(diff.width + BarPanelWidth(s, top), diff.height + footer, kPanel);
   c.Blit(HeatPixels(diff, top), 0, 0);
   DrawBar(c, diff.width + 4 * s, pad + 7 * s + 3 * s, diff.height - pad, s, top);
-  c.Text(pad, diff.height + pad,
-         absl::StrCat("DIFF1 = ", FormatNumber(diff.diff1),
-                      "   MAX DIFF2 = ", FormatNumber(diff.max_diff2)),
-         kText, s);
+  c.Text(
+      pad, diff.height + pad,
+      absl::StrCat("MEAN DIFF ", FormatNumber(diff.diff1), "  MAX ", FormatNumber(diff.max_diff2)),
+      kText, s);
   return c.Take();
 }
 
@@ -152,7 +152,7 @@ absl::StatusOr<Image> ComparisonImage(const RenderedImage& original,
   const int width = 3 * w + 2 * gap + BarPanelWidth(s, top);
   Canvas c(width, header + h, kPanel);
   const std::string titles[3] = {"ORIGINAL", "SIMPLIFIED",
-                                 absl::StrCat("DIFF2  (DIFF1 = ", FormatNumber(diff.diff1), ")")};
+                                 absl::StrCat("DIFFERENCE (MEAN ", FormatNumber(diff.diff1), ")")};
   const Image panels[3] = {original.ToImage(), simplified.ToImage(), HeatPixels(diff, top)};
   for (int k = 0; k < 3; ++k) {
     const int x = k * (w + gap);

@@ -85,5 +85,135 @@ TEST(ProgressBarTest, ShowsStageFractionAndMessage) {
   EXPECT_THAT(ProgressBar(p, 4), HasSubstr("[####] 100%"));
 }
 
+TEST(HeaderDataFilesTest, MetaImageAndNrrdHeadersBringTheirDataFiles) {
+  fs::path d = testing::MakeScratchDir("headers");
+  std::ofstream(d / "a.mhd") << "ObjectType = Image\nNDims = 3\nElementDataFile = a.zraw\n";
+  std::ofstream(d / "a.zraw") << "zz";
+  std::vector<InputFile> files;
+  std::string err;
+  ASSERT_TRUE(CollectInputs(d / "a.mhd", &files, &err)) << err;
+  ASSERT_TRUE(AddHeaderDataFiles(&files, &err)) << err;
+  ASSERT_EQ(files.size(), 2u);
+  EXPECT_EQ(files[1].name, "a.zraw");
+  EXPECT_EQ(files[1].size, 2);
+
+  fs::create_directories(d / "data");
+  std::ofstream(d / "b.nhdr") << "NRRD0004\ntype: short\ndata file: data/b.raw\n\n";
+  std::ofstream(d / "data" / "b.raw") << "1234";
+  ASSERT_TRUE(CollectInputs(d / "b.nhdr", &files, &err)) << err;
+  ASSERT_TRUE(AddHeaderDataFiles(&files, &err)) << err;
+  ASSERT_EQ(files.size(), 2u);
+  EXPECT_EQ(files[1].name, "data/b.raw");
+
+  std::ofstream(d / "c.nhdr") << "NRRD0004\ndata file: LIST\ns1.raw\ns2.raw\n";
+  std::ofstream(d / "s1.raw") << "1";
+  std::ofstream(d / "s2.raw") << "2";
+  ASSERT_TRUE(CollectInputs(d / "c.nhdr", &files, &err)) << err;
+  ASSERT_TRUE(AddHeaderDataFiles(&files, &err)) << err;
+  EXPECT_EQ(files.size(), 3u);
+
+  std::ofstream(d / "local.mhd") << "NDims = 3\nElementDataFile = LOCAL\n";
+  ASSERT_TRUE(CollectInputs(d / "local.mhd", &files, &err)) << err;
+  ASSERT_TRUE(AddHeaderDataFiles(&files, &err)) << err;
+  EXPECT_EQ(files.size(), 1u);
+
+  // Missing, outside the folder, pattern: refused with the header's name.
+  std::ofstream(d / "m.mhd") << "ElementDataFile = missing.raw\n";
+  ASSERT_TRUE(CollectInputs(d / "m.mhd", &files, &err));
+  EXPECT_FALSE(AddHeaderDataFiles(&files, &err));
+  EXPECT_THAT(err, HasSubstr("m.mhd"));
+  EXPECT_THAT(err, HasSubstr("missing.raw"));
+  std::ofstream(d / "o.mhd") << "ElementDataFile = ../etc/passwd\n";
+  ASSERT_TRUE(CollectInputs(d / "o.mhd", &files, &err));
+  EXPECT_FALSE(AddHeaderDataFiles(&files, &err));
+  EXPECT_THAT(err, HasSubstr("outside"));
+  std::ofstream(d / "p.nhdr") << "NRRD0004\ndata file: s%d.raw 1 2 1\n\n";
+  ASSERT_TRUE(CollectInputs(d / "p.nhdr", &files, &err));
+  EXPECT_FALSE(AddHeaderDataFiles(&files, &err));
+  EXPECT_THAT(err, HasSubstr("pattern"));
+}
+
+TEST(KeepDicomFilesTest, DropsDicomdirAndFilesWithoutTheMarker) {
+  fs::path d = testing::MakeScratchDir("dicomfilter");
+  std::string dicm(128, '\0');
+  dicm += "DICM";
+  dicm += std::string(16, 'x');
+  std::ofstream(d / "IM0001", std::ios::binary) << dicm;
+  std::ofstream(d / "DICOMDIR", std::ios::binary) << dicm;  // a directory record, not an image
+  std::ofstream(d / "SHA256SUMS") << "abc  IM0001\n";
+  std::vector<InputFile> files;
+  std::string err;
+  ASSERT_TRUE(CollectInputs(d, &files, &err)) << err;
+  ASSERT_EQ(files.size(), 3u);
+  std::vector<std::string> dropped = KeepDicomFiles(&files);
+  ASSERT_EQ(files.size(), 1u);
+  EXPECT_EQ(files[0].name, "IM0001");
+  EXPECT_THAT(dropped, ::testing::UnorderedElementsAre("DICOMDIR", "SHA256SUMS"));
+}
+
+TEST(ProgressTest, OverallFractionIsMonotonicAcrossStagesAndTheBarHasAnEta) {
+  double last = -1;
+  for (const char* stage : {"load", "segment", "tetra", "simplify", "write", "render", "diff"}) {
+    for (double f : {0.0, 0.5, 1.0}) {
+      const double o = OverallFraction(stage, f);
+      EXPECT_GE(o, last) << stage << " " << f;
+      last = o;
+    }
+  }
+  EXPECT_DOUBLE_EQ(OverallFraction("diff", 1), 1.0);
+  EXPECT_DOUBLE_EQ(OverallFraction("load", 0), 0.0);
+  // Simplify dominates the measured weights: half of it is well past a third overall.
+  EXPECT_GT(OverallFraction("simplify", 0.5), 0.35);
+  EXPECT_EQ(FormatDuration(65), "1:05");
+  EXPECT_EQ(FormatDuration(3 * 3600 + 62), "3:01:02");
+  EXPECT_EQ(FormatBytes(15600000), "15.6 MB");
+  v1::Progress p;
+  p.set_stage("simplify");
+  p.set_fraction(0.5);
+  const std::string bar = OverallBar(p, 20, 10);
+  EXPECT_THAT(bar, HasSubstr("elapsed 0:20"));
+  EXPECT_THAT(bar, HasSubstr("ETA "));
+  p.set_stage("load");
+  p.set_fraction(0);
+  EXPECT_THAT(OverallBar(p, 1, 10), ::testing::Not(HasSubstr("ETA")));  // too early to say
+}
+
+TEST(SummaryTest, ReadsTheReductionFromMetricsAndWarnsWhenShort) {
+  v1::Job job;
+  job.mutable_spec()->set_target_reduction(0.95);
+  job.set_metrics_json(
+      R"({"simplification": {"target_reduction": 0.95, "achieved_reduction": 0.81,)"
+      R"( "reached_target": false, "stop_message": "no collapse below tolerance",)"
+      R"( "cells_before": 1000, "cells_after": 190}})");
+  job.add_artifacts()->set_size_bytes(3000);
+  job.add_artifacts()->set_size_bytes(1000);
+  const JobSummary s = SummarizeJob(job, 2000);
+  EXPECT_DOUBLE_EQ(s.achieved_reduction, 0.81);
+  EXPECT_FALSE(s.reached_target);
+  EXPECT_EQ(s.cells_before, 1000);
+  EXPECT_EQ(s.cells_after, 190);
+  EXPECT_EQ(s.artifact_bytes, 4000);
+  EXPECT_EQ(s.stop_message, "no collapse below tolerance");
+  const std::vector<std::string> lines = SummaryLines(s);
+  ASSERT_EQ(lines.size(), 3u);
+  EXPECT_THAT(lines[0], HasSubstr("81.0%"));
+  EXPECT_THAT(lines[1], HasSubstr("2.0x"));
+  EXPECT_THAT(lines[2], HasSubstr("WARNING"));
+  EXPECT_THAT(lines[2], HasSubstr("exit code 10"));
+  job.set_metrics_json(R"({"achieved_reduction": 0.5, "reached_target": true})");
+  EXPECT_TRUE(SummarizeJob(job, 0).reached_target);
+  EXPECT_EQ(SummaryLines(SummarizeJob(job, 0)).size(), 2u);
+}
+
+TEST(ParseJobStateTest, AnyCase) {
+  v1::JobState s;
+  ASSERT_TRUE(ParseJobState("succeeded", &s));
+  EXPECT_EQ(s, v1::SUCCEEDED);
+  ASSERT_TRUE(ParseJobState("Failed", &s));
+  EXPECT_EQ(s, v1::FAILED);
+  EXPECT_FALSE(ParseJobState("done", &s));
+  EXPECT_FALSE(ParseJobState("job_state_unspecified", &s));
+}
+
 }  // namespace
 }  // namespace decima::client

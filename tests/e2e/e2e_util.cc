@@ -130,6 +130,30 @@ CliResult RunProgram(const std::vector<std::string>& argv, std::chrono::seconds 
   return r;
 }
 
+CliProcess StartCli(const std::string& address, const std::vector<std::string>& args) {
+  static std::atomic<int> counter{0};
+  fs::path dir = fs::temp_directory_path() / ("decima-clip-" + std::to_string(getpid()));
+  fs::create_directories(dir);
+  const std::string tag = std::to_string(++counter);
+  CliProcess p;
+  p.out = dir / (tag + ".out");
+  p.err = dir / (tag + ".err");
+  std::vector<std::string> a = {CliBinary().string(), "--server", address};
+  a.insert(a.end(), args.begin(), args.end());
+  p.pid = Spawn(a, p.out, p.err, {});
+  return p;
+}
+
+CliResult WaitCli(const CliProcess& p, std::chrono::seconds timeout) {
+  CliResult r;
+  r.rc = Reap(p.pid, timeout);
+  r.out = ReadAll(p.out);
+  r.err = ReadAll(p.err);
+  fs::remove(p.out);
+  fs::remove(p.err);
+  return r;
+}
+
 CliResult RunCli(const std::string& address, const std::vector<std::string>& args,
                  std::chrono::seconds timeout, const std::map<std::string, std::string>& env) {
   std::vector<std::string> a = {CliBinary().string(), "--server", address};

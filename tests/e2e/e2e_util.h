@@ -45,6 +45,15 @@ CliResult RunCli(const std::string& address, const std::vector<std::string>& arg
                  std::chrono::seconds timeout = std::chrono::seconds(60),
                  const std::map<std::string, std::string>& env = {});
 
+// `decima --server ADDR args...` started without waiting (for signals while it runs); its
+// stdout and stderr go to files that WaitCli reads.
+struct CliProcess {
+  pid_t pid = -1;
+  std::filesystem::path out, err;
+};
+CliProcess StartCli(const std::string& address, const std::vector<std::string>& args);
+CliResult WaitCli(const CliProcess& p, std::chrono::seconds timeout = std::chrono::seconds(60));
+
 // Runs `argv` (argv[0] a path) to its end (killed after `timeout`), capturing its output.
 CliResult RunProgram(const std::vector<std::string>& argv,
                      std::chrono::seconds timeout = std::chrono::seconds(60),

@@ -396,10 +396,11 @@ TEST_F(ScaleE2E, DatabaseRestartMidRunReplicasReconnectWatchersResyncEveryJobEnd
     watchers.emplace_back(
         [&, i] { seen[i] = Sequences(WatchAll(addr((i + 1) % 3), jobs[i], 0, -1, &ends[i])); });
   }
-  ASSERT_TRUE(WaitFor([&] { return GetJob(addr(0), jobs[0]).state() == v1::RUNNING; }, 30s));
+  // Not an ASSERT: the watcher threads must be joined whatever happens.
+  EXPECT_TRUE(WaitFor([&] { return GetJob(addr(0), jobs[0]).state() == v1::RUNNING; }, 60s));
   Postgres()->Stop();
   std::this_thread::sleep_for(1s);
-  ASSERT_EQ(Postgres()->Start(), "");
+  EXPECT_EQ(Postgres()->Start(), "");
   for (auto& w : watchers) w.join();
   for (size_t i = 0; i < jobs.size(); ++i) {
     EXPECT_TRUE(ends[i].ok()) << jobs[i] << ": " << ends[i].error_message();

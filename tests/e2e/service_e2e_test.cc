@@ -118,7 +118,9 @@ TEST_F(ServiceE2E, SubmitWatchOutLeavesEveryArtifact) {
     std::string vtu = ReadFile(out / "mesh.vtu");
     EXPECT_THAT(vtu, HasSubstr("<VTKFile"));
     EXPECT_THAT(vtu, HasSubstr("UnstructuredGrid"));
-    EXPECT_TRUE(fs::exists(out / "mesh.msh"));
+    EXPECT_FALSE(fs::exists(out / "mesh.msh"));  // only when asked for (--outputs msh)
+    EXPECT_TRUE(fs::exists(out / "report.html"));
+    EXPECT_TRUE(PngDecodes(out / "segmentation.png"));
     for (const char* png : {"original.png", "simplified.png", "diff.png", "comparison.png"}) {
       EXPECT_TRUE(PngDecodes(out / png)) << png;
     }

@@ -87,6 +87,34 @@ TEST(NormalizeJobSpec, WritesEveryDefaultAndIsIdempotent) {
       << again->DebugString();
 }
 
+TEST(NormalizeJobSpec, OutputsAreCaseInsensitiveStoredInOrderAndDefaultSmall) {
+  auto n = NormalizeJobSpec(Minimal());
+  ASSERT_TRUE(n.ok()) << n.status();
+  EXPECT_THAT(n->outputs(),
+              ::testing::ElementsAre("vtu", "labels", "images", "segmentation", "report"));
+  EXPECT_EQ(n->vtu_compression_level(), 1);
+  v1::JobSpec s = Minimal();
+  s.add_outputs("Report");
+  s.add_outputs("MSH");
+  s.set_vtu_compression_level(0);
+  n = NormalizeJobSpec(s);
+  ASSERT_TRUE(n.ok()) << n.status();
+  EXPECT_THAT(n->outputs(), ::testing::ElementsAre("msh", "report"));
+  EXPECT_EQ(n->vtu_compression_level(), 0);
+  s.add_outputs("stl");
+  std::string field;
+  EXPECT_EQ(NormalizeJobSpec(s, &field).status().code(), absl::StatusCode::kInvalidArgument);
+  EXPECT_EQ(field, "spec.outputs");
+  s = Minimal();
+  s.add_outputs("vtu");
+  s.add_outputs("VTU");
+  EXPECT_EQ(NormalizeJobSpec(s, &field).status().code(), absl::StatusCode::kInvalidArgument);
+  s = Minimal();
+  s.set_vtu_compression_level(12);
+  EXPECT_EQ(NormalizeJobSpec(s, &field).status().code(), absl::StatusCode::kInvalidArgument);
+  EXPECT_EQ(field, "spec.vtu_compression_level");
+}
+
 TEST(JobSpecFromProto, EveryBadSpecIsInvalidArgumentNamingItsField) {
   const auto cases = BadJobSpecs();
   ASSERT_GE(cases.size(), 20u);

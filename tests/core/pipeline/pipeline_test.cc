@@ -59,11 +59,12 @@ TEST(RunJob, WritesEveryArtifactAndTheDocumentedMetricsKeys) {
     EXPECT_EQ(a.path.parent_path(), dir / "out") << a.name;
     EXPECT_GT(a.size_bytes, 0u) << a.name;
   }
-  for (const char* n :
-       {"labels.nii.gz", "mesh.vtu", "mesh.msh", "original.png", "simplified.png", "diff.png",
-        "comparison.png", "original-lateral.png", "diff-lateral.png", "metrics.json"}) {
-    EXPECT_TRUE(names.count(n)) << n;
-  }
+  // The default set: no .msh (six times the .vtu) unless asked for.
+  EXPECT_EQ(names, (std::set<std::string>{"labels.nii.gz", "mesh.vtu", "original.png",
+                                          "simplified.png", "diff.png", "comparison.png",
+                                          "original-lateral.png", "simplified-lateral.png",
+                                          "diff-lateral.png", "comparison-lateral.png",
+                                          "segmentation.png", "metrics.json", "report.html"}));
   EXPECT_EQ(stages, (std::vector<std::string>{"load", "segment", "tetra", "simplify", "write",
                                               "render", "diff"}));
   auto m = nlohmann::json::parse(result->metrics_json);
@@ -75,6 +76,34 @@ TEST(RunJob, WritesEveryArtifactAndTheDocumentedMetricsKeys) {
   EXPECT_DOUBLE_EQ(m["simplification"]["target_reduction"].get<double>(), 0.5);
   EXPECT_EQ(m["render"]["views"].size(), 2u);
   EXPECT_GT(m["seconds"]["total"].get<double>(), 0);
+}
+
+TEST(RunJob, WritesOnlyTheOutputsAskedFor) {
+  const fs::path dir = decima::testing::MakeScratchDir("pipeline");
+  JobSpec spec = SmallSpec(PhantomFile(dir));
+  spec.outputs = {"msh", "medit", "report"};
+  auto result = RunJob(spec, dir / "out", nullptr, nullptr);
+  ASSERT_TRUE(result.ok()) << result.status();
+  std::set<std::string> names;
+  for (const auto& a : result->artifacts) names.insert(a.name);
+  EXPECT_EQ(names, (std::set<std::string>{"mesh.msh", "mesh.mesh", "metrics.json", "report.html"}));
+  // Pictures made for the report only are not left behind.
+  std::set<std::string> on_disk;
+  for (const auto& e : fs::directory_iterator(dir / "out")) on_disk.insert(e.path().filename());
+  EXPECT_EQ(on_disk, names);
+  auto m = nlohmann::json::parse(result->metrics_json);
+  EXPECT_TRUE(m.contains("diff1"));  // measured even without pictures
+  JobSpec bad;
+  bad.outputs = {"vtu", "stl"};
+  std::string field;
+  EXPECT_EQ(ValidateJobSpec(bad, &field).code(), absl::StatusCode::kInvalidArgument);
+  EXPECT_EQ(field, "outputs");
+  bad.outputs = {"vtu", "vtu"};
+  EXPECT_FALSE(ValidateJobSpec(bad).ok());
+  bad.outputs = {"vtu"};
+  bad.vtu_compression_level = 10;
+  EXPECT_EQ(ValidateJobSpec(bad, &field).code(), absl::StatusCode::kInvalidArgument);
+  EXPECT_EQ(field, "vtu_compression_level");
 }
 
 TEST(RunJob, ABadSpecIsInvalidArgumentBeforeAnyFileIsWritten) {

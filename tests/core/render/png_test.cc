@@ -120,5 +120,22 @@ TEST(Png, HugeDimensionsAreRejectedBeforeAllocating) {
   ExpectInvalid(dir / "huge.png", "exceeds the 2^26 pixel limit");
 }
 
+TEST(Png, TextChunksTravelWithThePictureAndLibpngStillReadsIt) {
+  const auto dir = testing::MakeScratchDir("png-t");
+  const Image im = Pattern(16, 8, 3);
+  const std::vector<std::pair<std::string, std::string>> text = {
+      {"Software", "decima"}, {"decima:view", "30:20"}, {"decima:job", "jobs/abc"}};
+  ASSERT_TRUE(WritePng(dir / "t.png", im, text).ok());
+  auto back = ReadPng(dir / "t.png");  // libpng checks the CRCs of the spliced chunks
+  ASSERT_TRUE(back.ok()) << back.status();
+  EXPECT_EQ(back->pixels, im.pixels);
+  auto read = ReadPngText(dir / "t.png");
+  ASSERT_TRUE(read.ok()) << read.status();
+  EXPECT_EQ(*read, text);
+  EXPECT_EQ(WritePng(dir / "bad.png", im, {{"", "x"}}).code(), absl::StatusCode::kInvalidArgument);
+  EXPECT_EQ(WritePng(dir / "bad.png", im, {{std::string(80, 'k'), "x"}}).code(),
+            absl::StatusCode::kInvalidArgument);
+}
+
 }  // namespace
 }  // namespace decima

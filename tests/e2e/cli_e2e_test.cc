@@ -1,0 +1,442 @@
+// The `decima` CLI as a user meets it (issue 15), through the real server and client processes:
+// chosen artifacts, the end-of-watch summary and its exit code, tables and -o, delete/prune,
+// --version, id prefixes, fail-fast on a wrong address, plain progress lines, Ctrl-C, inputs
+// (.mhd + data, DICOM folders with stray files, "AZ:EL" views, reused request ids), the
+// pictures' text chunks and report.html in headless Chromium.
+#include <grpcpp/grpcpp.h>
+#include <png.h>
+#include <signal.h>
+
+#include <fstream>
+#include <nlohmann/json.hpp>
+#include <regex>
+#include <set>
+#include <sstream>
+#include <thread>
+
+#include "core/io/png.h"
+#include "decima/v1/jobs.grpc.pb.h"
+#include "decima/v1/volumes.grpc.pb.h"
+#include "gmock/gmock.h"
+#include "gtest/gtest.h"
+#include "tests/e2e/e2e_util.h"
+#include "tests/testing/test_data.h"
+
+namespace decima::e2e {
+namespace {
+namespace fs = std::filesystem;
+using ::testing::HasSubstr;
+using ::testing::Not;
+using namespace std::chrono_literals;
+
+std::string ReadFile(const fs::path& p) {
+  std::ifstream in(p, std::ios::binary);
+  std::stringstream ss;
+  ss << in.rdbuf();
+  return ss.str();
+}
+
+std::set<std::string> FilesIn(const fs::path& dir) {
+  std::set<std::string> out;
+  std::error_code ec;
+  for (const auto& e : fs::directory_iterator(dir, ec)) out.insert(e.path().filename().string());
+  return out;
+}
+
+std::vector<std::string> Lines(const std::string& s) {
+  std::vector<std::string> out;
+  std::istringstream in(s);
+  for (std::string l; std::getline(in, l);) out.push_back(l);
+  return out;
+}
+
+int CountOf(const std::string& s, const std::string& what) {
+  int n = 0;
+  for (size_t at = s.find(what); at != std::string::npos; at = s.find(what, at + 1)) ++n;
+  return n;
+}
+
+std::vector<v1::Volume> ListVolumes(const std::string& address) {
+  auto stub =
+      v1::Volumes::NewStub(grpc::CreateChannel(address, grpc::InsecureChannelCredentials()));
+  grpc::ClientContext ctx;
+  ctx.set_deadline(std::chrono::system_clock::now() + 30s);
+  v1::ListVolumesRequest req;
+  v1::ListVolumesResponse resp;
+  EXPECT_TRUE(stub->ListVolumes(&ctx, req, &resp).ok());
+  return {resp.volumes().begin(), resp.volumes().end()};
+}
+
+class CliE2E : public ::testing::Test {
+ protected:
+  void SetUp() override {
+    scratch_ = testing::MakeScratchDir("cli_e2e");
+    volume_ = scratch_ / "phantom.nii";
+    WriteTinyNifti(volume_, 12, 10, 8);
+  }
+  fs::path scratch_;
+  fs::path volume_;
+};
+
+TEST_F(CliE2E, DefaultArtifactsAreSmallOutputsAreChosenAndFetchOnlyPicks) {
+  ServerProcess server(scratch_ / "data");
+  // Default: no .msh, a report and the segmentation figure.
+  const fs::path def = scratch_ / "default";
+  CliResult r = RunCli(server.address(), {"submit", volume_.string(), "--out", def.string(),
+                                          "--image-size", "64", "--reduction", "0.3"});
+  ASSERT_EQ(r.rc, 0) << r.err << server.Log();
+  EXPECT_EQ(FilesIn(def),
+            (std::set<std::string>{"mesh.vtu", "labels.nii.gz", "original.png", "simplified.png",
+                                   "diff.png", "comparison.png", "segmentation.png", "metrics.json",
+                                   "report.html"}));
+  // The summary of the end of the watch: achieved reduction, sizes, ratio.
+  EXPECT_THAT(r.err, HasSubstr("reduction: 30.0% of the cells removed (target 30.0%)"));
+  EXPECT_THAT(r.err, HasSubstr("x the input's bytes"));
+
+  // Only the meshes asked for, in any case, an uncompressed .vtu.
+  const fs::path chosen = scratch_ / "chosen";
+  r = RunCli(server.address(),
+             {"submit", volume_.string(), "--outputs", "VTU,msh", "--vtu-level", "0", "--out",
+              chosen.string(), "--image-size", "64", "--reduction", "0.3"});
+  ASSERT_EQ(r.rc, 0) << r.err;
+  EXPECT_EQ(FilesIn(chosen), (std::set<std::string>{"mesh.vtu", "mesh.msh", "metrics.json"}));
+  const std::string vtu = ReadFile(chosen / "mesh.vtu");
+  EXPECT_THAT(vtu, Not(HasSubstr("vtkZLibDataCompressor")));
+  EXPECT_THAT(ReadFile(def / "mesh.vtu"), HasSubstr("vtkZLibDataCompressor"));
+  const std::string job = FirstLine(r.out);
+
+  // A name the server does not know is refused at submit, naming the field.
+  r = RunCli(server.address(), {"submit", volume_.string(), "--outputs", "stl"});
+  EXPECT_EQ(r.rc, 2) << r.err;  // the CLI's own check
+  EXPECT_THAT(r.err, HasSubstr("stl"));
+
+  // fetch --only: file names or kinds; an unknown name lists what there is.
+  const fs::path some = scratch_ / "some";
+  r = RunCli(server.address(), {"fetch", job, "--out", some.string(), "--only", "vtu"});
+  ASSERT_EQ(r.rc, 0) << r.err;
+  EXPECT_EQ(FilesIn(some), (std::set<std::string>{"mesh.vtu"}));
+  r = RunCli(server.address(),
+             {"fetch", job, "--out", some.string(), "--only", "mesh.msh", "metrics"});
+  ASSERT_EQ(r.rc, 0) << r.err;
+  EXPECT_EQ(FilesIn(some), (std::set<std::string>{"mesh.vtu", "mesh.msh", "metrics.json"}));
+  r = RunCli(server.address(), {"fetch", job, "--out", some.string(), "--only", "report"});
+  EXPECT_EQ(r.rc, 2);
+  EXPECT_THAT(r.err, HasSubstr("it has: mesh.vtu mesh.msh metrics.json"));
+}
+
+TEST_F(CliE2E, MissedReductionTargetWarnsAndExitsTen) {
+  ServerProcess server(scratch_ / "data");
+  // 99 % of a 12x10x8 phantom cannot go: the hull and the region interfaces stay.
+  CliResult r = RunCli(server.address(), {"submit", volume_.string(), "--reduction", "0.99",
+                                          "--watch", "--image-size", "32"});
+  EXPECT_EQ(r.rc, 10) << r.err;
+  EXPECT_THAT(r.err, HasSubstr("SUCCEEDED"));
+  EXPECT_THAT(r.err, HasSubstr("WARNING: the reduction target was not reached"));
+  // -q keeps the warning (it explains the exit code); --json adds a summary object.
+  const std::string job = FirstLine(r.out);
+  r = RunCli(server.address(), {"-q", "watch", job});
+  EXPECT_EQ(r.rc, 10);
+  EXPECT_THAT(r.err, HasSubstr("WARNING"));
+  r = RunCli(server.address(), {"watch", job, "-o", "json"});
+  EXPECT_EQ(r.rc, 10);
+  bool summary = false;
+  for (const auto& l : Lines(r.out)) {
+    auto j = nlohmann::json::parse(l, nullptr, false);
+    ASSERT_FALSE(j.is_discarded()) << l;
+    if (j.contains("summary")) {
+      summary = true;
+      EXPECT_FALSE(j["summary"]["reached_target"].get<bool>());
+      EXPECT_LT(j["summary"]["achieved_reduction"].get<double>(), 0.99);
+    }
+  }
+  EXPECT_TRUE(summary) << r.out;
+}
+
+TEST_F(CliE2E, TablesOutputFormatsPrefixesDeleteAndPrune) {
+  ServerProcess server(scratch_ / "data");
+  std::vector<std::string> jobs;
+  for (int i = 0; i < 2; ++i) {
+    CliResult r = RunCli(server.address(), {"-q", "submit", volume_.string(), "--watch",
+                                            "--image-size", "32", "--reduction", "0.3"});
+    ASSERT_EQ(r.rc, 0) << r.err;
+    jobs.push_back(FirstLine(r.out).substr(5));
+  }
+  CliResult r = RunCli(server.address(), {"list"});
+  ASSERT_EQ(r.rc, 0) << r.err;
+  std::vector<std::string> lines = Lines(r.out);
+  ASSERT_EQ(lines.size(), 3u) << r.out;
+  EXPECT_THAT(lines[0], ::testing::MatchesRegex(
+                            "NAME +STATE +STAGE % +INPUT +K +REDUCTION +CREATED +DURATION"));
+  EXPECT_THAT(lines[1], HasSubstr("SUCCEEDED"));
+  EXPECT_THAT(lines[1], HasSubstr("phantom.nii"));
+  EXPECT_THAT(lines[1], HasSubstr("30%"));
+  // -o json / --json after the subcommand (as the README writes it), and the global one.
+  for (auto args :
+       {std::vector<std::string>{"list", "--json"}, std::vector<std::string>{"list", "-o", "JSON"},
+        std::vector<std::string>{"--json", "list"}}) {
+    r = RunCli(server.address(), args);
+    ASSERT_EQ(r.rc, 0) << r.err;
+    lines = Lines(r.out);
+    ASSERT_EQ(lines.size(), 2u) << r.out;
+    for (const auto& l : lines) {
+      auto j = nlohmann::json::parse(l, nullptr, false);
+      ASSERT_TRUE(j.is_object()) << l;
+      EXPECT_EQ(j["state"], "SUCCEEDED");
+    }
+  }
+  r = RunCli(server.address(), {"list", "-o", "wide", "--state", "succeeded"});
+  ASSERT_EQ(r.rc, 0) << r.err;
+  EXPECT_THAT(r.out, HasSubstr("ACHIEVED"));
+  EXPECT_THAT(r.out, HasSubstr("30.0%"));
+  EXPECT_EQ(RunCli(server.address(), {"list", "--state", "running"}).out, "");
+  EXPECT_EQ(RunCli(server.address(), {"list", "--state", "done"}).rc, 2);
+
+  // describe-like status through a unique prefix (the shortest one that tells them apart).
+  size_t n = 1;
+  while (jobs[0].substr(0, n) == jobs[1].substr(0, n)) ++n;
+  r = RunCli(server.address(), {"status", jobs[0].substr(0, n)});
+  ASSERT_EQ(r.rc, 0) << r.err;
+  for (const char* key : {"Name:", "State:", "Input:", "Spec:", "Times:", "Result:", "Artifacts:",
+                          "mesh.vtu", "reduction: 30.0%"}) {
+    EXPECT_THAT(r.out, HasSubstr(key));
+  }
+  EXPECT_THAT(r.out, HasSubstr(jobs[0]));
+  r = RunCli(server.address(), {"describe", jobs[1], "-o", "json"});
+  ASSERT_EQ(r.rc, 0);
+  EXPECT_TRUE(nlohmann::json::parse(r.out, nullptr, false).is_object()) << r.out;
+  EXPECT_EQ(RunCli(server.address(), {"status", "zzzz"}).rc, 6);
+
+  // --version for both programs.
+  r = RunCli(server.address(), {"--version"});
+  EXPECT_EQ(r.rc, 0);
+  EXPECT_THAT(r.out, HasSubstr("decima "));
+  CliResult sv = RunProgram({ServerBinary().string(), "--version"});
+  EXPECT_EQ(sv.rc, 0) << sv.err;
+  EXPECT_THAT(sv.out, HasSubstr("decima-server "));
+
+  // delete one job; prune: a dry run first, then --force removes the rest and every volume.
+  r = RunCli(server.address(), {"delete", jobs[0]});
+  ASSERT_EQ(r.rc, 0) << r.err;
+  EXPECT_THAT(r.out, HasSubstr("deleted jobs/" + jobs[0]));
+  EXPECT_EQ(RunCli(server.address(), {"status", jobs[0]}).rc, 6);
+  EXPECT_FALSE(fs::exists(server.data_dir() / "jobs" / jobs[0]));
+  r = RunCli(server.address(), {"prune"});
+  ASSERT_EQ(r.rc, 0) << r.err;
+  EXPECT_THAT(r.out, HasSubstr("would delete jobs/" + jobs[1]));
+  EXPECT_THAT(r.err, HasSubstr("--force"));
+  EXPECT_EQ(RunCli(server.address(), {"status", jobs[1]}).rc, 0);  // still there
+  EXPECT_FALSE(ListVolumes(server.address()).empty());
+  r = RunCli(server.address(), {"prune", "--force"});
+  ASSERT_EQ(r.rc, 0) << r.err;
+  EXPECT_THAT(r.out, HasSubstr("deleted jobs/" + jobs[1]));
+  EXPECT_EQ(RunCli(server.address(), {"list", "--json"}).out, "");
+  EXPECT_TRUE(ListVolumes(server.address()).empty());
+}
+
+TEST_F(CliE2E, WrongAddressFailsFastWithAHintAndAWatchThatLosesTheServerSaysSoOnce) {
+  // Nothing listens on a port we just closed.
+  const auto t0 = std::chrono::steady_clock::now();
+  CliResult r = RunCli("127.0.0.1:1", {"list"});
+  EXPECT_EQ(r.rc, 8);
+  EXPECT_LT(std::chrono::steady_clock::now() - t0, 10s);
+  EXPECT_THAT(r.err, HasSubstr("cannot reach decima-server at 127.0.0.1:1"));
+  EXPECT_THAT(r.err, HasSubstr("--server"));
+  EXPECT_THAT(r.err, HasSubstr("DECIMA_SERVER"));
+  r = RunCli("127.0.0.1:1", {"watch", "0123456789abcdef"});
+  EXPECT_EQ(r.rc, 8);
+  EXPECT_LE(Lines(r.err).size(), 2u) << r.err;
+
+  ServerProcess server(scratch_ / "data");
+  CliResult s = RunCli(server.address(), {"submit", volume_.string(), "--fault", "sleep:30"});
+  ASSERT_EQ(s.rc, 0) << s.err;
+  CliProcess w = StartCli(server.address(), {"--reconnect", "2", "watch", FirstLine(s.out)});
+  ASSERT_TRUE(WaitFor([&] { return ReadFile(w.err).find("watching") != std::string::npos; }, 20s));
+  server.Kill(SIGKILL);
+  r = WaitCli(w, 30s);
+  EXPECT_EQ(r.rc, 8) << r.err;
+  // One line for the lost server (not one per attempt), one for giving up, then the error.
+  EXPECT_EQ(CountOf(r.err, "server unavailable"), 1) << r.err;
+  EXPECT_EQ(CountOf(r.err, "gave up after"), 1) << r.err;
+  EXPECT_LE(Lines(r.err).size(), 8u) << r.err;
+}
+
+TEST_F(CliE2E, PlainProgressLinesCleanStartAndCtrlCSaysHowToReattach) {
+  ServerProcess server(scratch_ / "data");
+  CliResult r = RunCli(server.address(), {"submit", volume_.string(), "--watch", "--image-size",
+                                          "32", "--reduction", "0.3"});
+  ASSERT_EQ(r.rc, 0) << r.err;
+  // Not a TTY: plain lines with the overall %, elapsed; no internal sequence numbers.
+  EXPECT_THAT(r.err, HasSubstr("elapsed "));
+  EXPECT_THAT(r.err, Not(HasSubstr(" #")));
+  EXPECT_THAT(r.err, Not(HasSubstr("snapshot")));
+  EXPECT_THAT(r.err, Not(HasSubstr("\r")));
+  EXPECT_EQ(CountOf(r.err, "decima: watching jobs/"), 1) << r.err;
+  std::regex overall(R"( (\d+)% (load|segment|tetra|simplify|write|render|diff) \d+%)");
+  int last = -1, count = 0;
+  for (const auto& l : Lines(r.err)) {
+    std::smatch m;
+    if (std::regex_search(l, m, overall)) {
+      const int pct = std::stoi(m[1]);
+      EXPECT_GE(pct, last) << l;  // the overall bar never goes back
+      last = pct;
+      ++count;
+    }
+  }
+  EXPECT_GE(count, 3) << r.err;
+  EXPECT_EQ(last, 100) << r.err;
+
+  CliResult s = RunCli(server.address(), {"submit", volume_.string(), "--fault", "sleep:30"});
+  ASSERT_EQ(s.rc, 0) << s.err;
+  const std::string job = FirstLine(s.out);
+  CliProcess w = StartCli(server.address(), {"watch", job});
+  ASSERT_TRUE(WaitFor([&] { return ReadFile(w.err).find("watching") != std::string::npos; }, 20s));
+  kill(w.pid, SIGINT);
+  r = WaitCli(w, 10s);
+  EXPECT_EQ(r.rc, 130);
+  EXPECT_THAT(r.err, HasSubstr("the job goes on on the server"));
+  EXPECT_THAT(r.err, HasSubstr("re-attach: decima --server " + server.address() + " watch " +
+                               job.substr(5)));
+  EXPECT_EQ(RunCli(server.address(), {"cancel", job}).rc, 0);
+}
+
+TEST_F(CliE2E, InputsAsTheyComeViewsAndReusedRequestIds) {
+  ServerProcess server(scratch_ / "data");
+  // MetaImage header + data file: both go up, the job runs.
+  const fs::path mhd = scratch_ / "tiny.mhd";
+  {
+    std::ofstream(mhd) << "ObjectType = Image\nNDims = 3\nDimSize = 12 10 8\n"
+                          "ElementSpacing = 2 2 2\nElementType = MET_SHORT\n"
+                          "ElementDataFile = tiny.raw\n";
+    std::ofstream raw(scratch_ / "tiny.raw", std::ios::binary);
+    // A bright ball in a darker box, as WriteTinyNifti draws it.
+    for (int z = 0; z < 8; ++z) {
+      for (int y = 0; y < 10; ++y) {
+        for (int x = 0; x < 12; ++x) {
+          const double r2 = (x - 5.5) * (x - 5.5) + (y - 4.5) * (y - 4.5) + (z - 3.5) * (z - 3.5);
+          const int16_t v = static_cast<int16_t>(r2 < 9 ? 1000 : 100 + (x * 7 + y * 3 + z) % 5);
+          raw.write(reinterpret_cast<const char*>(&v), 2);
+        }
+      }
+    }
+  }
+  CliResult r = RunCli(server.address(),
+                       {"submit", mhd.string(), "--watch", "--image-size", "32", "--reduction",
+                        "0.05", "--views", "anterior,30,20", "--view", "-45:10"});
+  ASSERT_EQ(r.rc, 0) << r.err << server.Log();
+  EXPECT_THAT(r.err, HasSubstr("METAIMAGE"));
+  const std::string job = FirstLine(r.out);
+  r = RunCli(server.address(), {"status", job, "-o", "json"});
+  auto j = nlohmann::json::parse(r.out, nullptr, false);
+  ASSERT_TRUE(j.is_object()) << r.out;
+  EXPECT_EQ(j["spec"]["views"], nlohmann::json({"anterior", "30:20", "-45:10"}));
+  // Every view's pictures, named by the view.
+  const fs::path out = scratch_ / "views";
+  ASSERT_EQ(RunCli(server.address(), {"fetch", job, "--out", out.string(), "--only", "images"}).rc,
+            0);
+  for (const char* f : {"original.png", "comparison-az30_el20.png", "diff-az-45_el10.png"}) {
+    EXPECT_TRUE(fs::exists(out / f)) << f;
+  }
+  // The pictures carry their parameters as PNG text.
+  auto text = ReadPngText(out / "comparison-az30_el20.png");
+  ASSERT_TRUE(text.ok()) << text.status();
+  std::map<std::string, std::string> kv(text->begin(), text->end());
+  EXPECT_EQ(kv["decima:view"], "30:20");
+  EXPECT_EQ(kv["decima:job"], job);
+  EXPECT_EQ(kv["Source"], "tiny.mhd");
+  EXPECT_EQ(kv["decima:policy"], "field");
+  EXPECT_FALSE(kv["decima:heat_scale_max"].empty());
+
+  // A reused request id: the same spec returns the same job, another spec is refused.
+  r = RunCli(server.address(),
+             {"submit", volume_.string(), "--request-id", "rid-7", "--image-size", "32"});
+  ASSERT_EQ(r.rc, 0) << r.err;
+  const std::string first = FirstLine(r.out);
+  r = RunCli(server.address(),
+             {"submit", volume_.string(), "--request-id", "rid-7", "--image-size", "32"});
+  ASSERT_EQ(r.rc, 0) << r.err;
+  EXPECT_EQ(FirstLine(r.out), first);
+  r = RunCli(server.address(),
+             {"submit", volume_.string(), "--request-id", "rid-7", "--image-size", "48"});
+  EXPECT_EQ(r.rc, 1);
+  EXPECT_THAT(r.err, HasSubstr("ALREADY_EXISTS"));
+  EXPECT_THAT(r.err, HasSubstr(first));
+}
+
+TEST_F(CliE2E, DicomFolderWithStrayFilesSkipsThemWithAWarning) {
+  DECIMA_REQUIRE_SHARED_DATA(dicom, "ct-head-256x256x113-dicom");
+  ServerProcess server(scratch_ / "data");
+  // Copies (never hard links: writing a stray file must not reach the shared folder), plus a
+  // DICOMDIR and a note beside the images.
+  const fs::path folder = scratch_ / "series";
+  fs::create_directories(folder);
+  int images = 0, others = 0;
+  for (const auto& e : fs::directory_iterator(dicom)) {
+    if (!e.is_regular_file()) continue;
+    fs::copy_file(e.path(), folder / e.path().filename());
+    const std::string head = ReadFile(e.path()).substr(0, 132);
+    (head.size() == 132 && head.compare(128, 4, "DICM") == 0 ? images : others) += 1;
+  }
+  ASSERT_FALSE(fs::exists(folder / "DICOMDIR"));
+  ASSERT_FALSE(fs::exists(folder / "notes.txt"));
+  std::ofstream(folder / "notes.txt") << "scanned on the old CT\n";
+  std::ofstream(folder / "DICOMDIR") << "a directory record, not an image";
+  CliResult r = RunCli(server.address(), {"submit", folder.string()});
+  ASSERT_EQ(r.rc, 0) << r.err << server.Log();
+  EXPECT_THAT(r.err, HasSubstr("warning: skipping " + std::to_string(others + 2) + " file(s)"));
+  EXPECT_THAT(r.err, HasSubstr("notes.txt"));
+  EXPECT_THAT(r.err, HasSubstr("DICOMDIR"));
+  EXPECT_THAT(r.err, HasSubstr("VOLUME_FORMAT_DICOM"));
+  auto vols = ListVolumes(server.address());
+  ASSERT_EQ(vols.size(), 1u);
+  EXPECT_EQ(vols[0].files_size(), images);
+  EXPECT_EQ(RunCli(server.address(), {"cancel", FirstLine(r.out)}).rc, 0);
+}
+
+// report.html opens in a real browser: headless Chromium renders it to a non-empty screenshot
+// and reports no console error. A page with a deliberate console error proves the check bites.
+TEST_F(CliE2E, ReportRendersInHeadlessChromiumWithoutConsoleErrors) {
+  const char* chromium = "/usr/bin/chromium";
+  if (!fs::exists(chromium)) GTEST_SKIP() << "chromium is not installed (apt-get install chromium)";
+  ServerProcess server(scratch_ / "data");
+  const fs::path out = scratch_ / "report";
+  CliResult r =
+      RunCli(server.address(), {"submit", volume_.string(), "--out", out.string(), "--image-size",
+                                "64", "--reduction", "0.3", "--only", "report"});
+  ASSERT_EQ(r.rc, 0) << r.err;
+  ASSERT_EQ(FilesIn(out), (std::set<std::string>{"report.html"}));
+  const std::string html = ReadFile(out / "report.html");
+  EXPECT_THAT(html, HasSubstr("data:image/png;base64,"));
+  EXPECT_THAT(html, Not(HasSubstr("src=\"http")));  // self-contained
+  EXPECT_THAT(html, HasSubstr("achieved_reduction"));
+  EXPECT_THAT(html, HasSubstr("Timings"));
+
+  auto shoot = [&](const fs::path& page, const fs::path& png) {
+    return RunProgram({chromium, "--headless", "--no-sandbox", "--disable-gpu",
+                       "--user-data-dir=" + (scratch_ / "chromium-profile").string(),
+                       "--screenshot=" + png.string(), "--window-size=1000,1400",
+                       "--enable-logging=stderr", "--v=0", "file://" + page.string()},
+                      120s);
+  };
+  const fs::path bad = scratch_ / "bad.html";
+  std::ofstream(bad) << "<!DOCTYPE html><html><body>x<script>console.error('deliberate');"
+                        "</script></body></html>";
+  CliResult control = shoot(bad, scratch_ / "bad.png");
+  ASSERT_THAT(control.err, HasSubstr("deliberate")) << "chromium does not log console errors";
+
+  CliResult c = shoot(out / "report.html", scratch_ / "shot.png");
+  ASSERT_EQ(c.rc, 0) << c.err;
+  EXPECT_THAT(c.err, Not(HasSubstr("CONSOLE"))) << c.err;
+  EXPECT_THAT(c.err, Not(HasSubstr("Uncaught"))) << c.err;
+  auto shot = ReadPng(scratch_ / "shot.png");
+  ASSERT_TRUE(shot.ok()) << shot.status();
+  EXPECT_EQ(shot->width, 1000);
+  // Non-empty: the page drew text, tables and the pictures, not one flat colour.
+  std::set<uint32_t> colours;
+  for (size_t i = 0; i + 2 < shot->pixels.size(); i += shot->channels) {
+    colours.insert(shot->pixels[i] << 16 | shot->pixels[i + 1] << 8 | shot->pixels[i + 2]);
+  }
+  EXPECT_GT(colours.size(), 50u);
+}
+
+}  // namespace
+}  // namespace decima::e2e
