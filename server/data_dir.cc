@@ -48,6 +48,11 @@ int64_t DataDir::LatestAttempt(const std::string& id) const {
   return latest;
 }
 
+std::filesystem::path DataDir::ArtifactsDir(const std::string& id) const {
+  const int64_t latest = LatestAttempt(id);
+  return latest > 0 ? job_out(id, latest) : job_dir(id) / "out";
+}
+
 void DataDir::RemoveAttempt(const std::string& id, int64_t epoch) const {
   std::error_code ec;
   fs::remove_all(job_attempt(id, epoch), ec);

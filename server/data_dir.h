@@ -59,8 +59,11 @@ class DataDir {
 
   // An empty out/ for the claim `epoch`; the folders of earlier claims are removed.
   absl::Status ResetJobOut(const std::string& id, int64_t epoch) const;
-  // The highest claim epoch with a folder, 0 if none (the artifacts of a SUCCEEDED job).
+  // The highest claim epoch with a folder, 0 if none.
   int64_t LatestAttempt(const std::string& id) const;
+  // Where a SUCCEEDED job's artifacts are: the out/ of its highest claim, or jobs/<id>/out/ for
+  // a job that finished before attempt folders existed (data dirs of older servers).
+  std::filesystem::path ArtifactsDir(const std::string& id) const;
   // Removes the folder of one claim (a runner that lost its lease; best effort).
   void RemoveAttempt(const std::string& id, int64_t epoch) const;
   // Removes the out/ of claim `epoch`: a job that did not succeed serves no artifact, and its
