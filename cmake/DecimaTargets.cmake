@@ -17,6 +17,9 @@ function(decima_sanitize target)
     target_compile_options(${target} PRIVATE -fsanitize=address,undefined -fno-omit-frame-pointer
                                               -fno-sanitize-recover=undefined)
     target_link_options(${target} PRIVATE -fsanitize=address,undefined)
+    if(DECIMA_FUZZ)
+      target_compile_options(${target} PRIVATE -fsanitize=fuzzer-no-link)
+    endif()
   elseif(DECIMA_SANITIZE_KIND STREQUAL "thread")
     # gRPC, abseil, protobuf, SQLite and libgomp from Debian are not instrumented: run the tests
     # with TSAN_OPTIONS=suppressions=tests/tsan.supp and OMP_NUM_THREADS=1 (README).

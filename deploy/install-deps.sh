@@ -22,6 +22,8 @@ packages=(
   libgtest-dev libgmock-dev libbenchmark-dev
   # libFuzzer targets (DECIMA_FUZZ=ON, clang only): tests/fuzz, tests/core/io/io_fuzz
   clang libclang-rt-14-dev
+  # /usr/bin/time: tests/fuzz/campaign.sh reports the CPU seconds each fuzz target got
+  time
   # independent tools that prove our files are readable by others
   python3 python3-vtk9 python3-numpy gmsh
   # a real browser (headless) that opens report.html in tests/e2e/cli_e2e_test.cc

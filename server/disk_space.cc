@@ -21,7 +21,8 @@ std::string HumanBytes(int64_t bytes) {
     v /= 1024.0;
     ++u;
   }
-  return absl::StrFormat(v < 10 ? "%.1f %s" : "%.0f %s", v, units[u]);
+  // Two calls, not a chosen format: clang checks absl::StrFormat's format at compile time.
+  return v < 10 ? absl::StrFormat("%.1f %s", v, units[u]) : absl::StrFormat("%.0f %s", v, units[u]);
 }
 
 DiskSpace::DiskSpace(fs::path root, int64_t reserve_bytes)

@@ -111,6 +111,10 @@ class JobStore {
   // True for an embedded store only this process uses (SQLite under the data dir's LOCK): at
   // start-up every RUNNING job in it is an orphan of a dead process.
   virtual bool exclusive() const = 0;
+  // Gives the space of deleted rows back to the filesystem where the engine does not do it by
+  // itself (SQLite's incremental vacuum; PostgreSQL's autovacuum needs nothing). Called by the
+  // server's collector timer.
+  virtual absl::Status Compact() { return absl::OkStatus(); }
 
   // QUEUED -> CANCELLED at once; RUNNING -> cancel requested (the worker finishes it).
   // Final jobs are returned unchanged.

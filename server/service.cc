@@ -1,10 +1,13 @@
 #include "server/service.h"
 
+#include "spdlog/spdlog.h"
+
 namespace decima::server {
 
 Services::Services(ServiceOptions options, JobStore* jobs, BlobStore* blobs, EventBus* bus,
                    WorkerPool* pool)
     : options_(std::move(options)),
+      store_(jobs),
       guard_(options_.token),
       disk_(options_.data_dir.root(), options_.disk_reserve_bytes),
       catalog_(&options_.data_dir, jobs, blobs, &disk_, options_.blob_sweep) {
@@ -18,6 +21,8 @@ Services::Services(ServiceOptions options, JobStore* jobs, BlobStore* blobs, Eve
 
 BlobSweepStats Services::CollectGarbage() {
   BlobSweepStats stats = catalog_.CollectGarbage();
+  if (absl::Status st = store_->Compact(); !st.ok())
+    spdlog::warn("compacting the job store: {}", st.ToString());
   disk_.Refill();
   return stats;
 }

@@ -69,13 +69,14 @@ class Services {
   grpc::Service* jobs() { return jobs_.get(); }
   grpc::Service* artifacts() { return artifacts_.get(); }
 
-  // One collector pass: blobs nobody holds and abandoned partial uploads are removed, the disk
-  // reserve is allocated again if there is room. Called by the server's collector timer.
+  // One collector pass: blobs nobody holds and abandoned partial uploads are removed, the job
+  // store gives back deleted rows' space, the disk reserve is allocated again if there is room. Called by the server's collector timer.
   BlobSweepStats CollectGarbage();
   DiskSpace& disk() { return disk_; }
 
  private:
   const ServiceOptions options_;
+  JobStore* store_;
   CallGuard guard_;
   DiskSpace disk_;
   VolumeCatalog catalog_;

@@ -102,7 +102,10 @@ class SqliteJobStore : public JobStore {
   ~SqliteJobStore() override { sqlite3_close(db_); }
 
   absl::Status Init() {
+    // auto_vacuum must precede the first table (it takes effect on a new file only): deleted
+    // jobs then give their pages back through Compact() instead of keeping the file at its peak.
     const char* kSchema = R"sql(
+      PRAGMA auto_vacuum=INCREMENTAL;
       PRAGMA journal_mode=WAL;
       PRAGMA synchronous=NORMAL;
       PRAGMA foreign_keys=ON;
@@ -571,6 +574,11 @@ class SqliteJobStore : public JobStore {
     if (d2.Step() != SQLITE_DONE) return d2.Error("deleting volume blobs");
     DECIMA_TX_COMMIT(tx);
     return absl::OkStatus();
+  }
+
+  absl::Status Compact() override {
+    std::lock_guard<std::mutex> lock(mu_);
+    return Exec("PRAGMA incremental_vacuum");
   }
 
   absl::StatusOr<bool> BlobInUse(const std::string& sha256) override {

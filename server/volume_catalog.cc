@@ -59,6 +59,17 @@ absl::StatusOr<v1::Volume> VolumeCatalog::Create(const v1::CreateVolumeRequest& 
     paths.push_back(f.path());
     sources.push_back(*path);
   }
+  // A name that is also another file's folder ("s" and "s/IM2") cannot be materialized.
+  for (size_t i = 0; i < paths.size(); ++i) {
+    for (size_t slash = paths[i].find('/'); slash != std::string::npos;
+         slash = paths[i].find('/', slash + 1)) {
+      if (seen.count(paths[i].substr(0, slash))) {
+        return invalid(absl::StrCat("volume.files[", i, "].path"),
+                       absl::StrCat("'", paths[i], "' is inside '", paths[i].substr(0, slash),
+                                    "', which is a file of the manifest"));
+      }
+    }
+  }
   const std::string id = NewId();
   const fs::path dir = data_dir_->volume_files(id);
   // Materialize the files under their manifest names: hard links to the immutable blobs.

@@ -54,6 +54,15 @@ struct CliProcess {
 CliProcess StartCli(const std::string& address, const std::vector<std::string>& args);
 CliResult WaitCli(const CliProcess& p, std::chrono::seconds timeout = std::chrono::seconds(60));
 
+// How much slower the pipeline runs in this build: ThreadSanitizer instruments every access and
+// runs the job processes on one thread (its libgomp is not instrumented). Timeouts and drain
+// times that a job must meet are multiplied by it.
+#ifdef __SANITIZE_THREAD__
+inline constexpr int kSlowdown = 8;
+#else
+inline constexpr int kSlowdown = 1;
+#endif
+
 // Runs `argv` (argv[0] a path) to its end (killed after `timeout`), capturing its output.
 CliResult RunProgram(const std::vector<std::string>& argv,
                      std::chrono::seconds timeout = std::chrono::seconds(60),

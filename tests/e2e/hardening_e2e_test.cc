@@ -191,7 +191,8 @@ TEST_F(HardeningE2E, UnreferencedBlobsAndAbandonedUploadsAreCollected) {
   ServerProcess server(scratch_ / "data",
                        {"--blob-grace-seconds", "1", "--upload-expiry-seconds", "2"});
   const fs::path blobs = server.data_dir() / "blobs";
-  CliResult r = RunCli(server.address(), {"-q", "submit", volume_.string(), "--watch"});
+  CliResult r =
+      RunCli(server.address(), {"-q", "submit", volume_.string(), "--watch"}, 60s * kSlowdown);
   ASSERT_EQ(r.rc, 0) << r.err;
   const std::string job = FirstLine(r.out);
   EXPECT_EQ(FileCount(blobs / "sha256"), 1u);
@@ -232,7 +233,8 @@ TEST_F(HardeningE2E, FullDiskRefusesUploadsKeepsNothingAndDeletesHealIt) {
   {
     ServerProcess server(mnt / "data", {"--disk-reserve-mb", "4", "--blob-grace-seconds", "4"});
     ASSERT_TRUE(fs::exists(server.data_dir() / "reserve"));
-    CliResult r = RunCli(server.address(), {"-q", "submit", volume_.string(), "--watch"});
+    CliResult r =
+        RunCli(server.address(), {"-q", "submit", volume_.string(), "--watch"}, 60s * kSlowdown);
     ASSERT_EQ(r.rc, 0) << r.err << server.Log();
     job = FirstLine(r.out);
     // Something else fills the disk.
@@ -255,7 +257,7 @@ TEST_F(HardeningE2E, FullDiskRefusesUploadsKeepsNothingAndDeletesHealIt) {
     grpc::Status d = DeleteJob(server.address(), job);
     EXPECT_TRUE(d.ok()) << d.error_message();
     fs::remove(mnt / "filler");
-    r = RunCli(server.address(), {"-q", "submit", second.string(), "--watch"});
+    r = RunCli(server.address(), {"-q", "submit", second.string(), "--watch"}, 60s * kSlowdown);
     EXPECT_EQ(r.rc, 0) << r.err;
     // The reserve is allocated again once there is room.
     EXPECT_TRUE(WaitFor([&] { return fs::exists(server.data_dir() / "reserve"); }, 10s));
@@ -271,7 +273,8 @@ TEST_F(HardeningE2E, DecompressionBombCostsTheServerNothingAndItsJobFailsWithThe
   WriteNiftiGzBomb(bomb, 1024, 1024, 512);
   ASSERT_LT(fs::file_size(bomb), 4u << 20);
   const int64_t before = PeakRss(server.pid());
-  CliResult r = RunCli(server.address(), {"-q", "submit", bomb.string(), "--watch"}, 120s);
+  CliResult r =
+      RunCli(server.address(), {"-q", "submit", bomb.string(), "--watch"}, 120s * kSlowdown);
   EXPECT_EQ(r.rc, 3) << r.err;  // job failed
   EXPECT_THAT(r.err, HasSubstr("needs about"));
   EXPECT_THAT(r.err, HasSubstr("2.0 GB"));
@@ -305,7 +308,8 @@ TEST_F(HardeningE2E, SeriesInstanceUidIsHonouredEndToEnd) {
   EXPECT_THAT(r.err, HasSubstr("1.2.3.4.404"));
   EXPECT_THAT(r.err, Not(HasSubstr(server.data_dir().string())));
   r = RunCli(server.address(),
-             {"-q", "submit", folder.string(), "--series", b.series_uid, "--watch"}, 120s);
+             {"-q", "submit", folder.string(), "--series", b.series_uid, "--watch"},
+             120s * kSlowdown);
   ASSERT_EQ(r.rc, 0) << r.err << server.Log();
   const v1::Job job = GetJob(server.address(), FirstLine(r.out));
   EXPECT_EQ(job.state(), v1::SUCCEEDED);
@@ -331,8 +335,9 @@ TEST_F(HardeningE2E, WatchersSurviveAGracefulRestartAndShortJobsFinishInTheDrain
   std::string requeued, finished;
   std::future<CliResult> watch;
   {
+    const std::string drain = std::to_string(8 * kSlowdown);
     ServerProcess server(
-        data, {"--listen", listen, "--allow-faults", "--workers", "2", "--drain-seconds", "8"});
+        data, {"--listen", listen, "--allow-faults", "--workers", "2", "--drain-seconds", drain});
     CliResult r = RunCli(listen, {"submit", volume_.string(), "--fault", "sleep:12"});
     ASSERT_EQ(r.rc, 0) << r.err;
     requeued = FirstLine(r.out);
@@ -342,7 +347,7 @@ TEST_F(HardeningE2E, WatchersSurviveAGracefulRestartAndShortJobsFinishInTheDrain
     ASSERT_TRUE(WaitFor([&] { return GetJob(listen, finished).state() == v1::RUNNING; }, 30s));
     ASSERT_TRUE(WaitFor([&] { return GetJob(listen, requeued).state() == v1::RUNNING; }, 30s));
     watch = std::async(std::launch::async, [&] {
-      return RunCli(listen, {"watch", requeued}, 180s);
+      return RunCli(listen, {"watch", requeued}, 180s * kSlowdown);
     });
     std::this_thread::sleep_for(500ms);
     server.Kill(SIGTERM);
@@ -404,7 +409,7 @@ TEST_F(HardeningE2E, LeftoversOfRefusedCancelledAndFailedWork) {
   testing::SliceSpec slice;
   slice.rows = slice.columns = 16;
   testing::WriteSeries(gap, slice, {1.0, 1.0, 2.0, 1.0});
-  r = RunCli(server.address(), {"-q", "submit", gap.string(), "--watch"}, 120s);
+  r = RunCli(server.address(), {"-q", "submit", gap.string(), "--watch"}, 120s * kSlowdown);
   EXPECT_EQ(r.rc, 3) << r.err;
   EXPECT_THAT(r.err, HasSubstr("missing slice"));
   EXPECT_THAT(r.err, Not(HasSubstr(server.data_dir().string())));

@@ -61,6 +61,7 @@ const std::pair<const char*, const char*> kNotRunHere[] = {
     {"CC=clang", "configures the clang fuzz build tree"},
     {"ninja -C build-fuzz", "needs the clang fuzz build tree"},
     {"mkdir -p /tmp/vtu-corpus", "runs libFuzzer until stopped (fuzz build tree)"},
+    {"tests/fuzz/campaign.sh", "runs every libFuzzer target for SECONDS (fuzz build tree)"},
     {"build/tests/bench/decima-bench",
      "is a benchmark: it repeats each stage 3 times on the CT head"},
     {"build/tests/bench/decima-compare", "runs VTK's decimation in python: minutes per row"},

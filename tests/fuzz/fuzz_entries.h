@@ -6,6 +6,7 @@
 
 #include <cstddef>
 #include <cstdint>
+#include <string_view>
 
 namespace decima::fuzz {
 
@@ -17,5 +18,40 @@ int ReadVtuEntry(const uint8_t* data, size_t size);
 // The bytes as transfer-function JSON: ParseTransferFunction must return a Status, and a function
 // it accepts must serialize (TransferFunctionToJson) to JSON it accepts again.
 int TransferFunctionEntry(const uint8_t* data, size_t size);
+
+// Volume readers. Inputs of several files (a header and its detached data, or the slices of a
+// DICOM folder) are one byte string cut at kFileSeparator.
+inline constexpr std::string_view kFileSeparator = "\n--decima-fuzz-next-file--\n";
+
+// First byte: bit 0 chooses a single file (.nii) or a pair (.hdr + .img). ReadNifti must return
+// a Status; a volume it returns passes Validate, and ProbeVolume accepts the file with the same
+// dims (the server decides on the probe alone).
+int NiftiEntry(const uint8_t* data, size_t size);
+// As NiftiEntry for ReadMetaImage: .mha, or (bit 0) .mhd with the detached files a.raw, a.zraw.
+int MetaImageEntry(const uint8_t* data, size_t size);
+// As NiftiEntry for ReadNrrd: .nrrd, or (bit 0) .nhdr with the detached files a.raw, a.raw.gz.
+int NrrdEntry(const uint8_t* data, size_t size);
+// Each part is one file of a folder: every part goes through the structural preflight, the
+// folder through ListDicomSeries, ReadDicomSeries (GDCM) and ReadVolume, which must agree and
+// never crash or abort; a volume returned passes Validate.
+int DicomEntry(const uint8_t* data, size_t size);
+
+// Upload + GetUploadStatus through the real service (in-process gRPC, LocalBlobStore in a temp
+// folder). The input chooses honest or fuzzed digest, size and offset, chunking, an interrupted
+// stream and its resume. Every answer has an expected code (not UNKNOWN/INTERNAL); an honest
+// upload succeeds; a blob the server accepted is exactly the declared bytes.
+int UploadEntry(const uint8_t* data, size_t size);
+
+// CreateVolume through the real service: a manifest of 1-4 files (fuzzed or typical names,
+// uploaded, missing or malformed blob names, any format value). Every answer has an expected
+// code; a refused request leaves no volume folder; a created volume has its files materialized,
+// positive dims, answers GetVolume (and a retry with its request_id), and DeleteVolume removes it.
+int CreateVolumeEntry(const uint8_t* data, size_t size);
+
+// Whether the last input of the volume, DICOM, Upload or CreateVolume entries was accepted (a
+// volume read, an upload stored, a volume created): the replay test checks that the seeds named
+// ok-* are, so the corpora keep inputs that reach past the header checks.
+bool LastInputAccepted();
+void SetLastInputAccepted(bool accepted);
 
 }  // namespace decima::fuzz

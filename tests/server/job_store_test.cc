@@ -273,6 +273,35 @@ TEST_P(JobStoreTest, LabelMapOfAQueuedJobCannotBeDeleted) {
   EXPECT_TRUE(store_->DeleteVolume("labels").ok());
 }
 
+TEST_P(JobStoreTest, CompactGivesDeletedJobsSpaceBack) {
+  if (GetParam() != "sqlite")
+    GTEST_SKIP() << "file compaction is SQLite's (PostgreSQL autovacuums)";
+  std::vector<std::string> ids;
+  for (int i = 0; i < 300; ++i) {
+    ids.push_back("j" + std::to_string(i));
+    Create(ids.back(), "", 1000);
+  }
+  ASSERT_TRUE(store_->Compact().ok());
+  const auto main_file = [&] { return std::filesystem::file_size(path_); };
+  for (const auto& id : ids) {
+    ASSERT_TRUE(store_->Cancel(id).ok());
+    ASSERT_TRUE(store_->DeleteJob(id).ok());
+  }
+  store_.reset();  // checkpoint on close
+  const auto full = main_file();
+  auto s = OpenSqliteJobStore(path_);
+  ASSERT_TRUE(s.ok());
+  store_ = std::move(*s);
+  ASSERT_TRUE(store_->Compact().ok());
+  store_.reset();
+  // Back to (about) the size of an empty store.
+  const std::string empty = (testing::MakeScratchDir("empty_store") / "jobs.sqlite").string();
+  ASSERT_TRUE(OpenSqliteJobStore(empty).ok());
+  const auto empty_size = std::filesystem::file_size(empty);
+  EXPECT_LT(main_file(), full);
+  EXPECT_LE(main_file(), empty_size + 8192) << "before " << full << " after " << main_file();
+}
+
 #ifdef DECIMA_JOB_STORE_POSTGRES
 INSTANTIATE_TEST_SUITE_P(Stores, JobStoreTest, ::testing::Values("postgresql"),
                          [](const auto& info) { return info.param; });

@@ -1,0 +1,59 @@
+#!/usr/bin/env bash
+# The sanitizer half of CI (.ci/run calls it after build-and-test.sh):
+#  - build-asan: AddressSanitizer + UndefinedBehaviorSanitizer, every unit test (ctest -L unit);
+#  - build-tsan: ThreadSanitizer, the server, client and end-to-end tests (-L "server|client|e2e"),
+#    with tests/tsan.supp for the Debian libraries that are not instrumented.
+# Each in its own build folder. A report fails the run even when it came from a child process a
+# test started (decima-server, its job processes, the CLI), whose exit code the test may not
+# look at: every report is written under <build>/sanitizer-logs/ and any file there fails.
+# Environment: JOBS (default: all cores), ASAN_BUILD_DIR / TSAN_BUILD_DIR.
+set -euo pipefail
+cd "$(dirname "$0")/.."
+jobs=${JOBS:-$(nproc)}
+launcher=()
+if command -v ccache >/dev/null; then
+  launcher=(-DCMAKE_C_COMPILER_LAUNCHER=ccache -DCMAKE_CXX_COMPILER_LAUNCHER=ccache)
+fi
+
+configure() {  # build dir, sanitizer
+  cmake -S . -B "$1" -G Ninja -DCMAKE_BUILD_TYPE=RelWithDebInfo -DDECIMA_WERROR=ON \
+    -DDECIMA_SANITIZE="$2" -DDECIMA_BUILD_BENCHMARKS=OFF "${launcher[@]}"
+}
+
+# Fails if a sanitizer wrote a report into $1 (printing them).
+check_logs() {
+  if compgen -G "$1/*" >/dev/null; then
+    echo "sanitizer reports in $1:" >&2
+    cat "$1"/* >&2
+    return 1
+  fi
+}
+
+run_ctest() {  # build dir, label regex
+  ctest --test-dir "$1" -L "$2" --output-on-failure -j "$jobs" --timeout 900
+}
+
+status=0
+
+asan=${ASAN_BUILD_DIR:-build-asan}
+configure "$asan" address
+cmake --build "$asan" -j "$jobs"
+asan_logs=$PWD/$asan/sanitizer-logs
+rm -rf "$asan_logs" && mkdir -p "$asan_logs"
+ASAN_OPTIONS="log_path=$asan_logs/asan:detect_leaks=1:strict_string_checks=1" \
+UBSAN_OPTIONS="log_path=$asan_logs/ubsan:print_stacktrace=1:halt_on_error=1" \
+  run_ctest "$asan" unit || status=1
+check_logs "$asan_logs" || status=1
+
+tsan=${TSAN_BUILD_DIR:-build-tsan}
+configure "$tsan" thread
+# Everything: a test executable left unbuilt would fail its ctest entries.
+cmake --build "$tsan" -j "$jobs"
+tsan_logs=$PWD/$tsan/sanitizer-logs
+rm -rf "$tsan_logs" && mkdir -p "$tsan_logs"
+# OMP_NUM_THREADS=1: libgomp is not instrumented, its hand-offs would be reported as races.
+TSAN_OPTIONS="suppressions=$PWD/tests/tsan.supp:log_path=$tsan_logs/tsan:second_deadlock_stack=1" \
+OMP_NUM_THREADS=1 run_ctest "$tsan" "server|client|e2e" || status=1
+check_logs "$tsan_logs" || status=1
+
+exit $status

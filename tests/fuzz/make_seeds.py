@@ -1,0 +1,271 @@
+#!/usr/bin/env python3
+"""Writes the seed corpora of the volume, DICOM, Upload and CreateVolume fuzz targets
+(corpus/<target>/): small valid files (named ok-*) and edge cases (bad-*). Run from anywhere;
+the output is deterministic, so a re-run changes nothing. Inputs of several files are joined
+with SEP (kFileSeparator in fuzz_entries.h)."""
+import gzip
+import hashlib
+import os
+import struct
+import zlib
+
+HERE = os.path.dirname(os.path.abspath(__file__))
+SEP = b"\n--decima-fuzz-next-file--\n"
+
+
+def write(target, name, data):
+    d = os.path.join(HERE, "corpus", target)
+    os.makedirs(d, exist_ok=True)
+    with open(os.path.join(d, name), "wb") as f:
+        f.write(data)
+
+
+def gz(data):
+    return gzip.compress(data, mtime=0)
+
+
+# ---- NIfTI-1 --------------------------------------------------------------------------------
+def nifti_header(dims, datatype, bitpix, pixdim=(1, 1, 2), single=True, sform=False,
+                 slope=0.0, inter=0.0, dim0=3):
+    h = bytearray(348)
+    struct.pack_into("<i", h, 0, 348)
+    d = [dim0] + list(dims) + [1] * (7 - len(dims))
+    struct.pack_into("<8h", h, 40, *d)
+    struct.pack_into("<hh", h, 70, datatype, bitpix)
+    struct.pack_into("<8f", h, 76, 1.0, *pixdim, 1, 1, 1, 1)
+    struct.pack_into("<f", h, 108, 352.0 if single else 0.0)
+    struct.pack_into("<ff", h, 112, slope, inter)
+    if sform:
+        struct.pack_into("<h", h, 254, 1)
+        struct.pack_into("<12f", h, 280, pixdim[0], 0, 0, -10, 0, pixdim[1], 0, -20, 0, 0,
+                         pixdim[2], 5)
+    h[344:348] = b"n+1\0" if single else b"ni1\0"
+    return bytes(h)
+
+
+def nifti_single(dims, datatype, bitpix, data, **kw):
+    return nifti_header(dims, datatype, bitpix, **kw) + b"\0" * 4 + data
+
+
+u8 = bytes(range(48))                       # 4 x 4 x 3 uint8
+i16 = struct.pack("<48h", *range(-24, 24))  # 4 x 4 x 3 int16
+f32 = struct.pack("<48f", *[i * 0.5 for i in range(48)])
+
+write("nifti", "ok-nii-uint8", b"\0" + nifti_single((4, 4, 3), 2, 8, u8))
+write("nifti", "ok-nii-gz-int16-sform",
+      b"\0" + gz(nifti_single((4, 4, 3), 4, 16, i16, sform=True)))
+write("nifti", "ok-nii-rescaled", b"\0" + nifti_single((4, 4, 3), 4, 16, i16, slope=2.0,
+                                                        inter=-1.0))
+write("nifti", "ok-pair-float32", b"\1" + nifti_header((4, 4, 3), 16, 32, single=False) + SEP
+      + f32)
+write("nifti", "bad-truncated", b"\0" + nifti_single((4, 4, 3), 2, 8, u8)[:300])
+write("nifti", "bad-short-data", b"\0" + nifti_single((4, 4, 3), 2, 8, u8[:40]))
+write("nifti", "bad-huge-dims", b"\0" + nifti_single((32767, 32767, 32767), 2, 8, u8))
+write("nifti", "bad-nan-pixdim",
+      b"\0" + nifti_single((4, 4, 3), 2, 8, u8, pixdim=(float("nan"), 1, 1)))
+write("nifti", "bad-gzip-bomb", b"\0" + gz(nifti_single((1024, 1024, 64), 2, 8, b"\0" * 65536)))
+write("nifti", "bad-4d", b"\0" + nifti_single((4, 4, 3, 2), 2, 8, u8 + u8, dim0=4))
+
+# ---- MetaImage -------------------------------------------------------------------------------
+def mha(fields, data=b""):
+    return ("".join(f"{k} = {v}\n" for k, v in fields)).encode() + data
+
+
+base = [("ObjectType", "Image"), ("NDims", "3"), ("DimSize", "4 4 3"),
+        ("ElementSpacing", "1 1 2"), ("Offset", "-10 -20 5"),
+        ("TransformMatrix", "1 0 0 0 1 0 0 0 1")]
+write("metaimage", "ok-mha-uchar",
+      b"\0" + mha(base + [("ElementType", "MET_UCHAR"), ("ElementDataFile", "LOCAL")], u8))
+z = zlib.compress(i16)
+write("metaimage", "ok-mha-zlib-short",
+      b"\0" + mha(base + [("ElementType", "MET_SHORT"), ("CompressedData", "True"),
+                          ("CompressedDataSize", str(len(z))), ("ElementDataFile", "LOCAL")], z))
+write("metaimage", "ok-mhd-raw-float",
+      b"\1" + mha(base + [("ElementType", "MET_FLOAT"), ("ElementDataFile", "a.raw")]) + SEP + f32)
+write("metaimage", "ok-mhd-zraw",
+      b"\1" + mha(base + [("ElementType", "MET_SHORT"), ("CompressedData", "True"),
+                          ("ElementDataFile", "a.zraw")]) + SEP + SEP + z)
+write("metaimage", "bad-escaping-data-file",
+      b"\1" + mha(base + [("ElementType", "MET_UCHAR"), ("ElementDataFile", "../../etc/passwd")]))
+write("metaimage", "bad-short-data",
+      b"\0" + mha(base + [("ElementType", "MET_UCHAR"), ("ElementDataFile", "LOCAL")], u8[:20]))
+write("metaimage", "bad-negative-dims",
+      b"\0" + mha([("NDims", "3"), ("DimSize", "4 -4 3"), ("ElementType", "MET_UCHAR"),
+                   ("ElementDataFile", "LOCAL")], u8))
+write("metaimage", "bad-zlib-bomb",
+      b"\0" + mha([("NDims", "3"), ("DimSize", "1024 1024 64"), ("ElementType", "MET_UCHAR"),
+                   ("CompressedData", "True"), ("ElementDataFile", "LOCAL")],
+                  zlib.compress(b"\0" * 65536)))
+
+# ---- NRRD ------------------------------------------------------------------------------------
+def nrrd(fields, data=b"", magic="NRRD0004"):
+    return (magic + "\n" + "".join(f"{k}: {v}\n" for k, v in fields) + "\n").encode() + data
+
+
+geo = [("dimension", "3"), ("sizes", "4 4 3"), ("space", "left-posterior-superior"),
+       ("space directions", "(1,0,0) (0,1,0) (0,0,2)"), ("space origin", "(-10,-20,5)")]
+write("nrrd", "ok-raw-uint8",
+      b"\0" + nrrd([("type", "uint8")] + geo + [("encoding", "raw")], u8))
+write("nrrd", "ok-gzip-int16-ras",
+      b"\0" + nrrd([("type", "short"), ("dimension", "3"), ("sizes", "4 4 3"),
+                    ("space", "right-anterior-superior"), ("encoding", "gzip"),
+                    ("endian", "little")], gz(i16)))
+write("nrrd", "ok-ascii-float-spacings",
+      b"\0" + nrrd([("type", "float"), ("dimension", "3"), ("sizes", "4 4 3"),
+                    ("spacings", "1 1 2"), ("encoding", "ascii")],
+                   " ".join(str(i * 0.5) for i in range(48)).encode()))
+write("nrrd", "ok-nhdr-detached",
+      b"\1" + nrrd([("type", "uint8")] + geo + [("encoding", "raw"), ("data file", "a.raw")])
+      + SEP + u8)
+write("nrrd", "ok-4d-size1",
+      b"\0" + nrrd([("type", "uint8"), ("dimension", "4"), ("sizes", "1 4 4 3"),
+                    ("kinds", "scalar domain domain domain"), ("encoding", "raw")], u8))
+write("nrrd", "bad-escaping-data-file",
+      b"\1" + nrrd([("type", "uint8")] + geo + [("encoding", "raw"), ("data file", "/etc/passwd")]))
+write("nrrd", "bad-gzip-bomb",
+      b"\0" + nrrd([("type", "uint8"), ("dimension", "3"), ("sizes", "1024 1024 64"),
+                    ("encoding", "gzip")], gz(b"\0" * 65536)))
+write("nrrd", "bad-vector-kind",
+      b"\0" + nrrd([("type", "uint8"), ("dimension", "4"), ("sizes", "3 4 4 1"),
+                    ("kinds", "vector domain domain domain"), ("encoding", "raw")], u8))
+write("nrrd", "bad-truncated-header", b"\0NRRD0004\ntype: uint8\ndimension: 3\nsizes: 4 4")
+
+# ---- DICOM (explicit or implicit VR little endian, written by hand) ----------------------------
+EXPLICIT, IMPLICIT = "1.2.840.10008.1.2.1", "1.2.840.10008.1.2"
+LONG_VRS = {"OB", "OW", "SQ", "UN", "UT", "OF"}
+
+
+def uid(s):
+    b = s.encode()
+    return b + b"\0" if len(b) % 2 else b
+
+
+def text(s):
+    b = s.encode()
+    return b + b" " if len(b) % 2 else b
+
+
+def element(group, elem, vr, value, explicit=True):
+    tag = struct.pack("<HH", group, elem)
+    if not explicit:
+        return tag + struct.pack("<I", len(value)) + value
+    if vr in LONG_VRS:
+        return tag + vr.encode() + b"\0\0" + struct.pack("<I", len(value)) + value
+    return tag + vr.encode() + struct.pack("<H", len(value)) + value
+
+
+def dicom_slice(z, series="1.2.3.4.5", syntax=EXPLICIT, rows=4, cols=4, extra=b""):
+    explicit = syntax == EXPLICIT
+    sop = f"1.2.3.4.5.{z + 1}"
+    meta = (element(2, 1, "OB", b"\0\1") + element(2, 2, "UI", uid("1.2.840.10008.5.1.4.1.1.2"))
+            + element(2, 3, "UI", uid(sop)) + element(2, 0x10, "UI", uid(syntax))
+            + element(2, 0x12, "UI", uid("1.2.3.4")))
+    meta = element(2, 0, "UL", struct.pack("<I", len(meta))) + meta
+    pixels = struct.pack(f"<{rows * cols}H", *[(z * 16 + i) for i in range(rows * cols)])
+    e = lambda g, el, vr, v: element(g, el, vr, v, explicit)  # noqa: E731
+    ds = (e(8, 0x16, "UI", uid("1.2.840.10008.5.1.4.1.1.2")) + e(8, 0x18, "UI", uid(sop))
+          + e(8, 0x60, "CS", text("CT")) + e(0x20, 0xD, "UI", uid("1.2.3.4"))
+          + e(0x20, 0xE, "UI", uid(series)) + e(0x20, 0x13, "IS", text(str(z + 1)))
+          + e(0x20, 0x32, "DS", text(f"-10\\-20\\{5 + 2 * z}"))
+          + e(0x20, 0x37, "DS", text("1\\0\\0\\0\\1\\0")) + extra
+          + e(0x28, 2, "US", struct.pack("<H", 1)) + e(0x28, 4, "CS", text("MONOCHROME2"))
+          + e(0x28, 0x10, "US", struct.pack("<H", rows)) + e(0x28, 0x11, "US", struct.pack("<H", cols))
+          + e(0x28, 0x30, "DS", text("1\\1")) + e(0x28, 0x100, "US", struct.pack("<H", 16))
+          + e(0x28, 0x101, "US", struct.pack("<H", 16)) + e(0x28, 0x102, "US", struct.pack("<H", 15))
+          + e(0x28, 0x103, "US", struct.pack("<H", 0))
+          + e(0x28, 0x1052, "DS", text("-1024")) + e(0x28, 0x1053, "DS", text("1"))
+          + e(0x7FE0, 0x10, "OW", pixels))
+    return b"\0" * 128 + b"DICM" + meta + ds
+
+
+write("dicom", "ok-two-slices-explicit", dicom_slice(0) + SEP + dicom_slice(1))
+write("dicom", "ok-three-slices-implicit", SEP.join(dicom_slice(z, syntax=IMPLICIT)
+                                                    for z in range(3)))
+seq = (struct.pack("<HH", 0x8, 0x1140) + b"SQ\0\0" + struct.pack("<I", 0xFFFFFFFF)
+       + struct.pack("<HHI", 0xFFFE, 0xE000, 0xFFFFFFFF)
+       + element(8, 0x1155, "UI", uid("1.2.3")) + struct.pack("<HHI", 0xFFFE, 0xE00D, 0)
+       + struct.pack("<HHI", 0xFFFE, 0xE0DD, 0))
+write("dicom", "ok-undefined-length-sequence",
+      dicom_slice(0, extra=seq) + SEP + dicom_slice(1, extra=seq))
+write("dicom", "bad-one-slice", dicom_slice(0))
+write("dicom", "bad-truncated-element", dicom_slice(0) + SEP + dicom_slice(1)[:-40])
+write("dicom", "bad-unclosed-sequence", dicom_slice(0, extra=seq[:-16]) + SEP + dicom_slice(1))
+write("dicom", "bad-two-series", dicom_slice(0) + SEP + dicom_slice(1, series="1.2.3.9"))
+write("dicom", "bad-duplicate-position", dicom_slice(0) + SEP + dicom_slice(0))
+write("dicom", "bad-no-marker", b"\0" * 200 + SEP + b"not a dicom file")
+
+# ---- Upload: flags, chunk, [sha 64], [size], [offset], [cut], payload ------------------------
+def varint(v):
+    out = bytearray()
+    while True:
+        b = v & 0x7F
+        v >>= 7
+        out.append(b | (0x80 if v else 0))
+        if not v:
+            return bytes(out)
+
+
+def zigzag(v):
+    return varint((v << 1) ^ (v >> 63) if v < 0 else v << 1)
+
+
+payload = bytes(range(256)) * 3
+write("upload", "ok-one-byte-chunks", b"\0\0" + b"hello, decima")
+write("upload", "ok-data-in-first", b"\x10\x10" + payload)
+write("upload", "ok-interrupted-and-resumed", b"\x14\x03" + varint(100) + payload)
+write("upload", "ok-empty-blob", b"\0\0")
+write("upload", "bad-wrong-digest", b"\x01\x05" + b"a" * 64 + payload)
+write("upload", "bad-digest-upper-case",
+      b"\x01\x05" + hashlib.sha256(payload).hexdigest().upper().encode() + payload)
+write("upload", "bad-size-over-limit", b"\x02\x05" + zigzag(5 << 20) + payload)
+write("upload", "bad-negative-size", b"\x02\x05" + zigzag(-1) + payload)
+write("upload", "bad-more-data-than-declared", b"\x02\x05" + zigzag(10) + payload)
+write("upload", "bad-offset-not-held", b"\x08\x05" + zigzag(7) + payload)
+write("upload", "bad-chunk-over-1mib", b"\x20\x05" + payload)
+
+# ---- CreateVolume: head, then per file: mode, path, [content length], content ----------------
+NAMES = ["v.nii", "v.nii.gz", "v.hdr", "v.img", "v.mha", "v.mhd", "a.raw", "a.zraw", "v.nrrd",
+         "v.nhdr", "IM0", "IM1", "s/IM2", "s", "x.txt", "a.raw.gz"]
+
+
+def manifest(files, fmt=0, request_id=False):
+    """files: (mode, path, content); path is a name of NAMES unless mode & 1."""
+    out = bytearray([(len(files) - 1) | (fmt << 2) | (0x80 if request_id else 0)])
+    for i, (mode, path, content) in enumerate(files):
+        out.append(mode)
+        if mode & 1:
+            out += bytes([len(path)]) + path.encode()
+        else:
+            out.append(NAMES.index(path))
+        if i + 1 < len(files):
+            out += varint(len(content))
+        out += content
+    return bytes(out)
+
+
+nii = nifti_single((4, 4, 3), 2, 8, u8)
+mhd = mha(base + [("ElementType", "MET_UCHAR"), ("ElementDataFile", "a.raw")])
+write("create_volume", "ok-nifti", manifest([(0, "v.nii", nii)]))
+write("create_volume", "ok-nifti-gz-request-id",
+      manifest([(0, "v.nii.gz", gz(nii))], request_id=True))
+write("create_volume", "ok-mha",
+      manifest([(0, "v.mha", mha(base + [("ElementType", "MET_UCHAR"),
+                                          ("ElementDataFile", "LOCAL")], u8))]))
+write("create_volume", "ok-mhd-and-raw", manifest([(0, "v.mhd", mhd), (0, "a.raw", u8)]))
+write("create_volume", "ok-nrrd",
+      manifest([(0, "v.nrrd", nrrd([("type", "uint8")] + geo + [("encoding", "raw")], u8))],
+               fmt=3))
+write("create_volume", "ok-dicom-folder",
+      manifest([(0, "IM0", dicom_slice(0)), (0, "IM1", dicom_slice(1)),
+                (0, "s/IM2", dicom_slice(2))], fmt=4))
+write("create_volume", "bad-unsafe-path", manifest([(1, "../v.nii", nii)]))
+write("create_volume", "bad-absolute-path", manifest([(1, "/etc/v.nii", nii)]))
+write("create_volume", "bad-blob-not-uploaded", manifest([(4, "v.nii", nii)]))
+write("create_volume", "bad-malformed-blob-name", manifest([(6, "v.nii", b"blobs/xyz")]))
+write("create_volume", "bad-duplicate-path", manifest([(0, "v.nii", nii), (0, "v.nii", nii)]))
+write("create_volume", "bad-file-and-folder-named-alike",
+      manifest([(0, "s", b"plain file"), (0, "s/IM2", dicom_slice(2))]))
+write("create_volume", "bad-mhd-without-data", manifest([(0, "v.mhd", mhd)]))
+write("create_volume", "bad-unknown-format", manifest([(0, "x.txt", b"hello")], fmt=5))
+write("create_volume", "bad-gzip-bomb",
+      manifest([(0, "v.nii.gz", gz(nifti_single((1024, 1024, 64), 2, 8, b"\0" * 65536)))]))
