@@ -15,6 +15,9 @@ packages=(
   zlib1g-dev libpng-dev libgdcm-dev
   # job store, CLI parsing, JSON
   libsqlite3-dev libcli11-dev nlohmann-json3-dev
+  # the PostgreSQL job store of replicas (libpqxx), and the real PostgreSQL 15 its tests and
+  # decima-scale-bench start in a temp folder; python3-yaml parses the rendered k8s manifests
+  libpqxx-dev postgresql postgresql-client python3-yaml
   # tests and benchmarks
   libgtest-dev libgmock-dev libbenchmark-dev
   # libFuzzer targets (DECIMA_FUZZ=ON, clang only): tests/fuzz, tests/core/io/io_fuzz

@@ -45,7 +45,7 @@ absl::StatusOr<ArtifactRange> OpenArtifact(const ServiceDeps& d, const std::stri
   }
   if (art == nullptr) return absl::NotFoundError(absl::StrCat(name, " not found"));
   ArtifactRange r;
-  r.file.open(d.options->data_dir.job_out(*id) / art->file_name(), std::ios::binary);
+  r.file.open(d.options->data_dir.ArtifactsDir(*id) / art->file_name(), std::ios::binary);
   if (!r.file)
     return absl::DataLossError(absl::StrCat(name, ": the file is missing on the server"));
   r.total = art->size_bytes();

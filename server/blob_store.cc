@@ -1,6 +1,7 @@
 #include "server/blob_store.h"
 
 #include <fcntl.h>
+#include <sys/file.h>
 #include <sys/stat.h>
 #include <unistd.h>
 
@@ -13,6 +14,14 @@
 
 namespace decima::server {
 namespace fs = std::filesystem;
+
+namespace {
+// root/partial/<sha>-<size> -> root/locks/<sha>-<size>.lock: the flock its writer holds, kept
+// out of partial/ so that folder holds upload data only.
+fs::path LockOf(const fs::path& partial) {
+  return partial.parent_path().parent_path() / "locks" / (partial.filename().string() + ".lock");
+}
+}  // namespace
 namespace {
 
 // A write error as a status: a full disk (or quota) is RESOURCE_EXHAUSTED, everything else
@@ -32,17 +41,19 @@ absl::Status WriteError(const std::string& what, const std::string& sha, int err
 class LocalBlobWriter : public BlobWriter {
  public:
   LocalBlobWriter(LocalBlobStore* store, std::string sha, int64_t size, fs::path partial, int fd,
-                  int64_t offset, std::unique_ptr<Sha256> hash)
+                  int lock_fd, int64_t offset, std::unique_ptr<Sha256> hash)
       : store_(store),
         sha_(std::move(sha)),
         size_(size),
         partial_(std::move(partial)),
         fd_(fd),
+        lock_fd_(lock_fd),
         written_(offset),
         hash_(std::move(hash)) {}
 
   ~LocalBlobWriter() override {
     if (fd_ >= 0) ::close(fd_);
+    ::close(lock_fd_);  // releases the flock: the next writer, on any replica, may start
     store_->Release(sha_);
   }
 
@@ -101,6 +112,7 @@ class LocalBlobWriter : public BlobWriter {
     if (ec) return WriteError("committing", sha_, ec.value());
     // The upload's claim starts now (rename kept the partial's times).
     ::utimensat(AT_FDCWD, final_path.c_str(), nullptr, 0);
+    fs::remove(LockOf(partial_), ec);
     return absl::OkStatus();
   }
 
@@ -109,6 +121,7 @@ class LocalBlobWriter : public BlobWriter {
     fd_ = -1;
     std::error_code ec;
     fs::remove(partial_, ec);
+    fs::remove(LockOf(partial_), ec);
   }
 
  private:
@@ -117,6 +130,7 @@ class LocalBlobWriter : public BlobWriter {
   int64_t size_;
   fs::path partial_;
   int fd_;
+  int lock_fd_;
   int64_t written_;
   std::unique_ptr<Sha256> hash_;
 };
@@ -126,6 +140,7 @@ absl::StatusOr<std::unique_ptr<LocalBlobStore>> LocalBlobStore::Open(const fs::p
   std::error_code ec;
   fs::create_directories(root / "sha256", ec);
   if (!ec) fs::create_directories(root / "partial", ec);
+  if (!ec) fs::create_directories(root / "locks", ec);
   if (ec) {
     return absl::InternalError(
         absl::StrCat("creating blob store ", root.string(), ": ", ec.message()));
@@ -179,28 +194,48 @@ absl::StatusOr<std::unique_ptr<BlobWriter>> LocalBlobStore::OpenWriter(const std
     return s;
   };
   fs::path partial = PartialPath(sha, size);
+  // Writers in other processes (replicas sharing this folder) are excluded by an flock on a
+  // lock file beside the partial: released by the kernel when the writer's process dies, and
+  // honoured across NFS clients (Linux maps flock to NFS byte-range locks).
+  const fs::path lock_path = LockOf(partial);
+  int lock_fd = ::open(lock_path.c_str(), O_RDWR | O_CREAT | O_CLOEXEC, 0644);
+  if (lock_fd < 0) {
+    return fail(absl::InternalError(
+        absl::StrCat("opening ", lock_path.string(), ": ", std::strerror(errno))));
+  }
+  if (::flock(lock_fd, LOCK_EX | LOCK_NB) != 0) {
+    ::close(lock_fd);
+    return fail(
+        absl::AbortedError(absl::StrCat("another upload of blob ", sha,
+                                        " is in progress (perhaps through another replica); "
+                                        "retry later")));
+  }
+  auto fail_locked = [&](absl::Status s) {
+    ::close(lock_fd);
+    return fail(std::move(s));
+  };
   std::error_code ec;
   int64_t held = 0;
   if (fs::exists(partial, ec)) held = static_cast<int64_t>(fs::file_size(partial, ec));
   if (offset != held) {
-    return fail(absl::FailedPreconditionError(
+    return fail_locked(absl::FailedPreconditionError(
         absl::StrCat("upload of ", sha, " starts at byte ", offset, " but the server holds ", held,
                      " bytes; resume with write_offset=", held)));
   }
   int flags = O_WRONLY | O_CREAT | O_CLOEXEC | (offset == 0 ? O_TRUNC : O_APPEND);
   int fd = ::open(partial.c_str(), flags, 0644);
-  if (fd < 0) return fail(WriteError("opening", sha, errno));
+  if (fd < 0) return fail_locked(WriteError("opening", sha, errno));
   auto hash = std::make_unique<Sha256>();
   if (offset > 0) {
     absl::Status s = HashFilePrefix(partial, offset, *hash);
     if (!s.ok()) {
       ::close(fd);
-      return fail(s);
+      return fail_locked(s);
     }
   }
   // The writer releases the digest when destroyed.
   return std::unique_ptr<BlobWriter>(
-      new LocalBlobWriter(this, sha, size, partial, fd, offset, std::move(hash)));
+      new LocalBlobWriter(this, sha, size, partial, fd, lock_fd, offset, std::move(hash)));
 }
 
 absl::StatusOr<fs::path> LocalBlobStore::LocalPath(const std::string& sha) const {
@@ -257,11 +292,21 @@ BlobSweepStats LocalBlobStore::Sweep(const BlobSweepPolicy& policy,
     if (writing_.count(sha)) continue;  // an upload is appending to it now
     uintmax_t size = 0;
     if (!idle_past(it->path(), policy.partial_expiry, &size)) continue;
+    // A writer in another process (a replica sharing this folder) holds the partial's flock.
+    const std::string lock_path = LockOf(it->path()).string();
+    const int lock_fd = ::open(lock_path.c_str(), O_RDWR | O_CREAT | O_CLOEXEC, 0644);
+    if (lock_fd < 0) continue;
+    if (::flock(lock_fd, LOCK_EX | LOCK_NB) != 0) {
+      ::close(lock_fd);
+      continue;
+    }
     std::error_code rec;
     if (fs::remove(it->path(), rec)) {
       ++stats.partials_removed;
       stats.bytes_freed += static_cast<int64_t>(size);
     }
+    fs::remove(lock_path, rec);
+    ::close(lock_fd);
   }
   return stats;
 }

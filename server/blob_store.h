@@ -8,9 +8,10 @@
 // server's collector timer, and DeleteVolume for the blobs it released) removes what nobody
 // holds: blobs past their grace that no volume uses, and partial uploads idle past their expiry.
 //
-// Thread-safety: a BlobStore may be used from many threads. Writing the same digest from two
-// writers at once is refused (ABORTED) by OpenWriter; Claim and Sweep exclude each other, so a
-// blob claimed before a sweep decides is kept.
+// Thread-safety: a BlobStore may be used from many threads, and a LocalBlobStore folder by many
+// processes (replicas on a shared volume). Writing the same digest from two writers at once is
+// refused (ABORTED) by OpenWriter, also when the other writer is in another process; Claim and
+// Sweep exclude each other within a process (claims are file times, seen by every replica).
 #pragma once
 
 #include <chrono>
@@ -84,7 +85,8 @@ class BlobStore {
                                const std::vector<std::string>* only = nullptr) = 0;
 };
 
-// Blobs under `root`: root/sha256/ab/abcdef... and partials under root/partial/.
+// Blobs under `root`: root/sha256/ab/abcdef... and partials under root/partial/; a writer
+// holds an flock on root/locks/<partial name>.lock.
 class LocalBlobStore : public BlobStore {
  public:
   // Creates the folders; `fsync` makes Commit() flush data before the rename (durable blobs).

@@ -568,7 +568,7 @@ void DicomReceiver::SendPendingResults() {
       for (const auto& a : job->artifacts()) {
         const std::string& n = a.file_name();
         if (n.size() > 4 && n.compare(n.size() - 4, 4, ".dcm") == 0) {
-          files.push_back(data_dir_->job_out(*id) / n);
+          files.push_back(data_dir_->ArtifactsDir(*id) / n);
         }
       }
       if (route == nullptr || !route->destination.configured()) {

@@ -58,6 +58,14 @@ void EventBus::Unsubscribe(const std::string& job_id, const std::shared_ptr<Chan
   }
 }
 
+std::vector<std::string> EventBus::ActiveJobs() {
+  std::lock_guard<std::mutex> lock(mu_);
+  std::vector<std::string> ids;
+  ids.reserve(channels_.size());
+  for (const auto& [id, ch] : channels_) ids.push_back(id);
+  return ids;
+}
+
 void EventBus::Close() {
   std::map<std::string, std::shared_ptr<Channel>> channels;
   {

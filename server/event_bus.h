@@ -50,6 +50,8 @@ class EventBus {
   // Drops the bus's reference when `channel` has no other subscriber. Always safe: a channel
   // is only a cache in front of the store.
   void Unsubscribe(const std::string& job_id, const std::shared_ptr<Channel>& channel);
+  // The jobs with a channel: watched here, or running with events not yet final.
+  std::vector<std::string> ActiveJobs();
   // Wakes every waiter with kClosed (server shutdown).
   void Close();
 

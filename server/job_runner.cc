@@ -65,10 +65,10 @@ struct JobRunner::ChildEnd {
 JobRunner::JobRunner(JobStore* store, JobRunnerOptions options)
     : store_(store), options_(std::move(options)) {}
 
-absl::StatusOr<JobRunner::Prepared> JobRunner::Prepare(const v1::Job& job) {
+absl::StatusOr<JobRunner::Prepared> JobRunner::Prepare(const v1::Job& job, int64_t epoch) {
   const std::string id = job.name().substr(5);
   const DataDir& dd = options_.data_dir;
-  if (auto st = dd.ResetJobOut(id); !st.ok()) return st;
+  if (auto st = dd.ResetJobOut(id, epoch); !st.ok()) return st;
   v1::Volume volume;
   auto resolve = [&](const std::string& name, const char* field) -> absl::StatusOr<fs::path> {
     auto vid = ParseName(name, "volumes", field);
@@ -108,12 +108,13 @@ absl::StatusOr<JobRunner::Prepared> JobRunner::Prepare(const v1::Job& job) {
     if (!label_map.ok()) return label_map.status();
     request.set_label_map(label_map->string());
   }
-  request.set_out_dir(dd.job_out(id).string());
+  request.set_out_dir(dd.job_out(id, epoch).string());
   if (options_.allow_faults) request.set_fault(dd.ReadJobFault(id));
-  if (auto st = dd.WriteFileAtomically(dd.job_request(id), request.SerializeAsString()); !st.ok()) {
+  if (auto st = dd.WriteFileAtomically(dd.job_request(id, epoch), request.SerializeAsString());
+      !st.ok()) {
     return st;
   }
-  prepared.request = dd.job_request(id);
+  prepared.request = dd.job_request(id, epoch);
   return prepared;
 }
 
@@ -168,7 +169,9 @@ JobRunner::ChildEnd JobRunner::Relay(ChildProcess& child, const Lease& lease, St
     if (MsSince(last_renew) >= options_.lease_ms / 3) {
       last_renew = Clock::now();
       absl::Status s = store_->RenewLease(lease, options_.lease_ms);
-      if (!s.ok()) {
+      // Only a refused lease is lost; a store that is unreachable for a while (a shared store
+      // reconnecting) is asked again at the next renewal, and the reaper decides if it lapsed.
+      if (absl::IsFailedPrecondition(s) || absl::IsNotFound(s)) {
         spdlog::warn("job {}: {}; stopping its worker", lease.job_id, s.ToString());
         end.lost_lease = true;
       }
@@ -199,20 +202,23 @@ void JobRunner::Fail(const Lease& lease, absl::StatusCode code, const std::strin
   }
   auto r = store_->Finish(lease, v1::FAILED, Outcome(code, shown));
   if (!r.ok()) spdlog::error("job {}: recording failure: {}", lease.job_id, r.status().ToString());
-  if (r.ok()) options_.data_dir.RemoveJobOut(lease.job_id);
+  if (r.ok()) options_.data_dir.RemoveJobOut(lease.job_id, lease.epoch);
   spdlog::info("job {} FAILED after {:.3f} s: {}", lease.job_id, seconds, message);
 }
 
 void JobRunner::RecordOutcome(const v1::Job& job, const Lease& lease, const ChildEnd& end,
                               const StopFlags& stop, double secs) {
   const std::string& id = lease.job_id;
-  if (end.lost_lease) return;  // another claim holds the job now
+  if (end.lost_lease) {  // another claim holds the job now; its folder is not ours to keep
+    options_.data_dir.RemoveAttempt(id, lease.epoch);
+    return;
+  }
   if (stop.cancel) {
     auto r = store_->Finish(lease, v1::CANCELLED,
                             Outcome(absl::StatusCode::kCancelled,
                                     absl::StrCat("cancelled by request during ", end.stage)));
     if (!r.ok()) spdlog::error("job {}: recording cancel: {}", id, r.status().ToString());
-    if (r.ok()) options_.data_dir.RemoveJobOut(id);
+    if (r.ok()) options_.data_dir.RemoveJobOut(id, lease.epoch);
     spdlog::info("job {} CANCELLED after {:.3f} s in stage {}", id, secs, end.stage);
     return;
   }
@@ -227,7 +233,7 @@ void JobRunner::RecordOutcome(const v1::Job& job, const Lease& lease, const Chil
   if (end.final && end.final->has_result() && exited && code == kWorkerExitOk) {
     v1::Job outcome;
     std::error_code ec;
-    const fs::path out_dir = fs::weakly_canonical(options_.data_dir.job_out(id), ec);
+    const fs::path out_dir = fs::weakly_canonical(options_.data_dir.job_out(id, lease.epoch), ec);
     for (const auto& a : end.final->result().artifacts()) {
       const std::string& name = a.name();
       const fs::path path = fs::weakly_canonical(fs::path(a.path()), ec);
@@ -263,7 +269,7 @@ void JobRunner::RecordOutcome(const v1::Job& job, const Lease& lease, const Chil
     absl::StrAppend(&why, ", e.g. out of memory");
   absl::StrAppend(&why, " during stage ", end.stage);
   if (!end.protocol.ok()) absl::StrAppend(&why, " (", end.protocol.message(), ")");
-  const std::string tail = LogTail(options_.data_dir.job_log(id));
+  const std::string tail = LogTail(options_.data_dir.job_log(id, lease.epoch));
   if (!tail.empty()) absl::StrAppend(&why, "; last log line: ", tail);
   Fail(lease, absl::StatusCode::kInternal, why, secs);
 }
@@ -279,13 +285,13 @@ void JobRunner::Run(const Claim& claim, StopFlags& stop) {
                lease.epoch, queued_s);
   auto secs = [&] { return MsSince(t0) / 1000.0; };
 
-  auto request = Prepare(job);
+  auto request = Prepare(job, lease.epoch);
   if (!request.ok()) {
     return Fail(lease, request.status().code(), std::string(request.status().message()), secs());
   }
   ChildOptions co;
   co.argv = {options_.worker_exe.string(), "--run-job", request->request.string()};
-  co.log = options_.data_dir.job_log(lease.job_id);
+  co.log = options_.data_dir.job_log(lease.job_id, lease.epoch);
   co.protocol_fd = kWorkerFd;
   co.memory_mb = request->memory_limit_bytes >> 20;
   auto child = ChildProcess::Spawn(co);

@@ -1,7 +1,8 @@
 // Runs one claimed job to its recorded outcome, in four steps:
-//   Prepare  a fresh jobs/<id>/out/, the volumes resolved to files, jobs/<id>/request.pb;
-//   Spawn    the child `decima-server --run-job jobs/<id>/request.pb` (child_process.h);
-//   Relay    its length-delimited messages (worker_protocol.h) into the store as progress
+//   Prepare  a fresh jobs/<id>/attempts/<epoch>/out/, the volumes resolved to files,
+//   jobs/<id>/request.pb; Spawn    the child `decima-server --run-job jobs/<id>/request.pb`
+//   (child_process.h); Relay    its length-delimited messages (worker_protocol.h) into the store as
+//   progress
 //            events, renewing the lease every third of it and polling the store for a cancel
 //            that arrived through another replica; a stop request terminates the child;
 //   Outcome  SUCCEEDED (artifacts checked to be plain files in out/ and hashed), FAILED (the
@@ -54,7 +55,7 @@ class JobRunner {
     std::filesystem::path request;
     int64_t memory_limit_bytes = 0;  // 0: none
   };
-  absl::StatusOr<Prepared> Prepare(const v1::Job& job);
+  absl::StatusOr<Prepared> Prepare(const v1::Job& job, int64_t epoch);
   ChildEnd Relay(class ChildProcess& child, const Lease& lease, StopFlags& stop);
   void RecordOutcome(const v1::Job& job, const Lease& lease, const ChildEnd& end,
                      const StopFlags& stop, double seconds);

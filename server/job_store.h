@@ -15,6 +15,7 @@
 // Thread-safety: all methods may be called from any thread.
 #pragma once
 
+#include <chrono>
 #include <cstdint>
 #include <functional>
 #include <memory>
@@ -91,8 +92,13 @@ class JobStore {
  public:
   virtual ~JobStore() = default;
 
-  // Called after every committed event. Set once, before serving.
+  // Called after every committed event. Set once, before serving. A shared store calls it for
+  // the events of every replica, from its own thread.
   virtual void SetListener(EventListener listener) = 0;
+  // The jobs watched in this process (EventBus::ActiveJobs). A shared store whose event feed
+  // was interrupted re-reads their events from the store when it is back. Set once, before
+  // serving; an embedded store never loses its feed and ignores it.
+  virtual void SetWatchedJobs(std::function<std::vector<std::string>()> watched) { (void)watched; }
 
   // Queues a job with `id`. With a non-empty `request_id` already used, returns the job created
   // then and `*created` = false. RESOURCE_EXHAUSTED when `max_queued` jobs are already queued.
@@ -173,6 +179,19 @@ class JobStore {
 
 // The embedded store: one SQLite database file in WAL mode.
 absl::StatusOr<std::unique_ptr<JobStore>> OpenSqliteJobStore(const std::string& path);
+
+struct PostgresStoreOptions {
+  int connections = 8;  // pooled connections; the event feed uses one more
+  std::string application_name = "decima-server";  // pg_stat_activity shows it
+  // How long a call waits for a lost PostgreSQL to come back before failing UNAVAILABLE.
+  std::chrono::milliseconds reconnect_timeout{30000};
+};
+
+// The shared store: PostgreSQL at `dsn` (a libpq URI or key=value string). Applies the schema
+// migrations (under an advisory lock, so replicas may start together) and starts the LISTEN
+// thread of the event feed.
+absl::StatusOr<std::unique_ptr<JobStore>> OpenPostgresJobStore(const std::string& dsn,
+                                                               const PostgresStoreOptions& options);
 
 // "jobs/{id}" -> id, INVALID_ARGUMENT naming `field` otherwise. Same for volumes and blobs.
 absl::StatusOr<std::string> ParseName(const std::string& name, const std::string& collection,

@@ -1,6 +1,8 @@
 // decima-server: the gRPC service. Flags (each also an environment variable):
 //   --listen ADDR         DECIMA_LISTEN          default 127.0.0.1:50051
 //   --data-dir DIR        DECIMA_DATA_DIR        default $XDG_DATA_HOME/decima or ./decima-data
+//   --store S             DECIMA_STORE           sqlite (default) or postgresql://...
+//   --store-file F        DECIMA_STORE_FILE      the --store value read from a file (a Secret)
 //   --workers N           DECIMA_WORKERS         default 1
 //   --max-queued N        DECIMA_MAX_QUEUED      default 1000
 //   --max-upload-mb N     DECIMA_MAX_UPLOAD_MB   default 2048
@@ -17,12 +19,14 @@
 #include <grpcpp/health_check_service_interface.h>
 #include <CLI/CLI.hpp>
 #include <algorithm>
+#include <atomic>
 #include <cstdlib>
 #include <fstream>
 #include <sstream>
 #include <thread>
 
 #include "absl/strings/ascii.h"
+#include "absl/strings/match.h"
 #include "absl/strings/numbers.h"
 #include "absl/strings/str_cat.h"
 #include "server/dicom_receiver.h"
@@ -68,7 +72,8 @@ int main(int argc, char** argv) {
   app.set_version_flag("--version", std::string("decima-server ") + DECIMA_VERSION);
   std::string listen = "127.0.0.1:50051", data_dir = DefaultDataDir(), token_file, tls_cert,
               tls_key, port_file;
-  int workers = 1, max_queued = 1000, max_attempts = 3;
+  std::string store_spec = "sqlite", store_file;
+  int workers = 1, max_queued = 1000, max_attempts = 3, store_connections = 8;
   int64_t max_upload_mb = 2048, worker_memory_mb = 0;
   int64_t disk_reserve_mb = 64;
   double drain_seconds = 30, heartbeat_seconds = 5, lease_seconds = 15;
@@ -79,6 +84,23 @@ int main(int argc, char** argv) {
       ->capture_default_str();
   app.add_option("--data-dir", data_dir, "folder of the job store, blobs and artifacts")
       ->envname("DECIMA_DATA_DIR")
+      ->capture_default_str();
+  auto* store_opt =
+      app.add_option("--store", store_spec,
+                     "job store: 'sqlite' (embedded, in --data-dir) or a PostgreSQL URI "
+                     "postgresql://user@host:port/db shared by replicas (which then share "
+                     "--data-dir)")
+          ->envname("DECIMA_STORE")
+          ->capture_default_str();
+  app.add_option("--store-file", store_file,
+                 "file holding the --store value (e.g. a mounted Kubernetes Secret)")
+      ->envname("DECIMA_STORE_FILE")
+      ->check(CLI::ExistingFile)
+      ->excludes(store_opt);
+  app.add_option("--store-connections", store_connections,
+                 "PostgreSQL connections in the pool (one more listens for events)")
+      ->envname("DECIMA_STORE_CONNECTIONS")
+      ->check(CLI::Range(1, 64))
       ->capture_default_str();
   app.add_option("--workers", workers, "jobs run at once (one child process each)")
       ->envname("DECIMA_WORKERS")
@@ -221,13 +243,33 @@ int main(int argc, char** argv) {
     return 1;
   }
   fs::path data = fs::absolute(data_dir);
-  // One server per data dir: the embedded store is not shared. The kernel drops the lock when
-  // the process dies, so after a crash every RUNNING job's owner is known to be gone.
-  int lock_fd = ::open((data / "LOCK").c_str(), O_RDWR | O_CREAT | O_CLOEXEC, 0644);
-  if (lock_fd < 0 || ::flock(lock_fd, LOCK_EX | LOCK_NB) != 0) {
-    spdlog::error("--data-dir {}: used by another decima-server (LOCK is held)", data.string());
+  if (!store_file.empty()) {
+    auto s = ReadFileText(store_file, "--store-file");
+    if (!s.ok()) {
+      spdlog::error("{}", std::string(s.status().message()));
+      return 1;
+    }
+    store_spec = std::string(absl::StripAsciiWhitespace(*s));
+  }
+  const bool postgres =
+      absl::StartsWith(store_spec, "postgresql://") || absl::StartsWith(store_spec, "postgres://");
+  if (!postgres && store_spec != "sqlite") {
+    spdlog::error(
+        "--store: expected 'sqlite' or a PostgreSQL URI 'postgresql://user@host:port/db', got "
+        "'{}'",
+        store_spec.substr(0, store_spec.find(':')));  // never log a password
     return 1;
   }
+  // SQLite: one server per data dir (exclusive lock); the kernel drops it when the process
+  // dies, so after a crash every RUNNING job's owner is known to be gone. PostgreSQL: replicas
+  // share the data dir (shared lock), which keeps an embedded server out of it.
+  int lock_fd = ::open((data / "LOCK").c_str(), O_RDWR | O_CREAT | O_CLOEXEC, 0644);
+  if (lock_fd < 0 || ::flock(lock_fd, (postgres ? LOCK_SH : LOCK_EX) | LOCK_NB) != 0) {
+    spdlog::error("--data-dir {}: used by {} (LOCK is held)", data.string(),
+                  postgres ? "a decima-server with the embedded store" : "another decima-server");
+    return 1;
+  }
+  const std::string owner = absl::StrCat("pid", ::getpid(), "-", NewId());
 
   std::string token;
   if (!token_file.empty()) {
@@ -243,7 +285,15 @@ int main(int argc, char** argv) {
     }
   }
 
-  auto store = OpenSqliteJobStore((data / "jobs.sqlite").string());
+  absl::StatusOr<std::unique_ptr<JobStore>> store;
+  if (postgres) {
+    PostgresStoreOptions po;
+    po.connections = store_connections;
+    po.application_name = absl::StrCat("decima-server ", owner);
+    store = OpenPostgresJobStore(store_spec, po);
+  } else {
+    store = OpenSqliteJobStore(DataDir(data).job_store().string());
+  }
   if (!store.ok()) {
     spdlog::error("{}", store.status().ToString());
     return 1;
@@ -254,8 +304,17 @@ int main(int argc, char** argv) {
     return 1;
   }
   EventBus bus;
-  (*store)->SetListener(
-      [&bus](const std::string& id, const decima::v1::JobEvent& ev) { bus.Publish(id, ev); });
+  // A job queued anywhere (another replica's CreateJob, Retry or reaper) wakes an idle worker
+  // here at once instead of at its next 1 s poll. The pool is made below; the listener may
+  // already run on the store's event thread.
+  std::atomic<WorkerPool*> wake_pool{nullptr};
+  (*store)->SetListener([&bus, &wake_pool](const std::string& id, const decima::v1::JobEvent& ev) {
+    bus.Publish(id, ev);
+    if (ev.has_state_change() && ev.state_change().state() == decima::v1::QUEUED) {
+      if (WorkerPool* p = wake_pool.load()) p->Notify();
+    }
+  });
+  (*store)->SetWatchedJobs([&bus] { return bus.ActiveJobs(); });
 
   // Only an exclusive store (ours, under LOCK) knows its RUNNING jobs are orphans; a shared store
   // leaves them to the lease reaper, since other replicas may be running them.
@@ -275,13 +334,14 @@ int main(int argc, char** argv) {
 
   WorkerPoolOptions wo;
   wo.workers = workers;
-  wo.owner = absl::StrCat("pid", ::getpid(), "-", NewId());
+  wo.owner = owner;
   wo.runner.data_dir = DataDir(data);
   wo.runner.worker_exe = fs::read_symlink("/proc/self/exe", ec);
   wo.runner.lease_ms = static_cast<int64_t>(lease_seconds * 1000);
   wo.runner.worker_memory_mb = worker_memory_mb;
   wo.runner.allow_faults = allow_faults;
   WorkerPool pool(store->get(), wo);
+  wake_pool = &pool;
 
   ServiceOptions so;
   so.data_dir = DataDir(data);
@@ -351,9 +411,9 @@ int main(int argc, char** argv) {
       return 1;
     }
   }
-  spdlog::info("decima-server listening on {} (port {}), data {}, {} worker(s){}{}", listen, port,
-               data.string(), workers, token.empty() ? "" : ", token required",
-               tls_cert.empty() ? "" : ", TLS");
+  spdlog::info("decima-server {} listening on {} (port {}), data {}, store {}, {} worker(s){}{}",
+               owner, listen, port, data.string(), postgres ? "postgresql" : "sqlite", workers,
+               token.empty() ? "" : ", token required", tls_cert.empty() ? "" : ", TLS");
   if (!port_file.empty()) {
     std::string tmp = port_file + ".tmp";
     std::ofstream(tmp) << port << "\n";
@@ -361,8 +421,9 @@ int main(int argc, char** argv) {
   }
 
   // Lease expiry on its own timer: lapsed leases (a worker lost in another replica, a stuck
-  // store) go back to the queue twice per lease period.
-  LeaseReaper reaper(store->get(), std::chrono::milliseconds(wo.runner.lease_ms / 2), max_attempts,
+  // store) go back to the queue eight times per lease period, so a lost job runs again within
+  // lease + lease/8 of its holder's last renewal (one indexed query per sweep).
+  LeaseReaper reaper(store->get(), std::chrono::milliseconds(wo.runner.lease_ms / 8), max_attempts,
                      [&pool] { pool.Notify(); });
   reaper.Start();
 
@@ -376,10 +437,13 @@ int main(int argc, char** argv) {
   if (receiver) receiver->Stop();  // no new series while draining
   server->GetHealthCheckService()->SetServingStatus(false);
   bus.Close();
+  wake_pool = nullptr;
   pool.Drain(std::chrono::milliseconds(static_cast<int64_t>(drain_seconds * 1000)));
   reaper.Stop();
   collector.Stop();
   server->Shutdown(std::chrono::system_clock::now() + std::chrono::seconds(2));
+  // The store's event thread publishes to the bus: stop it while the bus exists.
+  store->reset();
   spdlog::info("decima-server stopped");
   return 0;
 }

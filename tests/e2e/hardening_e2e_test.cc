@@ -388,7 +388,8 @@ TEST_F(HardeningE2E, LeftoversOfRefusedCancelledAndFailedWork) {
   EXPECT_EQ(ListVolumes(server.address()).size(), volumes_before);
   // Cancel the running job: its output folder goes.
   ASSERT_TRUE(WaitFor([&] { return GetJob(server.address(), busy).state() == v1::RUNNING; }, 30s));
-  const fs::path out = server.data_dir() / "jobs" / busy.substr(5) / "out";
+  // Its first claim (lease epoch 1) writes under attempts/1/ (data_dir.h).
+  const fs::path out = server.data_dir() / "jobs" / busy.substr(5) / "attempts" / "1" / "out";
   ASSERT_TRUE(fs::exists(out));
   r = RunCli(server.address(), {"cancel", busy});
   ASSERT_EQ(r.rc, 0) << r.err;

@@ -451,7 +451,11 @@ def main():
         figures["dciodvfy_seg_warnings"] = sum(1 for l in report.splitlines()
                                                if l.startswith("Warning"))
         job_id = job_name.split("/")[1]
-        labels = read_nifti(os.path.join(b.data, "jobs", job_id, "out", "labels.nii.gz"))
+        # The job's own label map, fetched as any client would (not read from the data dir).
+        fetched = os.path.join(tmp, "fetched")
+        r = b.cli("fetch", job_id, "--out", fetched, "--only", "labels.nii.gz")
+        check(r.returncode == 0, f"decima fetch labels.nii.gz: {r.stderr}")
+        labels = read_nifti(os.path.join(fetched, "labels.nii.gz"))
         dice, segments, frames = seg_dice(seg_path, small_files, labels)
         check(all(v == 1.0 for v in dice.values()), f"Dice {dice}")
         figures["seg_dice"] = dice

@@ -65,6 +65,9 @@ const std::pair<const char*, const char*> kNotRunHere[] = {
     {"build/tests/bench/decima-bench",
      "is a benchmark: it repeats each stage 3 times on the CT head"},
     {"build/tests/bench/decima-compare", "runs VTK's decimation in python: minutes per row"},
+    {"decima-server --listen 0.0.0.0:50051 --data-dir /mnt/shared/decima",
+     "needs a PostgreSQL database and a shared folder (scale_e2e_test runs three replicas on a "
+     "real PostgreSQL)"},
 };
 
 TEST(ReadmeCommands, EveryCommandLineRunsOrSaysWhyNot) {

@@ -86,6 +86,31 @@ TEST_F(BlobStoreTest, SecondConcurrentWriterIsAborted) {
   EXPECT_TRUE(store_->OpenWriter(sha, 3, 0).ok());
 }
 
+// Replicas share one blob folder: a writer in another process (here another store on the same
+// folder, a separate open file description) holds the upload's flock; the writer it refused
+// can resume once the first is gone, at the prefix the first left.
+TEST(SharedBlobFolderTest, AWriterOfAnotherStoreOnTheFolderIsAbortedThenResumes) {
+  const auto root = testing::MakeScratchDir("shared_blobs");
+  auto a = LocalBlobStore::Open(root, false);
+  auto b = LocalBlobStore::Open(root, false);
+  ASSERT_TRUE(a.ok() && b.ok());
+  const std::string data(1000, 'q');
+  const std::string sha = Sha(data);
+  auto wa = (*a)->OpenWriter(sha, 1000, 0);
+  ASSERT_TRUE(wa.ok()) << wa.status();
+  ASSERT_TRUE((*wa)->Append(data.data(), 400).ok());
+  auto wb = (*b)->OpenWriter(sha, 1000, 400);
+  EXPECT_EQ(wb.status().code(), absl::StatusCode::kAborted) << wb.status();
+  EXPECT_NE(std::string(wb.status().message()).find("another upload"), std::string::npos);
+  wa->reset();  // A's stream ends: its prefix stays
+  EXPECT_EQ((*b)->Status(sha, 1000).committed_size, 400);
+  wb = (*b)->OpenWriter(sha, 1000, 400);
+  ASSERT_TRUE(wb.ok()) << wb.status();
+  ASSERT_TRUE((*wb)->Append(data.data() + 400, 600).ok());
+  ASSERT_TRUE((*wb)->Commit().ok());
+  EXPECT_TRUE((*a)->Has(sha));
+}
+
 TEST_F(BlobStoreTest, BadDigestIsRejected) {
   EXPECT_EQ(store_->OpenWriter("../../etc/passwd", 3, 0).status().code(),
             absl::StatusCode::kInvalidArgument);

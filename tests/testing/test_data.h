@@ -11,8 +11,10 @@ namespace decima::testing {
 // configured at build time), or nullopt if that file does not exist.
 std::optional<std::filesystem::path> SharedDataFile(const std::string& name);
 
-// A fresh empty directory under the test temp dir, unique per call; removed by the OS, not us,
-// so a failing test leaves its files to look at.
+// A fresh empty directory under the test temp dir, unique per call. Every scratch directory of
+// the process is removed when it exits after all its tests passed (a CI machine runs thousands
+// of tests, some writing hundreds of MB each); a failing run leaves them to look at, and so does
+// DECIMA_KEEP_SCRATCH=1.
 std::filesystem::path MakeScratchDir(const std::string& tag);
 
 }  // namespace decima::testing

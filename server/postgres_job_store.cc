@@ -1,0 +1,959 @@
+// The shared JobStore: PostgreSQL through libpqxx, for several decima-server replicas. The only
+// file that includes libpqxx. Same design as the SQLite store: a few indexed columns (state,
+// lease, request id) beside the serialized decima.v1.Job, which is the truth for everything
+// else (fields added to Job travel without a migration); events are rows keyed by (job, seq).
+//
+// Across replicas:
+//  - ClaimNext takes the oldest QUEUED row with FOR UPDATE SKIP LOCKED, so concurrent claimers
+//    never wait on, nor share, a row; the claim increments lease_epoch (the fencing token).
+//  - Lease expiry uses the database clock (clock_timestamp()), so replica clocks may differ.
+//  - Every transaction that writes events ends with pg_notify('decima_events', 'job_id:seq')
+//    (delivered on commit, payload far below the 8000-byte limit). One thread per store LISTENs
+//    on its own connection, reads the event rows above what it delivered and hands them to the
+//    listener in order; the rows stay the truth. After a lost connection it reconnects,
+//    LISTENs again and re-reads every job it follows or that is watched here.
+//  - The schema is a list of numbered migrations applied under an advisory lock.
+//  - A lost connection is retried (new connection, same transaction body) until
+//    `reconnect_timeout`; a commit whose outcome is unknown is UNAVAILABLE.
+#include <pqxx/pqxx>
+
+#include <algorithm>
+#include <atomic>
+#include <chrono>
+#include <condition_variable>
+#include <deque>
+#include <map>
+#include <mutex>
+#include <set>
+#include <thread>
+#include <tuple>
+#include <utility>
+
+#include "absl/strings/numbers.h"
+#include "absl/strings/str_cat.h"
+#include "absl/strings/str_join.h"
+#include "server/job_store.h"
+#include "spdlog/spdlog.h"
+
+namespace decima::server {
+namespace {
+
+constexpr char kChannel[] = "decima_events";
+// pg_advisory_xact_lock key of schema migrations ("decima" in ASCII).
+constexpr int64_t kMigrationLockKey = 0x646563696d61;
+
+// The schema, one entry per version; never edit an applied entry, append a new one.
+const char* const kMigrations[] = {
+    // 1: jobs, events, volumes.
+    R"sql(
+      CREATE TABLE jobs(
+        ord BIGSERIAL PRIMARY KEY,
+        id TEXT UNIQUE NOT NULL,
+        request_id TEXT UNIQUE,
+        state INTEGER NOT NULL,
+        lease_owner TEXT,
+        lease_expiry TIMESTAMPTZ,
+        lease_epoch BIGINT NOT NULL DEFAULT 0,
+        cancel_requested BOOLEAN NOT NULL DEFAULT FALSE,
+        volume TEXT NOT NULL,
+        job BYTEA NOT NULL);
+      CREATE INDEX jobs_by_state ON jobs(state, ord);
+      CREATE INDEX jobs_running_by_expiry ON jobs(lease_expiry) WHERE state = 2;
+      CREATE TABLE events(
+        job_id TEXT NOT NULL, seq BIGINT NOT NULL, event BYTEA NOT NULL,
+        PRIMARY KEY(job_id, seq));
+      CREATE TABLE volumes(
+        ord BIGSERIAL PRIMARY KEY,
+        id TEXT UNIQUE NOT NULL,
+        request_id TEXT UNIQUE,
+        volume BYTEA NOT NULL);
+      CREATE TABLE volume_blobs(
+        volume_id TEXT NOT NULL, sha256 TEXT NOT NULL,
+        PRIMARY KEY(volume_id, sha256));
+      CREATE INDEX volume_blobs_by_sha ON volume_blobs(sha256);
+    )sql",
+};
+static_assert(v1::RUNNING == 2, "migration 1's partial index names RUNNING as 2");
+
+std::string EncodeToken(int64_t ord) { return absl::StrCat("o", ord); }
+
+absl::StatusOr<int64_t> DecodeToken(const std::string& token) {
+  if (token.empty()) return INT64_MAX;
+  int64_t v = 0;
+  if (token.size() < 2 || token[0] != 'o' || !absl::SimpleAtoi(token.substr(1), &v) || v < 0) {
+    return absl::InvalidArgumentError(
+        absl::StrCat("page_token '", token, "' is not a token this server returned"));
+  }
+  return v;
+}
+
+int ClampPageSize(int page_size) {
+  if (page_size <= 0) return 50;
+  return page_size > 1000 ? 1000 : page_size;
+}
+
+pqxx::binarystring Bytes(const google::protobuf::MessageLite& m) {
+  return pqxx::binarystring(m.SerializeAsString());
+}
+
+std::string FieldBytes(const pqxx::field& f) { return pqxx::binarystring(f).str(); }
+
+absl::StatusOr<v1::Job> ParseJob(const pqxx::field& f) {
+  v1::Job job;
+  if (!job.ParseFromString(FieldBytes(f))) return absl::DataLossError("job store: bad job row");
+  return job;
+}
+
+absl::StatusOr<v1::Volume> ParseVolume(const pqxx::field& f) {
+  v1::Volume v;
+  if (!v.ParseFromString(FieldBytes(f))) return absl::DataLossError("job store: bad volume row");
+  return v;
+}
+
+// "{a,b}" for ids made of [0-9a-z-] (ParseName guarantees it) and numbers.
+std::string TextArray(const std::vector<std::string>& items) {
+  return absl::StrCat("{", absl::StrJoin(items, ","), "}");
+}
+
+// A few connections shared by the store's callers; connections are made on demand and a broken
+// one is dropped (the next caller makes a new one).
+class ConnectionPool {
+ public:
+  ConnectionPool(std::string dsn, std::string app, int max)
+      : dsn_(std::move(dsn)), app_(app), max_(max) {}
+
+  // Blocks while all `max` connections are in use. Throws pqxx::broken_connection when the
+  // server cannot be reached.
+  std::unique_ptr<pqxx::connection> Acquire() {
+    {
+      std::unique_lock<std::mutex> lock(mu_);
+      cv_.wait(lock, [&] { return !idle_.empty() || open_ < max_; });
+      if (!idle_.empty()) {
+        auto c = std::move(idle_.back());
+        idle_.pop_back();
+        return c;
+      }
+      ++open_;
+    }
+    try {
+      return Connect(dsn_, app_);
+    } catch (...) {
+      std::lock_guard<std::mutex> lock(mu_);
+      --open_;
+      cv_.notify_one();
+      throw;
+    }
+  }
+
+  void Release(std::unique_ptr<pqxx::connection> c, bool broken) {
+    std::lock_guard<std::mutex> lock(mu_);
+    if (broken || !c->is_open()) {
+      --open_;
+      c.reset();
+    } else {
+      idle_.push_back(std::move(c));
+    }
+    cv_.notify_one();
+  }
+
+  static std::unique_ptr<pqxx::connection> Connect(const std::string& dsn, const std::string& app) {
+    // libpqxx 6.4 races with itself when connections are set up on several threads at once
+    // (ThreadSanitizer: shared state written in its connection start-up); setting up is rare.
+    static std::mutex setup_mu;
+    std::lock_guard<std::mutex> setup_lock(setup_mu);
+    auto c = std::make_unique<pqxx::connection>(dsn);
+    // A connection libpqxx silently re-opened would have lost its LISTEN and its session state:
+    // we replace broken connections ourselves.
+#pragma GCC diagnostic push
+#pragma GCC diagnostic ignored "-Wdeprecated-declarations"
+    c->inhibit_reactivation(true);
+#pragma GCC diagnostic pop
+    pqxx::nontransaction n(*c);
+    n.exec("SET application_name = " + n.quote(app));
+    return c;
+  }
+
+ private:
+  const std::string dsn_, app_;
+  const int max_;
+  std::mutex mu_;
+  std::condition_variable cv_;
+  std::vector<std::unique_ptr<pqxx::connection>> idle_;
+  int open_ = 0;
+};
+
+// Events written by one transaction: NOTIFY once per job with its newest sequence.
+struct TxEvents {
+  std::vector<std::pair<std::string, v1::JobEvent>> events;
+
+  void Add(v1::Job& job, v1::JobEvent ev) {
+    job.set_last_sequence(job.last_sequence() + 1);
+    ev.set_sequence(job.last_sequence());
+    *ev.mutable_time() = NowTimestamp();
+    events.emplace_back(job.name().substr(5), std::move(ev));
+  }
+  void AddState(v1::Job& job, v1::JobState state, const v1::JobError* error) {
+    v1::JobEvent ev;
+    ev.mutable_state_change()->set_state(state);
+    if (error != nullptr) *ev.mutable_state_change()->mutable_error() = *error;
+    Add(job, std::move(ev));
+  }
+  // Inserts the rows and queues the notifications (sent by PostgreSQL at commit).
+  void Save(pqxx::work& w) {
+    std::map<std::string, int64_t> newest;
+    for (const auto& [id, ev] : events) {
+      w.exec_params("INSERT INTO events(job_id, seq, event) VALUES($1,$2,$3)", id, ev.sequence(),
+                    Bytes(ev));
+      newest[id] = std::max(newest[id], ev.sequence());
+    }
+    for (const auto& [id, seq] : newest) {
+      w.exec_params("SELECT pg_notify($1, $2)", kChannel, absl::StrCat(id, ":", seq));
+    }
+    events.clear();
+  }
+};
+
+class PostgresJobStore : public JobStore {
+ public:
+  PostgresJobStore(std::string dsn, PostgresStoreOptions options)
+      : dsn_(std::move(dsn)),
+        options_(std::move(options)),
+        pool_(dsn_, options_.application_name, std::max(1, options_.connections)) {}
+
+  ~PostgresJobStore() override {
+    stop_ = true;
+    if (listen_thread_.joinable()) listen_thread_.join();
+  }
+
+  absl::Status Migrate() {
+    return Run<absl::Status>("applying schema migrations", [&](pqxx::work& w) -> absl::Status {
+      // Replicas starting together queue here; the first applies, the others find it done.
+      w.exec_params("SELECT pg_advisory_xact_lock($1)", kMigrationLockKey);
+      w.exec(
+          "CREATE TABLE IF NOT EXISTS decima_schema_migrations("
+          "version INTEGER PRIMARY KEY, applied_at TIMESTAMPTZ NOT NULL DEFAULT now())");
+      const int known = static_cast<int>(std::size(kMigrations));
+      const int have =
+          w.exec("SELECT COALESCE(MAX(version), 0) FROM decima_schema_migrations")[0][0].as<int>();
+      if (have > known) {
+        return absl::FailedPreconditionError(absl::StrCat("the database's schema is version ", have,
+                                                          ", newer than this server's (", known,
+                                                          "); run a newer decima-server"));
+      }
+      for (int v = have + 1; v <= known; ++v) {
+        w.exec(kMigrations[v - 1]);
+        w.exec_params("INSERT INTO decima_schema_migrations(version) VALUES($1)", v);
+        spdlog::info("job store: applied schema migration {}", v);
+      }
+      return absl::OkStatus();
+    });
+  }
+
+  // Starts the event feed and waits until its LISTEN is in effect (events committed before
+  // that are in the store, read by watchers through ListEvents).
+  absl::Status StartListening() {
+    listen_thread_ = std::thread([this] { ListenLoop(); });
+    std::unique_lock<std::mutex> lock(listening_mu_);
+    if (!listening_cv_.wait_for(lock, options_.reconnect_timeout, [&] { return listening_; })) {
+      return absl::UnavailableError("job store: the event feed could not LISTEN");
+    }
+    return absl::OkStatus();
+  }
+
+  bool exclusive() const override { return false; }
+
+  void SetListener(EventListener listener) override {
+    std::lock_guard<std::mutex> lock(listener_mu_);
+    listener_ = std::move(listener);
+  }
+  void SetWatchedJobs(std::function<std::vector<std::string>()> watched) override {
+    std::lock_guard<std::mutex> lock(listener_mu_);
+    watched_ = std::move(watched);
+  }
+
+  absl::StatusOr<v1::Job> CreateJob(const std::string& id, const v1::JobSpec& spec,
+                                    const std::string& request_id, int max_queued,
+                                    bool* created) override {
+    *created = false;
+    auto existing = [&](pqxx::work& w) -> std::optional<absl::StatusOr<v1::Job>> {
+      if (request_id.empty()) return std::nullopt;
+      auto r = w.exec_params("SELECT job FROM jobs WHERE request_id=$1", request_id);
+      if (r.empty()) return std::nullopt;
+      return ParseJob(r[0][0]);
+    };
+    bool made = false;
+    auto out = Run<
+        absl::StatusOr<v1::Job>>("creating a job", [&](pqxx::work& w) -> absl::StatusOr<v1::Job> {
+      made = false;
+      if (auto e = existing(w)) return *e;
+      const int64_t queued =
+          w.exec_params("SELECT COUNT(*) FROM jobs WHERE state=$1", int{v1::QUEUED})[0][0]
+              .as<int64_t>();
+      if (max_queued > 0 && queued >= max_queued) {
+        return absl::ResourceExhaustedError(absl::StrCat("the queue is full (", queued,
+                                                         " jobs queued, --max-queued ", max_queued,
+                                                         "); retry later"));
+      }
+      v1::Job job;
+      job.set_name(absl::StrCat("jobs/", id));
+      *job.mutable_spec() = spec;
+      job.set_state(v1::QUEUED);
+      job.set_request_id(request_id);
+      *job.mutable_create_time() = NowTimestamp();
+      TxEvents tx;
+      tx.AddState(job, v1::QUEUED, nullptr);
+      // Two replicas inserting one request_id at once: the second waits for the first to
+      // commit, inserts nothing and returns the first's job below.
+      auto ins = w.exec_params(
+          "INSERT INTO jobs(id, request_id, state, volume, job) VALUES($1,NULLIF($2,''),$3,$4,$5) "
+          "ON CONFLICT (request_id) DO NOTHING RETURNING ord",
+          id, request_id, int{v1::QUEUED}, spec.volume(), Bytes(job));
+      if (ins.empty()) {
+        if (auto e = existing(w)) return *e;
+        return absl::AbortedError("job store: request_id conflict without a row; retry");
+      }
+      tx.Save(w);
+      made = true;
+      return job;
+    });
+    *created = out.ok() && made;
+    return out;
+  }
+
+  absl::StatusOr<v1::Job> GetJob(const std::string& id) override {
+    return Run<absl::StatusOr<v1::Job>>("reading a job",
+                                        [&](pqxx::work& w) { return LoadJob(w, id, false); });
+  }
+
+  absl::StatusOr<JobPage> ListJobs(const std::vector<v1::JobState>& states, int page_size,
+                                   const std::string& page_token) override {
+    auto before = DecodeToken(page_token);
+    if (!before.ok()) return before.status();
+    const int limit = ClampPageSize(page_size);
+    std::vector<std::string> parts;
+    for (auto s : states) parts.push_back(absl::StrCat(static_cast<int>(s)));
+    return Run<absl::StatusOr<JobPage>>(
+        "listing jobs", [&](pqxx::work& w) -> absl::StatusOr<JobPage> {
+          auto r = w.exec_params(
+              "SELECT ord, job FROM jobs WHERE ord < $1 AND ($2 OR state = ANY($3::int[])) "
+              "ORDER BY ord DESC LIMIT $4",
+              *before, states.empty(), TextArray(parts), limit + 1);
+          JobPage page;
+          int64_t last_ord = 0;
+          for (const auto& row : r) {
+            if (static_cast<int>(page.jobs.size()) == limit) {
+              page.next_page_token = EncodeToken(last_ord);
+              break;
+            }
+            last_ord = row[0].as<int64_t>();
+            auto job = ParseJob(row[1]);
+            if (!job.ok()) return job.status();
+            page.jobs.push_back(std::move(*job));
+          }
+          return page;
+        });
+  }
+
+  absl::StatusOr<int64_t> CountJobs(v1::JobState state) override {
+    return Run<absl::StatusOr<int64_t>>(
+        "counting jobs", [&](pqxx::work& w) -> absl::StatusOr<int64_t> {
+          return w.exec_params("SELECT COUNT(*) FROM jobs WHERE state=$1", int{state})[0][0]
+              .as<int64_t>();
+        });
+  }
+
+  absl::StatusOr<std::optional<Claim>> ClaimNext(const std::string& owner,
+                                                 int64_t lease_ms) override {
+    using Out = absl::StatusOr<std::optional<Claim>>;
+    return Run<Out>("claiming a job", [&](pqxx::work& w) -> Out {
+      auto r = w.exec_params(
+          "SELECT job, lease_epoch FROM jobs WHERE state=$1 ORDER BY ord LIMIT 1 "
+          "FOR UPDATE SKIP LOCKED",
+          int{v1::QUEUED});
+      if (r.empty()) return std::optional<Claim>();
+      auto job = ParseJob(r[0][0]);
+      if (!job.ok()) return job.status();
+      Claim claim;
+      claim.lease = {job->name().substr(5), owner, r[0][1].as<int64_t>() + 1};
+      job->set_state(v1::RUNNING);
+      job->set_attempts(job->attempts() + 1);
+      *job->mutable_start_time() = NowTimestamp();
+      job->clear_end_time();
+      job->clear_error();
+      job->clear_progress();
+      TxEvents tx;
+      tx.AddState(*job, v1::RUNNING, nullptr);
+      w.exec_params(
+          "UPDATE jobs SET state=$1, lease_owner=$2, "
+          "lease_expiry=clock_timestamp() + $3 * interval '1 millisecond', lease_epoch=$4, "
+          "cancel_requested=FALSE, job=$5 WHERE id=$6",
+          int{v1::RUNNING}, owner, lease_ms, claim.lease.epoch, Bytes(*job), claim.lease.job_id);
+      tx.Save(w);
+      claim.job = std::move(*job);
+      return std::optional<Claim>(std::move(claim));
+    });
+  }
+
+  absl::Status RenewLease(const Lease& lease, int64_t lease_ms) override {
+    return Run<absl::Status>("renewing a lease", [&](pqxx::work& w) -> absl::Status {
+      auto r = w.exec_params(
+          "UPDATE jobs SET lease_expiry=clock_timestamp() + $1 * interval '1 millisecond' "
+          "WHERE id=$2 AND state=$3 AND lease_owner=$4 AND lease_epoch=$5",
+          lease_ms, lease.job_id, int{v1::RUNNING}, lease.owner, lease.epoch);
+      if (r.affected_rows() != 1) {
+        return absl::FailedPreconditionError(absl::StrCat("jobs/", lease.job_id,
+                                                          " is no longer leased to ", lease.owner,
+                                                          " epoch ", lease.epoch));
+      }
+      return absl::OkStatus();
+    });
+  }
+
+  absl::Status AppendProgress(const Lease& lease, const v1::Progress& progress) override {
+    return Run<absl::Status>("storing progress", [&](pqxx::work& w) -> absl::Status {
+      auto job = LoadHeld(w, lease);
+      if (!job.ok()) return job.status();
+      *job->mutable_progress() = progress;
+      TxEvents tx;
+      v1::JobEvent ev;
+      *ev.mutable_progress() = progress;
+      tx.Add(*job, std::move(ev));
+      w.exec_params("UPDATE jobs SET job=$1 WHERE id=$2", Bytes(*job), lease.job_id);
+      tx.Save(w);
+      return absl::OkStatus();
+    });
+  }
+
+  absl::StatusOr<v1::Job> Finish(const Lease& lease, v1::JobState state,
+                                 const v1::Job& outcome) override {
+    return Run<absl::StatusOr<v1::Job>>(
+        "finishing a job", [&](pqxx::work& w) -> absl::StatusOr<v1::Job> {
+          auto job = LoadHeld(w, lease);
+          if (!job.ok()) return job.status();
+          job->set_state(state);
+          *job->mutable_end_time() = NowTimestamp();
+          if (outcome.has_error()) *job->mutable_error() = outcome.error();
+          *job->mutable_artifacts() = outcome.artifacts();
+          job->set_metrics_json(outcome.metrics_json());
+          TxEvents tx;
+          tx.AddState(*job, state, outcome.has_error() ? &outcome.error() : nullptr);
+          SaveJob(w, *job, false);
+          tx.Save(w);
+          return *job;
+        });
+  }
+
+  absl::StatusOr<v1::Job> Requeue(const Lease& lease, const std::string& reason) override {
+    return Run<absl::StatusOr<v1::Job>>("requeueing a job",
+                                        [&](pqxx::work& w) -> absl::StatusOr<v1::Job> {
+                                          auto job = LoadHeld(w, lease);
+                                          if (!job.ok()) return job.status();
+                                          job->set_state(v1::QUEUED);
+                                          job->set_attempts(std::max(0, job->attempts() - 1));
+                                          job->mutable_progress()->set_message(reason);
+                                          TxEvents tx;
+                                          tx.AddState(*job, v1::QUEUED, nullptr);
+                                          SaveJob(w, *job, false);
+                                          tx.Save(w);
+                                          return *job;
+                                        });
+  }
+
+  absl::StatusOr<Recovered> RecoverLeases(bool all, int max_attempts) override {
+    return Run<absl::StatusOr<Recovered>>(
+        "recovering lapsed leases", [&](pqxx::work& w) -> absl::StatusOr<Recovered> {
+          // SKIP LOCKED: the reapers of several replicas split the lapsed jobs instead of queueing
+          // behind each other, and a job whose holder is finishing it right now is left alone.
+          auto r = w.exec_params(
+              "SELECT job, cancel_requested FROM jobs WHERE state=$1 AND "
+              "($2 OR lease_expiry < clock_timestamp()) FOR UPDATE SKIP LOCKED",
+              int{v1::RUNNING}, all);
+          Recovered out;
+          TxEvents tx;
+          for (const auto& row : r) {
+            auto parsed = ParseJob(row[0]);
+            if (!parsed.ok()) return parsed.status();
+            v1::Job& job = *parsed;
+            const std::string id = job.name().substr(5);
+            if (row[1].as<bool>()) {
+              job.set_state(v1::CANCELLED);
+              job.mutable_error()->set_code(static_cast<int>(absl::StatusCode::kCancelled));
+              job.mutable_error()->set_message("cancelled by request (its worker was lost)");
+              *job.mutable_end_time() = NowTimestamp();
+              tx.AddState(job, v1::CANCELLED, &job.error());
+              out.failed.push_back(id);
+            } else if (job.attempts() >= max_attempts) {
+              job.set_state(v1::FAILED);
+              job.mutable_error()->set_code(static_cast<int>(absl::StatusCode::kUnavailable));
+              job.mutable_error()->set_message(absl::StrCat("the worker was lost ", job.attempts(),
+                                                            " times (lease lapsed); giving up"));
+              *job.mutable_end_time() = NowTimestamp();
+              tx.AddState(job, v1::FAILED, &job.error());
+              out.failed.push_back(id);
+            } else {
+              job.set_state(v1::QUEUED);
+              job.mutable_progress()->set_message("requeued: the lease of its worker lapsed");
+              tx.AddState(job, v1::QUEUED, nullptr);
+              out.requeued.push_back(id);
+            }
+            SaveJob(w, job, false);
+          }
+          tx.Save(w);
+          return out;
+        });
+  }
+
+  absl::StatusOr<v1::Job> Cancel(const std::string& id) override {
+    return Run<absl::StatusOr<v1::Job>>(
+        "cancelling a job", [&](pqxx::work& w) -> absl::StatusOr<v1::Job> {
+          auto job = LoadJob(w, id, true);
+          if (!job.ok()) return job.status();
+          if (job->state() == v1::QUEUED) {
+            job->set_state(v1::CANCELLED);
+            job->mutable_error()->set_code(static_cast<int>(absl::StatusCode::kCancelled));
+            job->mutable_error()->set_message("cancelled by request while queued");
+            *job->mutable_end_time() = NowTimestamp();
+            TxEvents tx;
+            tx.AddState(*job, v1::CANCELLED, &job->error());
+            SaveJob(w, *job, false);
+            tx.Save(w);
+          } else if (job->state() == v1::RUNNING) {
+            w.exec_params("UPDATE jobs SET cancel_requested=TRUE WHERE id=$1", id);
+          }
+          return *job;
+        });
+  }
+
+  absl::StatusOr<bool> CancelRequested(const std::string& id) override {
+    return Run<absl::StatusOr<bool>>(
+        "reading a cancel request", [&](pqxx::work& w) -> absl::StatusOr<bool> {
+          auto r = w.exec_params("SELECT cancel_requested FROM jobs WHERE id=$1", id);
+          if (r.empty()) return absl::NotFoundError(absl::StrCat("job ", id, " not found"));
+          return r[0][0].as<bool>();
+        });
+  }
+
+  absl::StatusOr<v1::Job> Retry(const std::string& id, int max_queued) override {
+    return Run<absl::StatusOr<v1::Job>>(
+        "retrying a job", [&](pqxx::work& w) -> absl::StatusOr<v1::Job> {
+          auto job = LoadJob(w, id, true);
+          if (!job.ok()) return job.status();
+          if (job->state() != v1::FAILED && job->state() != v1::CANCELLED) {
+            return absl::FailedPreconditionError(
+                absl::StrCat("job ", id, " is ", v1::JobState_Name(job->state()),
+                             "; only FAILED or CANCELLED jobs can be retried"));
+          }
+          const int64_t queued =
+              w.exec_params("SELECT COUNT(*) FROM jobs WHERE state=$1", int{v1::QUEUED})[0][0]
+                  .as<int64_t>();
+          if (max_queued > 0 && queued >= max_queued) {
+            return absl::ResourceExhaustedError(
+                absl::StrCat("the queue is full (--max-queued ", max_queued, "); retry later"));
+          }
+          job->set_state(v1::QUEUED);
+          job->set_attempts(0);
+          job->clear_error();
+          job->clear_artifacts();
+          job->clear_metrics_json();
+          job->clear_progress();
+          job->clear_start_time();
+          job->clear_end_time();
+          TxEvents tx;
+          tx.AddState(*job, v1::QUEUED, nullptr);
+          SaveJob(w, *job, false);
+          tx.Save(w);
+          return *job;
+        });
+  }
+
+  absl::Status DeleteJob(const std::string& id) override {
+    return Run<absl::Status>("deleting a job", [&](pqxx::work& w) -> absl::Status {
+      auto job = LoadJob(w, id, true);
+      if (!job.ok()) return job.status();
+      if (!IsFinal(job->state())) {
+        return absl::FailedPreconditionError(absl::StrCat(
+            "job ", id, " is ", v1::JobState_Name(job->state()), "; cancel it before deleting"));
+      }
+      w.exec_params("DELETE FROM events WHERE job_id=$1", id);
+      w.exec_params("DELETE FROM jobs WHERE id=$1", id);
+      return absl::OkStatus();
+    });
+  }
+
+  absl::StatusOr<std::vector<v1::JobEvent>> ListEvents(const std::string& id, int64_t after,
+                                                       int limit) override {
+    using Out = absl::StatusOr<std::vector<v1::JobEvent>>;
+    return Run<Out>("listing events", [&](pqxx::work& w) -> Out {
+      auto r =
+          w.exec_params("SELECT event FROM events WHERE job_id=$1 AND seq>$2 ORDER BY seq LIMIT $3",
+                        id, after, limit);
+      std::vector<v1::JobEvent> out;
+      for (const auto& row : r) {
+        v1::JobEvent ev;
+        if (!ev.ParseFromString(FieldBytes(row[0]))) {
+          return absl::DataLossError("job store: bad event row");
+        }
+        out.push_back(std::move(ev));
+      }
+      return out;
+    });
+  }
+
+  absl::StatusOr<v1::Volume> CreateVolume(const std::string& id, const v1::Volume& volume,
+                                          const std::string& request_id, bool* created) override {
+    *created = false;
+    bool made = false;
+    auto out = Run<absl::StatusOr<v1::Volume>>(
+        "creating a volume", [&](pqxx::work& w) -> absl::StatusOr<v1::Volume> {
+          made = false;
+          auto existing = [&]() -> std::optional<absl::StatusOr<v1::Volume>> {
+            if (request_id.empty()) return std::nullopt;
+            auto r = w.exec_params("SELECT volume FROM volumes WHERE request_id=$1", request_id);
+            if (r.empty()) return std::nullopt;
+            return ParseVolume(r[0][0]);
+          };
+          if (auto e = existing()) return *e;
+          auto ins = w.exec_params(
+              "INSERT INTO volumes(id, request_id, volume) VALUES($1,NULLIF($2,''),$3) "
+              "ON CONFLICT (request_id) DO NOTHING RETURNING ord",
+              id, request_id, Bytes(volume));
+          if (ins.empty()) {
+            if (auto e = existing()) return *e;
+            return absl::AbortedError("job store: request_id conflict without a row; retry");
+          }
+          for (const auto& f : volume.files()) {
+            w.exec_params(
+                "INSERT INTO volume_blobs(volume_id, sha256) VALUES($1,$2) ON CONFLICT DO NOTHING",
+                id, f.blob().substr(6));
+          }
+          made = true;
+          return volume;
+        });
+    *created = out.ok() && made;
+    return out;
+  }
+
+  absl::StatusOr<v1::Volume> GetVolume(const std::string& id) override {
+    return Run<absl::StatusOr<v1::Volume>>(
+        "reading a volume", [&](pqxx::work& w) -> absl::StatusOr<v1::Volume> {
+          auto r = w.exec_params("SELECT volume FROM volumes WHERE id=$1", id);
+          if (r.empty()) return absl::NotFoundError(absl::StrCat("volumes/", id, " not found"));
+          return ParseVolume(r[0][0]);
+        });
+  }
+
+  absl::StatusOr<VolumePage> ListVolumes(int page_size, const std::string& page_token) override {
+    auto before = DecodeToken(page_token);
+    if (!before.ok()) return before.status();
+    const int limit = ClampPageSize(page_size);
+    return Run<absl::StatusOr<VolumePage>>(
+        "listing volumes", [&](pqxx::work& w) -> absl::StatusOr<VolumePage> {
+          auto r = w.exec_params(
+              "SELECT ord, volume FROM volumes WHERE ord < $1 ORDER BY ord DESC LIMIT $2", *before,
+              limit + 1);
+          VolumePage page;
+          int64_t last_ord = 0;
+          for (const auto& row : r) {
+            if (static_cast<int>(page.volumes.size()) == limit) {
+              page.next_page_token = EncodeToken(last_ord);
+              break;
+            }
+            last_ord = row[0].as<int64_t>();
+            auto v = ParseVolume(row[1]);
+            if (!v.ok()) return v.status();
+            page.volumes.push_back(std::move(*v));
+          }
+          return page;
+        });
+  }
+
+  absl::Status DeleteVolume(const std::string& id) override {
+    return Run<absl::Status>("deleting a volume", [&](pqxx::work& w) -> absl::Status {
+      auto v = w.exec_params("SELECT 1 FROM volumes WHERE id=$1 FOR UPDATE", id);
+      if (v.empty()) return absl::NotFoundError(absl::StrCat("volumes/", id, " not found"));
+      // A queued or running job reads the volume as its input or its label map (the label map
+      // lives only in the stored spec, so the active jobs' specs are read: at most max_queued
+      // plus the running ones).
+      const std::string name = absl::StrCat("volumes/", id);
+      auto active = w.exec_params("SELECT job FROM jobs WHERE state IN ($1,$2)", int{v1::QUEUED},
+                                  int{v1::RUNNING});
+      int64_t readers = 0;
+      for (const auto& row : active) {
+        auto job = ParseJob(row[0]);
+        if (!job.ok()) return job.status();
+        if (job->spec().volume() == name || job->spec().label_map() == name) ++readers;
+      }
+      if (readers > 0) {
+        return absl::FailedPreconditionError(absl::StrCat(
+            name, " is read by ", readers, " queued or running job(s) (as volume or label map)"));
+      }
+      w.exec_params("DELETE FROM volumes WHERE id=$1", id);
+      w.exec_params("DELETE FROM volume_blobs WHERE volume_id=$1", id);
+      return absl::OkStatus();
+    });
+  }
+
+  absl::StatusOr<bool> BlobInUse(const std::string& sha256) override {
+    return Run<absl::StatusOr<bool>>(
+        "checking blob use", [&](pqxx::work& w) -> absl::StatusOr<bool> {
+          return !w.exec_params("SELECT 1 FROM volume_blobs WHERE sha256=$1 LIMIT 1", sha256)
+                      .empty();
+        });
+  }
+
+ private:
+  // Runs `body` in a transaction on a pooled connection and commits when it returns OK. A lost
+  // connection (before the commit) is retried on a new one until reconnect_timeout; `body` must
+  // therefore only write to the transaction and to state it resets itself.
+  template <typename R, typename F>
+  R Run(const char* what, F&& body) {
+    const auto deadline = std::chrono::steady_clock::now() + options_.reconnect_timeout;
+    std::chrono::milliseconds backoff(50);
+    for (int attempt = 0;; ++attempt) {
+      std::unique_ptr<pqxx::connection> conn;
+      std::string error;
+      try {
+        conn = pool_.Acquire();
+        pqxx::work w(*conn);
+        R out = body(w);
+        if (StatusOf(out).ok()) w.commit();
+        pool_.Release(std::move(conn), false);
+        return out;
+      } catch (const pqxx::in_doubt_error& e) {
+        if (conn) pool_.Release(std::move(conn), true);
+        return absl::UnavailableError(absl::StrCat("job store: ", what,
+                                                   ": the connection was lost during commit; "
+                                                   "the outcome is unknown (",
+                                                   e.what(), ")"));
+      } catch (const pqxx::broken_connection& e) {
+        error = e.what();
+      } catch (const pqxx::sql_error& e) {
+        // 40001 serialization failure, 40P01 deadlock: run the transaction again. 57P01 etc.
+        // (admin shutdown) and 08xxx (connection exceptions) mean the server went away.
+        // No SQLSTATE or a closed connection: the server went away mid-statement.
+        const std::string& state = e.sqlstate();
+        if (state.empty() || (conn && !conn->is_open()) || state == "40001" || state == "40P01" ||
+            state.rfind("57P", 0) == 0 || state.rfind("08", 0) == 0) {
+          error = e.what();
+        } else {
+          if (conn) pool_.Release(std::move(conn), !conn->is_open());
+          return absl::InternalError(absl::StrCat("job store: ", what, ": ", e.what()));
+        }
+      } catch (const std::exception& e) {
+        // pqxx::failure without a connection error (e.g. "connection lost" as a plain
+        // failure) and anything else: treat the connection as suspect and retry.
+        error = e.what();
+      }
+      if (conn) pool_.Release(std::move(conn), true);
+      if (std::chrono::steady_clock::now() + backoff > deadline || stop_) {
+        return absl::UnavailableError(
+            absl::StrCat("job store: ", what, ": PostgreSQL unreachable: ", error));
+      }
+      if (attempt == 0) spdlog::warn("job store: {}: {}; retrying", what, error);
+      std::this_thread::sleep_for(backoff);
+      backoff = std::min(backoff * 2, std::chrono::milliseconds(1000));
+    }
+  }
+
+  static absl::Status StatusOf(const absl::Status& s) { return s; }
+  template <typename T>
+  static absl::Status StatusOf(const absl::StatusOr<T>& s) {
+    return s.status();
+  }
+
+  static absl::StatusOr<v1::Job> LoadJob(pqxx::work& w, const std::string& id, bool for_update) {
+    auto r = w.exec_params(for_update ? "SELECT job FROM jobs WHERE id=$1 FOR UPDATE"
+                                      : "SELECT job FROM jobs WHERE id=$1",
+                           id);
+    if (r.empty()) return absl::NotFoundError(absl::StrCat("jobs/", id, " not found"));
+    return ParseJob(r[0][0]);
+  }
+
+  // The job, locked, if RUNNING under exactly `lease` (owner and epoch).
+  static absl::StatusOr<v1::Job> LoadHeld(pqxx::work& w, const Lease& lease) {
+    auto r = w.exec_params(
+        "SELECT job, state, lease_owner, lease_epoch FROM jobs WHERE id=$1 FOR UPDATE",
+        lease.job_id);
+    if (r.empty()) return absl::NotFoundError(absl::StrCat("jobs/", lease.job_id, " not found"));
+    const auto& row = r[0];
+    if (row[1].as<int>() != v1::RUNNING || row[2].is_null() ||
+        row[2].as<std::string>() != lease.owner || row[3].as<int64_t>() != lease.epoch) {
+      return absl::FailedPreconditionError(absl::StrCat("jobs/", lease.job_id,
+                                                        " is not running under lease ", lease.owner,
+                                                        " epoch ", lease.epoch));
+    }
+    return ParseJob(row[0]);
+  }
+
+  // Writes the job row; the lease is dropped (every caller leaves RUNNING or never had one).
+  static void SaveJob(pqxx::work& w, const v1::Job& job, bool keep_cancel) {
+    w.exec_params(
+        "UPDATE jobs SET state=$1, lease_owner=NULL, lease_expiry=NULL, "
+        "cancel_requested=(cancel_requested AND $2), job=$3 WHERE id=$4",
+        int{job.state()}, keep_cancel, Bytes(job), job.name().substr(5));
+  }
+
+  // --- the event feed ---------------------------------------------------------------------
+
+  class Receiver : public pqxx::notification_receiver {
+   public:
+    Receiver(pqxx::connection_base& c, std::map<std::string, int64_t>* pending)
+        : pqxx::notification_receiver(c, kChannel), pending_(pending) {}
+    void operator()(const std::string& payload, int) override {
+      const size_t colon = payload.rfind(':');
+      int64_t seq = 0;
+      if (colon == std::string::npos || !absl::SimpleAtoi(payload.substr(colon + 1), &seq)) return;
+      auto [it, inserted] = pending_->emplace(payload.substr(0, colon), seq);
+      if (!inserted) it->second = std::min(it->second, seq);
+    }
+
+   private:
+    std::map<std::string, int64_t>* pending_;  // job -> lowest notified sequence
+  };
+
+  void ListenLoop() {
+    std::chrono::milliseconds backoff(50);
+    bool first = true;
+    while (!stop_) {
+      try {
+        auto conn = ConnectionPool::Connect(dsn_, options_.application_name + " (listen)");
+        std::map<std::string, int64_t> pending;
+        Receiver receiver(*conn, &pending);
+        conn->get_notifs();  // the LISTEN is in effect from here on
+        {
+          std::lock_guard<std::mutex> lock(listening_mu_);
+          listening_ = true;
+        }
+        listening_cv_.notify_all();
+        if (!first) {
+          spdlog::info("job store: event feed reconnected; re-reading watched jobs");
+          Resync(*conn);
+        }
+        first = false;
+        backoff = std::chrono::milliseconds(50);
+        auto last_ping = std::chrono::steady_clock::now();
+        while (!stop_) {
+          conn->await_notification(0, 200 * 1000);
+          conn->get_notifs();
+          if (!pending.empty()) {
+            std::map<std::string, int64_t> batch;
+            batch.swap(pending);
+            Deliver(*conn, batch);
+            last_ping = std::chrono::steady_clock::now();
+          } else if (std::chrono::steady_clock::now() - last_ping > std::chrono::seconds(1)) {
+            // An idle socket does not notice a dead server: ask something cheap.
+            pqxx::nontransaction n(*conn);
+            n.exec("SELECT 1");
+            last_ping = std::chrono::steady_clock::now();
+          }
+        }
+      } catch (const std::exception& e) {
+        if (stop_) break;
+        spdlog::warn("job store: event feed lost ({}); reconnecting", e.what());
+        std::this_thread::sleep_for(backoff);
+        backoff = std::min(backoff * 2, std::chrono::milliseconds(1000));
+      }
+    }
+  }
+
+  // Reads and delivers the events of the notified jobs above what was delivered. `notified`:
+  // job -> lowest sequence notified (for a job not followed yet, reading starts there).
+  void Deliver(pqxx::connection& conn, const std::map<std::string, int64_t>& notified) {
+    std::vector<std::string> ids, afters;
+    for (const auto& [id, seq] : notified) {
+      auto it = delivered_.find(id);
+      ids.push_back(id);
+      afters.push_back(absl::StrCat(it != delivered_.end() ? it->second : seq - 1));
+    }
+    if (!ids.empty()) ReadAndPublish(conn, ids, afters);
+  }
+
+  // Re-reads every job followed or watched here (after a reconnect nothing was missed).
+  void Resync(pqxx::connection& conn) {
+    std::set<std::string> jobs;
+    for (const auto& [id, seq] : delivered_) jobs.insert(id);
+    std::function<std::vector<std::string>()> watched;
+    {
+      std::lock_guard<std::mutex> lock(listener_mu_);
+      watched = watched_;
+    }
+    if (watched) {
+      for (auto& id : watched()) jobs.insert(std::move(id));
+    }
+    std::vector<std::string> ids, afters;
+    for (const auto& id : jobs) {
+      auto it = delivered_.find(id);
+      ids.push_back(id);
+      afters.push_back(absl::StrCat(it != delivered_.end() ? it->second : 0));
+    }
+    if (!ids.empty()) ReadAndPublish(conn, ids, afters);
+  }
+
+  void ReadAndPublish(pqxx::connection& conn, const std::vector<std::string>& ids,
+                      const std::vector<std::string>& afters) {
+    pqxx::nontransaction n(conn);
+    auto r = n.exec_params(
+        "SELECT e.job_id, e.event FROM events e "
+        "JOIN unnest($1::text[], $2::bigint[]) AS w(id, after) "
+        "ON e.job_id = w.id AND e.seq > w.after ORDER BY e.job_id, e.seq",
+        TextArray(ids), TextArray(afters));
+    EventListener listener;
+    {
+      std::lock_guard<std::mutex> lock(listener_mu_);
+      listener = listener_;
+    }
+    for (const auto& row : r) {
+      const std::string id = row[0].as<std::string>();
+      v1::JobEvent ev;
+      if (!ev.ParseFromString(FieldBytes(row[1]))) {
+        spdlog::error("job store: bad event row of job {}", id);
+        continue;
+      }
+      auto it = delivered_.find(id);
+      if (it != delivered_.end() && ev.sequence() <= it->second) continue;
+      if (listener) listener(id, ev);
+      delivered_[id] = ev.sequence();
+      if (ev.has_state_change() && IsFinal(ev.state_change().state())) {
+        finals_.emplace_back(std::chrono::steady_clock::now(), id, ev.sequence());
+      }
+    }
+    // Bounded memory. A final job is forgotten a minute after its last event (notifications
+    // read ahead of arrive well before that; a job retried later is read from its new
+    // notification on). Jobs that never end (deleted while followed) are dropped wholesale.
+    const auto cutoff = std::chrono::steady_clock::now() - std::chrono::minutes(1);
+    while (!finals_.empty() && std::get<0>(finals_.front()) < cutoff) {
+      const auto& [t, id, seq] = finals_.front();
+      auto it = delivered_.find(id);
+      if (it != delivered_.end() && it->second == seq) delivered_.erase(it);
+      finals_.pop_front();
+    }
+    if (delivered_.size() > 100000) delivered_.clear();
+  }
+
+  const std::string dsn_;
+  const PostgresStoreOptions options_;
+  ConnectionPool pool_;
+  std::atomic<bool> stop_{false};
+  std::thread listen_thread_;
+  std::mutex listening_mu_;
+  std::condition_variable listening_cv_;
+  bool listening_ = false;
+  std::mutex listener_mu_;
+  EventListener listener_;
+  std::function<std::vector<std::string>()> watched_;
+  // Listen thread only: job -> newest delivered sequence; final events by delivery time.
+  std::map<std::string, int64_t> delivered_;
+  std::deque<std::tuple<std::chrono::steady_clock::time_point, std::string, int64_t>> finals_;
+};
+
+}  // namespace
+
+absl::StatusOr<std::unique_ptr<JobStore>> OpenPostgresJobStore(
+    const std::string& dsn, const PostgresStoreOptions& options) {
+  auto store = std::make_unique<PostgresJobStore>(dsn, options);
+  if (absl::Status s = store->Migrate(); !s.ok()) return s;
+  if (absl::Status s = store->StartListening(); !s.ok()) return s;
+  return std::unique_ptr<JobStore>(std::move(store));
+}
+
+}  // namespace decima::server
