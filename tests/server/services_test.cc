@@ -41,7 +41,7 @@ class ServicesTest : public ::testing::Test {
     pool_ = std::make_unique<WorkerPool>(store_.get(), wo);  // never started: jobs stay QUEUED
     ServiceOptions so;
     so.data_dir = DataDir(dir_);
-    so.token = kToken;
+    so.identities = Identities::SingleToken(kToken);
     so.allow_faults = allow_faults;
     services_ = std::make_unique<Services>(so, store_.get(), blobs_.get(), &bus_, pool_.get());
     grpc::ServerBuilder builder;
