@@ -15,8 +15,9 @@ packages=(
   zlib1g-dev libpng-dev libgdcm-dev
   # job store, CLI parsing, JSON
   libsqlite3-dev libcli11-dev nlohmann-json3-dev
-  # tests and benchmarks
-  libgtest-dev libgmock-dev libbenchmark-dev
+  # tests and benchmarks; openssl (the command) makes the throwaway CA and certificates of the
+  # TLS / mutual TLS end-to-end tests and of decima-service-bench --security
+  libgtest-dev libgmock-dev libbenchmark-dev openssl
   # libFuzzer targets (DECIMA_FUZZ=ON, clang only): tests/fuzz, tests/core/io/io_fuzz
   clang libclang-rt-14-dev
   # independent tools that prove our files are readable by others
