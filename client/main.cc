@@ -118,6 +118,7 @@ int Watch(const std::string& name, v1::Job* final) {
   auto give_up = std::chrono::steady_clock::now() +
                  std::chrono::milliseconds(static_cast<int64_t>(g.reconnect_s * 1000));
   int wait_ms = 100;
+  std::string last_reconnect_reason;  // said once, not at every retry
   v1::JobState state = v1::JOB_STATE_UNSPECIFIED;
   for (;;) {
     v1::WatchJobRequest req;
@@ -162,14 +163,27 @@ int Watch(const std::string& name, v1::Job* final) {
       greq.set_name(name);
       grpc::Status gs = WithRetry([&] { return stub->GetJob(conn.Context().get(), greq, final); });
       if (!gs.ok()) return Report(gs, "get " + name);
+      // -q hides progress, never why a job did not succeed.
+      if (g.quiet && !g.json && final->state() != v1::SUCCEEDED) {
+        std::fprintf(
+            stderr, "decima: %s %s%s%s\n", name.c_str(), v1::JobState_Name(final->state()).c_str(),
+            final->error().message().empty() ? "" : ": ", final->error().message().c_str());
+      }
       return ExitCodeFor(final->state());
     }
-    if (s.error_code() == grpc::StatusCode::UNAVAILABLE &&
-        std::chrono::steady_clock::now() < give_up) {
-      if (!g.quiet && !g.json) {
+    // UNAVAILABLE: the server is draining or restarting. CANCELLED: this client never cancels
+    // a watch, so it is the server's shutdown cutting a call in flight; both end the same way.
+    const bool server_went_away = s.error_code() == grpc::StatusCode::UNAVAILABLE ||
+                                  s.error_code() == grpc::StatusCode::CANCELLED;
+    if (server_went_away && std::chrono::steady_clock::now() < give_up) {
+      const std::string why = s.error_code() == grpc::StatusCode::CANCELLED
+                                  ? "the server closed the stream"
+                                  : s.error_message();
+      if (!g.quiet && !g.json && why != last_reconnect_reason) {
         std::fprintf(stderr, "decima: watch %s: %s; reconnecting after #%lld\n", name.c_str(),
-                     s.error_message().c_str(), static_cast<long long>(last));
+                     why.c_str(), static_cast<long long>(last));
       }
+      last_reconnect_reason = why;
       std::this_thread::sleep_for(std::chrono::milliseconds(wait_ms));
       wait_ms = std::min(wait_ms * 2, 1000);
       continue;
@@ -223,8 +237,9 @@ void PrintJob(const v1::Job& j) {
   std::printf("\n");
 }
 
-// Uploads the files of INPUT and creates a volume; returns its name in *name.
-int MakeVolume(const fs::path& input, std::string* name) {
+// Uploads the files of INPUT and creates a volume (of DICOM series `series` when not empty);
+// returns its name in *name.
+int MakeVolume(const fs::path& input, const std::string& series, std::string* name) {
   std::vector<InputFile> files;
   std::string err;
   if (!CollectInputs(input, &files, &err) || !HashInputs(&files, &err)) {
@@ -251,6 +266,7 @@ int MakeVolume(const fs::path& input, std::string* name) {
     vf->set_blob("blobs/" + f.sha256);
   }
   req.mutable_volume()->set_display_name(input.filename().string());
+  req.mutable_volume()->set_series_instance_uid(series);
   req.set_request_id(NewRequestId());
   auto stub = v1::Volumes::NewStub(conn.channel);
   v1::Volume vol;
@@ -305,7 +321,7 @@ int main(int argc, char** argv) {
   // submit
   auto* submit =
       app.add_subcommand("submit", "upload a volume (file or DICOM folder) and queue a job");
-  std::string input, label_map, policy = "field", tf, fault, request_id;
+  std::string input, label_map, series, policy = "field", tf, fault, request_id;
   fs::path out;
   // Unset options stay unset in the request: the server owns the defaults.
   std::optional<int> regions, image_size;
@@ -333,6 +349,8 @@ int main(int argc, char** argv) {
   submit->add_option("--views", views, "render views (default anterior)")->delimiter(',');
   submit->add_option("--image-size", image_size, "rendered image size, pixels (default 512)");
   submit->add_option("--transfer-function", tf, "preset name, auto, or JSON");
+  submit->add_option("--series", series,
+                     "DICOM folder with several series: the SeriesInstanceUID to process");
   submit->add_option("--request-id", request_id, "idempotency key (default: a new UUID)");
   // Test seam (server/faults.h): sent as metadata, read only by a server run with --allow-faults.
   submit->add_option("--fault", fault, "test-only fault injection")->group("");
@@ -400,10 +418,10 @@ int main(int argc, char** argv) {
   if (*submit) {
     v1::CreateJobRequest req;
     auto* spec = req.mutable_spec();
-    int rc = MakeVolume(input, spec->mutable_volume());
+    int rc = MakeVolume(input, series, spec->mutable_volume());
     if (rc != kOk) return rc;
     if (!label_map.empty()) {
-      rc = MakeVolume(label_map, spec->mutable_label_map());
+      rc = MakeVolume(label_map, "", spec->mutable_label_map());
       if (rc != kOk) return rc;
     }
     if (regions) spec->set_regions(*regions);
@@ -454,7 +472,18 @@ int main(int argc, char** argv) {
       if (!fault.empty()) ctx->AddMetadata("decima-test-fault", fault);
       return jobs->CreateJob(ctx.get(), req, &job);
     });
-    if (!s.ok()) return Report(s, "submit");
+    if (!s.ok()) {
+      // The volumes were made for this job only: a refused job leaves none behind.
+      auto vstub = v1::Volumes::NewStub(conn.channel);
+      for (const std::string& name : {spec->volume(), spec->label_map()}) {
+        if (name.empty()) continue;
+        v1::DeleteVolumeRequest dreq;
+        dreq.set_name(name);
+        v1::DeleteVolumeResponse dresp;
+        (void)vstub->DeleteVolume(conn.Context().get(), dreq, &dresp);
+      }
+      return Report(s, "submit");
+    }
     if (g.json) {
       std::printf("%s\n", ToJson(job).c_str());
     } else {

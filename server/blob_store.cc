@@ -1,6 +1,7 @@
 #include "server/blob_store.h"
 
 #include <fcntl.h>
+#include <sys/stat.h>
 #include <unistd.h>
 
 #include <cerrno>
@@ -12,6 +13,21 @@
 
 namespace decima::server {
 namespace fs = std::filesystem;
+namespace {
+
+// A write error as a status: a full disk (or quota) is RESOURCE_EXHAUSTED, everything else
+// INTERNAL. Names the blob, not the server's path.
+absl::Status WriteError(const std::string& what, const std::string& sha, int err) {
+  if (err == ENOSPC || err == EDQUOT) {
+    return absl::ResourceExhaustedError(
+        absl::StrCat(what, " blob ", sha,
+                     ": the server's disk is full; nothing was kept, retry after "
+                     "deleting jobs or volumes"));
+  }
+  return absl::InternalError(absl::StrCat(what, " blob ", sha, ": ", std::strerror(err)));
+}
+
+}  // namespace
 
 class LocalBlobWriter : public BlobWriter {
  public:
@@ -45,8 +61,10 @@ class LocalBlobWriter : public BlobWriter {
       ssize_t n = ::write(fd_, p, left);
       if (n < 0) {
         if (errno == EINTR) continue;
-        return absl::InternalError(
-            absl::StrCat("writing ", partial_.string(), ": ", std::strerror(errno)));
+        const int err = errno;
+        // A full disk is not healed by keeping a prefix the client cannot finish now.
+        if (err == ENOSPC || err == EDQUOT) Discard();
+        return WriteError("writing", sha_, err);
       }
       p += n;
       left -= static_cast<size_t>(n);
@@ -70,8 +88,9 @@ class LocalBlobWriter : public BlobWriter {
                                                      "; nothing was stored"));
     }
     if (store_->fsync_ && ::fdatasync(fd_) != 0) {
-      return absl::InternalError(
-          absl::StrCat("fdatasync ", partial_.string(), ": ", std::strerror(errno)));
+      const int err = errno;
+      if (err == ENOSPC || err == EDQUOT) Discard();
+      return WriteError("flushing", sha_, err);
     }
     ::close(fd_);
     fd_ = -1;
@@ -79,10 +98,9 @@ class LocalBlobWriter : public BlobWriter {
     std::error_code ec;
     fs::create_directories(final_path.parent_path(), ec);
     fs::rename(partial_, final_path, ec);
-    if (ec) {
-      return absl::InternalError(
-          absl::StrCat("committing ", final_path.string(), ": ", ec.message()));
-    }
+    if (ec) return WriteError("committing", sha_, ec.value());
+    // The upload's claim starts now (rename kept the partial's times).
+    ::utimensat(AT_FDCWD, final_path.c_str(), nullptr, 0);
     return absl::OkStatus();
   }
 
@@ -171,10 +189,7 @@ absl::StatusOr<std::unique_ptr<BlobWriter>> LocalBlobStore::OpenWriter(const std
   }
   int flags = O_WRONLY | O_CREAT | O_CLOEXEC | (offset == 0 ? O_TRUNC : O_APPEND);
   int fd = ::open(partial.c_str(), flags, 0644);
-  if (fd < 0) {
-    return fail(absl::InternalError(
-        absl::StrCat("opening ", partial.string(), ": ", std::strerror(errno))));
-  }
+  if (fd < 0) return fail(WriteError("opening", sha, errno));
   auto hash = std::make_unique<Sha256>();
   if (offset > 0) {
     absl::Status s = HashFilePrefix(partial, offset, *hash);
@@ -193,12 +208,62 @@ absl::StatusOr<fs::path> LocalBlobStore::LocalPath(const std::string& sha) const
   return BlobPath(sha);
 }
 
-absl::Status LocalBlobStore::Delete(const std::string& sha) {
-  if (!IsSha256Hex(sha)) return absl::InvalidArgumentError("bad sha256");
+void LocalBlobStore::Claim(const std::string& sha) {
+  if (!IsSha256Hex(sha)) return;
+  std::lock_guard<std::mutex> lock(sweep_mu_);
+  ::utimensat(AT_FDCWD, BlobPath(sha).c_str(), nullptr, 0);
+}
+
+BlobSweepStats LocalBlobStore::Sweep(const BlobSweepPolicy& policy,
+                                     const std::function<bool(const std::string&)>& in_use,
+                                     const std::vector<std::string>* only) {
+  BlobSweepStats stats;
+  const auto now = fs::file_time_type::clock::now();
+  auto idle_past = [&](const fs::path& p, std::chrono::seconds limit, uintmax_t* size) {
+    std::error_code ec;
+    const auto t = fs::last_write_time(p, ec);
+    if (ec) return false;
+    *size = fs::file_size(p, ec);
+    return !ec && now - t >= limit;
+  };
+  auto sweep_blob = [&](const std::string& sha) {
+    std::lock_guard<std::mutex> lock(sweep_mu_);
+    const fs::path p = BlobPath(sha);
+    uintmax_t size = 0;
+    if (!idle_past(p, policy.grace, &size) || in_use(sha)) return;
+    std::error_code ec;
+    if (fs::remove(p, ec)) {
+      ++stats.blobs_removed;
+      stats.bytes_freed += static_cast<int64_t>(size);
+    }
+  };
   std::error_code ec;
-  fs::remove(BlobPath(sha), ec);
-  if (ec) return absl::InternalError(absl::StrCat("deleting blob ", sha, ": ", ec.message()));
-  return absl::OkStatus();
+  if (only != nullptr) {
+    for (const auto& sha : *only)
+      if (IsSha256Hex(sha)) sweep_blob(sha);
+    return stats;
+  }
+  for (fs::recursive_directory_iterator it(root_ / "sha256", ec), end; !ec && it != end;
+       it.increment(ec)) {
+    const std::string name = it->path().filename().string();
+    if (it->is_regular_file(ec) && IsSha256Hex(name)) sweep_blob(name);
+  }
+  for (fs::directory_iterator it(root_ / "partial", ec), end; !ec && it != end; it.increment(ec)) {
+    const std::string name = it->path().filename().string();
+    const std::string sha = name.substr(0, name.find('-'));
+    // Held across the check and the removal: an upload that resumes now either is seen here or
+    // finds the partial gone (and is told to start at 0).
+    std::lock_guard<std::mutex> lock(mu_);
+    if (writing_.count(sha)) continue;  // an upload is appending to it now
+    uintmax_t size = 0;
+    if (!idle_past(it->path(), policy.partial_expiry, &size)) continue;
+    std::error_code rec;
+    if (fs::remove(it->path(), rec)) {
+      ++stats.partials_removed;
+      stats.bytes_freed += static_cast<int64_t>(size);
+    }
+  }
+  return stats;
 }
 
 void LocalBlobStore::Release(const std::string& sha) {

@@ -2,16 +2,26 @@
 // temp-then-rename, so a reader never sees a partial blob and the same scan is stored once.
 // Interrupted uploads keep their prefix ("partial") so the client can resume.
 //
+// Lifetime: nothing deletes a blob on behalf of a request. A complete blob is claimed by the
+// upload that stored it (or found it stored, Claim) for a grace period, during which the client
+// names it in CreateVolume; after that it lives as long as a volume references it. Sweep (the
+// server's collector timer, and DeleteVolume for the blobs it released) removes what nobody
+// holds: blobs past their grace that no volume uses, and partial uploads idle past their expiry.
+//
 // Thread-safety: a BlobStore may be used from many threads. Writing the same digest from two
-// writers at once is refused (ABORTED) by OpenWriter.
+// writers at once is refused (ABORTED) by OpenWriter; Claim and Sweep exclude each other, so a
+// blob claimed before a sweep decides is kept.
 #pragma once
 
+#include <chrono>
 #include <cstdint>
 #include <filesystem>
+#include <functional>
 #include <memory>
 #include <mutex>
 #include <set>
 #include <string>
+#include <vector>
 
 #include "absl/base/thread_annotations.h"
 #include "absl/status/statusor.h"
@@ -37,6 +47,18 @@ struct BlobStatus {
   int64_t committed_size = 0;  // size when complete, else the partial prefix held
 };
 
+// What a sweep may remove.
+struct BlobSweepPolicy {
+  std::chrono::seconds grace{3600};            // a complete blob is held this long after a claim
+  std::chrono::seconds partial_expiry{86400};  // a partial upload idle this long is abandoned
+};
+
+struct BlobSweepStats {
+  int64_t blobs_removed = 0;
+  int64_t partials_removed = 0;
+  int64_t bytes_freed = 0;
+};
+
 class BlobStore {
  public:
   virtual ~BlobStore() = default;
@@ -50,7 +72,16 @@ class BlobStore {
   // A local path holding the blob's bytes (NOT_FOUND if absent). Shared storage implementations
   // materialize it into a cache first.
   virtual absl::StatusOr<std::filesystem::path> LocalPath(const std::string& sha256) const = 0;
-  virtual absl::Status Delete(const std::string& sha256) = 0;
+  // Renews the claim of a complete blob (its grace starts again): an upload that found the blob
+  // already stored, or a status call that reported it complete, keeps it for the CreateVolume
+  // that follows. No effect on a missing blob.
+  virtual void Claim(const std::string& sha256) = 0;
+  // Removes every complete blob whose claim is older than `policy.grace` and for which
+  // `in_use(sha256)` is false, and every partial upload idle past `policy.partial_expiry` that
+  // no writer holds. With `only`, looks at those blobs (and no partial) only.
+  virtual BlobSweepStats Sweep(const BlobSweepPolicy& policy,
+                               const std::function<bool(const std::string&)>& in_use,
+                               const std::vector<std::string>* only = nullptr) = 0;
 };
 
 // Blobs under `root`: root/sha256/ab/abcdef... and partials under root/partial/.
@@ -66,7 +97,10 @@ class LocalBlobStore : public BlobStore {
                                                          int64_t size_bytes,
                                                          int64_t offset) override;
   absl::StatusOr<std::filesystem::path> LocalPath(const std::string& sha256) const override;
-  absl::Status Delete(const std::string& sha256) override;
+  void Claim(const std::string& sha256) override;
+  BlobSweepStats Sweep(const BlobSweepPolicy& policy,
+                       const std::function<bool(const std::string&)>& in_use,
+                       const std::vector<std::string>* only = nullptr) override;
 
   std::filesystem::path BlobPath(const std::string& sha256) const;
   std::filesystem::path PartialPath(const std::string& sha256, int64_t size_bytes) const;
@@ -80,6 +114,7 @@ class LocalBlobStore : public BlobStore {
   const bool fsync_;
   std::mutex mu_;
   std::set<std::string> writing_ ABSL_GUARDED_BY(mu_);
+  std::mutex sweep_mu_;  // Claim vs Sweep
 };
 
 }  // namespace decima::server

@@ -39,6 +39,11 @@ std::string DataDir::ReadJobFault(const std::string& id) const {
   return ss.str();
 }
 
+void DataDir::RemoveJobOut(const std::string& id) const {
+  std::error_code ec;
+  fs::remove_all(job_out(id), ec);
+}
+
 void DataDir::RemoveJob(const std::string& id) const {
   std::error_code ec;
   fs::remove_all(job_dir(id), ec);

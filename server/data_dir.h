@@ -43,6 +43,9 @@ class DataDir {
 
   // An empty jobs/<id>/out/ for a new attempt (what an earlier attempt left is removed).
   absl::Status ResetJobOut(const std::string& id) const;
+  // Removes jobs/<id>/out/: a job that did not succeed serves no artifact, and its partial
+  // output would only hold disk space (its worker.log stays for the record).
+  void RemoveJobOut(const std::string& id) const;
   // Writes `bytes` to `path` through a temporary file and a rename.
   absl::Status WriteFileAtomically(const std::filesystem::path& path,
                                    const std::string& bytes) const;

@@ -12,6 +12,8 @@
 
 #include "absl/strings/str_cat.h"
 #include "server/child_process.h"
+#include "server/disk_space.h"
+#include "server/job_memory.h"
 #include "server/sha256.h"
 #include "server/volume_probe.h"
 #include "server/worker_process.h"
@@ -63,15 +65,17 @@ struct JobRunner::ChildEnd {
 JobRunner::JobRunner(JobStore* store, JobRunnerOptions options)
     : store_(store), options_(std::move(options)) {}
 
-absl::StatusOr<fs::path> JobRunner::Prepare(const v1::Job& job) {
+absl::StatusOr<JobRunner::Prepared> JobRunner::Prepare(const v1::Job& job) {
   const std::string id = job.name().substr(5);
   const DataDir& dd = options_.data_dir;
   if (auto st = dd.ResetJobOut(id); !st.ok()) return st;
+  v1::Volume volume;
   auto resolve = [&](const std::string& name, const char* field) -> absl::StatusOr<fs::path> {
     auto vid = ParseName(name, "volumes", field);
     if (!vid.ok()) return vid.status();
     auto vol = store_->GetVolume(*vid);
     if (!vol.ok()) return vol.status();
+    volume = *vol;
     return VolumeInput(dd.volume_files(*vid), *vol);
   };
   worker::RunRequest request;
@@ -79,6 +83,24 @@ absl::StatusOr<fs::path> JobRunner::Prepare(const v1::Job& job) {
   auto input = resolve(job.spec().volume(), "spec.volume");
   if (!input.ok()) return input.status();
   request.set_input(input->string());
+  request.set_series_instance_uid(volume.series_instance_uid());
+  const int64_t needed = EstimateJobMemoryBytes(volume);
+  const int64_t cap =
+      options_.worker_memory_mb > 0 ? options_.worker_memory_mb << 20 : DefaultJobMemoryCapBytes();
+  if (needed > cap) {
+    std::string dims;
+    for (int64_t d : volume.dims()) absl::StrAppend(&dims, dims.empty() ? "" : "x", d);
+    return absl::ResourceExhaustedError(absl::StrCat(
+        job.spec().volume(), " (", dims.empty() ? HumanBytes(volume.size_bytes()) : dims,
+        dims.empty() ? "" : " voxels", ") needs about ", HumanBytes(needed),
+        " of memory, more than the job limit of ", HumanBytes(cap),
+        " (decima-server --worker-memory-mb); nothing was run"));
+  }
+  Prepared prepared;
+#if !defined(__SANITIZE_ADDRESS__) && !defined(__SANITIZE_THREAD__)
+  prepared.memory_limit_bytes = JobAddressSpaceLimitBytes(needed, cap);
+#endif
+  request.set_memory_limit_bytes(prepared.memory_limit_bytes);
   if (!job.spec().label_map().empty()) {
     auto label_map = resolve(job.spec().label_map(), "spec.label_map");
     if (!label_map.ok()) return label_map.status();
@@ -89,7 +111,8 @@ absl::StatusOr<fs::path> JobRunner::Prepare(const v1::Job& job) {
   if (auto st = dd.WriteFileAtomically(dd.job_request(id), request.SerializeAsString()); !st.ok()) {
     return st;
   }
-  return dd.job_request(id);
+  prepared.request = dd.job_request(id);
+  return prepared;
 }
 
 JobRunner::ChildEnd JobRunner::Relay(ChildProcess& child, const Lease& lease, StopFlags& stop) {
@@ -165,8 +188,16 @@ JobRunner::ChildEnd JobRunner::Relay(ChildProcess& child, const Lease& lease, St
 
 void JobRunner::Fail(const Lease& lease, absl::StatusCode code, const std::string& message,
                      double seconds) {
-  auto r = store_->Finish(lease, v1::FAILED, Outcome(code, message));
+  // Clients see data-dir paths relative to the data dir ("volumes/<id>/files/head.nii"): where
+  // the server keeps its files is the operator's business (the log keeps the full message).
+  std::string shown = message;
+  const std::string root = options_.data_dir.root().string() + "/";
+  for (size_t at; !root.empty() && (at = shown.find(root)) != std::string::npos;) {
+    shown.erase(at, root.size());
+  }
+  auto r = store_->Finish(lease, v1::FAILED, Outcome(code, shown));
   if (!r.ok()) spdlog::error("job {}: recording failure: {}", lease.job_id, r.status().ToString());
+  if (r.ok()) options_.data_dir.RemoveJobOut(lease.job_id);
   spdlog::info("job {} FAILED after {:.3f} s: {}", lease.job_id, seconds, message);
 }
 
@@ -179,6 +210,7 @@ void JobRunner::RecordOutcome(const v1::Job& job, const Lease& lease, const Chil
                             Outcome(absl::StatusCode::kCancelled,
                                     absl::StrCat("cancelled by request during ", end.stage)));
     if (!r.ok()) spdlog::error("job {}: recording cancel: {}", id, r.status().ToString());
+    if (r.ok()) options_.data_dir.RemoveJobOut(id);
     spdlog::info("job {} CANCELLED after {:.3f} s in stage {}", id, secs, end.stage);
     return;
   }
@@ -250,10 +282,10 @@ void JobRunner::Run(const Claim& claim, StopFlags& stop) {
     return Fail(lease, request.status().code(), std::string(request.status().message()), secs());
   }
   ChildOptions co;
-  co.argv = {options_.worker_exe.string(), "--run-job", request->string()};
+  co.argv = {options_.worker_exe.string(), "--run-job", request->request.string()};
   co.log = options_.data_dir.job_log(lease.job_id);
   co.protocol_fd = kWorkerFd;
-  co.memory_mb = options_.worker_memory_mb;
+  co.memory_mb = request->memory_limit_bytes >> 20;
   auto child = ChildProcess::Spawn(co);
   if (!child.ok()) {
     return Fail(lease, child.status().code(), std::string(child.status().message()), secs());

@@ -28,8 +28,11 @@ struct JobRunnerOptions {
   int64_t lease_ms = 15000;            // renewed every lease_ms / 3
   int64_t cancel_grace_ms = 500;       // SIGTERM -> SIGKILL
   int64_t progress_interval_ms = 100;  // progress events stored at most this often per stage
-  int64_t worker_memory_mb = 0;        // RLIMIT_AS of the child, 0 = unlimited
-  bool allow_faults = false;           // hand jobs/<id>/fault to the child (tests only)
+  // The most one job may use (job_memory.h); 0 = DefaultJobMemoryCapBytes(). The child runs
+  // under RLIMIT_AS = JobAddressSpaceLimitBytes(estimate, cap), except in sanitizer builds
+  // (their shadow memory needs terabytes of address space).
+  int64_t worker_memory_mb = 0;
+  bool allow_faults = false;  // hand jobs/<id>/fault to the child (tests only)
 };
 
 // Set from other threads to stop a running job early.
@@ -47,7 +50,11 @@ class JobRunner {
 
  private:
   struct ChildEnd;
-  absl::StatusOr<std::filesystem::path> Prepare(const v1::Job& job);
+  struct Prepared {
+    std::filesystem::path request;
+    int64_t memory_limit_bytes = 0;  // 0: none
+  };
+  absl::StatusOr<Prepared> Prepare(const v1::Job& job);
   ChildEnd Relay(class ChildProcess& child, const Lease& lease, StopFlags& stop);
   void RecordOutcome(const v1::Job& job, const Lease& lease, const ChildEnd& end,
                      const StopFlags& stop, double seconds);

@@ -202,6 +202,7 @@ class JobsService final : public v1::Jobs::Service {
     auto id = ParseName(req->name(), "jobs", "name");
     if (!id.ok()) return ToGrpc(id.status());
     if (auto may = MayWriteJob(caller, *id, req->name()); !may.ok()) return may;
+    d_.disk->BeforeDelete();
     if (auto st = d_.jobs->DeleteJob(*id); !st.ok()) return ToGrpc(st);
     d_.options->data_dir.RemoveJob(*id);
     spdlog::info("job {} deleted", *id);

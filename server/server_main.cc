@@ -22,6 +22,7 @@
 #include <grpcpp/security/tls_certificate_provider.h>
 #include <grpcpp/security/tls_credentials_options.h>
 #include <CLI/CLI.hpp>
+#include <algorithm>
 #include <cstdlib>
 #include <fstream>
 #include <sstream>
@@ -31,6 +32,7 @@
 #include "absl/strings/str_cat.h"
 #include "server/grpc_util.h"
 #include "server/lease_reaper.h"
+#include "server/periodic_task.h"
 #include "server/service.h"
 #include "server/tls_files.h"
 #include "server/worker_process.h"
@@ -71,7 +73,9 @@ int main(int argc, char** argv) {
   int tls_reload_seconds = 10, audit_max_mb = 64, audit_files = 10;
   int workers = 1, max_queued = 1000, max_attempts = 3;
   int64_t max_upload_mb = 2048, worker_memory_mb = 0;
+  int64_t disk_reserve_mb = 64;
   double drain_seconds = 30, heartbeat_seconds = 5, lease_seconds = 15;
+  double blob_grace_seconds = 3600, upload_expiry_seconds = 86400;
   bool allow_faults = false, no_fsync = false;
   app.add_option("--listen", listen, "address to serve on (host:port)")
       ->envname("DECIMA_LISTEN")
@@ -153,8 +157,25 @@ int main(int argc, char** argv) {
       ->check(CLI::Range(0.05, 3600.0))
       ->capture_default_str();
   app.add_option("--worker-memory-mb", worker_memory_mb,
-                 "address-space limit of each job process, MiB (0: none)")
+                 "the most memory one job may use, MiB (0: 80% of physical memory); a job whose "
+                 "volume needs more fails before it starts")
       ->envname("DECIMA_WORKER_MEMORY_MB")
+      ->check(CLI::Range(int64_t{0}, int64_t{1} << 40))
+      ->capture_default_str();
+  app.add_option("--disk-reserve-mb", disk_reserve_mb,
+                 "space kept in data-dir/reserve so deletes work on a full disk, MiB (0: none)")
+      ->envname("DECIMA_DISK_RESERVE_MB")
+      ->check(CLI::Range(int64_t{0}, int64_t{1} << 20))
+      ->capture_default_str();
+  app.add_option("--blob-grace-seconds", blob_grace_seconds,
+                 "an uploaded blob no volume uses is kept this long for its CreateVolume")
+      ->envname("DECIMA_BLOB_GRACE_SECONDS")
+      ->check(CLI::Range(1.0, 1e8))
+      ->capture_default_str();
+  app.add_option("--upload-expiry-seconds", upload_expiry_seconds,
+                 "an interrupted upload idle this long is deleted")
+      ->envname("DECIMA_UPLOAD_EXPIRY_SECONDS")
+      ->check(CLI::Range(1.0, 1e8))
       ->capture_default_str();
   app.add_flag("--allow-faults", allow_faults,
                "read the test fault seam (metadata decima-test-fault) on CreateJob (tests only)")
@@ -278,7 +299,22 @@ int main(int argc, char** argv) {
   so.max_queued = max_queued;
   so.allow_faults = allow_faults;
   so.heartbeat_ms = static_cast<int64_t>(heartbeat_seconds * 1000);
+  so.blob_sweep.grace = std::chrono::seconds(static_cast<int64_t>(blob_grace_seconds));
+  so.blob_sweep.partial_expiry = std::chrono::seconds(static_cast<int64_t>(upload_expiry_seconds));
+  so.disk_reserve_bytes = disk_reserve_mb << 20;
   Services services(so, store->get(), blobs->get(), &bus, &pool);
+  auto collect = [&services] {
+    const BlobSweepStats st = services.CollectGarbage();
+    if (st.blobs_removed + st.partials_removed > 0) {
+      spdlog::info("collector: removed {} unreferenced blob(s) and {} abandoned upload(s), {}",
+                   st.blobs_removed, st.partials_removed, HumanBytes(st.bytes_freed));
+    }
+  };
+  collect();  // what a crash or an earlier run left
+  // A quarter of the shortest lifetime, between 1 s and 5 min.
+  const double period_s =
+      std::clamp(std::min(blob_grace_seconds, upload_expiry_seconds) / 4, 1.0, 300.0);
+  PeriodicTask collector(std::chrono::milliseconds(static_cast<int64_t>(period_s * 1000)), collect);
 
   grpc::EnableDefaultHealthCheckService(true);
   grpc::reflection::InitProtoReflectionServerBuilderPlugin();
@@ -301,6 +337,9 @@ int main(int argc, char** argv) {
     creds = grpc::experimental::TlsServerCredentials(tls);
   }
   int port = 0;
+  // gRPC sets SO_REUSEPORT by default, so a second server would share the port (and clients
+  // would alternate between two job stores): a busy address must be an error at start.
+  builder.AddChannelArgument(GRPC_ARG_ALLOW_REUSEPORT, 0);
   builder.AddListeningPort(listen, creds, &port);
   builder.RegisterService(services.uploads());
   builder.RegisterService(services.volumes());
@@ -309,7 +348,10 @@ int main(int argc, char** argv) {
   builder.SetMaxReceiveMessageSize(4 << 20);
   std::unique_ptr<grpc::Server> server = builder.BuildAndStart();
   if (!server || port == 0) {
-    spdlog::error("--listen {}: cannot bind", listen);
+    spdlog::error(
+        "--listen {}: cannot bind (in use by another process, or not an address of "
+        "this machine)",
+        listen);
     return 1;
   }
   server->GetHealthCheckService()->SetServingStatus(true);
@@ -340,6 +382,7 @@ int main(int argc, char** argv) {
   bus.Close();
   pool.Drain(std::chrono::milliseconds(static_cast<int64_t>(drain_seconds * 1000)));
   reaper.Stop();
+  collector.Stop();
   server->Shutdown(std::chrono::system_clock::now() + std::chrono::seconds(2));
   spdlog::info("decima-server stopped");
   return 0;

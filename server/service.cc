@@ -6,12 +6,22 @@ Services::Services(ServiceOptions options, JobStore* jobs, BlobStore* blobs, Eve
                    WorkerPool* pool)
     : options_(std::move(options)),
       guard_(options_.identities),
-      audit_(options_.audit ? options_.audit : std::make_shared<AuditLog>()) {
-  const ServiceDeps deps{&options_, jobs, blobs, bus, pool, &guard_, audit_.get()};
+      audit_(options_.audit ? options_.audit : std::make_shared<AuditLog>()),
+      disk_(options_.data_dir.root(), options_.disk_reserve_bytes),
+      catalog_(&options_.data_dir, jobs, blobs, &disk_, options_.blob_sweep) {
+  disk_.Refill();
+  const ServiceDeps deps{&options_, jobs,   blobs,         bus,   pool,
+                         &guard_,   audit_.get(), &disk_, &catalog_};
   uploads_ = MakeUploadsService(deps);
   volumes_ = MakeVolumesService(deps);
   jobs_ = MakeJobsService(deps);
   artifacts_ = MakeArtifactsService(deps);
+}
+
+BlobSweepStats Services::CollectGarbage() {
+  BlobSweepStats stats = catalog_.CollectGarbage();
+  disk_.Refill();
+  return stats;
 }
 
 }  // namespace decima::server

@@ -17,8 +17,10 @@
 #include "server/blob_store.h"
 #include "server/call_guard.h"
 #include "server/data_dir.h"
+#include "server/disk_space.h"
 #include "server/event_bus.h"
 #include "server/job_store.h"
+#include "server/volume_catalog.h"
 #include "server/worker_pool.h"
 
 namespace decima::server {
@@ -31,6 +33,8 @@ struct ServiceOptions {
   int max_queued = 1000;
   bool allow_faults = false;    // read the test fault seam (faults.h), tests only
   int64_t heartbeat_ms = 5000;  // WatchJob heartbeat period
+  BlobSweepPolicy blob_sweep;   // upload claims and partial-upload expiry (blob_store.h)
+  int64_t disk_reserve_bytes = int64_t{64} << 20;  // disk_space.h; 0 = none
 };
 
 inline constexpr size_t kMaxChunkBytes = size_t{1} << 20;
@@ -44,6 +48,8 @@ struct ServiceDeps {
   WorkerPool* pool;
   const CallGuard* guard;
   const AuditLog* audit;  // never null (a disabled log when none is configured)
+  DiskSpace* disk;
+  VolumeCatalog* volumes;
 };
 
 std::unique_ptr<grpc::Service> MakeUploadsService(const ServiceDeps& deps);
@@ -66,10 +72,17 @@ class Services {
   grpc::Service* jobs() { return jobs_.get(); }
   grpc::Service* artifacts() { return artifacts_.get(); }
 
+  // One collector pass: blobs nobody holds and abandoned partial uploads are removed, the disk
+  // reserve is allocated again if there is room. Called by the server's collector timer.
+  BlobSweepStats CollectGarbage();
+  DiskSpace& disk() { return disk_; }
+
  private:
   const ServiceOptions options_;
   CallGuard guard_;
   std::shared_ptr<AuditLog> audit_;
+  DiskSpace disk_;
+  VolumeCatalog catalog_;
   std::unique_ptr<grpc::Service> uploads_, volumes_, jobs_, artifacts_;
 };
 

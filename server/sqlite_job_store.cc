@@ -580,14 +580,21 @@ class SqliteJobStore : public JobStore {
     if (q.Step() != SQLITE_ROW || q.Int(0) == 0) {
       return absl::NotFoundError(absl::StrCat("volumes/", id, " not found"));
     }
-    Stmt u(db_, "SELECT COUNT(*) FROM jobs WHERE volume=? AND state IN (?,?)");
-    u.Bind(1, absl::StrCat("volumes/", id))
-        .Bind(2, int64_t{v1::QUEUED})
-        .Bind(3, int64_t{v1::RUNNING});
-    if (u.Step() != SQLITE_ROW) return u.Error("checking volume use");
-    if (u.Int(0) > 0) {
-      return absl::FailedPreconditionError(
-          absl::StrCat("volumes/", id, " is read by ", u.Int(0), " queued or running jobs"));
+    // A queued or running job reads the volume as its input or its label map (the label map
+    // lives only in the stored spec, so the active jobs' specs are read: at most max_queued).
+    const std::string name = absl::StrCat("volumes/", id);
+    Stmt u(db_, "SELECT job FROM jobs WHERE state IN (?,?)");
+    u.Bind(1, int64_t{v1::QUEUED}).Bind(2, int64_t{v1::RUNNING});
+    int64_t readers = 0;
+    for (int rc; (rc = u.Step()) != SQLITE_DONE;) {
+      if (rc != SQLITE_ROW) return u.Error("checking volume use");
+      auto job = ParseJob(u.Text(0));
+      if (!job.ok()) return job.status();
+      if (job->spec().volume() == name || job->spec().label_map() == name) ++readers;
+    }
+    if (readers > 0) {
+      return absl::FailedPreconditionError(absl::StrCat(
+          name, " is read by ", readers, " queued or running job(s) (as volume or label map)"));
     }
     Stmt d(db_, "DELETE FROM volumes WHERE id=?");
     d.Bind(1, id);

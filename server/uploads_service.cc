@@ -13,7 +13,8 @@ namespace {
 // Stores one upload: `first` declares sha256, size and offset (and may carry data), `next`
 // yields the following messages. Fills `blob`; on error `detail` names the field or the offset
 // to resume from.
-absl::Status ReceiveUpload(BlobStore& blobs, int64_t max_bytes, const v1::UploadRequest& first,
+absl::Status ReceiveUpload(BlobStore& blobs, DiskSpace& disk, int64_t max_bytes,
+                           const v1::UploadRequest& first,
                            const std::function<bool(v1::UploadRequest*)>& next, v1::Blob* blob,
                            v1::ErrorDetail* detail) {
   const std::string& sha = first.sha256();
@@ -35,8 +36,18 @@ absl::Status ReceiveUpload(BlobStore& blobs, int64_t max_bytes, const v1::Upload
   blob->set_sha256(sha);
   blob->set_size_bytes(size);
   if (blobs.Has(sha)) {
+    blobs.Claim(sha);  // held for this client's CreateVolume like a fresh upload
     blob->set_deduplicated(true);
     return absl::OkStatus();
+  }
+  if (first.write_offset() >= 0 && first.write_offset() <= size) {
+    if (absl::Status st =
+            disk.Admit(size - first.write_offset(), absl::StrCat("upload of blob ", sha));
+        !st.ok()) {
+      detail->set_limit("disk_free_bytes");
+      detail->set_limit_value(disk.Free());
+      return st;
+    }
   }
   auto writer = blobs.OpenWriter(sha, size, first.write_offset());
   if (!writer.ok()) {
@@ -54,6 +65,11 @@ absl::Status ReceiveUpload(BlobStore& blobs, int64_t max_bytes, const v1::Upload
     }
     if (!req.data().empty()) {
       absl::Status st = w.Append(req.data().data(), req.data().size());
+      if (absl::IsResourceExhausted(st)) {
+        detail->set_limit("disk_free_bytes");
+        detail->set_limit_value(disk.Free());
+        return st;
+      }
       if (!st.ok()) return invalid("data", std::string(st.message()));
     }
   } while (next(&req));
@@ -63,7 +79,12 @@ absl::Status ReceiveUpload(BlobStore& blobs, int64_t max_bytes, const v1::Upload
                                            " bytes; resume with write_offset=", w.written()));
   }
   absl::Status st = w.Commit();
-  if (!st.ok()) detail->set_field("sha256");
+  if (absl::IsResourceExhausted(st)) {
+    detail->set_limit("disk_free_bytes");
+    detail->set_limit_value(disk.Free());
+  } else if (!st.ok()) {
+    detail->set_field("sha256");
+  }
   return st;
 }
 
@@ -91,7 +112,7 @@ class UploadsService final : public v1::Uploads::Service {
     }
     v1::ErrorDetail detail;
     absl::Status st = ReceiveUpload(
-        *d_.blobs, d_.options->max_upload_bytes, first,
+        *d_.blobs, *d_.disk, d_.options->max_upload_bytes, first,
         [reader](v1::UploadRequest* r) { return reader->Read(r); }, blob, &detail);
     return d_.audit->Record(&caller, "Upload", resource,
                             st.ok() ? grpc::Status::OK : Fail(ctx, st, detail));
@@ -105,6 +126,8 @@ class UploadsService final : public v1::Uploads::Service {
       return InvalidField(ctx, "sha256", "expected 64 lower-case hex digits");
     }
     const BlobStatus st = d_.blobs->Status(req->sha256(), req->size_bytes());
+    // A client that sees "complete" skips the upload and names the blob in CreateVolume next.
+    if (st.complete) d_.blobs->Claim(req->sha256());
     resp->set_name("blobs/" + req->sha256());
     resp->set_complete(st.complete);
     resp->set_committed_size(st.committed_size);

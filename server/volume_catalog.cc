@@ -3,6 +3,7 @@
 #include <set>
 #include <vector>
 
+#include "absl/strings/match.h"
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_split.h"
 #include "server/grpc_util.h"
@@ -75,16 +76,12 @@ absl::StatusOr<v1::Volume> VolumeCatalog::Create(const v1::CreateVolumeRequest& 
       return absl::InternalError(absl::StrCat("materializing ", paths[i], ": ", ec.message()));
     }
   }
-  auto header = ProbeVolume(dir, paths, vol.format());
+  auto header = ProbeVolume(dir, paths, vol.format(), vol.series_instance_uid());
   if (!header.ok()) {
     data_dir_->RemoveVolume(id);
-    // Nothing stored: drop the blobs no other volume uses.
-    for (const auto& f : vol.files()) {
-      const std::string sha = f.blob().substr(6);
-      auto used = jobs_->BlobInUse(sha);
-      if (used.ok() && !*used) (void)blobs_->Delete(sha);
-    }
-    detail->set_field("volume.files");
+    const bool series = absl::StartsWith(header.status().message(), "series_instance_uid") ||
+                        absl::StrContains(header.status().message(), "choose one with");
+    detail->set_field(series ? "volume.series_instance_uid" : "volume.files");
     return header.status();
   }
   vol.set_name("volumes/" + id);
@@ -110,9 +107,25 @@ absl::StatusOr<v1::Volume> VolumeCatalog::Create(const v1::CreateVolumeRequest& 
 }
 
 absl::Status VolumeCatalog::Delete(const std::string& id) {
+  auto vol = jobs_->GetVolume(id);
+  if (!vol.ok()) return vol.status();
+  disk_->BeforeDelete();
   if (auto st = jobs_->DeleteVolume(id); !st.ok()) return st;
   data_dir_->RemoveVolume(id);
+  std::vector<std::string> released;
+  for (const auto& f : vol->files()) released.push_back(f.blob().substr(6));
+  blobs_->Sweep(sweep_, InUse(), &released);
   return absl::OkStatus();
 }
+
+std::function<bool(const std::string&)> VolumeCatalog::InUse() const {
+  // A store error keeps the blob: deleting too little is harmless, too much is data loss.
+  return [jobs = jobs_](const std::string& sha) {
+    auto used = jobs->BlobInUse(sha);
+    return !used.ok() || *used;
+  };
+}
+
+BlobSweepStats VolumeCatalog::CollectGarbage() { return blobs_->Sweep(sweep_, InUse()); }
 
 }  // namespace decima::server

@@ -37,8 +37,22 @@ std::string MainFile(const std::vector<std::string>& files) {
 
 }  // namespace
 
+namespace {
+
+// `status` with every mention of `dir` removed, so that a client reads its own file names.
+absl::Status WithoutServerPath(const absl::Status& status, const fs::path& dir) {
+  std::string msg(status.message());
+  for (const std::string& prefix : {dir.string() + "/", dir.string()}) {
+    for (size_t at; (at = msg.find(prefix)) != std::string::npos;) msg.erase(at, prefix.size());
+  }
+  return absl::Status(status.code(), msg);
+}
+
+}  // namespace
+
 absl::StatusOr<VolumeHeader> ProbeVolume(const fs::path& dir, const std::vector<std::string>& files,
-                                         v1::VolumeFormat format) {
+                                         v1::VolumeFormat format,
+                                         const std::string& series_instance_uid) {
   if (files.empty()) return absl::InvalidArgumentError("files: a volume needs at least one file");
   const std::string main = MainFile(files);
   v1::VolumeFormat detected = ToProto(io::VolumeFormatFromName(main));
@@ -67,6 +81,35 @@ absl::StatusOr<VolumeHeader> ProbeVolume(const fs::path& dir, const std::vector<
         return absl::InvalidArgumentError(absl::StrCat(f, ": not a DICOM file (", reason, ")"));
       }
     }
+    auto series = decima::ListDicomSeries(dir);
+    if (!series.ok()) return WithoutServerPath(series.status(), dir);
+    auto describe = [&] {
+      std::string list;
+      for (const auto& s : *series) {
+        absl::StrAppend(&list, "\n  ", s.series_instance_uid, "  ", s.modality, "  ", s.file_count,
+                        " files", s.series_description.empty() ? "" : "  ", s.series_description);
+      }
+      return list;
+    };
+    const DicomSeriesInfo* chosen = nullptr;
+    for (const auto& s : *series) {
+      if (s.series_instance_uid == series_instance_uid) chosen = &s;
+    }
+    if (!series_instance_uid.empty() && chosen == nullptr) {
+      return absl::InvalidArgumentError(
+          absl::StrCat("series_instance_uid ", series_instance_uid,
+                       " is not among the series of these files:", describe()));
+    }
+    if (series_instance_uid.empty()) {
+      if (series->size() > 1) {
+        return absl::InvalidArgumentError(absl::StrCat(
+            "the files hold ", series->size(),
+            " series; choose one with series_instance_uid (decima submit --series UID):",
+            describe()));
+      }
+      chosen = &series->front();
+    }
+    h.modality = chosen->modality;
     h.input = dir;
     return h;
   }
@@ -74,14 +117,11 @@ absl::StatusOr<VolumeHeader> ProbeVolume(const fs::path& dir, const std::vector<
   auto probe = io::ProbeVolume(dir / main);
   if (!probe.ok()) {
     // Name the file as the client did, not by its path on the server.
-    std::string msg(probe.status().message());
-    const std::string server_path = dir.string() + "/";
-    for (size_t at; (at = msg.find(server_path)) != std::string::npos;)
-      msg.erase(at, server_path.size());
-    return absl::Status(probe.status().code() == absl::StatusCode::kNotFound
-                            ? absl::StatusCode::kInvalidArgument
-                            : probe.status().code(),
-                        msg);
+    return WithoutServerPath(absl::Status(probe.status().code() == absl::StatusCode::kNotFound
+                                              ? absl::StatusCode::kInvalidArgument
+                                              : probe.status().code(),
+                                          probe.status().message()),
+                             dir);
   }
   h.parsed = true;
   h.dims = probe->dims;

@@ -29,9 +29,14 @@ struct VolumeHeader {
 // it from the names (.nii/.nii.gz/.hdr/.img, .mha/.mhd, .nrrd/.nhdr; several files or a "DICM"
 // preamble: DICOM). INVALID_ARGUMENT naming the file and the problem for an unknown format, a
 // header that does not parse, dims out of range, or data shorter than the header promises.
+// DICOM: the series are listed from the headers (no pixel data); `series_instance_uid` picks
+// one (INVALID_ARGUMENT listing the series present when none matches); without it the files must
+// hold exactly one series (INVALID_ARGUMENT listing them otherwise). Messages name files by their
+// manifest paths, never by their place on the server.
 absl::StatusOr<VolumeHeader> ProbeVolume(const std::filesystem::path& dir,
                                          const std::vector<std::string>& files,
-                                         v1::VolumeFormat format);
+                                         v1::VolumeFormat format,
+                                         const std::string& series_instance_uid = "");
 
 }  // namespace decima::server
 

@@ -2,15 +2,13 @@
 #include "decima/v1/volumes.grpc.pb.h"
 #include "server/grpc_util.h"
 #include "server/service.h"
-#include "server/volume_catalog.h"
 
 namespace decima::server {
 namespace {
 
 class VolumesService final : public v1::Volumes::Service {
  public:
-  explicit VolumesService(const ServiceDeps& d)
-      : d_(d), catalog_(&d.options->data_dir, d.jobs, d.blobs) {}
+  explicit VolumesService(const ServiceDeps& d) : d_(d) {}
 
   grpc::Status CreateVolume(grpc::ServerContext* ctx, const v1::CreateVolumeRequest* req,
                             v1::Volume* resp) override {
@@ -26,7 +24,7 @@ class VolumesService final : public v1::Volumes::Service {
                               const v1::CreateVolumeRequest& req, v1::Volume* resp) {
     if (auto may = CallGuard::MayCreate(caller, "volumes"); !may.ok()) return may;
     v1::ErrorDetail detail;
-    auto vol = catalog_.Create(req, caller.name, &detail);
+    auto vol = d_.volumes->Create(req, caller.name, &detail);
     if (!vol.ok())
       return detail.field().empty() ? ToGrpc(vol.status()) : Fail(ctx, vol.status(), detail);
     // A request_id another principal used returns that principal's volume: not to be revealed.
@@ -79,12 +77,11 @@ class VolumesService final : public v1::Volumes::Service {
     auto v = d_.jobs->GetVolume(*id);
     if (!v.ok()) return ToGrpc(v.status());
     if (auto may = CallGuard::MayWrite(caller, v->creator(), req.name()); !may.ok()) return may;
-    return ToGrpc(catalog_.Delete(*id));
+    return ToGrpc(d_.volumes->Delete(*id));
   }
 
  private:
   const ServiceDeps d_;
-  VolumeCatalog catalog_;
 };
 
 }  // namespace

@@ -4,11 +4,14 @@
 
 #include <cstdlib>
 #include <fstream>
+#include <new>
 #include <sstream>
 #include <string>
 
+#include "absl/strings/str_cat.h"
 #include "core/common/progress.h"
 #include "core/pipeline/pipeline.h"
+#include "server/disk_space.h"
 #include "server/faults.h"
 #include "server/job_spec.h"
 #include "server/worker.pb.h"
@@ -65,6 +68,7 @@ int RunJobProcess(const std::filesystem::path& request_file, int fd) {
   auto spec = JobSpecFromProto(request.spec());
   if (!spec.ok()) return SendError(fd, spec.status());
   spec->input = request.input();
+  spec->series_instance_uid = request.series_instance_uid();
   if (!request.label_map().empty()) spec->label_map = request.label_map();
 
   auto progress = [fd](const Progress& p) { SendProgress(fd, p); };
@@ -75,7 +79,21 @@ int RunJobProcess(const std::filesystem::path& request_file, int fd) {
   SendProgress(fd, {"load", 0, "starting", {}});
   if (crash) std::abort();
 
-  auto result = pipeline::RunJob(*spec, request.out_dir(), progress, &g_cancel);
+  std::string stage = "load";
+  auto tracked = [&](const Progress& p) {
+    stage = p.stage;
+    progress(p);
+  };
+  absl::StatusOr<pipeline::JobResult> result;
+  try {
+    result = pipeline::RunJob(*spec, request.out_dir(), tracked, &g_cancel);
+  } catch (const std::bad_alloc&) {
+    // RLIMIT_AS reached: the estimate was low for this volume. Say so rather than dying.
+    result = absl::ResourceExhaustedError(absl::StrCat(
+        "the job ran out of memory during stage ", stage, " at its limit of ",
+        request.memory_limit_bytes() > 0 ? HumanBytes(request.memory_limit_bytes()) : "(none)",
+        "; raise decima-server --worker-memory-mb or use a smaller volume"));
+  }
   if (!result.ok()) return SendError(fd, result.status());
   worker::WorkerMessage m;
   for (const auto& a : result->artifacts) {

@@ -5,12 +5,15 @@
 #include <sys/wait.h>
 #include <unistd.h>
 
+#include <algorithm>
 #include <atomic>
 #include <cstring>
 #include <fstream>
 #include <sstream>
 #include <thread>
 
+#include <grpcpp/grpcpp.h>
+#include "decima/v1/jobs.grpc.pb.h"
 #include "gtest/gtest.h"
 
 namespace decima::e2e {
@@ -76,9 +79,12 @@ ServerProcess::ServerProcess(fs::path data_dir, std::vector<std::string> extra)
   fs::path port_file = data_dir_.parent_path() / ("port-" + tag);
   log_ = data_dir_.parent_path() / ("server-" + tag + ".log");
   fs::remove(port_file);
-  std::vector<std::string> args = {
-      ServerBinary().string(), "--listen",    "127.0.0.1:0",     "--data-dir",
-      data_dir_.string(),      "--port-file", port_file.string()};
+  std::vector<std::string> args = {ServerBinary().string(), "--data-dir", data_dir_.string(),
+                                   "--port-file", port_file.string()};
+  // A test may pin the address (a restart on the same port); else a free port.
+  if (std::find(extra.begin(), extra.end(), "--listen") == extra.end()) {
+    args.insert(args.end(), {"--listen", "127.0.0.1:0"});
+  }
   args.insert(args.end(), extra.begin(), extra.end());
   pid_ = Spawn(args, log_, log_.string() + ".err", {});
   bool up = WaitFor(
@@ -107,32 +113,14 @@ void ServerProcess::Signal(int sig) {
 
 std::string ServerProcess::Log() const { return ReadAll(log_) + ReadAll(log_.string() + ".err"); }
 
-CliResult RunCli(const std::string& address, const std::vector<std::string>& args,
-                 std::chrono::seconds timeout, const std::map<std::string, std::string>& env) {
-  static std::atomic<int> counter{0};
-  fs::path dir = fs::temp_directory_path() / ("decima-cli-" + std::to_string(getpid()));
-  fs::create_directories(dir);
-  std::string tag = std::to_string(++counter);
-  fs::path out = dir / (tag + ".out"), err = dir / (tag + ".err");
-  std::vector<std::string> a = {CliBinary().string(), "--server", address};
-  a.insert(a.end(), args.begin(), args.end());
-  pid_t pid = Spawn(a, out, err, env);
-  CliResult r;
-  r.rc = Reap(pid, timeout);
-  r.out = ReadAll(out);
-  r.err = ReadAll(err);
-  fs::remove(out);
-  fs::remove(err);
-  return r;
-}
-
-CliResult RunProgram(const std::vector<std::string>& argv, std::chrono::seconds timeout) {
+CliResult RunProgram(const std::vector<std::string>& argv, std::chrono::seconds timeout,
+                     const std::map<std::string, std::string>& env) {
   static std::atomic<int> counter{0};
   fs::path dir = fs::temp_directory_path() / ("decima-run-" + std::to_string(getpid()));
   fs::create_directories(dir);
   std::string tag = std::to_string(++counter);
   fs::path out = dir / (tag + ".out"), err = dir / (tag + ".err");
-  pid_t pid = Spawn(argv, out, err, {});
+  pid_t pid = Spawn(argv, out, err, env);
   CliResult r;
   r.rc = Reap(pid, timeout);
   r.out = ReadAll(out);
@@ -211,11 +199,30 @@ std::string MakeTestPki(const fs::path& dir, const std::vector<std::string>& cli
               "-enddate", "20200102000000Z", "-notext"});
 }
 
-void WriteTinyNifti(const fs::path& path, int nx, int ny, int nz, int seed) {
-  char hdr[352] = {};
-  auto put32 = [&](int off, int32_t v) { std::memcpy(hdr + off, &v, 4); };
-  auto put16 = [&](int off, int16_t v) { std::memcpy(hdr + off, &v, 2); };
-  auto putf = [&](int off, float v) { std::memcpy(hdr + off, &v, 4); };
+CliResult RunCli(const std::string& address, const std::vector<std::string>& args,
+                 std::chrono::seconds timeout, const std::map<std::string, std::string>& env) {
+  std::vector<std::string> a = {CliBinary().string(), "--server", address};
+  a.insert(a.end(), args.begin(), args.end());
+  return RunProgram(a, timeout, env);
+}
+
+v1::Job GetJob(const std::string& address, const std::string& name) {
+  auto stub = v1::Jobs::NewStub(grpc::CreateChannel(address, grpc::InsecureChannelCredentials()));
+  v1::GetJobRequest req;
+  req.set_name(name);
+  v1::Job job;
+  grpc::ClientContext ctx;
+  ctx.set_deadline(std::chrono::system_clock::now() + std::chrono::seconds(30));
+  grpc::Status s = stub->GetJob(&ctx, req, &job);
+  EXPECT_TRUE(s.ok()) << name << ": " << s.error_message();
+  return job;
+}
+
+std::string NiftiHeader(int nx, int ny, int nz, int16_t datatype, int16_t bitpix, float mm) {
+  std::string hdr(352, '\0');
+  auto put32 = [&](int off, int32_t v) { std::memcpy(&hdr[off], &v, 4); };
+  auto put16 = [&](int off, int16_t v) { std::memcpy(&hdr[off], &v, 2); };
+  auto putf = [&](int off, float v) { std::memcpy(&hdr[off], &v, 4); };
   put32(0, 348);
   put16(40, 3);
   put16(42, static_cast<int16_t>(nx));
@@ -225,18 +232,23 @@ void WriteTinyNifti(const fs::path& path, int nx, int ny, int nz, int seed) {
   put16(50, 1);
   put16(52, 1);
   put16(54, 1);
-  put16(70, 4);   // datatype int16
-  put16(72, 16);  // bitpix
-  putf(76, 1);    // qfac
-  putf(80, 2);
-  putf(84, 2);
-  putf(88, 2);
+  put16(70, datatype);
+  put16(72, bitpix);
+  putf(76, 1);  // qfac
+  putf(80, mm);
+  putf(84, mm);
+  putf(88, mm);
   putf(108, 352);  // vox_offset
   putf(112, 1);    // scl_slope
   hdr[123] = 10;   // xyzt_units: mm, s
   put16(252, 1);   // qform_code scanner
   putf(256, 0);    // quatern b c d = identity
-  std::memcpy(hdr + 344, "n+1", 4);
+  std::memcpy(&hdr[344], "n+1", 4);
+  return hdr;
+}
+
+void WriteTinyNifti(const fs::path& path, int nx, int ny, int nz, int seed) {
+  const std::string hdr = NiftiHeader(nx, ny, nz, /*int16*/ 4, 16, 2.0f);
   std::vector<int16_t> v(static_cast<size_t>(nx) * ny * nz);
   double cx = nx / 2.0, cy = ny / 2.0, cz = nz / 2.0, r = std::min({nx, ny, nz}) / 3.0;
   for (int z = 0; z < nz; ++z) {
@@ -249,7 +261,7 @@ void WriteTinyNifti(const fs::path& path, int nx, int ny, int nz, int seed) {
   }
   v[0] = static_cast<int16_t>(seed);
   std::ofstream out(path, std::ios::binary);
-  out.write(hdr, sizeof hdr);
+  out.write(hdr.data(), static_cast<std::streamsize>(hdr.size()));
   out.write(reinterpret_cast<const char*>(v.data()), static_cast<std::streamsize>(v.size() * 2));
 }
 

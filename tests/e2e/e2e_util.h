@@ -10,6 +10,8 @@
 #include <string>
 #include <vector>
 
+#include "decima/v1/jobs.pb.h"
+
 namespace decima::e2e {
 
 struct CliResult {
@@ -19,7 +21,8 @@ struct CliResult {
 
 class ServerProcess {
  public:
-  // Starts decima-server with --data-dir `data_dir`, --listen 127.0.0.1:0, `extra` flags;
+  // Starts decima-server with --data-dir `data_dir`, --listen 127.0.0.1:0 (unless `extra`
+  // names --listen), `extra` flags;
   // waits until it wrote its port (fails the test after 30 s).
   ServerProcess(std::filesystem::path data_dir, std::vector<std::string> extra = {});
   ~ServerProcess();  // SIGKILL if still running
@@ -42,9 +45,17 @@ CliResult RunCli(const std::string& address, const std::vector<std::string>& arg
                  std::chrono::seconds timeout = std::chrono::seconds(60),
                  const std::map<std::string, std::string>& env = {});
 
-// Runs `argv` (argv[0] an absolute path) and waits, killing it after `timeout`.
+// Runs `argv` (argv[0] a path) to its end (killed after `timeout`), capturing its output.
 CliResult RunProgram(const std::vector<std::string>& argv,
-                     std::chrono::seconds timeout = std::chrono::seconds(60));
+                     std::chrono::seconds timeout = std::chrono::seconds(60),
+                     const std::map<std::string, std::string>& env = {});
+
+// GetJob over a fresh plaintext channel (fails the test on an error status).
+v1::Job GetJob(const std::string& address, const std::string& name);
+
+// A NIfTI-1 single-file header (352 bytes): dims, datatype code and bits, isotropic voxel size
+// `mm`, identity qform.
+std::string NiftiHeader(int nx, int ny, int nz, int16_t datatype, int16_t bitpix, float mm);
 
 // A throwaway public-key infrastructure made with the `openssl` command in `dir`: a CA, a server
 // certificate for 127.0.0.1/localhost, one client certificate per name (CN = the name), a

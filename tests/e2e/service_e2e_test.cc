@@ -51,16 +51,6 @@ std::unique_ptr<grpc::ClientContext> Ctx(const std::string& token = "") {
   return ctx;
 }
 
-v1::Job GetJob(const std::string& address, const std::string& name) {
-  auto stub = v1::Jobs::NewStub(grpc::CreateChannel(address, grpc::InsecureChannelCredentials()));
-  v1::GetJobRequest req;
-  req.set_name(name);
-  v1::Job job;
-  grpc::Status s = stub->GetJob(Ctx().get(), req, &job);
-  EXPECT_TRUE(s.ok()) << s.error_message();
-  return job;
-}
-
 // Every event of a job, read by a watcher from after_sequence = 0 to the end of the stream.
 std::vector<v1::JobEvent> WatchAll(const std::string& address, const std::string& name,
                                    int64_t after = 0, int stop_after = -1) {
@@ -350,8 +340,9 @@ TEST_F(ServiceE2E, InterruptedUploadResumesWhereTheServerSaysItStopped) {
 TEST_F(ServiceE2E, BadRequestsGetTheirCodesAndStoreNothing) {
   fs::path token_file = scratch_ / "token";
   std::ofstream(token_file) << "s3cret\n";
-  ServerProcess server(scratch_ / "data",
-                       {"--token-file", token_file.string(), "--max-upload-mb", "1"});
+  // A blob named by a failed CreateVolume belongs to its upload until the grace lapses (1 s).
+  ServerProcess server(scratch_ / "data", {"--token-file", token_file.string(), "--max-upload-mb",
+                                           "1", "--blob-grace-seconds", "1"});
   std::map<std::string, std::string> env = {{"DECIMA_TOKEN", "s3cret"}};
   // Wrong and missing token.
   CliResult r = RunCli(server.address(), {"--token", "nope", "list"});
@@ -404,12 +395,16 @@ TEST_F(ServiceE2E, BadRequestsGetTheirCodesAndStoreNothing) {
   ASSERT_TRUE(stub->GetUploadStatus(Ctx("s3cret").get(), sreq, &st).ok());
   EXPECT_FALSE(st.complete());
   EXPECT_EQ(st.committed_size(), 0);
-  // Nothing stored by any of the failures: no blob, no partial, no volume, no job.
-  size_t files = 0;
-  for (auto& e : fs::recursive_directory_iterator(server.data_dir() / "blobs")) {
-    files += e.is_regular_file();
-  }
-  EXPECT_EQ(files, 0u);
+  // Nothing kept by any of the failures: no blob once the collector ran, no partial, no
+  // volume, no job.
+  auto blob_files = [&] {
+    size_t files = 0;
+    for (auto& e : fs::recursive_directory_iterator(server.data_dir() / "blobs")) {
+      files += e.is_regular_file();
+    }
+    return files;
+  };
+  EXPECT_TRUE(WaitFor([&] { return blob_files() == 0; }, 10s)) << blob_files() << " files left";
   auto vstub = v1::Volumes::NewStub(
       grpc::CreateChannel(server.address(), grpc::InsecureChannelCredentials()));
   v1::ListVolumesResponse vols;

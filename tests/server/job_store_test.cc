@@ -254,6 +254,24 @@ TEST_F(JobStoreTest, VolumeInUseCannotBeDeleted) {
   EXPECT_EQ(store_->GetVolume("v1").status().code(), absl::StatusCode::kNotFound);
 }
 
+TEST_F(JobStoreTest, LabelMapOfAQueuedJobCannotBeDeleted) {
+  bool created = false;
+  for (const char* id : {"v1", "labels"}) {
+    v1::Volume v;
+    v.add_files()->set_blob("blobs/" + std::string(64, id[0]));
+    ASSERT_TRUE(store_->CreateVolume(id, v, "", &created).ok());
+  }
+  v1::JobSpec spec;
+  spec.set_volume("volumes/v1");
+  spec.set_label_map("volumes/labels");
+  ASSERT_TRUE(store_->CreateJob("a", spec, "", 100, "", &created).ok());
+  const absl::Status st = store_->DeleteVolume("labels");
+  EXPECT_EQ(st.code(), absl::StatusCode::kFailedPrecondition) << st;
+  EXPECT_THAT(std::string(st.message()), HasSubstr("label map"));
+  ASSERT_TRUE(store_->Cancel("a").ok());
+  EXPECT_TRUE(store_->DeleteVolume("labels").ok());
+}
+
 TEST(ParseNameTest, AcceptsOnlyTheCollectionAndSafeIds) {
   EXPECT_EQ(*ParseName("jobs/ab12", "jobs", "name"), "ab12");
   EXPECT_FALSE(ParseName("jobs/", "jobs", "name").ok());

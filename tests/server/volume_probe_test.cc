@@ -4,6 +4,7 @@
 #include "gmock/gmock.h"
 #include "gtest/gtest.h"
 #include "server/volume_probe.h"
+#include "tests/testing/dicom_writer.h"
 #include "tests/testing/test_data.h"
 
 namespace decima::server {
@@ -84,18 +85,43 @@ TEST_F(VolumeProbeTest, MetaImageAndNrrdHeaders) {
 }
 
 TEST_F(VolumeProbeTest, DicomSeriesNeedsThePreambleInEveryFile) {
-  std::string dcm(132, '\0');
-  std::memcpy(&dcm[128], "DICM", 4);
-  Write("s/1", dcm);
-  Write("s/2", dcm);
-  auto ok = ProbeVolume(dir_, {"s/1", "s/2"}, v1::VOLUME_FORMAT_UNSPECIFIED);
+  testing::SliceSpec spec;
+  fs::create_directories(dir_ / "s");
+  const auto files = testing::WriteSeries(dir_ / "s", spec, {1.0, 1.0}, {}, "");
+  ASSERT_EQ(files.size(), 3u);
+  auto ok = ProbeVolume(dir_, {"s/00.dcm", "s/01.dcm", "s/02.dcm"}, v1::VOLUME_FORMAT_UNSPECIFIED);
   ASSERT_TRUE(ok.ok()) << ok.status();
   EXPECT_EQ(ok->format, v1::VOLUME_FORMAT_DICOM);
+  EXPECT_EQ(ok->modality, "CT");
   EXPECT_FALSE(ok->parsed);
   Write("s/3", "not dicom");
-  auto bad = ProbeVolume(dir_, {"s/1", "s/3"}, v1::VOLUME_FORMAT_UNSPECIFIED);
+  auto bad = ProbeVolume(dir_, {"s/00.dcm", "s/3"}, v1::VOLUME_FORMAT_UNSPECIFIED);
   EXPECT_EQ(bad.status().code(), absl::StatusCode::kInvalidArgument);
   EXPECT_THAT(std::string(bad.status().message()), HasSubstr("s/3"));
+}
+
+TEST_F(VolumeProbeTest, DicomFilesWithSeveralSeriesNeedTheChosenUidAndItMustExist) {
+  testing::SliceSpec a, b;
+  a.series_uid = "1.2.826.0.1.3680043.9.7777.10";
+  b.series_uid = "1.2.826.0.1.3680043.9.7777.20";
+  b.modality = "MR";
+  testing::WriteSeries(dir_, a, {1.0, 1.0}, {}, "a");
+  testing::WriteSeries(dir_, b, {2.0}, {}, "b");
+  const std::vector<std::string> files = {"a00.dcm", "a01.dcm", "a02.dcm", "b00.dcm", "b01.dcm"};
+  auto none = ProbeVolume(dir_, files, v1::VOLUME_FORMAT_UNSPECIFIED);
+  ASSERT_EQ(none.status().code(), absl::StatusCode::kInvalidArgument) << none.status();
+  EXPECT_THAT(std::string(none.status().message()),
+              ::testing::AllOf(HasSubstr("2 series"), HasSubstr(a.series_uid),
+                               HasSubstr(b.series_uid), HasSubstr("--series")));
+  auto chosen = ProbeVolume(dir_, files, v1::VOLUME_FORMAT_UNSPECIFIED, b.series_uid);
+  ASSERT_TRUE(chosen.ok()) << chosen.status();
+  EXPECT_EQ(chosen->modality, "MR");
+  auto unknown = ProbeVolume(dir_, files, v1::VOLUME_FORMAT_UNSPECIFIED, "1.2.3.999");
+  ASSERT_EQ(unknown.status().code(), absl::StatusCode::kInvalidArgument);
+  EXPECT_THAT(std::string(unknown.status().message()),
+              ::testing::AllOf(HasSubstr("1.2.3.999"), HasSubstr(a.series_uid)));
+  // The server's folder never appears in what the client reads.
+  EXPECT_THAT(std::string(unknown.status().message()), ::testing::Not(HasSubstr(dir_.string())));
 }
 
 }  // namespace

@@ -27,6 +27,7 @@
 #include "absl/strings/str_join.h"
 #include "gmock/gmock.h"
 #include "gtest/gtest.h"
+#include "tests/testing/dicom_writer.h"
 #include "tests/testing/test_data.h"
 
 namespace decima {
@@ -37,154 +38,9 @@ using ::testing::AllOf;
 using ::testing::AnyOf;
 using ::testing::HasSubstr;
 
-// One slice file as the test wants it; defaults make a valid 3 x 4 uint16 CT slice.
-struct SliceSpec {
-  int rows = 4;
-  int columns = 3;
-  std::vector<double> pixel_spacing = {0.5, 0.8};  // DICOM order: between rows, between columns
-  std::vector<double> orientation = {1, 0, 0, 0, 1, 0};
-  Eigen::Vector3d position = Eigen::Vector3d::Zero();
-  int bits_allocated = 16;
-  int bits_stored = 0;  // 0: BitsAllocated
-  int pixel_representation = 0;
-  int samples_per_pixel = 1;
-  std::optional<double> slope, intercept, slice_thickness;
-  std::string series_uid = "1.2.826.0.1.3680043.9.7777.1";
-  std::string description = "synthetic";
-  std::string modality = "CT";
-  int instance = 1;
-  bool with_sequence = false;  // adds a nested Referenced Image Sequence (undefined lengths)
-  gdcm::TransferSyntax::TSType transfer_syntax = gdcm::TransferSyntax::ExplicitVRLittleEndian;
-  // Pixel (i, j) = value(i, j); values are cast to the stored type.
-  std::function<double(int, int)> value = [](int i, int j) { return 10 * j + i; };
-};
-
-std::string Decimals(const std::vector<double>& v) {
-  std::vector<std::string> parts;
-  for (double x : v) {
-    char buf[32];
-    std::snprintf(buf, sizeof(buf), "%.10g", x);  // DS: at most 16 characters
-    parts.push_back(buf);
-  }
-  return absl::StrJoin(parts, "\\");
-}
-
-void PutText(gdcm::DataSet& ds, uint16_t group, uint16_t element, gdcm::VR vr, std::string v) {
-  if (v.size() % 2) v.push_back(vr == gdcm::VR::UI ? '\0' : ' ');
-  gdcm::DataElement de(gdcm::Tag(group, element));
-  de.SetVR(vr);
-  de.SetByteValue(v.data(), static_cast<uint32_t>(v.size()));
-  ds.Insert(de);
-}
-
-void PutUs(gdcm::DataSet& ds, uint16_t group, uint16_t element, uint16_t v) {
-  gdcm::DataElement de(gdcm::Tag(group, element));
-  de.SetVR(gdcm::VR::US);
-  de.SetByteValue(reinterpret_cast<const char*>(&v), 2);
-  ds.Insert(de);
-}
-
-template <typename T>
-void AppendPixels(const SliceSpec& s, std::vector<char>* out) {
-  for (int j = 0; j < s.rows; ++j) {
-    for (int i = 0; i < s.columns; ++i) {
-      for (int c = 0; c < s.samples_per_pixel; ++c) {
-        T v = static_cast<T>(s.value(i, j));
-        const char* p = reinterpret_cast<const char*>(&v);
-        out->insert(out->end(), p, p + sizeof(T));
-      }
-    }
-  }
-}
-
-void WriteSlice(const fs::path& path, const SliceSpec& s) {
-  gdcm::Writer writer;
-  gdcm::File& file = writer.GetFile();
-  gdcm::DataSet& ds = file.GetDataSet();
-  PutText(ds, 0x0008, 0x0016, gdcm::VR::UI, "1.2.840.10008.5.1.4.1.1.2");  // CT Image Storage
-  PutText(ds, 0x0008, 0x0018, gdcm::VR::UI, absl::StrCat(s.series_uid, ".", s.instance));
-  PutText(ds, 0x0008, 0x0060, gdcm::VR::CS, s.modality);
-  PutText(ds, 0x0008, 0x103e, gdcm::VR::LO, s.description);
-  if (s.slice_thickness) PutText(ds, 0x0018, 0x0050, gdcm::VR::DS, Decimals({*s.slice_thickness}));
-  PutText(ds, 0x0020, 0x000d, gdcm::VR::UI, "1.2.826.0.1.3680043.9.7777.99");
-  PutText(ds, 0x0020, 0x000e, gdcm::VR::UI, s.series_uid);
-  PutText(ds, 0x0020, 0x0013, gdcm::VR::IS, absl::StrCat(s.instance));
-  PutText(ds, 0x0020, 0x0032, gdcm::VR::DS,
-          Decimals({s.position.x(), s.position.y(), s.position.z()}));
-  PutText(ds, 0x0020, 0x0037, gdcm::VR::DS, Decimals(s.orientation));
-  PutUs(ds, 0x0028, 0x0002, static_cast<uint16_t>(s.samples_per_pixel));
-  PutText(ds, 0x0028, 0x0004, gdcm::VR::CS, s.samples_per_pixel == 1 ? "MONOCHROME2" : "RGB");
-  if (s.samples_per_pixel > 1) PutUs(ds, 0x0028, 0x0006, 0);
-  PutUs(ds, 0x0028, 0x0010, static_cast<uint16_t>(s.rows));
-  PutUs(ds, 0x0028, 0x0011, static_cast<uint16_t>(s.columns));
-  PutText(ds, 0x0028, 0x0030, gdcm::VR::DS, Decimals(s.pixel_spacing));
-  PutUs(ds, 0x0028, 0x0100, static_cast<uint16_t>(s.bits_allocated));
-  const int bits_stored = s.bits_stored ? s.bits_stored : s.bits_allocated;
-  PutUs(ds, 0x0028, 0x0101, static_cast<uint16_t>(bits_stored));
-  PutUs(ds, 0x0028, 0x0102, static_cast<uint16_t>(bits_stored - 1));
-  PutUs(ds, 0x0028, 0x0103, static_cast<uint16_t>(s.pixel_representation));
-  if (s.intercept) PutText(ds, 0x0028, 0x1052, gdcm::VR::DS, Decimals({*s.intercept}));
-  if (s.slope) PutText(ds, 0x0028, 0x1053, gdcm::VR::DS, Decimals({*s.slope}));
-  if (s.with_sequence) {
-    gdcm::SmartPointer<gdcm::SequenceOfItems> sq = new gdcm::SequenceOfItems;
-    sq->SetLengthToUndefined();
-    gdcm::Item item;
-    item.SetVLToUndefined();
-    PutText(item.GetNestedDataSet(), 0x0008, 0x1150, gdcm::VR::UI, "1.2.840.10008.5.1.4.1.1.2");
-    PutText(item.GetNestedDataSet(), 0x0008, 0x1155, gdcm::VR::UI, "1.2.3.4.5.6");
-    sq->AddItem(item);
-    gdcm::DataElement de(gdcm::Tag(0x0008, 0x1140));
-    de.SetVR(gdcm::VR::SQ);
-    de.SetValue(*sq);
-    de.SetVLToUndefined();
-    ds.Insert(de);
-  }
-  std::vector<char> pixels;
-  const bool is_signed = s.pixel_representation == 1;
-  if (s.bits_allocated == 8) {
-    is_signed ? AppendPixels<int8_t>(s, &pixels) : AppendPixels<uint8_t>(s, &pixels);
-  } else {
-    is_signed ? AppendPixels<int16_t>(s, &pixels) : AppendPixels<uint16_t>(s, &pixels);
-  }
-  if (pixels.size() % 2) pixels.push_back(0);
-  gdcm::DataElement pd(gdcm::Tag(0x7fe0, 0x0010));
-  pd.SetVR(s.bits_allocated == 8 ? gdcm::VR::OB : gdcm::VR::OW);
-  pd.SetByteValue(pixels.data(), static_cast<uint32_t>(pixels.size()));
-  ds.Insert(pd);
-  file.GetHeader().SetDataSetTransferSyntax(s.transfer_syntax);
-  writer.SetFileName(path.c_str());
-  ASSERT_TRUE(writer.Write()) << path;
-}
-
-// Writes `n` slices of `base` stacked along the orientation's normal at `gaps` (n - 1 values)
-// from `base.position`; slice s (0-based, in stacking order) holds value(i, j) + 100 * s and is
-// written as "<prefix><name_order[s]>.dcm".
-std::vector<fs::path> WriteSeries(const fs::path& dir, const SliceSpec& base,
-                                  const std::vector<double>& gaps, std::vector<int> name_order = {},
-                                  const std::string& prefix = "s") {
-  const size_t n = gaps.size() + 1;
-  if (name_order.empty()) {
-    name_order.resize(n);
-    std::iota(name_order.begin(), name_order.end(), 0);
-  }
-  const Eigen::Vector3d row(base.orientation[0], base.orientation[1], base.orientation[2]);
-  const Eigen::Vector3d col(base.orientation[3], base.orientation[4], base.orientation[5]);
-  const Eigen::Vector3d normal = row.cross(col).normalized();
-  std::vector<fs::path> paths;
-  double along = 0;
-  for (size_t s = 0; s < n; ++s) {
-    SliceSpec spec = base;
-    spec.position = base.position + along * normal;
-    spec.instance = static_cast<int>(s) + 1;
-    spec.value = [v = base.value, s](int i, int j) { return v(i, j) + 100.0 * s; };
-    char name[32];
-    std::snprintf(name, sizeof(name), "%02d.dcm", name_order[s]);
-    paths.push_back(dir / (prefix + name));
-    WriteSlice(paths.back(), spec);
-    if (s + 1 < n) along += gaps[s];
-  }
-  return paths;
-}
+using testing::SliceSpec;
+using testing::WriteSeries;
+using testing::WriteSlice;
 
 void WriteBytes(const fs::path& path, const std::string& bytes) {
   std::ofstream out(path, std::ios::binary);

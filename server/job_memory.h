@@ -1,0 +1,27 @@
+// How much memory a job may take. A job's peak is about proportional to its voxel count (the
+// level set, the tetrahedral mesh and the simplifier's quadrics all scale with it), so the
+// runner estimates it from the volume's declared size before anything is decoded: a job whose
+// estimate exceeds the cap fails at once with "needs N, limit M" instead of meeting the OOM
+// killer, and every other job runs under an address-space limit sized from its estimate.
+// Figures behind the constants are in server/README.md.
+#pragma once
+
+#include <cstdint>
+
+#include "decima/v1/volumes.pb.h"
+
+namespace decima::server {
+
+// Estimated peak resident bytes of a job on `volume`: a fixed base plus a per-voxel cost. The
+// voxel count comes from the parsed dims or, when the server defers parsing (DICOM), from the
+// files' size at two bytes per voxel.
+int64_t EstimateJobMemoryBytes(const v1::Volume& volume);
+
+// The default cap of one job: 80 % of the machine's physical memory.
+int64_t DefaultJobMemoryCapBytes();
+
+// The address-space limit for a job with estimate `needed` under `cap`: room for twice the
+// estimate plus the runtime's fixed mappings, never above the cap.
+int64_t JobAddressSpaceLimitBytes(int64_t needed, int64_t cap);
+
+}  // namespace decima::server

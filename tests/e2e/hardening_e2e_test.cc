@@ -1,0 +1,415 @@
+// End-to-end cases of the hardening issue: each was a failure probed from outside (a
+// decompression bomb, a full disk, one client deleting another's upload, series selection, a
+// busy port, watchers across a graceful restart, leftovers of refused and cancelled work). Real
+// decima-server and decima processes on loopback, one server per test.
+#include <grpcpp/grpcpp.h>
+#include <netinet/in.h>
+#include <signal.h>
+#include <sys/socket.h>
+#include <unistd.h>
+#include <zlib.h>
+
+#include <cstring>
+#include <fstream>
+#include <future>
+#include <sstream>
+
+#include "decima/v1/jobs.grpc.pb.h"
+#include "decima/v1/uploads.grpc.pb.h"
+#include "decima/v1/volumes.grpc.pb.h"
+#include "gmock/gmock.h"
+#include "gtest/gtest.h"
+#include "server/sha256.h"
+#include "tests/e2e/e2e_util.h"
+#include "tests/testing/dicom_writer.h"
+#include "tests/testing/test_data.h"
+
+namespace decima::e2e {
+namespace {
+namespace fs = std::filesystem;
+using ::testing::HasSubstr;
+using ::testing::Not;
+using namespace std::chrono_literals;
+
+std::unique_ptr<grpc::ClientContext> Ctx() {
+  auto ctx = std::make_unique<grpc::ClientContext>();
+  ctx->set_deadline(std::chrono::system_clock::now() + 30s);
+  return ctx;
+}
+
+std::shared_ptr<grpc::Channel> Channel(const std::string& address) {
+  return grpc::CreateChannel(address, grpc::InsecureChannelCredentials());
+}
+
+std::string ReadFile(const fs::path& p) {
+  std::ifstream in(p, std::ios::binary);
+  std::stringstream ss;
+  ss << in.rdbuf();
+  return ss.str();
+}
+
+std::string Sha(const std::string& bytes) {
+  server::Sha256 h;
+  h.Update(bytes.data(), bytes.size());
+  return h.HexDigest();
+}
+
+// Uploads `bytes` whole (or only the first `send` bytes when >= 0, leaving a partial upload).
+grpc::Status Upload(const std::string& address, const std::string& bytes, int64_t send = -1) {
+  auto stub = v1::Uploads::NewStub(Channel(address));
+  auto ctx = Ctx();
+  v1::Blob blob;
+  auto writer = stub->Upload(ctx.get(), &blob);
+  const size_t n = send < 0 ? bytes.size() : static_cast<size_t>(send);
+  v1::UploadRequest req;
+  req.set_sha256(Sha(bytes));
+  req.set_size_bytes(static_cast<int64_t>(bytes.size()));
+  for (size_t at = 0; at < n || at == 0; at += size_t{1} << 20) {
+    req.set_data(bytes.substr(at, std::min(n - at, size_t{1} << 20)));
+    if (!writer->Write(req)) break;
+    req.clear_sha256();
+    req.clear_size_bytes();
+    if (n == 0) break;
+  }
+  writer->WritesDone();
+  return writer->Finish();
+}
+
+grpc::Status CreateVolume(const std::string& address, const std::string& path,
+                          const std::string& sha, v1::Volume* out) {
+  auto stub = v1::Volumes::NewStub(Channel(address));
+  v1::CreateVolumeRequest req;
+  auto* f = req.mutable_volume()->add_files();
+  f->set_path(path);
+  f->set_blob("blobs/" + sha);
+  return stub->CreateVolume(Ctx().get(), req, out);
+}
+
+grpc::Status DeleteJob(const std::string& address, const std::string& name) {
+  auto stub = v1::Jobs::NewStub(Channel(address));
+  v1::DeleteJobRequest req;
+  req.set_name(name);
+  v1::DeleteJobResponse resp;
+  return stub->DeleteJob(Ctx().get(), req, &resp);
+}
+
+grpc::Status DeleteVolume(const std::string& address, const std::string& name) {
+  auto stub = v1::Volumes::NewStub(Channel(address));
+  v1::DeleteVolumeRequest req;
+  req.set_name(name);
+  v1::DeleteVolumeResponse resp;
+  return stub->DeleteVolume(Ctx().get(), req, &resp);
+}
+
+std::vector<v1::Volume> ListVolumes(const std::string& address) {
+  auto stub = v1::Volumes::NewStub(Channel(address));
+  v1::ListVolumesResponse resp;
+  EXPECT_TRUE(stub->ListVolumes(Ctx().get(), v1::ListVolumesRequest(), &resp).ok());
+  return {resp.volumes().begin(), resp.volumes().end()};
+}
+
+// Regular files under `dir` (0 if it does not exist).
+size_t FileCount(const fs::path& dir) {
+  size_t n = 0;
+  std::error_code ec;
+  for (fs::recursive_directory_iterator it(dir, ec), end; !ec && it != end; it.increment(ec)) {
+    n += it->is_regular_file();
+  }
+  return n;
+}
+
+// A port nobody listens on right now.
+int FreePort() {
+  int fd = ::socket(AF_INET, SOCK_STREAM, 0);
+  sockaddr_in a{};
+  a.sin_family = AF_INET;
+  a.sin_addr.s_addr = htonl(INADDR_LOOPBACK);
+  ::bind(fd, reinterpret_cast<sockaddr*>(&a), sizeof a);
+  socklen_t len = sizeof a;
+  ::getsockname(fd, reinterpret_cast<sockaddr*>(&a), &len);
+  ::close(fd);
+  return ntohs(a.sin_port);
+}
+
+// The peak resident set of process `pid` in bytes (VmHWM), or -1.
+int64_t PeakRss(pid_t pid) {
+  std::ifstream in("/proc/" + std::to_string(pid) + "/status");
+  std::string line;
+  while (std::getline(in, line)) {
+    if (line.rfind("VmHWM:", 0) == 0) return std::stoll(line.substr(6)) * 1024;
+  }
+  return -1;
+}
+
+// A gzip-compressed NIfTI-1 of uint8 zeros, nx*ny*nz voxels: a few hundred KB that declare
+// hundreds of MB.
+void WriteNiftiGzBomb(const fs::path& path, int nx, int ny, int nz) {
+  const std::string hdr = NiftiHeader(nx, ny, nz, /*uint8*/ 2, 8, 1.0f);
+  gzFile gz = gzopen(path.c_str(), "wb1");
+  ASSERT_NE(gz, nullptr);
+  gzwrite(gz, hdr.data(), static_cast<unsigned>(hdr.size()));
+  const std::vector<char> zeros(1 << 20, 0);
+  int64_t left = int64_t{nx} * ny * nz;
+  while (left > 0) {
+    const int n = static_cast<int>(std::min<int64_t>(left, zeros.size()));
+    ASSERT_EQ(gzwrite(gz, zeros.data(), n), n);
+    left -= n;
+  }
+  gzclose(gz);
+}
+
+class HardeningE2E : public ::testing::Test {
+ protected:
+  void SetUp() override {
+    scratch_ = testing::MakeScratchDir("hardening_e2e");
+    volume_ = scratch_ / "phantom.nii";
+    WriteTinyNifti(volume_, 24, 24, 16);
+  }
+  fs::path scratch_, volume_;
+};
+
+// Issue case 3: a CreateVolume whose header check fails used to delete every blob of its
+// manifest that no volume used, so naming another client's fresh upload destroyed it.
+TEST_F(HardeningE2E, FailedCreateVolumeDeletesNoBlobAnotherClientUploaded) {
+  ServerProcess server(scratch_ / "data");
+  const std::string nifti = ReadFile(volume_);
+  ASSERT_TRUE(Upload(server.address(), nifti).ok());  // client A
+  v1::Volume vol;
+  // Client B names A's blob as a MetaImage: the header check fails.
+  grpc::Status b = CreateVolume(server.address(), "x.mha", Sha(nifti), &vol);
+  EXPECT_EQ(b.error_code(), grpc::StatusCode::INVALID_ARGUMENT) << b.error_message();
+  // A goes on as planned.
+  grpc::Status a = CreateVolume(server.address(), "head.nii", Sha(nifti), &vol);
+  EXPECT_TRUE(a.ok()) << a.error_message();
+  EXPECT_EQ(vol.dims_size(), 3);
+}
+
+// Issue case 2 (collection): a blob leaves once no volume holds it and its upload's claim
+// lapsed; an interrupted upload leaves after its expiry; deleting everything returns the data
+// dir to its empty size.
+TEST_F(HardeningE2E, UnreferencedBlobsAndAbandonedUploadsAreCollected) {
+  ServerProcess server(scratch_ / "data",
+                       {"--blob-grace-seconds", "1", "--upload-expiry-seconds", "2"});
+  const fs::path blobs = server.data_dir() / "blobs";
+  CliResult r = RunCli(server.address(), {"-q", "submit", volume_.string(), "--watch"});
+  ASSERT_EQ(r.rc, 0) << r.err;
+  const std::string job = FirstLine(r.out);
+  EXPECT_EQ(FileCount(blobs / "sha256"), 1u);
+  // Past the grace, a referenced blob stays.
+  std::this_thread::sleep_for(2500ms);
+  EXPECT_EQ(FileCount(blobs / "sha256"), 1u);
+  // An upload that stopped half-way.
+  const std::string other(300000, 'z');
+  EXPECT_FALSE(Upload(server.address(), other, 100000).ok());
+  EXPECT_EQ(FileCount(blobs / "partial"), 1u);
+  const auto volumes = ListVolumes(server.address());
+  ASSERT_EQ(volumes.size(), 1u);
+  ASSERT_TRUE(DeleteJob(server.address(), job).ok());
+  ASSERT_TRUE(DeleteVolume(server.address(), volumes[0].name()).ok());
+  // The volume's blob goes with the volume (its claim lapsed long ago).
+  EXPECT_EQ(FileCount(blobs / "sha256"), 0u);
+  EXPECT_TRUE(WaitFor([&] { return FileCount(blobs / "partial") == 0; }, 15s))
+      << "the abandoned partial upload was not collected";
+  EXPECT_EQ(FileCount(server.data_dir() / "volumes"), 0u);
+  EXPECT_EQ(FileCount(server.data_dir() / "jobs"), 0u);
+}
+
+// Issue case 2 (full disk): uploads are RESOURCE_EXHAUSTED with free and needed bytes and keep
+// nothing; deletes work on the full disk (the reserve); freeing space heals it. Needs a small
+// filesystem: a tmpfs mounted by the test (root only; skipped otherwise).
+TEST_F(HardeningE2E, FullDiskRefusesUploadsKeepsNothingAndDeletesHealIt) {
+  const fs::path mnt = scratch_ / "small";
+  fs::create_directories(mnt);
+  const std::string mount = "mount -t tmpfs -o size=48m tmpfs '" + mnt.string() + "' 2>/dev/null";
+  if (::geteuid() != 0 || std::system(mount.c_str()) != 0) {
+    GTEST_SKIP() << "cannot mount a 48 MB tmpfs here (needs root and CAP_SYS_ADMIN)";
+  }
+  struct Unmount {
+    fs::path dir;
+    ~Unmount() { (void)std::system(("umount -l '" + dir.string() + "'").c_str()); }
+  } unmount{mnt};
+  std::string job;
+  {
+    ServerProcess server(mnt / "data", {"--disk-reserve-mb", "4", "--blob-grace-seconds", "4"});
+    ASSERT_TRUE(fs::exists(server.data_dir() / "reserve"));
+    CliResult r = RunCli(server.address(), {"-q", "submit", volume_.string(), "--watch"});
+    ASSERT_EQ(r.rc, 0) << r.err << server.Log();
+    job = FirstLine(r.out);
+    // Something else fills the disk.
+    {
+      std::ofstream filler(mnt / "filler", std::ios::binary);
+      const std::string mb(1 << 20, 'f');
+      for (int i = 0; i < 64 && filler.write(mb.data(), mb.size()); ++i) {
+      }
+    }
+    fs::path second = scratch_ / "second.nii";
+    WriteTinyNifti(second, 64, 64, 64, 7);  // 512 KB: more than the few KB left
+    r = RunCli(server.address(), {"submit", second.string()});
+    EXPECT_NE(r.rc, 0);
+    EXPECT_THAT(r.err, HasSubstr("RESOURCE_EXHAUSTED"));
+    EXPECT_THAT(r.err, HasSubstr("free"));
+    EXPECT_THAT(r.err, Not(HasSubstr(mnt.string())));
+    EXPECT_EQ(FileCount(server.data_dir() / "blobs" / "partial"), 0u)
+        << "a refused upload must not keep the disk full";
+    // Deletes work on the full disk and free its space.
+    grpc::Status d = DeleteJob(server.address(), job);
+    EXPECT_TRUE(d.ok()) << d.error_message();
+    fs::remove(mnt / "filler");
+    r = RunCli(server.address(), {"-q", "submit", second.string(), "--watch"});
+    EXPECT_EQ(r.rc, 0) << r.err;
+    // The reserve is allocated again once there is room.
+    EXPECT_TRUE(WaitFor([&] { return fs::exists(server.data_dir() / "reserve"); }, 10s));
+  }
+}
+
+// Issue case 1: CreateVolume reads headers only (a 0.5 MB .nii.gz declaring 512 MB costs the
+// server nothing) and the job that would need far more memory than allowed fails at once,
+// saying how much it needs.
+TEST_F(HardeningE2E, DecompressionBombCostsTheServerNothingAndItsJobFailsWithTheNeed) {
+  ServerProcess server(scratch_ / "data", {"--worker-memory-mb", "2048"});
+  const fs::path bomb = scratch_ / "bomb.nii.gz";
+  WriteNiftiGzBomb(bomb, 1024, 1024, 512);
+  ASSERT_LT(fs::file_size(bomb), 4u << 20);
+  const int64_t before = PeakRss(server.pid());
+  CliResult r = RunCli(server.address(), {"-q", "submit", bomb.string(), "--watch"}, 120s);
+  EXPECT_EQ(r.rc, 3) << r.err;  // job failed
+  EXPECT_THAT(r.err, HasSubstr("needs about"));
+  EXPECT_THAT(r.err, HasSubstr("2.0 GB"));
+  EXPECT_THAT(r.err, HasSubstr("--worker-memory-mb"));
+  const int64_t after = PeakRss(server.pid());
+  ASSERT_GT(before, 0);
+  EXPECT_LT(after - before, int64_t{64} << 20)
+      << "the server's peak RSS grew by " << (after - before) << " bytes";
+}
+
+// Issue case 4: a folder with two series is refused with the list, processed when one is
+// chosen, and an unknown UID is refused at CreateVolume.
+TEST_F(HardeningE2E, SeriesInstanceUidIsHonouredEndToEnd) {
+  const fs::path folder = scratch_ / "two-series";
+  fs::create_directories(folder);
+  testing::SliceSpec a, b;
+  a.rows = a.columns = b.rows = b.columns = 24;
+  a.series_uid = "1.2.826.0.1.3680043.9.7777.31";
+  b.series_uid = "1.2.826.0.1.3680043.9.7777.32";
+  a.value = [](int i, int j) { return (i - 12) * (i - 12) + (j - 12) * (j - 12) < 40 ? 900 : 50; };
+  b.value = [](int i, int) { return i < 12 ? 800 : 30; };
+  testing::WriteSeries(folder, a, std::vector<double>(11, 1.0), {}, "a");
+  testing::WriteSeries(folder, b, std::vector<double>(7, 2.0), {}, "b");
+  ServerProcess server(scratch_ / "data");
+  CliResult r = RunCli(server.address(), {"submit", folder.string()});
+  EXPECT_EQ(r.rc, 1) << r.err;
+  EXPECT_THAT(r.err, HasSubstr(a.series_uid));
+  EXPECT_THAT(r.err, HasSubstr(b.series_uid));
+  r = RunCli(server.address(), {"submit", folder.string(), "--series", "1.2.3.4.404"});
+  EXPECT_NE(r.rc, 0);
+  EXPECT_THAT(r.err, HasSubstr("1.2.3.4.404"));
+  EXPECT_THAT(r.err, Not(HasSubstr(server.data_dir().string())));
+  r = RunCli(server.address(),
+             {"-q", "submit", folder.string(), "--series", b.series_uid, "--watch"}, 120s);
+  ASSERT_EQ(r.rc, 0) << r.err << server.Log();
+  const v1::Job job = GetJob(server.address(), FirstLine(r.out));
+  EXPECT_EQ(job.state(), v1::SUCCEEDED);
+  // The job read series b: 24 x 24 x 8 voxels.
+  EXPECT_THAT(job.metrics_json(), HasSubstr("\"voxels\": 4608")) << job.metrics_json();
+}
+
+// Issue case 6: gRPC's SO_REUSEPORT let a second server share a busy port.
+TEST_F(HardeningE2E, BusyPortIsRefusedAtStart) {
+  ServerProcess first(scratch_ / "data1");
+  CliResult second = RunProgram({ServerBinary().string(), "--listen", first.address(), "--data-dir",
+                                 (scratch_ / "data2").string()},
+                                30s);
+  EXPECT_EQ(second.rc, 1) << second.out << second.err;
+  EXPECT_THAT(second.out + second.err, HasSubstr("cannot bind"));
+}
+
+// Issue case 7: SIGTERM ends watch streams with UNAVAILABLE, the client reconnects to the
+// restarted server and sees the job through; a job that ends within the drain time finishes.
+TEST_F(HardeningE2E, WatchersSurviveAGracefulRestartAndShortJobsFinishInTheDrain) {
+  const std::string listen = "127.0.0.1:" + std::to_string(FreePort());
+  const fs::path data = scratch_ / "data";
+  std::string requeued, finished;
+  std::future<CliResult> watch;
+  {
+    ServerProcess server(
+        data, {"--listen", listen, "--allow-faults", "--workers", "2", "--drain-seconds", "8"});
+    CliResult r = RunCli(listen, {"submit", volume_.string(), "--fault", "sleep:12"});
+    ASSERT_EQ(r.rc, 0) << r.err;
+    requeued = FirstLine(r.out);
+    r = RunCli(listen, {"submit", volume_.string(), "--fault", "sleep:2"});
+    ASSERT_EQ(r.rc, 0) << r.err;
+    finished = FirstLine(r.out);
+    ASSERT_TRUE(WaitFor([&] { return GetJob(listen, finished).state() == v1::RUNNING; }, 30s));
+    ASSERT_TRUE(WaitFor([&] { return GetJob(listen, requeued).state() == v1::RUNNING; }, 30s));
+    watch = std::async(std::launch::async, [&] {
+      return RunCli(listen, {"watch", requeued}, 180s);
+    });
+    std::this_thread::sleep_for(500ms);
+    server.Kill(SIGTERM);
+  }
+  ServerProcess restarted(data, {"--listen", listen, "--allow-faults", "--workers", "2"});
+  const v1::Job done = GetJob(listen, finished);
+  EXPECT_EQ(done.state(), v1::SUCCEEDED);
+  EXPECT_EQ(done.attempts(), 1) << "a job that ends within the drain time is not re-run";
+  CliResult w = watch.get();
+  EXPECT_EQ(w.rc, 0) << w.err;
+  EXPECT_THAT(w.err, Not(HasSubstr("CANCELLED")));
+  EXPECT_THAT(w.err, HasSubstr("reconnecting"));
+  // A drain's requeue does not count as a failed attempt.
+  EXPECT_EQ(GetJob(listen, requeued).state(), v1::SUCCEEDED);
+}
+
+// Issue case 8: a label map read by a queued job cannot be deleted; a refused submit leaves no
+// volume; a cancelled job keeps no output; -q still says why a job failed.
+TEST_F(HardeningE2E, LeftoversOfRefusedCancelledAndFailedWork) {
+  ServerProcess server(scratch_ / "data", {"--allow-faults", "--workers", "1"});
+  // The worker is busy, so the next job stays QUEUED.
+  CliResult r = RunCli(server.address(), {"submit", volume_.string(), "--fault", "sleep:60"});
+  ASSERT_EQ(r.rc, 0) << r.err;
+  const std::string busy = FirstLine(r.out);
+  const fs::path labels = scratch_ / "labels.nii";
+  WriteTinyNifti(labels, 24, 24, 16, 3);
+  r = RunCli(server.address(), {"submit", volume_.string(), "--label-map", labels.string()});
+  ASSERT_EQ(r.rc, 0) << r.err;
+  const v1::Job queued = GetJob(server.address(), FirstLine(r.out));
+  ASSERT_EQ(queued.state(), v1::QUEUED);
+  grpc::Status d = DeleteVolume(server.address(), queued.spec().label_map());
+  EXPECT_EQ(d.error_code(), grpc::StatusCode::FAILED_PRECONDITION) << d.error_message();
+  // Refused submit (bad option value caught by the server): no volume stays.
+  const size_t volumes_before = ListVolumes(server.address()).size();
+  r = RunCli(server.address(), {"submit", volume_.string(), "--transfer-function", "no-such"});
+  EXPECT_NE(r.rc, 0);
+  EXPECT_THAT(r.err, HasSubstr("INVALID_ARGUMENT"));
+  EXPECT_EQ(ListVolumes(server.address()).size(), volumes_before);
+  // Cancel the running job: its output folder goes.
+  ASSERT_TRUE(WaitFor([&] { return GetJob(server.address(), busy).state() == v1::RUNNING; }, 30s));
+  const fs::path out = server.data_dir() / "jobs" / busy.substr(5) / "out";
+  ASSERT_TRUE(fs::exists(out));
+  r = RunCli(server.address(), {"cancel", busy});
+  ASSERT_EQ(r.rc, 0) << r.err;
+  ASSERT_TRUE(
+      WaitFor([&] { return GetJob(server.address(), busy).state() == v1::CANCELLED; }, 30s));
+  EXPECT_FALSE(fs::exists(out));
+  // A failing job under -q still says why.
+  r = RunCli(server.address(), {"-q", "submit", volume_.string(), "--fault", "crash", "--watch"},
+             120s);
+  EXPECT_EQ(r.rc, 3);
+  EXPECT_THAT(r.err, HasSubstr("FAILED"));
+  EXPECT_THAT(r.err, HasSubstr("signal"));
+  // A job failing on its input (a DICOM series missing a slice: only the job's load stage
+  // sees it) names the files relative to the data dir, not where the server keeps them.
+  const fs::path gap = scratch_ / "gap";
+  fs::create_directories(gap);
+  testing::SliceSpec slice;
+  slice.rows = slice.columns = 16;
+  testing::WriteSeries(gap, slice, {1.0, 1.0, 2.0, 1.0});
+  r = RunCli(server.address(), {"-q", "submit", gap.string(), "--watch"}, 120s);
+  EXPECT_EQ(r.rc, 3) << r.err;
+  EXPECT_THAT(r.err, HasSubstr("missing slice"));
+  EXPECT_THAT(r.err, Not(HasSubstr(server.data_dir().string())));
+  const v1::Job failing = GetJob(server.address(), FirstLine(r.out));
+  EXPECT_THAT(failing.error().message(), Not(HasSubstr(server.data_dir().string())));
+}
+
+}  // namespace
+}  // namespace decima::e2e
