@@ -10,7 +10,7 @@ Services::Services(ServiceOptions options, JobStore* jobs, BlobStore* blobs, Eve
       disk_(options_.data_dir.root(), options_.disk_reserve_bytes),
       catalog_(&options_.data_dir, jobs, blobs, &disk_, options_.blob_sweep) {
   disk_.Refill();
-  const ServiceDeps deps{&options_, jobs,   blobs,         bus,   pool,
+  const ServiceDeps deps{&options_, jobs,         blobs,  bus,      pool,
                          &guard_,   audit_.get(), &disk_, &catalog_};
   uploads_ = MakeUploadsService(deps);
   volumes_ = MakeVolumesService(deps);
