@@ -22,8 +22,9 @@ int ExitCodeFor(grpc::StatusCode code) {
     case grpc::StatusCode::NOT_FOUND:
       return kNotFound;
     case grpc::StatusCode::UNAUTHENTICATED:
-    case grpc::StatusCode::PERMISSION_DENIED:
       return kUnauthenticated;
+    case grpc::StatusCode::PERMISSION_DENIED:
+      return kPermissionDenied;
     case grpc::StatusCode::UNAVAILABLE:
       return kUnavailable;
     default:
@@ -158,16 +159,31 @@ std::unique_ptr<grpc::ClientContext> Connection::Context(bool deadline) const {
   return ctx;
 }
 
-Connection Connect(const std::string& address, const std::string& token, bool tls,
-                   const std::string& ca_file, std::chrono::milliseconds timeout) {
+Connection Connect(const std::string& address, const std::string& token, const TlsFiles& tls,
+                   std::chrono::milliseconds timeout, std::string* error) {
   std::shared_ptr<grpc::ChannelCredentials> creds = grpc::InsecureChannelCredentials();
-  if (tls || !ca_file.empty()) {
+  if (tls.any()) {
     grpc::SslCredentialsOptions o;
-    if (!ca_file.empty()) {
-      std::ifstream in(ca_file);
+    auto read = [error](const std::string& flag, const std::string& file, std::string* text) {
+      std::ifstream in(file, std::ios::binary);
       std::stringstream ss;
-      ss << in.rdbuf();
-      o.pem_root_certs = ss.str();
+      if (!in || !(ss << in.rdbuf())) {
+        *error = flag + " " + file + ": cannot read";
+        return false;
+      }
+      *text = ss.str();
+      return true;
+    };
+    if (tls.cert_file.empty() != tls.key_file.empty()) {
+      *error = "--tls-cert and --tls-key go together (a client certificate and its key)";
+      return Connection{};
+    }
+    if (!tls.ca_file.empty() && !read("--ca-cert", tls.ca_file, &o.pem_root_certs)) {
+      return Connection{};
+    }
+    if (!tls.cert_file.empty() && (!read("--tls-cert", tls.cert_file, &o.pem_cert_chain) ||
+                                   !read("--tls-key", tls.key_file, &o.pem_private_key))) {
+      return Connection{};
     }
     creds = grpc::SslCredentials(o);
   }

@@ -29,7 +29,8 @@ enum ExitCode : int {
   kJobCancelled = 4,
   kTimeout = 5,
   kNotFound = 6,
-  kUnauthenticated = 7,
+  kUnauthenticated = 7,  // UNAUTHENTICATED, and PERMISSION_DENIED (not this caller's job/volume)
+  kPermissionDenied = 7,
   kUnavailable = 8,
   // The job SUCCEEDED but simplification stopped before the target reduction (metrics.json
   // "reached_target": false); the artifacts are fetched as usual.
@@ -103,9 +104,21 @@ struct Connection {
   std::unique_ptr<grpc::ClientContext> Context(bool deadline = true) const;
 };
 
-// `ca_file` empty and `tls` false: plaintext.
-Connection Connect(const std::string& address, const std::string& token, bool tls,
-                   const std::string& ca_file, std::chrono::milliseconds timeout);
+// TLS settings of a connection. Plaintext when `enabled` is false and every file is empty.
+struct TlsFiles {
+  bool enabled = false;
+  std::string ca_file;    // PEM roots (empty: the system's)
+  std::string cert_file;  // PEM client certificate chain for mutual TLS (with key_file)
+  std::string key_file;
+  bool any() const {
+    return enabled || !ca_file.empty() || !cert_file.empty() || !key_file.empty();
+  }
+};
+
+// The files are read here; a missing or unreadable one is an error naming it (`*error`, and
+// a connection with no channel).
+Connection Connect(const std::string& address, const std::string& token, const TlsFiles& tls,
+                   std::chrono::milliseconds timeout, std::string* error);
 
 // Progress of uploads and downloads: (done bytes, total bytes).
 using ByteProgress = std::function<void(int64_t, int64_t)>;

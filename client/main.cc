@@ -36,11 +36,12 @@ const char* kExitCodes = R"(
 Exit codes:
   0 success            1 error              2 usage
   3 job failed         4 job cancelled      5 timeout (deadline exceeded)
-  6 not found          7 not authenticated  8 server unavailable
+  6 not found          7 not authenticated, or permission denied
+  8 server unavailable (also: TLS handshake refused)
   10 job succeeded but the reduction target was not reached (see the warning)
 
 Environment: DECIMA_SERVER (default 127.0.0.1:50051), DECIMA_TOKEN, DECIMA_TIMEOUT,
-DECIMA_CA_CERT.)";
+DECIMA_CA_CERT, DECIMA_TLS_CERT, DECIMA_TLS_KEY.)";
 
 constexpr const char* kDefaultServer = "127.0.0.1:50051";
 
@@ -50,7 +51,7 @@ struct Globals {
   bool json = false;
   std::string output;  // "", "json" or "wide" (-o)
   bool tls = false;
-  std::string ca_file;
+  std::string ca_file, cert_file, key_file;
   double timeout_s = 30;
   double reconnect_s = 60;
   bool quiet = false;
@@ -106,6 +107,13 @@ void PrintUnreachable(const std::string& what, const std::string& detail) {
                "or point the client at it with --server HOST:PORT or DECIMA_SERVER.\n",
                what.c_str(), g.server.c_str(), ServerSource().c_str(), detail.c_str(),
                g.server.c_str());
+  // A refused TLS handshake looks exactly like an unreachable server to gRPC.
+  if (g.tls || !g.ca_file.empty() || !g.cert_file.empty()) {
+    std::fprintf(stderr,
+                 "  over TLS this is also what a refused handshake looks like: check --ca-cert "
+                 "(the server's CA), and under mutual TLS --tls-cert/--tls-key (a client "
+                 "certificate the server's --tls-client-ca signed)\n");
+  }
 }
 
 // Prints a failed call as "decima: WHAT: CODE: message" and returns its exit code.
@@ -121,6 +129,14 @@ int Report(const grpc::Status& s, const std::string& what) {
   if (code == grpc::StatusCode::FAILED_PRECONDITION &&
       s.error_message().find("active") != std::string::npos) {
     std::fprintf(stderr, "  hint: cancel it first (decima cancel JOB)\n");
+  }
+  // gRPC reports a refused handshake as UNAVAILABLE with a generic text: say what to check.
+  if (code == grpc::StatusCode::UNAVAILABLE &&
+      (g.tls || !g.ca_file.empty() || !g.cert_file.empty())) {
+    std::fprintf(stderr,
+                 "decima: over TLS this is also what a refused handshake looks like: check "
+                 "--ca-cert (the server's CA), and under mutual TLS --tls-cert/--tls-key (a "
+                 "client certificate the server's --tls-client-ca signed)\n");
   }
   return ExitCodeFor(code);
 }
@@ -896,7 +912,13 @@ int main(int argc, char** argv) {
   app.add_option("--token", g.token, "bearer token")->envname("DECIMA_TOKEN");
   app.add_flag("--json", g.json, "machine output: one JSON object per line on stdout");
   app.add_flag("--tls", g.tls, "connect with TLS (system roots unless --ca-cert)");
-  app.add_option("--ca-cert", g.ca_file, "PEM roots for TLS")->envname("DECIMA_CA_CERT");
+  app.add_option("--ca-cert,--tls-ca", g.ca_file, "PEM roots for TLS (implies --tls)")
+      ->envname("DECIMA_CA_CERT");
+  app.add_option("--tls-cert", g.cert_file,
+                 "PEM client certificate for mutual TLS (implies --tls; with --tls-key)")
+      ->envname("DECIMA_TLS_CERT");
+  app.add_option("--tls-key", g.key_file, "PEM private key of --tls-cert")
+      ->envname("DECIMA_TLS_KEY");
   app.add_option("--timeout", g.timeout_s, "deadline of each call, seconds")
       ->envname("DECIMA_TIMEOUT")
       ->capture_default_str();
@@ -1126,8 +1148,15 @@ int main(int argc, char** argv) {
     }
   } remove_pulled{&pulled_dir};
 
-  conn = Connect(g.server, g.token, g.tls, g.ca_file,
-                 std::chrono::milliseconds(static_cast<int64_t>(g.timeout_s * 1000)));
+  TlsFiles tls{g.tls, g.ca_file, g.cert_file, g.key_file};
+  std::string connect_error;
+  conn =
+      Connect(g.server, g.token, tls,
+              std::chrono::milliseconds(static_cast<int64_t>(g.timeout_s * 1000)), &connect_error);
+  if (!conn.channel) {
+    std::fprintf(stderr, "decima: %s\n", connect_error.c_str());
+    return kUsage;
+  }
   auto jobs = v1::Jobs::NewStub(conn.channel);
 
   if (*version) {

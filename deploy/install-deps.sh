@@ -18,8 +18,9 @@ packages=(
   # the PostgreSQL job store of replicas (libpqxx), and the real PostgreSQL 15 its tests and
   # decima-scale-bench start in a temp folder; python3-yaml parses the rendered k8s manifests
   libpqxx-dev postgresql postgresql-client python3-yaml
-  # tests and benchmarks
-  libgtest-dev libgmock-dev libbenchmark-dev
+  # tests and benchmarks; openssl (the command) makes the throwaway CA and certificates of the
+  # TLS / mutual TLS end-to-end tests and of decima-service-bench --security
+  libgtest-dev libgmock-dev libbenchmark-dev openssl
   # libFuzzer targets (DECIMA_FUZZ=ON, clang only): tests/fuzz, tests/core/io/io_fuzz
   clang libclang-rt-14-dev
   # /usr/bin/time: tests/fuzz/campaign.sh reports the CPU seconds each fuzz target got

@@ -20,8 +20,8 @@ struct ArtifactRange {
 // (0 = to the end). INVALID_ARGUMENT for a malformed name or a negative offset or limit,
 // NOT_FOUND, FAILED_PRECONDITION for a job that did not succeed, OUT_OF_RANGE past the end,
 // DATA_LOSS when the file is gone from the data dir.
-absl::StatusOr<ArtifactRange> OpenArtifact(const ServiceDeps& d, const std::string& name,
-                                           int64_t offset, int64_t limit) {
+absl::StatusOr<ArtifactRange> OpenArtifact(const ServiceDeps& d, const Principal& caller,
+                                           const std::string& name, int64_t offset, int64_t limit) {
   std::vector<std::string> parts = absl::StrSplit(name, '/');
   if (parts.size() != 4 || parts[0] != "jobs" || parts[2] != "artifacts") {
     return absl::InvalidArgumentError(
@@ -34,6 +34,9 @@ absl::StatusOr<ArtifactRange> OpenArtifact(const ServiceDeps& d, const std::stri
   }
   auto job = d.jobs->GetJob(*id);
   if (!job.ok()) return job.status();
+  if (auto may = CallGuard::MayRead(caller, job->creator(), job->name()); !may.ok()) {
+    return absl::PermissionDeniedError(may.error_message());
+  }
   if (job->state() != v1::SUCCEEDED) {
     return absl::FailedPreconditionError(absl::StrCat(job->name(), " is ",
                                                       v1::JobState_Name(job->state()),
@@ -66,8 +69,9 @@ class ArtifactsService final : public v1::Artifacts::Service {
 
   grpc::Status ReadArtifact(grpc::ServerContext* ctx, const v1::ReadArtifactRequest* req,
                             grpc::ServerWriter<v1::ReadArtifactResponse>* writer) override {
-    if (auto g = d_.guard->Check(ctx); !g.ok()) return g;
-    auto r = OpenArtifact(d_, req->name(), req->read_offset(), req->read_limit());
+    Principal caller;
+    if (auto g = d_.guard->Check(ctx, &caller); !g.ok()) return g;
+    auto r = OpenArtifact(d_, caller, req->name(), req->read_offset(), req->read_limit());
     if (!r.ok()) return ToGrpc(r.status());
     v1::ReadArtifactResponse chunk;
     std::string buf;

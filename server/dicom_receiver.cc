@@ -510,7 +510,9 @@ void DicomReceiver::SettleSeries(const std::string& series_uid,
   vreq.set_request_id(request_id);
   vreq.mutable_volume()->set_display_name(absl::StrCat("DICOM series ", series_uid));
   v1::ErrorDetail detail;
-  auto volume = catalog_->Create(vreq, &detail);
+  // Receiver-made volumes and jobs have no principal (the creator is ""): only admins and
+  // readers see them until routes name an owner.
+  auto volume = catalog_->Create(vreq, "", &detail);
   if (!volume.ok()) return not_queued(absl::StrCat("volume: ", volume.status().message()));
   v1::JobSpec spec = route->spec;
   spec.set_volume(volume->name());
@@ -518,7 +520,7 @@ void DicomReceiver::SettleSeries(const std::string& series_uid,
   if (!normalized.ok()) return not_queued(absl::StrCat("spec: ", normalized.status().message()));
   bool created = false;
   const std::string id = NewId();
-  auto job = store_->CreateJob(id, *normalized, request_id, options_.max_queued, &created);
+  auto job = store_->CreateJob(id, *normalized, request_id, options_.max_queued, "", &created);
   if (!created) data_dir_->RemoveJob(id);
   if (!job.ok()) return not_queued(absl::StrCat("job: ", job.status().ToString()));
   rec.job = job->name();

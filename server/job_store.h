@@ -100,14 +100,18 @@ class JobStore {
   // serving; an embedded store never loses its feed and ignores it.
   virtual void SetWatchedJobs(std::function<std::vector<std::string>()> watched) { (void)watched; }
 
-  // Queues a job with `id`. With a non-empty `request_id` already used, returns the job created
-  // then and `*created` = false. RESOURCE_EXHAUSTED when `max_queued` jobs are already queued.
+  // Queues a job with `id`, recording `creator` (the caller's principal) in Job.creator. With a
+  // non-empty `request_id` already used, returns the job created then and `*created` = false.
+  // RESOURCE_EXHAUSTED when `max_queued` jobs are already queued.
   virtual absl::StatusOr<v1::Job> CreateJob(const std::string& id, const v1::JobSpec& spec,
                                             const std::string& request_id, int max_queued,
-                                            bool* created) = 0;
+                                            const std::string& creator, bool* created) = 0;
   virtual absl::StatusOr<v1::Job> GetJob(const std::string& id) = 0;
-  // Newest first. `states` empty = all. NOT_FOUND never; INVALID_ARGUMENT for a bad token.
-  virtual absl::StatusOr<JobPage> ListJobs(const std::vector<v1::JobState>& states, int page_size,
+  // Newest first. `states` empty = all. `creator` non-empty: only jobs whose Job.creator equals
+  // it (a submitter's own; paging then runs over those only). NOT_FOUND never;
+  // INVALID_ARGUMENT for a bad token.
+  virtual absl::StatusOr<JobPage> ListJobs(const std::vector<v1::JobState>& states,
+                                           const std::string& creator, int page_size,
                                            const std::string& page_token) = 0;
   virtual absl::StatusOr<int64_t> CountJobs(v1::JobState state) = 0;
 
@@ -151,11 +155,14 @@ class JobStore {
   virtual absl::StatusOr<std::vector<v1::JobEvent>> ListEvents(const std::string& id, int64_t after,
                                                                int limit) = 0;
 
-  // Volumes. CreateVolume with a used non-empty request_id returns the first volume.
+  // Volumes. CreateVolume with a used non-empty request_id returns the first volume. The
+  // creator is the stored proto's Volume.creator (set by the caller).
   virtual absl::StatusOr<v1::Volume> CreateVolume(const std::string& id, const v1::Volume& volume,
                                                   const std::string& request_id, bool* created) = 0;
   virtual absl::StatusOr<v1::Volume> GetVolume(const std::string& id) = 0;
-  virtual absl::StatusOr<VolumePage> ListVolumes(int page_size, const std::string& page_token) = 0;
+  // Newest first; `creator` non-empty: only volumes whose Volume.creator equals it.
+  virtual absl::StatusOr<VolumePage> ListVolumes(const std::string& creator, int page_size,
+                                                 const std::string& page_token) = 0;
   // FAILED_PRECONDITION while a QUEUED or RUNNING job reads it.
   virtual absl::Status DeleteVolume(const std::string& id) = 0;
   // True if any stored volume lists blob `sha256` (or a received DICOM instance holds it).

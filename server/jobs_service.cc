@@ -16,8 +16,10 @@ namespace {
 // Validates and normalizes the spec (job_spec.h), checks its volumes exist, keeps a test fault
 // beside the job when the server allows faults, and queues it. `detail` names the bad field or
 // the limit hit.
-absl::StatusOr<v1::Job> SubmitJob(const ServiceDeps& d, const v1::CreateJobRequest& req,
-                                  const std::string& fault, v1::ErrorDetail* detail) {
+// The caller must be allowed to read the volumes (a submitter: its own).
+absl::StatusOr<v1::Job> SubmitJob(const ServiceDeps& d, const Principal& caller,
+                                  const v1::CreateJobRequest& req, const std::string& fault,
+                                  v1::ErrorDetail* detail) {
   if (req.request_id().size() > 128) {
     detail->set_field("request_id");
     return absl::InvalidArgumentError("request_id: too long (at most 128 bytes)");
@@ -35,8 +37,11 @@ absl::StatusOr<v1::Job> SubmitJob(const ServiceDeps& d, const v1::CreateJobReque
     if (value.empty()) continue;
     auto id = ParseName(value, "volumes", name);
     if (!id.ok()) return id.status();
-    if (!d.jobs->GetVolume(*id).ok()) {
-      return absl::NotFoundError(absl::StrCat(name, ": ", value, " not found"));
+    auto vol = d.jobs->GetVolume(*id);
+    if (!vol.ok()) return absl::NotFoundError(absl::StrCat(name, ": ", value, " not found"));
+    if (auto may = CallGuard::MayRead(caller, vol->creator(), value); !may.ok()) {
+      detail->set_field(name);
+      return absl::PermissionDeniedError(may.error_message());
     }
   }
   const std::string id = NewId();
@@ -47,7 +52,8 @@ absl::StatusOr<v1::Job> SubmitJob(const ServiceDeps& d, const v1::CreateJobReque
     if (auto st = dd.WriteFileAtomically(dd.job_fault(id), fault); !st.ok()) return st;
   }
   bool created = false;
-  auto job = d.jobs->CreateJob(id, *spec, req.request_id(), d.options->max_queued, &created);
+  auto job =
+      d.jobs->CreateJob(id, *spec, req.request_id(), d.options->max_queued, caller.name, &created);
   if (!created) dd.RemoveJob(id);
   if (!job.ok()) {
     if (job.status().code() == absl::StatusCode::kResourceExhausted) {
@@ -55,6 +61,14 @@ absl::StatusOr<v1::Job> SubmitJob(const ServiceDeps& d, const v1::CreateJobReque
       detail->set_limit_value(d.options->max_queued);
     }
     return job.status();
+  }
+  // A request_id another principal used returns that principal's job: not to be revealed.
+  if (!created) {
+    if (auto may = CallGuard::MayRead(caller, job->creator(), "request_id " + req.request_id());
+        !may.ok()) {
+      detail->set_field("request_id");
+      return absl::PermissionDeniedError(may.error_message());
+    }
   }
   // AIP-155: a request id names one request. Reused with another spec it is a client error,
   // not a retry: answering with the old job would silently run other parameters.
@@ -80,7 +94,18 @@ class JobsService final : public v1::Jobs::Service {
 
   grpc::Status CreateJob(grpc::ServerContext* ctx, const v1::CreateJobRequest* req,
                          v1::Job* resp) override {
-    if (auto g = d_.guard->Check(ctx); !g.ok()) return g;
+    Principal caller;
+    if (auto g = d_.guard->Check(ctx, &caller); !g.ok()) {
+      return d_.audit->Record(nullptr, "CreateJob", "", g);
+    }
+    grpc::Status st = DoCreateJob(ctx, caller, *req, resp);
+    return d_.audit->Record(&caller, "CreateJob", st.ok() ? resp->name() : "", st);
+  }
+
+  grpc::Status DoCreateJob(grpc::ServerContext* ctx, const Principal& caller,
+                           const v1::CreateJobRequest& request, v1::Job* resp) {
+    const v1::CreateJobRequest* req = &request;
+    if (auto may = CallGuard::MayCreate(caller, "jobs"); !may.ok()) return may;
     // The test seam: without --allow-faults the key is never looked at.
     std::string fault;
     if (d_.options->allow_faults) {
@@ -88,7 +113,7 @@ class JobsService final : public v1::Jobs::Service {
       if (it != ctx->client_metadata().end()) fault.assign(it->second.data(), it->second.size());
     }
     v1::ErrorDetail detail;
-    auto job = SubmitJob(d_, *req, fault, &detail);
+    auto job = SubmitJob(d_, caller, *req, fault, &detail);
     if (!job.ok()) return Fail(ctx, job.status(), detail);
     *resp = std::move(*job);
     return grpc::Status::OK;
@@ -96,18 +121,21 @@ class JobsService final : public v1::Jobs::Service {
 
   grpc::Status GetJob(grpc::ServerContext* ctx, const v1::GetJobRequest* req,
                       v1::Job* resp) override {
-    if (auto g = d_.guard->Check(ctx); !g.ok()) return g;
+    Principal caller;
+    if (auto g = d_.guard->Check(ctx, &caller); !g.ok()) return g;
     auto id = ParseName(req->name(), "jobs", "name");
     if (!id.ok()) return ToGrpc(id.status());
     auto job = d_.jobs->GetJob(*id);
     if (!job.ok()) return ToGrpc(job.status());
+    if (auto may = CallGuard::MayRead(caller, job->creator(), req->name()); !may.ok()) return may;
     *resp = std::move(*job);
     return grpc::Status::OK;
   }
 
   grpc::Status ListJobs(grpc::ServerContext* ctx, const v1::ListJobsRequest* req,
                         v1::ListJobsResponse* resp) override {
-    if (auto g = d_.guard->Check(ctx); !g.ok()) return g;
+    Principal caller;
+    if (auto g = d_.guard->Check(ctx, &caller); !g.ok()) return g;
     if (req->page_size() < 0) return InvalidField(ctx, "page_size", "must be >= 0");
     std::vector<v1::JobState> states;
     for (int s : req->states()) {
@@ -116,7 +144,8 @@ class JobsService final : public v1::Jobs::Service {
       }
       states.push_back(static_cast<v1::JobState>(s));
     }
-    auto page = d_.jobs->ListJobs(states, req->page_size(), req->page_token());
+    auto page = d_.jobs->ListJobs(states, CallGuard::ListFilter(caller), req->page_size(),
+                                  req->page_token());
     if (!page.ok()) return ToGrpc(page.status());
     for (auto& j : page->jobs) *resp->add_jobs() = std::move(j);
     resp->set_next_page_token(page->next_page_token);
@@ -125,9 +154,19 @@ class JobsService final : public v1::Jobs::Service {
 
   grpc::Status CancelJob(grpc::ServerContext* ctx, const v1::CancelJobRequest* req,
                          v1::Job* resp) override {
-    if (auto g = d_.guard->Check(ctx); !g.ok()) return g;
+    Principal caller;
+    if (auto g = d_.guard->Check(ctx, &caller); !g.ok()) {
+      return d_.audit->Record(nullptr, "CancelJob", req->name(), g);
+    }
+    return d_.audit->Record(&caller, "CancelJob", req->name(), DoCancelJob(caller, *req, resp));
+  }
+
+  grpc::Status DoCancelJob(const Principal& caller, const v1::CancelJobRequest& request,
+                           v1::Job* resp) {
+    const v1::CancelJobRequest* req = &request;
     auto id = ParseName(req->name(), "jobs", "name");
     if (!id.ok()) return ToGrpc(id.status());
+    if (auto may = MayWriteJob(caller, *id, req->name()); !may.ok()) return may;
     auto job = d_.jobs->Cancel(*id);
     if (!job.ok()) return ToGrpc(job.status());
     // Running here: stop its child now (a runner elsewhere sees the request when it polls).
@@ -138,9 +177,19 @@ class JobsService final : public v1::Jobs::Service {
 
   grpc::Status RetryJob(grpc::ServerContext* ctx, const v1::RetryJobRequest* req,
                         v1::Job* resp) override {
-    if (auto g = d_.guard->Check(ctx); !g.ok()) return g;
+    Principal caller;
+    if (auto g = d_.guard->Check(ctx, &caller); !g.ok()) {
+      return d_.audit->Record(nullptr, "RetryJob", req->name(), g);
+    }
+    return d_.audit->Record(&caller, "RetryJob", req->name(), DoRetryJob(caller, *req, resp));
+  }
+
+  grpc::Status DoRetryJob(const Principal& caller, const v1::RetryJobRequest& request,
+                          v1::Job* resp) {
+    const v1::RetryJobRequest* req = &request;
     auto id = ParseName(req->name(), "jobs", "name");
     if (!id.ok()) return ToGrpc(id.status());
+    if (auto may = MayWriteJob(caller, *id, req->name()); !may.ok()) return may;
     auto job = d_.jobs->Retry(*id, d_.options->max_queued);
     if (!job.ok()) return ToGrpc(job.status());
     spdlog::info("job {} QUEUED again (retry)", *id);
@@ -151,9 +200,18 @@ class JobsService final : public v1::Jobs::Service {
 
   grpc::Status DeleteJob(grpc::ServerContext* ctx, const v1::DeleteJobRequest* req,
                          v1::DeleteJobResponse*) override {
-    if (auto g = d_.guard->Check(ctx); !g.ok()) return g;
+    Principal caller;
+    if (auto g = d_.guard->Check(ctx, &caller); !g.ok()) {
+      return d_.audit->Record(nullptr, "DeleteJob", req->name(), g);
+    }
+    return d_.audit->Record(&caller, "DeleteJob", req->name(), DoDeleteJob(caller, *req));
+  }
+
+  grpc::Status DoDeleteJob(const Principal& caller, const v1::DeleteJobRequest& request) {
+    const v1::DeleteJobRequest* req = &request;
     auto id = ParseName(req->name(), "jobs", "name");
     if (!id.ok()) return ToGrpc(id.status());
+    if (auto may = MayWriteJob(caller, *id, req->name()); !may.ok()) return may;
     d_.disk->BeforeDelete();
     if (auto st = d_.jobs->DeleteJob(*id); !st.ok()) return ToGrpc(st);
     d_.options->data_dir.RemoveJob(*id);
@@ -163,9 +221,17 @@ class JobsService final : public v1::Jobs::Service {
 
   grpc::Status WatchJob(grpc::ServerContext* ctx, const v1::WatchJobRequest* req,
                         grpc::ServerWriter<v1::JobEvent>* writer) override {
-    if (auto g = d_.guard->Check(ctx); !g.ok()) return g;
+    Principal caller;
+    if (auto g = d_.guard->Check(ctx, &caller); !g.ok()) return g;
     auto id = ParseName(req->name(), "jobs", "name");
     if (!id.ok()) return ToGrpc(id.status());
+    {
+      auto job = d_.jobs->GetJob(*id);
+      if (!job.ok()) return ToGrpc(job.status());
+      if (auto may = CallGuard::MayRead(caller, job->creator(), req->name()); !may.ok()) {
+        return may;
+      }
+    }
     if (req->after_sequence() < 0) return InvalidField(ctx, "after_sequence", "must be >= 0");
     WatchControls controls;
     controls.send = [writer](const v1::JobEvent& ev) { return writer->Write(ev); };
@@ -175,6 +241,14 @@ class JobsService final : public v1::Jobs::Service {
   }
 
  private:
+  // NOT_FOUND for a missing job, PERMISSION_DENIED when `caller` may not change it.
+  grpc::Status MayWriteJob(const Principal& caller, const std::string& id,
+                           const std::string& name) const {
+    auto job = d_.jobs->GetJob(id);
+    if (!job.ok()) return ToGrpc(job.status());
+    return CallGuard::MayWrite(caller, job->creator(), name);
+  }
+
   const ServiceDeps d_;
   WatchLoop watch_;
 };

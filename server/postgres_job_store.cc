@@ -72,6 +72,13 @@ const char* const kMigrations[] = {
         PRIMARY KEY(volume_id, sha256));
       CREATE INDEX volume_blobs_by_sha ON volume_blobs(sha256);
     )sql",
+    // 2: the creator of jobs and volumes (Job.creator / Volume.creator), for per-principal lists.
+    R"sql(
+      ALTER TABLE jobs ADD COLUMN creator TEXT NOT NULL DEFAULT '';
+      ALTER TABLE volumes ADD COLUMN creator TEXT NOT NULL DEFAULT '';
+      CREATE INDEX jobs_by_creator ON jobs(creator, ord);
+      CREATE INDEX volumes_by_creator ON volumes(creator, ord);
+    )sql",
 };
 static_assert(v1::RUNNING == 2, "migration 1's partial index names RUNNING as 2");
 
@@ -273,7 +280,7 @@ class PostgresJobStore : public JobStore {
 
   absl::StatusOr<v1::Job> CreateJob(const std::string& id, const v1::JobSpec& spec,
                                     const std::string& request_id, int max_queued,
-                                    bool* created) override {
+                                    const std::string& creator, bool* created) override {
     *created = false;
     auto existing = [&](pqxx::work& w) -> std::optional<absl::StatusOr<v1::Job>> {
       if (request_id.empty()) return std::nullopt;
@@ -299,15 +306,16 @@ class PostgresJobStore : public JobStore {
       *job.mutable_spec() = spec;
       job.set_state(v1::QUEUED);
       job.set_request_id(request_id);
+      job.set_creator(creator);
       *job.mutable_create_time() = NowTimestamp();
       TxEvents tx;
       tx.AddState(job, v1::QUEUED, nullptr);
       // Two replicas inserting one request_id at once: the second waits for the first to
       // commit, inserts nothing and returns the first's job below.
       auto ins = w.exec_params(
-          "INSERT INTO jobs(id, request_id, state, volume, job) VALUES($1,NULLIF($2,''),$3,$4,$5) "
-          "ON CONFLICT (request_id) DO NOTHING RETURNING ord",
-          id, request_id, int{v1::QUEUED}, spec.volume(), Bytes(job));
+          "INSERT INTO jobs(id, request_id, state, volume, job, creator) "
+          "VALUES($1,NULLIF($2,''),$3,$4,$5,$6) ON CONFLICT (request_id) DO NOTHING RETURNING ord",
+          id, request_id, int{v1::QUEUED}, spec.volume(), Bytes(job), creator);
       if (ins.empty()) {
         if (auto e = existing(w)) return *e;
         return absl::AbortedError("job store: request_id conflict without a row; retry");
@@ -325,7 +333,8 @@ class PostgresJobStore : public JobStore {
                                         [&](pqxx::work& w) { return LoadJob(w, id, false); });
   }
 
-  absl::StatusOr<JobPage> ListJobs(const std::vector<v1::JobState>& states, int page_size,
+  absl::StatusOr<JobPage> ListJobs(const std::vector<v1::JobState>& states,
+                                   const std::string& creator, int page_size,
                                    const std::string& page_token) override {
     auto before = DecodeToken(page_token);
     if (!before.ok()) return before.status();
@@ -336,8 +345,8 @@ class PostgresJobStore : public JobStore {
         "listing jobs", [&](pqxx::work& w) -> absl::StatusOr<JobPage> {
           auto r = w.exec_params(
               "SELECT ord, job FROM jobs WHERE ord < $1 AND ($2 OR state = ANY($3::int[])) "
-              "ORDER BY ord DESC LIMIT $4",
-              *before, states.empty(), TextArray(parts), limit + 1);
+              "AND ($5 = '' OR creator = $5) ORDER BY ord DESC LIMIT $4",
+              *before, states.empty(), TextArray(parts), limit + 1, creator);
           JobPage page;
           int64_t last_ord = 0;
           for (const auto& row : r) {
@@ -614,9 +623,9 @@ class PostgresJobStore : public JobStore {
           };
           if (auto e = existing()) return *e;
           auto ins = w.exec_params(
-              "INSERT INTO volumes(id, request_id, volume) VALUES($1,NULLIF($2,''),$3) "
+              "INSERT INTO volumes(id, request_id, volume, creator) VALUES($1,NULLIF($2,''),$3,$4) "
               "ON CONFLICT (request_id) DO NOTHING RETURNING ord",
-              id, request_id, Bytes(volume));
+              id, request_id, Bytes(volume), volume.creator());
           if (ins.empty()) {
             if (auto e = existing()) return *e;
             return absl::AbortedError("job store: request_id conflict without a row; retry");
@@ -642,15 +651,17 @@ class PostgresJobStore : public JobStore {
         });
   }
 
-  absl::StatusOr<VolumePage> ListVolumes(int page_size, const std::string& page_token) override {
+  absl::StatusOr<VolumePage> ListVolumes(const std::string& creator, int page_size,
+                                         const std::string& page_token) override {
     auto before = DecodeToken(page_token);
     if (!before.ok()) return before.status();
     const int limit = ClampPageSize(page_size);
     return Run<absl::StatusOr<VolumePage>>(
         "listing volumes", [&](pqxx::work& w) -> absl::StatusOr<VolumePage> {
           auto r = w.exec_params(
-              "SELECT ord, volume FROM volumes WHERE ord < $1 ORDER BY ord DESC LIMIT $2", *before,
-              limit + 1);
+              "SELECT ord, volume FROM volumes WHERE ord < $1 AND ($3 = '' OR creator = $3) "
+              "ORDER BY ord DESC LIMIT $2",
+              *before, limit + 1, creator);
           VolumePage page;
           int64_t last_ord = 0;
           for (const auto& row : r) {

@@ -6,8 +6,11 @@
 //   --workers N           DECIMA_WORKERS         default 1
 //   --max-queued N        DECIMA_MAX_QUEUED      default 1000
 //   --max-upload-mb N     DECIMA_MAX_UPLOAD_MB   default 2048
-//   --token-file F        DECIMA_TOKEN_FILE      bearer token required on every call
+//   --token-file F        DECIMA_TOKEN_FILE      one bearer token, its holder is admin
+//   --tokens-file F       DECIMA_TOKENS_FILE     principals and roles (call_guard.h)
 //   --tls-cert F --tls-key F  DECIMA_TLS_CERT / DECIMA_TLS_KEY
+//   --tls-client-ca F     DECIMA_TLS_CLIENT_CA   require client certificates signed by F
+//   --audit-log F         DECIMA_AUDIT_LOG       default <data-dir>/audit.log
 // `decima-server --run-job REQUEST` is the job child process (worker_process.h).
 #include <fcntl.h>
 #include <signal.h>
@@ -17,6 +20,9 @@
 #include <grpcpp/ext/proto_server_reflection_plugin.h>
 #include <grpcpp/grpcpp.h>
 #include <grpcpp/health_check_service_interface.h>
+#include <grpcpp/security/server_credentials.h>
+#include <grpcpp/security/tls_certificate_provider.h>
+#include <grpcpp/security/tls_credentials_options.h>
 #include <CLI/CLI.hpp>
 #include <algorithm>
 #include <atomic>
@@ -35,6 +41,7 @@
 #include "server/lease_reaper.h"
 #include "server/periodic_task.h"
 #include "server/service.h"
+#include "server/tls_files.h"
 #include "server/worker_process.h"
 #include "spdlog/spdlog.h"
 
@@ -70,9 +77,10 @@ int main(int argc, char** argv) {
       "decima-server: turns uploaded medical volumes into simplified tetrahedral "
       "meshes, as queued jobs (gRPC API decima.v1)"};
   app.set_version_flag("--version", std::string("decima-server ") + DECIMA_VERSION);
-  std::string listen = "127.0.0.1:50051", data_dir = DefaultDataDir(), token_file, tls_cert,
-              tls_key, port_file;
+  std::string listen = "127.0.0.1:50051", data_dir = DefaultDataDir(), token_file, tokens_file,
+              tls_cert, tls_key, tls_client_ca, audit_log, port_file;
   std::string store_spec = "sqlite", store_file;
+  int tls_reload_seconds = 10, audit_max_mb = 64, audit_files = 10;
   int workers = 1, max_queued = 1000, max_attempts = 3, store_connections = 8;
   int64_t max_upload_mb = 2048, worker_memory_mb = 0;
   int64_t disk_reserve_mb = 64;
@@ -114,9 +122,17 @@ int main(int argc, char** argv) {
       ->envname("DECIMA_MAX_UPLOAD_MB")
       ->check(CLI::Range(int64_t{1}, int64_t{1} << 30))
       ->capture_default_str();
-  app.add_option("--token-file", token_file, "file holding the bearer token every call needs")
-      ->envname("DECIMA_TOKEN_FILE")
-      ->check(CLI::ExistingFile);
+  auto* single = app.add_option("--token-file", token_file,
+                                "file holding the one bearer token every call needs (its "
+                                "holder is the principal 'admin')")
+                     ->envname("DECIMA_TOKEN_FILE")
+                     ->check(CLI::ExistingFile);
+  app.add_option("--tokens-file", tokens_file,
+                 "principals: lines 'token <sha256 of token> <name> <submitter|reader|admin>' "
+                 "and 'cert <client certificate CN> <role>'")
+      ->envname("DECIMA_TOKENS_FILE")
+      ->check(CLI::ExistingFile)
+      ->excludes(single);
   auto* cert = app.add_option("--tls-cert", tls_cert, "PEM certificate chain: serve TLS")
                    ->envname("DECIMA_TLS_CERT")
                    ->check(CLI::ExistingFile);
@@ -125,6 +141,30 @@ int main(int argc, char** argv) {
                   ->check(CLI::ExistingFile);
   cert->needs(key);
   key->needs(cert);
+  app.add_option("--tls-client-ca", tls_client_ca,
+                 "PEM CA: require client certificates it signed (mutual TLS); the certificate's "
+                 "CN is the principal unless a bearer token is sent")
+      ->envname("DECIMA_TLS_CLIENT_CA")
+      ->check(CLI::ExistingFile)
+      ->needs(cert);
+  app.add_option("--tls-reload-seconds", tls_reload_seconds,
+                 "how often the TLS files are checked for changes (new ones serve new "
+                 "connections; open streams keep theirs)")
+      ->envname("DECIMA_TLS_RELOAD_SECONDS")
+      ->check(CLI::Range(1, 86400))
+      ->capture_default_str();
+  app.add_option("--audit-log", audit_log,
+                 "audit log file: one JSON line per state-changing call (default "
+                 "<data-dir>/audit.log)")
+      ->envname("DECIMA_AUDIT_LOG");
+  app.add_option("--audit-max-mb", audit_max_mb, "audit log size before it is rotated, MiB")
+      ->envname("DECIMA_AUDIT_MAX_MB")
+      ->check(CLI::Range(1, 1 << 20))
+      ->capture_default_str();
+  app.add_option("--audit-files", audit_files, "rotated audit log files kept")
+      ->envname("DECIMA_AUDIT_FILES")
+      ->check(CLI::Range(1, 10000))
+      ->capture_default_str();
   app.add_option("--max-attempts", max_attempts,
                  "claims of a job whose worker is lost before it fails")
       ->envname("DECIMA_MAX_ATTEMPTS")
@@ -271,18 +311,42 @@ int main(int argc, char** argv) {
   }
   const std::string owner = absl::StrCat("pid", ::getpid(), "-", NewId());
 
-  std::string token;
+  Identities identities;
   if (!token_file.empty()) {
     auto t = ReadFileText(token_file, "--token-file");
     if (!t.ok()) {
       spdlog::error("{}", std::string(t.status().message()));
       return 1;
     }
-    token = std::string(absl::StripAsciiWhitespace(*t));
+    std::string token(absl::StripAsciiWhitespace(*t));
     if (token.empty()) {
       spdlog::error("--token-file {}: empty", token_file);
       return 1;
     }
+    identities = Identities::SingleToken(token);
+  }
+  if (!tokens_file.empty()) {
+    auto t = ReadFileText(tokens_file, "--tokens-file");
+    auto ids = t.ok() ? Identities::Parse(*t, tokens_file) : t.status();
+    if (!ids.ok()) {
+      spdlog::error("{}", std::string(ids.status().message()));
+      return 1;
+    }
+    identities = std::move(*ids);
+  }
+  if (!tls_client_ca.empty()) identities.RequireClientCertificates();
+  if (!tls_cert.empty()) {
+    if (auto st = CheckTlsFiles(tls_cert, tls_key, tls_client_ca); !st.ok()) {
+      spdlog::error("{}", std::string(st.message()));
+      return 1;
+    }
+  }
+  if (audit_log.empty()) audit_log = (data / "audit.log").string();
+  auto audit = AuditLog::Open(audit_log, static_cast<size_t>(audit_max_mb) << 20,
+                              static_cast<size_t>(audit_files));
+  if (!audit.ok()) {
+    spdlog::error("{}", std::string(audit.status().message()));
+    return 1;
   }
 
   absl::StatusOr<std::unique_ptr<JobStore>> store;
@@ -345,7 +409,9 @@ int main(int argc, char** argv) {
 
   ServiceOptions so;
   so.data_dir = DataDir(data);
-  so.token = token;
+  const bool auth = identities.required();
+  so.identities = std::move(identities);
+  so.audit = *audit;
   so.max_upload_bytes = max_upload_mb << 20;
   so.max_queued = max_queued;
   so.allow_faults = allow_faults;
@@ -372,15 +438,20 @@ int main(int argc, char** argv) {
   grpc::ServerBuilder builder;
   std::shared_ptr<grpc::ServerCredentials> creds = grpc::InsecureServerCredentials();
   if (!tls_cert.empty()) {
-    auto c = ReadFileText(tls_cert, "--tls-cert");
-    auto k = ReadFileText(tls_key, "--tls-key");
-    if (!c.ok() || !k.ok()) {
-      spdlog::error("{}", std::string((!c.ok() ? c.status() : k.status()).message()));
-      return 1;
+    // The files are re-read every --tls-reload-seconds and swapped in when they changed (a
+    // renewed certificate, a new client CA): new handshakes use them, established connections
+    // and their streams are not touched. Checked above, so a bad file cannot start a server.
+    auto provider = std::make_shared<grpc::experimental::FileWatcherCertificateProvider>(
+        tls_key, tls_cert, tls_client_ca, static_cast<unsigned>(tls_reload_seconds));
+    grpc::experimental::TlsServerCredentialsOptions tls(provider);
+    tls.watch_identity_key_cert_pairs();
+    if (!tls_client_ca.empty()) {
+      tls.watch_root_certs();
+      tls.set_cert_request_type(GRPC_SSL_REQUEST_AND_REQUIRE_CLIENT_CERTIFICATE_AND_VERIFY);
+    } else {
+      tls.set_cert_request_type(GRPC_SSL_DONT_REQUEST_CLIENT_CERTIFICATE);
     }
-    grpc::SslServerCredentialsOptions ssl;
-    ssl.pem_key_cert_pairs.push_back({*k, *c});
-    creds = grpc::SslServerCredentials(ssl);
+    creds = grpc::experimental::TlsServerCredentials(tls);
   }
   int port = 0;
   // gRPC sets SO_REUSEPORT by default, so a second server would share the port (and clients
@@ -413,7 +484,8 @@ int main(int argc, char** argv) {
   }
   spdlog::info("decima-server {} listening on {} (port {}), data {}, store {}, {} worker(s){}{}",
                owner, listen, port, data.string(), postgres ? "postgresql" : "sqlite", workers,
-               token.empty() ? "" : ", token required", tls_cert.empty() ? "" : ", TLS");
+               auth ? ", callers identified" : ", no authentication",
+               tls_cert.empty() ? "" : (tls_client_ca.empty() ? ", TLS" : ", mutual TLS"));
   if (!port_file.empty()) {
     std::string tmp = port_file + ".tmp";
     std::ofstream(tmp) << port << "\n";

@@ -8,11 +8,13 @@ Services::Services(ServiceOptions options, JobStore* jobs, BlobStore* blobs, Eve
                    WorkerPool* pool)
     : options_(std::move(options)),
       store_(jobs),
-      guard_(options_.token),
+      guard_(options_.identities),
+      audit_(options_.audit ? options_.audit : std::make_shared<AuditLog>()),
       disk_(options_.data_dir.root(), options_.disk_reserve_bytes),
       catalog_(&options_.data_dir, jobs, blobs, &disk_, options_.blob_sweep) {
   disk_.Refill();
-  const ServiceDeps deps{&options_, jobs, blobs, bus, pool, &guard_, &disk_, &catalog_};
+  const ServiceDeps deps{&options_, jobs,         blobs,  bus,      pool,
+                         &guard_,   audit_.get(), &disk_, &catalog_};
   uploads_ = MakeUploadsService(deps);
   volumes_ = MakeVolumesService(deps);
   jobs_ = MakeJobsService(deps);

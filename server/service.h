@@ -1,9 +1,9 @@
 // The gRPC services of decima.v1, one file each: uploads_service.cc, volumes_service.cc,
-// jobs_service.cc, artifacts_service.cc. Handlers are adapters: check the call (CallGuard: token,
-// drain), parse names, call one domain function (VolumeCatalog, SubmitJob, WatchLoop,
-// OpenArtifact, the stores), and convert absl::Status to grpc::Status keeping code and message
-// (grpc_util.h). The standard health and reflection services are registered beside these
-// (server_main.cc).
+// jobs_service.cc, artifacts_service.cc. Handlers are adapters: check the call (CallGuard: who,
+// may they, drain; AuditLog for state changes), parse names, call one domain function
+// (VolumeCatalog, SubmitJob, WatchLoop, OpenArtifact, the stores), and convert absl::Status to
+// grpc::Status keeping code and message (grpc_util.h). The standard health and reflection services
+// are registered beside these (server_main.cc).
 #pragma once
 
 #include <grpcpp/grpcpp.h>
@@ -13,6 +13,7 @@
 #include <memory>
 #include <string>
 
+#include "server/audit_log.h"
 #include "server/blob_store.h"
 #include "server/call_guard.h"
 #include "server/data_dir.h"
@@ -26,7 +27,8 @@ namespace decima::server {
 
 struct ServiceOptions {
   DataDir data_dir{""};
-  std::string token;  // empty: no authentication
+  Identities identities;            // who may call (default: anyone, as admin)
+  std::shared_ptr<AuditLog> audit;  // null: no audit log
   int64_t max_upload_bytes = int64_t{2} << 30;
   int max_queued = 1000;
   bool allow_faults = false;    // read the test fault seam (faults.h), tests only
@@ -45,6 +47,7 @@ struct ServiceDeps {
   EventBus* bus;
   WorkerPool* pool;
   const CallGuard* guard;
+  const AuditLog* audit;  // never null (a disabled log when none is configured)
   DiskSpace* disk;
   VolumeCatalog* volumes;
 };
@@ -80,6 +83,7 @@ class Services {
   const ServiceOptions options_;
   JobStore* store_;
   CallGuard guard_;
+  std::shared_ptr<AuditLog> audit_;
   DiskSpace disk_;
   VolumeCatalog catalog_;
   std::unique_ptr<grpc::Service> uploads_, volumes_, jobs_, artifacts_;

@@ -119,7 +119,8 @@ class SqliteJobStore : public JobStore {
         lease_epoch INTEGER NOT NULL DEFAULT 0,
         cancel_requested INTEGER NOT NULL DEFAULT 0,
         volume TEXT NOT NULL,
-        job BLOB NOT NULL);
+        job BLOB NOT NULL,
+        creator TEXT NOT NULL DEFAULT '');
       CREATE INDEX IF NOT EXISTS jobs_by_state ON jobs(state, ord);
       CREATE TABLE IF NOT EXISTS events(
         job_id TEXT NOT NULL, seq INTEGER NOT NULL, event BLOB NOT NULL,
@@ -128,7 +129,8 @@ class SqliteJobStore : public JobStore {
         ord INTEGER PRIMARY KEY AUTOINCREMENT,
         id TEXT UNIQUE NOT NULL,
         request_id TEXT UNIQUE,
-        volume BLOB NOT NULL);
+        volume BLOB NOT NULL,
+        creator TEXT NOT NULL DEFAULT '');
       CREATE TABLE IF NOT EXISTS volume_blobs(
         volume_id TEXT NOT NULL, sha256 TEXT NOT NULL,
         PRIMARY KEY(volume_id, sha256)) WITHOUT ROWID;
@@ -154,7 +156,22 @@ class SqliteJobStore : public JobStore {
     Stmt cols(db_, "SELECT COUNT(*) FROM pragma_table_info('jobs') WHERE name='lease_epoch'");
     if (cols.Step() != SQLITE_ROW) return cols.Error("reading the schema");
     if (cols.Int(0) == 0) {
-      return Exec("ALTER TABLE jobs ADD COLUMN lease_epoch INTEGER NOT NULL DEFAULT 0");
+      DECIMA_RETURN_IF_ERROR_LOCAL(
+          Exec("ALTER TABLE jobs ADD COLUMN lease_epoch INTEGER NOT NULL DEFAULT 0"));
+    }
+    // Data dirs created before jobs and volumes had creators: the column, "" for the old rows
+    // (only an admin or reader sees those). The proto carries the creator too; the column is
+    // the filter of a submitter's listing.
+    for (const char* table : {"jobs", "volumes"}) {
+      Stmt c(db_, absl::StrCat("SELECT COUNT(*) FROM pragma_table_info('", table,
+                               "') WHERE name='creator'")
+                      .c_str());
+      if (c.Step() != SQLITE_ROW) return c.Error("reading the schema");
+      if (c.Int(0) == 0) {
+        DECIMA_RETURN_IF_ERROR_LOCAL(
+            Exec(absl::StrCat("ALTER TABLE ", table, " ADD COLUMN creator TEXT NOT NULL DEFAULT ''")
+                     .c_str()));
+      }
     }
     return absl::OkStatus();
   }
@@ -168,7 +185,7 @@ class SqliteJobStore : public JobStore {
 
   absl::StatusOr<v1::Job> CreateJob(const std::string& id, const v1::JobSpec& spec,
                                     const std::string& request_id, int max_queued,
-                                    bool* created) override {
+                                    const std::string& creator, bool* created) override {
     std::lock_guard<std::mutex> lock(mu_);
     *created = false;
     if (!request_id.empty()) {
@@ -193,9 +210,11 @@ class SqliteJobStore : public JobStore {
     *job.mutable_spec() = spec;
     job.set_state(v1::QUEUED);
     job.set_request_id(request_id);
+    job.set_creator(creator);
     *job.mutable_create_time() = NowTimestamp();
     AddStateEvent(job, v1::QUEUED, nullptr);
-    Stmt ins(db_, "INSERT INTO jobs(id, request_id, state, volume, job) VALUES(?,?,?,?,?)");
+    Stmt ins(db_,
+             "INSERT INTO jobs(id, request_id, state, volume, job, creator) VALUES(?,?,?,?,?,?)");
     ins.Bind(1, id);
     if (request_id.empty()) {
       ins.BindNull(2);
@@ -203,6 +222,7 @@ class SqliteJobStore : public JobStore {
       ins.Bind(2, request_id);
     }
     ins.Bind(3, int64_t{job.state()}).Bind(4, spec.volume()).BindBlob(5, job.SerializeAsString());
+    ins.Bind(6, creator);
     if (ins.Step() != SQLITE_DONE) return ins.Error("inserting job");
     DECIMA_RETURN_IF_ERROR_LOCAL(SaveEvents());
     DECIMA_TX_COMMIT(tx);
@@ -215,7 +235,8 @@ class SqliteJobStore : public JobStore {
     return LoadJob(id);
   }
 
-  absl::StatusOr<JobPage> ListJobs(const std::vector<v1::JobState>& states, int page_size,
+  absl::StatusOr<JobPage> ListJobs(const std::vector<v1::JobState>& states,
+                                   const std::string& creator, int page_size,
                                    const std::string& page_token) override {
     auto before = DecodeToken(page_token);
     if (!before.ok()) return before.status();
@@ -226,10 +247,14 @@ class SqliteJobStore : public JobStore {
       for (auto s : states) parts.push_back(absl::StrCat(static_cast<int>(s)));
       absl::StrAppend(&sql, " AND state IN (", absl::StrJoin(parts, ","), ")");
     }
+    if (!creator.empty()) absl::StrAppend(&sql, " AND creator = ?");
     absl::StrAppend(&sql, " ORDER BY ord DESC LIMIT ?");
     std::lock_guard<std::mutex> lock(mu_);
     Stmt q(db_, sql.c_str());
-    q.Bind(1, *before).Bind(2, int64_t{limit} + 1);
+    int arg = 1;
+    q.Bind(arg++, *before);
+    if (!creator.empty()) q.Bind(arg++, creator);
+    q.Bind(arg, int64_t{limit} + 1);
     JobPage page;
     int64_t last_ord = 0;
     int rc;
@@ -503,7 +528,7 @@ class SqliteJobStore : public JobStore {
     }
     Tx tx(this);
     if (!tx.ok()) return tx.status();
-    Stmt ins(db_, "INSERT INTO volumes(id, request_id, volume) VALUES(?,?,?)");
+    Stmt ins(db_, "INSERT INTO volumes(id, request_id, volume, creator) VALUES(?,?,?,?)");
     ins.Bind(1, id);
     if (request_id.empty()) {
       ins.BindNull(2);
@@ -511,6 +536,7 @@ class SqliteJobStore : public JobStore {
       ins.Bind(2, request_id);
     }
     ins.BindBlob(3, volume.SerializeAsString());
+    ins.Bind(4, volume.creator());
     if (ins.Step() != SQLITE_DONE) return ins.Error("inserting volume");
     for (const auto& f : volume.files()) {
       Stmt b(db_, "INSERT OR IGNORE INTO volume_blobs(volume_id, sha256) VALUES(?,?)");
@@ -532,13 +558,20 @@ class SqliteJobStore : public JobStore {
     return ParseVolume(q.Text(0));
   }
 
-  absl::StatusOr<VolumePage> ListVolumes(int page_size, const std::string& page_token) override {
+  absl::StatusOr<VolumePage> ListVolumes(const std::string& creator, int page_size,
+                                         const std::string& page_token) override {
     auto before = DecodeToken(page_token);
     if (!before.ok()) return before.status();
     int limit = ClampPageSize(page_size);
     std::lock_guard<std::mutex> lock(mu_);
-    Stmt q(db_, "SELECT ord, volume FROM volumes WHERE ord < ? ORDER BY ord DESC LIMIT ?");
-    q.Bind(1, *before).Bind(2, int64_t{limit} + 1);
+    Stmt q(db_, creator.empty()
+                    ? "SELECT ord, volume FROM volumes WHERE ord < ? ORDER BY ord DESC LIMIT ?"
+                    : "SELECT ord, volume FROM volumes WHERE ord < ? AND creator = ? "
+                      "ORDER BY ord DESC LIMIT ?");
+    int arg = 1;
+    q.Bind(arg++, *before);
+    if (!creator.empty()) q.Bind(arg++, creator);
+    q.Bind(arg, int64_t{limit} + 1);
     VolumePage page;
     int64_t last_ord = 0;
     int rc;

@@ -94,21 +94,34 @@ class UploadsService final : public v1::Uploads::Service {
 
   grpc::Status Upload(grpc::ServerContext* ctx, grpc::ServerReader<v1::UploadRequest>* reader,
                       v1::Blob* blob) override {
-    if (auto g = d_.guard->Check(ctx); !g.ok()) return g;
+    Principal caller;
+    if (auto g = d_.guard->Check(ctx, &caller); !g.ok()) {
+      return d_.audit->Record(nullptr, "Upload", "", g);
+    }
     v1::UploadRequest first;
     if (!reader->Read(&first)) {
-      return grpc::Status(grpc::StatusCode::INVALID_ARGUMENT, "empty upload stream");
+      return d_.audit->Record(
+          &caller, "Upload", "",
+          grpc::Status(grpc::StatusCode::INVALID_ARGUMENT, "empty upload stream"));
+    }
+    // Blobs are content-addressed and shared (deduplicated), so they have no creator; the
+    // volume made of them has.
+    const std::string resource = IsSha256Hex(first.sha256()) ? "blobs/" + first.sha256() : "";
+    if (auto may = CallGuard::MayCreate(caller, "uploads"); !may.ok()) {
+      return d_.audit->Record(&caller, "Upload", resource, may);
     }
     v1::ErrorDetail detail;
     absl::Status st = ReceiveUpload(
         *d_.blobs, *d_.disk, d_.options->max_upload_bytes, first,
         [reader](v1::UploadRequest* r) { return reader->Read(r); }, blob, &detail);
-    return st.ok() ? grpc::Status::OK : Fail(ctx, st, detail);
+    return d_.audit->Record(&caller, "Upload", resource,
+                            st.ok() ? grpc::Status::OK : Fail(ctx, st, detail));
   }
 
   grpc::Status GetUploadStatus(grpc::ServerContext* ctx, const v1::GetUploadStatusRequest* req,
                                v1::UploadStatus* resp) override {
-    if (auto g = d_.guard->Check(ctx); !g.ok()) return g;
+    Principal caller;  // every role: it tells only whether bytes with this hash are stored
+    if (auto g = d_.guard->Check(ctx, &caller); !g.ok()) return g;
     if (!IsSha256Hex(req->sha256())) {
       return InvalidField(ctx, "sha256", "expected 64 lower-case hex digits");
     }

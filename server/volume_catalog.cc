@@ -25,6 +25,7 @@ bool SafeRelativePath(const std::string& p) {
 }
 
 absl::StatusOr<v1::Volume> VolumeCatalog::Create(const v1::CreateVolumeRequest& request,
+                                                 const std::string& creator,
                                                  v1::ErrorDetail* detail) {
   v1::Volume vol = request.volume();
   auto invalid = [&](const std::string& field, const std::string& message) {
@@ -107,6 +108,7 @@ absl::StatusOr<v1::Volume> VolumeCatalog::Create(const v1::CreateVolumeRequest& 
   vol.set_modality(header->modality);
   vol.set_scalar_type(header->scalar_type);
   vol.set_size_bytes(total);
+  vol.set_creator(creator);
   *vol.mutable_create_time() = NowTimestamp();
   if (vol.display_name().empty()) vol.set_display_name(paths[0]);
   bool created = false;

@@ -29,8 +29,9 @@ class VolumeCatalog {
   // The stored volume (or the one created first with the same request_id). INVALID_ARGUMENT
   // for an unsafe or repeated path, a malformed blob name, or a header that does not parse
   // (`detail->field` names the field); NOT_FOUND for a blob that was not uploaded.
+  // `creator` (the caller's principal) is recorded in Volume.creator.
   absl::StatusOr<v1::Volume> Create(const v1::CreateVolumeRequest& request,
-                                    v1::ErrorDetail* detail);
+                                    const std::string& creator, v1::ErrorDetail* detail);
   // FAILED_PRECONDITION while a queued or running job reads it (as its volume or label map).
   // Its blobs that no other volume uses and whose upload claim lapsed are removed at once.
   absl::Status Delete(const std::string& id);

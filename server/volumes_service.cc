@@ -12,31 +12,50 @@ class VolumesService final : public v1::Volumes::Service {
 
   grpc::Status CreateVolume(grpc::ServerContext* ctx, const v1::CreateVolumeRequest* req,
                             v1::Volume* resp) override {
-    if (auto g = d_.guard->Check(ctx); !g.ok()) return g;
+    Principal caller;
+    if (auto g = d_.guard->Check(ctx, &caller); !g.ok()) {
+      return d_.audit->Record(nullptr, "CreateVolume", "", g);
+    }
+    grpc::Status st = DoCreateVolume(ctx, caller, *req, resp);
+    return d_.audit->Record(&caller, "CreateVolume", st.ok() ? resp->name() : "", st);
+  }
+
+  grpc::Status DoCreateVolume(grpc::ServerContext* ctx, const Principal& caller,
+                              const v1::CreateVolumeRequest& req, v1::Volume* resp) {
+    if (auto may = CallGuard::MayCreate(caller, "volumes"); !may.ok()) return may;
     v1::ErrorDetail detail;
-    auto vol = d_.volumes->Create(*req, &detail);
+    auto vol = d_.volumes->Create(req, caller.name, &detail);
     if (!vol.ok())
       return detail.field().empty() ? ToGrpc(vol.status()) : Fail(ctx, vol.status(), detail);
+    // A request_id another principal used returns that principal's volume: not to be revealed.
+    if (auto may = CallGuard::MayRead(caller, vol->creator(), "request_id " + req.request_id());
+        !may.ok()) {
+      return may;
+    }
     *resp = std::move(*vol);
     return grpc::Status::OK;
   }
 
   grpc::Status GetVolume(grpc::ServerContext* ctx, const v1::GetVolumeRequest* req,
                          v1::Volume* resp) override {
-    if (auto g = d_.guard->Check(ctx); !g.ok()) return g;
+    Principal caller;
+    if (auto g = d_.guard->Check(ctx, &caller); !g.ok()) return g;
     auto id = ParseName(req->name(), "volumes", "name");
     if (!id.ok()) return ToGrpc(id.status());
     auto v = d_.jobs->GetVolume(*id);
     if (!v.ok()) return ToGrpc(v.status());
+    if (auto may = CallGuard::MayRead(caller, v->creator(), req->name()); !may.ok()) return may;
     *resp = std::move(*v);
     return grpc::Status::OK;
   }
 
   grpc::Status ListVolumes(grpc::ServerContext* ctx, const v1::ListVolumesRequest* req,
                            v1::ListVolumesResponse* resp) override {
-    if (auto g = d_.guard->Check(ctx); !g.ok()) return g;
+    Principal caller;
+    if (auto g = d_.guard->Check(ctx, &caller); !g.ok()) return g;
     if (req->page_size() < 0) return InvalidField(ctx, "page_size", "must be >= 0");
-    auto page = d_.jobs->ListVolumes(req->page_size(), req->page_token());
+    auto page =
+        d_.jobs->ListVolumes(CallGuard::ListFilter(caller), req->page_size(), req->page_token());
     if (!page.ok()) return ToGrpc(page.status());
     for (auto& v : page->volumes) *resp->add_volumes() = std::move(v);
     resp->set_next_page_token(page->next_page_token);
@@ -45,9 +64,19 @@ class VolumesService final : public v1::Volumes::Service {
 
   grpc::Status DeleteVolume(grpc::ServerContext* ctx, const v1::DeleteVolumeRequest* req,
                             v1::DeleteVolumeResponse*) override {
-    if (auto g = d_.guard->Check(ctx); !g.ok()) return g;
-    auto id = ParseName(req->name(), "volumes", "name");
+    Principal caller;
+    if (auto g = d_.guard->Check(ctx, &caller); !g.ok()) {
+      return d_.audit->Record(nullptr, "DeleteVolume", req->name(), g);
+    }
+    return d_.audit->Record(&caller, "DeleteVolume", req->name(), DoDeleteVolume(caller, *req));
+  }
+
+  grpc::Status DoDeleteVolume(const Principal& caller, const v1::DeleteVolumeRequest& req) {
+    auto id = ParseName(req.name(), "volumes", "name");
     if (!id.ok()) return ToGrpc(id.status());
+    auto v = d_.jobs->GetVolume(*id);
+    if (!v.ok()) return ToGrpc(v.status());
+    if (auto may = CallGuard::MayWrite(caller, v->creator(), req.name()); !may.ok()) return may;
     return ToGrpc(d_.volumes->Delete(*id));
   }
 

@@ -154,6 +154,75 @@ CliResult WaitCli(const CliProcess& p, std::chrono::seconds timeout) {
   return r;
 }
 
+std::string MakeTestPki(const fs::path& dir, const std::vector<std::string>& clients,
+                        TestPki* pki) {
+  std::string openssl;
+  for (const char* p : {"/usr/bin/openssl", "/bin/openssl", "/usr/local/bin/openssl"}) {
+    if (access(p, X_OK) == 0) {
+      openssl = p;
+      break;
+    }
+  }
+  if (openssl.empty()) return "openssl not found";
+  fs::create_directories(dir);
+  pki->dir = dir;
+  auto run = [&](std::vector<std::string> args) -> std::string {
+    args.insert(args.begin(), openssl);
+    CliResult r = RunProgram(args, std::chrono::seconds(60));
+    if (r.rc == 0) return "";
+    std::string cmd;
+    for (const auto& a : args) cmd += a + " ";
+    return cmd + "-> exit " + std::to_string(r.rc) + ": " + r.err;
+  };
+  const auto p = [&](const std::string& f) { return (dir / f).string(); };
+  // P-256 keys: generated in milliseconds, unlike RSA.
+  const std::vector<std::string> kNewKey = {"-newkey", "ec", "-pkeyopt",
+                                            "ec_paramgen_curve:prime256v1", "-nodes"};
+  auto self_signed = [&](const std::string& name, const std::string& cn) {
+    std::vector<std::string> a = {"req", "-x509"};
+    a.insert(a.end(), kNewKey.begin(), kNewKey.end());
+    a.insert(a.end(), {"-keyout", p(name + ".key"), "-out", p(name + ".pem"), "-days", "2", "-subj",
+                       "/CN=" + cn});
+    return run(a);
+  };
+  auto signed_by = [&](const std::string& ca, const std::string& name, const std::string& cn,
+                       const std::string& ext) {
+    std::vector<std::string> a = {"req"};
+    a.insert(a.end(), kNewKey.begin(), kNewKey.end());
+    a.insert(a.end(),
+             {"-keyout", p(name + ".key"), "-out", p(name + ".csr"), "-subj", "/CN=" + cn});
+    if (auto e = run(a); !e.empty()) return e;
+    std::ofstream(p(name + ".ext")) << ext << "\n";
+    return run({"x509", "-req", "-in", p(name + ".csr"), "-CA", p(ca + ".pem"), "-CAkey",
+                p(ca + ".key"), "-CAcreateserial", "-out", p(name + ".pem"), "-days", "2",
+                "-extfile", p(name + ".ext")});
+  };
+  if (auto e = self_signed("ca", "decima-test-ca"); !e.empty()) return e;
+  if (auto e = self_signed("other-ca", "some-other-ca"); !e.empty()) return e;
+  if (auto e = signed_by("ca", "server", "localhost",
+                         "subjectAltName=IP:127.0.0.1,DNS:localhost\nextendedKeyUsage=serverAuth");
+      !e.empty()) {
+    return e;
+  }
+  for (const auto& c : clients) {
+    if (auto e = signed_by("ca", c, c, "extendedKeyUsage=clientAuth"); !e.empty()) return e;
+  }
+  if (auto e = signed_by("other-ca", "stranger", "stranger", "extendedKeyUsage=clientAuth");
+      !e.empty()) {
+    return e;
+  }
+  // An expired server certificate for server.key: `openssl ca` is the command that takes
+  // explicit start and end dates.
+  std::ofstream(p("ca.cnf")) << "[ca]\ndefault_ca=d\n[d]\ndatabase=" << p("index.txt")
+                             << "\nnew_certs_dir=" << dir.string() << "\nserial=" << p("serial")
+                             << "\ndefault_md=sha256\npolicy=p\n[p]\ncommonName=supplied\n";
+  std::ofstream(p("index.txt")).flush();
+  std::ofstream(p("serial")) << "1000\n";
+  return run({"ca", "-batch", "-config", p("ca.cnf"), "-cert", p("ca.pem"), "-keyfile", p("ca.key"),
+              "-in", p("server.csr"), "-out", p("expired.pem"), "-startdate", "20200101000000Z",
+              "-enddate", "20200102000000Z", "-notext"});
+}
+
 CliResult RunCli(const std::string& address, const std::vector<std::string>& args,
                  std::chrono::seconds timeout, const std::map<std::string, std::string>& env) {
   std::vector<std::string> a = {CliBinary().string(), "--server", address};

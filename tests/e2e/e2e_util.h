@@ -75,6 +75,26 @@ v1::Job GetJob(const std::string& address, const std::string& name);
 // `mm`, identity qform.
 std::string NiftiHeader(int nx, int ny, int nz, int16_t datatype, int16_t bitpix, float mm);
 
+// A throwaway public-key infrastructure made with the `openssl` command in `dir`: a CA, a server
+// certificate for 127.0.0.1/localhost, one client certificate per name (CN = the name), a
+// client certificate from another CA, and an expired server certificate.
+struct TestPki {
+  std::filesystem::path dir;
+  std::filesystem::path ca() const { return dir / "ca.pem"; }
+  std::filesystem::path server_cert() const { return dir / "server.pem"; }
+  std::filesystem::path server_key() const { return dir / "server.key"; }
+  std::filesystem::path expired_cert() const { return dir / "expired.pem"; }  // key: server.key
+  std::filesystem::path cert(const std::string& name) const { return dir / (name + ".pem"); }
+  std::filesystem::path key(const std::string& name) const { return dir / (name + ".key"); }
+  // A client certificate named "stranger", signed by another CA.
+  std::filesystem::path stranger_cert() const { return dir / "stranger.pem"; }
+  std::filesystem::path stranger_key() const { return dir / "stranger.key"; }
+};
+// "" on success, else what failed (the openssl command and its stderr). "openssl not found"
+// when the command is absent (the caller skips).
+std::string MakeTestPki(const std::filesystem::path& dir, const std::vector<std::string>& clients,
+                        TestPki* pki);
+
 // Polls `pred` every 20 ms until true or `timeout`; returns the last value.
 template <typename Pred>
 bool WaitFor(Pred pred, std::chrono::milliseconds timeout) {

@@ -165,7 +165,7 @@ nlohmann::json Claims(testing::PostgresServer& pg, int jobs) {
   spec.set_volume("volumes/bench");
   for (int i = 0; i < jobs; ++i) {
     bool created = false;
-    (void)stores[i % 3]->CreateJob("c" + std::to_string(i), spec, "", 0, &created);
+    (void)stores[i % 3]->CreateJob("c" + std::to_string(i), spec, "", 0, "", &created);
   }
   std::atomic<int> claimed{0}, errors{0};
   const auto t0 = std::chrono::steady_clock::now();

@@ -5,7 +5,10 @@
 //   job_overhead:         (job time - the pipeline's own total in metrics.json) / pipeline total
 // Usage: decima-service-bench [--volume FILE] [--jobs N]
 //        decima-service-bench --create-volume FILE [--repeat N]
-//   the second form only measures CreateVolume (p50, p90 ms) of FILE, uploaded once.
+//        decima-service-bench --security 1 [--jobs N]
+//   the second form only measures CreateVolume (p50, p90 ms) of FILE, uploaded once; the third
+//   the cost of TLS (issue 16): submit -> RUNNING (p50, p90) and the 256 MB upload (median of
+//   3, fsync on) over plaintext, TLS and mutual TLS, with certificates made by `openssl`.
 #include <google/protobuf/util/time_util.h>
 #include <grpcpp/grpcpp.h>
 #include <signal.h>
@@ -100,9 +103,9 @@ double PipelineSeconds(const v1::Job& j) {
 // CreateVolume latency of one uploaded file: the header check and the manifest, no upload.
 int MeasureCreateVolume(const fs::path& scratch, const fs::path& file, int repeat) {
   e2e::ServerProcess server(scratch / "data-cv", {"--workers", "1"});
-  auto c = client::Connect(server.address(), "", false, "", 60s);
-  std::vector<client::InputFile> files;
   std::string err;
+  auto c = client::Connect(server.address(), "", {}, 60s, &err);
+  std::vector<client::InputFile> files;
   client::CollectInputs(file, &files, &err);
   client::HashInputs(&files, &err);
   for (const auto& f : files) client::UploadBlob(c, f, nullptr, 3, nullptr);
@@ -132,17 +135,96 @@ int MeasureCreateVolume(const fs::path& scratch, const fs::path& file, int repea
   return 0;
 }
 
+// Seconds to upload a fresh 256 MB random blob (seeded by `seed`), -1 on failure.
+double UploadSeconds(const client::Connection& c, const fs::path& scratch, int seed) {
+  fs::path blob = scratch / "blob.bin";
+  {
+    std::mt19937_64 rng(seed);
+    std::vector<uint64_t> buf(1 << 17);
+    std::ofstream f(blob, std::ios::binary | std::ios::trunc);
+    for (int m = 0; m < 256; ++m) {
+      for (auto& x : buf) x = rng();
+      f.write(reinterpret_cast<const char*>(buf.data()), 1 << 20);
+    }
+  }
+  std::vector<client::InputFile> files;
+  std::string err;
+  client::CollectInputs(blob, &files, &err);
+  client::HashInputs(&files, &err);
+  auto t0 = std::chrono::steady_clock::now();
+  grpc::Status s = client::UploadBlob(c, files[0], nullptr, 1, nullptr);
+  double secs = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
+  fs::remove(blob);
+  if (!s.ok()) {
+    std::fprintf(stderr, "upload: %s\n", s.error_message().c_str());
+    return -1;
+  }
+  return secs;
+}
+
+// Plaintext, TLS and mutual TLS side by side, on the same machine in one run.
+int MeasureSecurity(const fs::path& scratch, const fs::path& volume, int jobs) {
+  e2e::TestPki pki;
+  if (std::string err = e2e::MakeTestPki(scratch / "pki", {"bench"}, &pki); !err.empty()) {
+    std::fprintf(stderr, "certificates: %s\n", err.c_str());
+    return 1;
+  }
+  nlohmann::json out;
+  out["volume"] = volume.string();
+  int n = 0;
+  for (const char* mode : {"plaintext", "tls", "mtls"}) {
+    std::vector<std::string> flags = {"--workers", "1", "--max-upload-mb", "1024"};
+    client::TlsFiles tls;
+    if (std::string(mode) != "plaintext") {
+      flags.insert(flags.end(), {"--tls-cert", pki.server_cert().string(), "--tls-key",
+                                 pki.server_key().string()});
+      tls.ca_file = pki.ca().string();
+    }
+    if (std::string(mode) == "mtls") {
+      flags.insert(flags.end(), {"--tls-client-ca", pki.ca().string()});
+      tls.cert_file = pki.cert("bench").string();
+      tls.key_file = pki.key("bench").string();
+    }
+    e2e::ServerProcess server(scratch / ("data-" + std::string(mode)), flags);
+    std::string err;
+    auto c = client::Connect(server.address(), "", tls, 60s, &err);
+    if (!c.channel) {
+      std::fprintf(stderr, "%s\n", err.c_str());
+      return 1;
+    }
+    std::string vol = MakeVolume(c, volume);
+    std::vector<double> lat;
+    for (int i = 0; i < jobs; ++i) {
+      v1::Job j;
+      lat.push_back(SubmitAndWait(c, vol, false, &j) * 1000);
+    }
+    std::vector<double> rates;
+    for (int rep = 0; rep < 3; ++rep) {
+      double secs = UploadSeconds(c, scratch, 1000 * ++n + rep);
+      if (secs <= 0) return 1;
+      rates.push_back(256 * 1048576 / 1e6 / secs);
+    }
+    out[mode] = {{"submit_to_running_ms",
+                  {{"p50", Median(lat)}, {"p90", Percentile(lat, 0.9)}, {"n", jobs}}},
+                 {"upload_mb_per_s_fsync", {{"median", Median(rates)}, {"runs", rates}}}};
+  }
+  std::printf("%s\n", out.dump(2).c_str());
+  return 0;
+}
+
 }  // namespace
 
 int main(int argc, char** argv) {
   fs::path volume, create_volume;
   int jobs = 20, repeat = 15;
+  bool security = false;
   for (int i = 1; i + 1 < argc; i += 2) {
     std::string k = argv[i];
     if (k == "--volume") volume = argv[i + 1];
     if (k == "--jobs") jobs = std::atoi(argv[i + 1]);
     if (k == "--create-volume") create_volume = argv[i + 1];
     if (k == "--repeat") repeat = std::atoi(argv[i + 1]);
+    if (k == "--security") security = std::atoi(argv[i + 1]) != 0;
   }
   fs::path scratch = fs::temp_directory_path() / ("decima-bench-" + std::to_string(getpid()));
   fs::create_directories(scratch);
@@ -155,12 +237,18 @@ int main(int argc, char** argv) {
     volume = scratch / "phantom.nii";
     e2e::WriteTinyNifti(volume, 24, 24, 16);
   }
+  if (security) {
+    int rc = MeasureSecurity(scratch, volume, jobs);
+    fs::remove_all(scratch);
+    return rc;
+  }
   nlohmann::json out;
   out["volume"] = volume.string();
 
   {
     e2e::ServerProcess server(scratch / "data1", {"--workers", "1"});
-    auto c = client::Connect(server.address(), "", false, "", 30s);
+    std::string err;
+    auto c = client::Connect(server.address(), "", {}, 30s, &err);
     std::string vol = MakeVolume(c, volume);
     std::vector<double> lat, job_s, overhead;
     for (int i = 0; i < jobs; ++i) {
@@ -215,7 +303,8 @@ int main(int argc, char** argv) {
     std::vector<std::string> extra = {"--max-upload-mb", "1024"};
     if (!fsync) extra.push_back("--no-fsync");
     e2e::ServerProcess server(scratch / (fsync ? "data2" : "data3"), extra);
-    auto c = client::Connect(server.address(), "", false, "", 60s);
+    std::string cerr;
+    auto c = client::Connect(server.address(), "", {}, 60s, &cerr);
     std::vector<double> rates;
     for (int rep = 0; rep < 3; ++rep) {
       fs::path blob = scratch / "blob.bin";

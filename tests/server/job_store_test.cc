@@ -53,11 +53,12 @@ class JobStoreTest : public ::testing::TestWithParam<std::string> {
     std::lock_guard<std::mutex> lock(mu_);
     return published_;
   }
-  v1::Job Create(const std::string& id, const std::string& request_id = "", int max_queued = 100) {
+  v1::Job Create(const std::string& id, const std::string& request_id = "", int max_queued = 100,
+                 const std::string& creator = "") {
     v1::JobSpec spec;
     spec.set_volume("volumes/v1");
     bool created = false;
-    auto j = store_->CreateJob(id, spec, request_id, max_queued, &created);
+    auto j = store_->CreateJob(id, spec, request_id, max_queued, creator, &created);
     EXPECT_TRUE(j.ok()) << j.status();
     return j.ok() ? *j : v1::Job();
   }
@@ -71,7 +72,7 @@ TEST_P(JobStoreTest, CreateWithSameRequestIdReturnsTheFirstJob) {
   v1::Job a = Create("a", "req-1");
   v1::JobSpec spec;
   bool created = true;
-  auto b = store_->CreateJob("b", spec, "req-1", 100, &created);
+  auto b = store_->CreateJob("b", spec, "req-1", 100, "", &created);
   ASSERT_TRUE(b.ok());
   EXPECT_FALSE(created);
   EXPECT_EQ(b->name(), "jobs/a");
@@ -83,7 +84,7 @@ TEST_P(JobStoreTest, FullQueueIsResourceExhausted) {
   Create("b", "", 2);
   v1::JobSpec spec;
   bool created = false;
-  auto c = store_->CreateJob("c", spec, "", 2, &created);
+  auto c = store_->CreateJob("c", spec, "", 2, "", &created);
   EXPECT_EQ(c.status().code(), absl::StatusCode::kResourceExhausted);
 }
 
@@ -216,7 +217,7 @@ TEST_P(JobStoreTest, ListPagesNewestFirstWithStateFilterAndRejectsForeignTokens)
   std::vector<std::string> names;
   std::string token;
   do {
-    auto page = store_->ListJobs({}, 3, token);
+    auto page = store_->ListJobs({}, "", 3, token);
     ASSERT_TRUE(page.ok());
     EXPECT_LE(page->jobs.size(), 3u);
     for (auto& j : page->jobs) names.push_back(j.name());
@@ -225,10 +226,45 @@ TEST_P(JobStoreTest, ListPagesNewestFirstWithStateFilterAndRejectsForeignTokens)
   ASSERT_EQ(names.size(), 7u);
   EXPECT_EQ(names.front(), "jobs/j6");
   EXPECT_EQ(names.back(), "jobs/j0");
-  auto running = store_->ListJobs({v1::RUNNING}, 10, "");
+  auto running = store_->ListJobs({v1::RUNNING}, "", 10, "");
   ASSERT_EQ(running->jobs.size(), 1u);
   EXPECT_EQ(running->jobs[0].name(), "jobs/j0");
-  EXPECT_EQ(store_->ListJobs({}, 3, "garbage").status().code(), absl::StatusCode::kInvalidArgument);
+  EXPECT_EQ(store_->ListJobs({}, "", 3, "garbage").status().code(),
+            absl::StatusCode::kInvalidArgument);
+}
+
+TEST_P(JobStoreTest, CreatorIsStoredAndFiltersListingsPageByPage) {
+  for (int i = 0; i < 5; ++i) Create("a" + std::to_string(i), "", 100, "alice");
+  Create("b0", "", 100, "bob");
+  EXPECT_EQ(store_->GetJob("b0")->creator(), "bob");
+  std::vector<std::string> names;
+  std::string token;
+  int pages = 0;
+  do {
+    auto page = store_->ListJobs({}, "alice", 2, token);
+    ASSERT_TRUE(page.ok()) << page.status();
+    for (auto& j : page->jobs) {
+      EXPECT_EQ(j.creator(), "alice");
+      names.push_back(j.name());
+    }
+    token = page->next_page_token;
+  } while (!token.empty() && ++pages < 10);
+  EXPECT_EQ(names.size(), 5u);
+  EXPECT_EQ(store_->ListJobs({}, "", 100, "")->jobs.size(), 6u);
+  EXPECT_EQ(store_->ListJobs({v1::QUEUED}, "bob", 100, "")->jobs.size(), 1u);
+  EXPECT_TRUE(store_->ListJobs({}, "carol", 100, "")->jobs.empty());
+
+  v1::Volume v;
+  v.set_creator("bob");
+  bool created = false;
+  ASSERT_TRUE(store_->CreateVolume("vb", v, "", &created).ok());
+  v.set_creator("alice");
+  ASSERT_TRUE(store_->CreateVolume("va", v, "", &created).ok());
+  auto bobs = store_->ListVolumes("bob", 10, "");
+  ASSERT_TRUE(bobs.ok());
+  ASSERT_EQ(bobs->volumes.size(), 1u);
+  EXPECT_EQ(bobs->volumes[0].creator(), "bob");
+  EXPECT_EQ(store_->ListVolumes("", 10, "")->volumes.size(), 2u);
 }
 
 TEST_P(JobStoreTest, JobsSurviveReopening) {
@@ -265,7 +301,7 @@ TEST_P(JobStoreTest, LabelMapOfAQueuedJobCannotBeDeleted) {
   v1::JobSpec spec;
   spec.set_volume("volumes/v1");
   spec.set_label_map("volumes/labels");
-  ASSERT_TRUE(store_->CreateJob("a", spec, "", 100, &created).ok());
+  ASSERT_TRUE(store_->CreateJob("a", spec, "", 100, "", &created).ok());
   const absl::Status st = store_->DeleteVolume("labels");
   EXPECT_EQ(st.code(), absl::StatusCode::kFailedPrecondition) << st;
   EXPECT_THAT(std::string(st.message()), HasSubstr("label map"));

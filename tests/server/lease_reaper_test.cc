@@ -22,7 +22,7 @@ class LeaseReaperTest : public ::testing::Test {
       v1::JobSpec spec;
       spec.set_volume("volumes/v");
       bool created = false;
-      ASSERT_TRUE(store_->CreateJob(id, spec, "", 10, &created).ok());
+      ASSERT_TRUE(store_->CreateJob(id, spec, "", 10, "", &created).ok());
     }
   }
   std::unique_ptr<JobStore> store_;

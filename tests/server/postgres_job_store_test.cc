@@ -42,7 +42,7 @@ TEST(PostgresJobStoreTest, ReplicasStartingTogetherApplyTheSchemaOnce) {
   const std::string db = dsn.substr(dsn.rfind('/') + 1);
   EXPECT_EQ(
       SharedPostgres()->Sql("SELECT COUNT(*), MAX(version) FROM decima_schema_migrations", db),
-      "1|1");
+      "2|2");  // every migration once (2: creator columns)
 }
 
 TEST(PostgresJobStoreTest, ConcurrentClaimersTakeEveryJobExactlyOnce) {
@@ -54,7 +54,8 @@ TEST(PostgresJobStoreTest, ConcurrentClaimersTakeEveryJobExactlyOnce) {
   constexpr int kJobs = 150;
   for (int i = 0; i < kJobs; ++i) {
     bool created = false;
-    ASSERT_TRUE(stores[i % 3]->CreateJob("j" + std::to_string(i), Spec(), "", 0, &created).ok());
+    ASSERT_TRUE(
+        stores[i % 3]->CreateJob("j" + std::to_string(i), Spec(), "", 0, "", &created).ok());
   }
   std::mutex mu;
   std::multiset<std::string> claimed;
@@ -95,7 +96,7 @@ TEST(PostgresJobStoreTest, OneRequestIdFromManyReplicasMakesOneJob) {
   for (int t = 0; t < 30; ++t) {
     threads.emplace_back([&, t] {
       bool created = false;
-      auto j = stores[t % 3]->CreateJob("id" + std::to_string(t), Spec(), "req-1", 0, &created);
+      auto j = stores[t % 3]->CreateJob("id" + std::to_string(t), Spec(), "req-1", 0, "", &created);
       ASSERT_TRUE(j.ok()) << j.status();
       if (created) ++created_count;
       std::lock_guard<std::mutex> lock(mu);
@@ -135,7 +136,7 @@ TEST(PostgresJobStoreTest, EventsReachOtherReplicasInOrderAcrossADatabaseRestart
   };
   JobStore& a = *stores[0];
   bool created = false;
-  ASSERT_TRUE(a.CreateJob("a", Spec(), "", 0, &created).ok());
+  ASSERT_TRUE(a.CreateJob("a", Spec(), "", 0, "", &created).ok());
   auto claim = a.ClaimNext("wa", 60000);
   ASSERT_TRUE(claim.ok() && claim->has_value());
   const Lease lease = (*claim)->lease;

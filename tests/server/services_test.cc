@@ -42,7 +42,7 @@ class ServicesTest : public ::testing::Test {
     pool_ = std::make_unique<WorkerPool>(store_.get(), wo);  // never started: jobs stay QUEUED
     ServiceOptions so;
     so.data_dir = DataDir(dir_);
-    so.token = kToken;
+    so.identities = Identities::SingleToken(kToken);
     so.allow_faults = allow_faults;
     services_ = std::make_unique<Services>(so, store_.get(), blobs_.get(), &bus_, pool_.get());
     grpc::ServerBuilder builder;
@@ -210,6 +210,57 @@ TEST_F(ServicesTest, AManifestFileThatIsAlsoAFolderOfAnotherIsInvalidArgument) {
     EXPECT_THAT(Detail(*ctx).field(), StartsWith("volume.files["));
     EXPECT_FALSE(fs::exists(dir_ / "volumes") && !fs::is_empty(dir_ / "volumes"));
   }
+}
+
+TEST(IdentitiesTest, TokensFileNamesTheLineAndKeepsOnlyHashes) {
+  const std::string alice_sha = "9c220f200955d76c0a38d308225e0ef10c5f971acaf2f8d1d8f732affa5bd1dc";
+  auto ids = Identities::Parse(
+      "# comment\n\ntoken " + alice_sha + " alice submitter\ncert batch-host admin\n", "t");
+  ASSERT_TRUE(ids.ok()) << ids.status();
+  EXPECT_TRUE(ids->required());
+  auto alice = ids->ForToken("alice-token");  // sha256("alice-token") is alice_sha
+  ASSERT_TRUE(alice.has_value());
+  EXPECT_EQ(alice->name, "alice");
+  EXPECT_EQ(alice->role, Role::kSubmitter);
+  EXPECT_FALSE(ids->ForToken(alice_sha).has_value());  // the hash is not the token
+  EXPECT_FALSE(ids->ForToken("").has_value());
+  EXPECT_EQ(ids->ForCertificate("batch-host").role, Role::kAdmin);
+  EXPECT_EQ(ids->ForCertificate("unlisted").role, Role::kSubmitter);
+  EXPECT_EQ(ids->ForCertificate("unlisted").name, "unlisted");
+
+  struct Bad {
+    std::string text, expect;
+  };
+  for (const Bad& b : std::vector<Bad>{
+           {"token alice-token alice admin\n", "line 1: expected the token's sha256"},
+           {"\ntoken " + alice_sha + " alice root\n", "line 2: role 'root'"},
+           {"token " + alice_sha + " a admin\ncert a reader\n", "line 2: name 'a' appears twice"},
+           {"key x y\n", "line 1: 'key': expected 'token' or 'cert'"},
+           {"cert x\n", "line 1: expected 'cert <subject common name> <role>'"},
+           {"# nothing\n", "no 'token' or 'cert' line"}}) {
+    auto r = Identities::Parse(b.text, "tokens.txt");
+    ASSERT_FALSE(r.ok()) << b.text;
+    EXPECT_EQ(r.status().code(), absl::StatusCode::kInvalidArgument);
+    EXPECT_THAT(std::string(r.status().message()), HasSubstr("tokens.txt"));
+    EXPECT_THAT(std::string(r.status().message()), HasSubstr(b.expect)) << b.text;
+  }
+}
+
+TEST(CallGuardTest, RolesAndOwnership) {
+  const Principal alice{"alice", Role::kSubmitter}, rita{"rita", Role::kReader},
+      root{"root", Role::kAdmin};
+  EXPECT_TRUE(CallGuard::MayRead(alice, "alice", "jobs/a").ok());
+  EXPECT_EQ(CallGuard::MayRead(alice, "bob", "jobs/a").error_code(), grpc::PERMISSION_DENIED);
+  EXPECT_EQ(CallGuard::MayRead(alice, "", "jobs/a").error_code(), grpc::PERMISSION_DENIED);
+  EXPECT_TRUE(CallGuard::MayRead(rita, "bob", "jobs/a").ok());
+  EXPECT_EQ(CallGuard::MayWrite(rita, "rita", "jobs/a").error_code(), grpc::PERMISSION_DENIED);
+  EXPECT_TRUE(CallGuard::MayWrite(root, "bob", "jobs/a").ok());
+  EXPECT_EQ(CallGuard::MayCreate(rita, "jobs").error_code(), grpc::PERMISSION_DENIED);
+  EXPECT_TRUE(CallGuard::MayCreate(alice, "jobs").ok());
+  EXPECT_EQ(CallGuard::ListFilter(alice), "alice");
+  EXPECT_EQ(CallGuard::ListFilter(rita), "");
+  EXPECT_THAT(CallGuard::MayWrite(alice, "bob", "jobs/a").error_message(),
+              HasSubstr("alice (submitter) may not change jobs/a"));
 }
 
 }  // namespace

@@ -27,7 +27,7 @@ class WatchLoopTest : public ::testing::Test {
     v1::JobSpec spec;
     spec.set_volume("volumes/v");
     bool created = false;
-    ASSERT_TRUE(store_->CreateJob("a", spec, "", 10, &created).ok());
+    ASSERT_TRUE(store_->CreateJob("a", spec, "", 10, "", &created).ok());
   }
   // Claims "a", reports `n` progress events, then finishes it.
   void RunJob(int n, v1::JobState final_state = v1::SUCCEEDED) {

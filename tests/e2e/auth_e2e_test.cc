@@ -1,0 +1,579 @@
+// End-to-end security (issue 16): TLS and mutual TLS with a throwaway PKI made by `openssl`,
+// identities from a tokens file, ownership of jobs and volumes (every RPC x every role), and the
+// audit log of a scripted session. Real decima-server and decima processes on loopback.
+#include <grpcpp/grpcpp.h>
+#include <signal.h>
+
+#include <fstream>
+#include <nlohmann/json.hpp>
+#include <sstream>
+#include <thread>
+
+#include "decima/v1/artifacts.grpc.pb.h"
+#include "decima/v1/jobs.grpc.pb.h"
+#include "decima/v1/uploads.grpc.pb.h"
+#include "decima/v1/volumes.grpc.pb.h"
+#include "gmock/gmock.h"
+#include "gtest/gtest.h"
+#include "server/sha256.h"
+#include "tests/e2e/e2e_util.h"
+#include "tests/testing/test_data.h"
+
+namespace decima::e2e {
+namespace {
+namespace fs = std::filesystem;
+using ::testing::HasSubstr;
+using namespace std::chrono_literals;
+
+std::string ReadFile(const fs::path& p) {
+  std::ifstream in(p, std::ios::binary);
+  std::stringstream ss;
+  ss << in.rdbuf();
+  return ss.str();
+}
+
+std::string Sha256Hex(const std::string& s) {
+  server::Sha256 h;
+  h.Update(s.data(), s.size());
+  return h.HexDigest();
+}
+
+class AuthE2E : public ::testing::Test {
+ protected:
+  void SetUp() override {
+    scratch_ = testing::MakeScratchDir("auth_e2e");
+    volume_ = scratch_ / "phantom.nii";
+    WriteTinyNifti(volume_, 12, 10, 8);
+  }
+  // Skips the test when openssl is absent.
+  bool MakePki() {
+    std::string err = MakeTestPki(scratch_ / "pki", {"alice", "rita"}, &pki_);
+    if (err == "openssl not found") return false;
+    EXPECT_EQ(err, "");
+    return err.empty();
+  }
+  std::shared_ptr<grpc::Channel> TlsChannel(const std::string& address,
+                                            const std::string& client = "") {
+    grpc::SslCredentialsOptions o;
+    o.pem_root_certs = ReadFile(pki_.ca());
+    if (!client.empty()) {
+      o.pem_cert_chain = ReadFile(pki_.cert(client));
+      o.pem_private_key = ReadFile(pki_.key(client));
+    }
+    return grpc::CreateChannel(address, grpc::SslCredentials(o));
+  }
+  fs::path scratch_, volume_;
+  TestPki pki_;
+};
+
+TEST_F(AuthE2E, JobOverTlsAndOverMutualTlsAndClientsWithoutAGoodCertificateAreRefused) {
+  if (!MakePki()) GTEST_SKIP() << "openssl not installed";
+  const std::vector<std::string> tls = {"--ca-cert", pki_.ca().string()};
+  {
+    ServerProcess server(scratch_ / "data-tls", {"--tls-cert", pki_.server_cert().string(),
+                                                 "--tls-key", pki_.server_key().string()});
+    // The CT head when the shared data is there, the phantom otherwise.
+    fs::path input = volume_;
+    if (auto ct = testing::SharedDataFile("ct-head-128x128x53.nii.gz")) input = *ct;
+    std::vector<std::string> args = tls;
+    args.insert(args.end(), {"submit", input.string(), "--out", (scratch_ / "out-tls").string(),
+                             "--image-size", "64"});
+    CliResult r = RunCli(server.address(), args, 600s);
+    ASSERT_EQ(r.rc, 0) << r.err << server.Log();
+    EXPECT_THAT(r.err, HasSubstr("SUCCEEDED"));
+    EXPECT_TRUE(fs::exists(scratch_ / "out-tls" / "mesh.vtu"));
+    // Plaintext against a TLS port does not get through.
+    r = RunCli(server.address(), {"--timeout", "3", "list"});
+    EXPECT_EQ(r.rc, 8) << r.out << r.err;
+  }
+  ServerProcess server(scratch_ / "data-mtls",
+                       {"--tls-cert", pki_.server_cert().string(), "--tls-key",
+                        pki_.server_key().string(), "--tls-client-ca", pki_.ca().string()});
+  std::vector<std::string> alice = tls;
+  alice.insert(alice.end(), {"--tls-cert", pki_.cert("alice").string(), "--tls-key",
+                             pki_.key("alice").string()});
+  std::vector<std::string> args = alice;
+  args.insert(args.end(), {"submit", volume_.string(), "--out", (scratch_ / "out-mtls").string(),
+                           "--image-size", "32"});
+  CliResult r = RunCli(server.address(), args, 300s);
+  ASSERT_EQ(r.rc, 0) << r.err << server.Log();
+  EXPECT_TRUE(fs::exists(scratch_ / "out-mtls" / "mesh.vtu"));
+  const std::string job = FirstLine(r.out);
+  // The job belongs to the certificate's CN.
+  args = alice;
+  args.insert(args.end(), {"--json", "status", job});
+  r = RunCli(server.address(), args);
+  ASSERT_EQ(r.rc, 0) << r.err;
+  EXPECT_THAT(r.out, HasSubstr("\"creator\":\"alice\""));
+
+  // No client certificate: the handshake is refused; exit 8 with the hint what to check.
+  args = tls;
+  args.insert(args.end(), {"--timeout", "3", "list"});
+  r = RunCli(server.address(), args);
+  EXPECT_EQ(r.rc, 8) << r.out << r.err;
+  EXPECT_THAT(r.err, HasSubstr("--tls-cert"));
+  // A certificate from another CA: refused too.
+  args = tls;
+  args.insert(args.end(), {"--timeout", "3", "--tls-cert", pki_.stranger_cert().string(),
+                           "--tls-key", pki_.stranger_key().string(), "list"});
+  r = RunCli(server.address(), args);
+  EXPECT_EQ(r.rc, 8) << r.out << r.err;
+  // Another client (rita, a submitter by default) does not see alice's job: exit code 7.
+  args = tls;
+  args.insert(args.end(), {"--tls-cert", pki_.cert("rita").string(), "--tls-key",
+                           pki_.key("rita").string(), "status", job});
+  r = RunCli(server.address(), args);
+  EXPECT_EQ(r.rc, 7) << r.out << r.err;
+  EXPECT_THAT(r.err, HasSubstr("PERMISSION_DENIED"));
+  // Under mutual TLS the handshake itself needs a certificate; health then needs nothing more.
+  args = alice;
+  args.push_back("health");
+  r = RunCli(server.address(), args);
+  EXPECT_EQ(r.rc, 0) << r.err;
+}
+
+TEST_F(AuthE2E, WrongOrExpiredCertificatesAndBadTokensFilesStopTheServerWithTheReason) {
+  if (!MakePki()) GTEST_SKIP() << "openssl not installed";
+  fs::path garbage = scratch_ / "garbage.pem";
+  std::ofstream(garbage) << "not a certificate\n";
+  fs::path tokens = scratch_ / "tokens";
+  std::ofstream(tokens) << "token " << Sha256Hex("t") << " alice superuser\n";
+  struct Case {
+    std::vector<std::string> flags;
+    std::string expect;
+  };
+  const std::vector<Case> cases = {
+      {{"--tls-cert", pki_.expired_cert().string(), "--tls-key", pki_.server_key().string()},
+       "has expired"},
+      {{"--tls-cert", pki_.server_cert().string(), "--tls-key", pki_.key("alice").string()},
+       "does not belong to the certificate"},
+      {{"--tls-cert", garbage.string(), "--tls-key", pki_.server_key().string()},
+       "not a PEM certificate"},
+      {{"--tls-cert", pki_.server_cert().string(), "--tls-key", pki_.server_key().string(),
+        "--tls-client-ca", garbage.string()},
+       "--tls-client-ca"},
+      {{"--tokens-file", tokens.string()}, "line 1: role 'superuser'"},
+  };
+  int n = 0;
+  for (const auto& c : cases) {
+    std::vector<std::string> argv = {ServerBinary().string(), "--listen", "127.0.0.1:0",
+                                     "--data-dir",
+                                     (scratch_ / ("data" + std::to_string(n++))).string()};
+    argv.insert(argv.end(), c.flags.begin(), c.flags.end());
+    CliResult r = RunProgram(argv, 30s);
+    EXPECT_EQ(r.rc, 1) << c.expect << ": " << r.err;
+    // spdlog writes to stdout.
+    EXPECT_THAT(r.out + r.err, HasSubstr(c.expect));
+  }
+}
+
+TEST_F(AuthE2E, RenewedCertificateFilesServeNewConnectionsWithoutDroppingAnOpenStream) {
+  if (!MakePki()) GTEST_SKIP() << "openssl not installed";
+  // The server reads copies, so the test can replace them.
+  fs::path cert = scratch_ / "live.pem", key = scratch_ / "live.key";
+  fs::copy_file(pki_.server_cert(), cert);
+  fs::copy_file(pki_.server_key(), key);
+  ServerProcess server(scratch_ / "data", {"--tls-cert", cert.string(), "--tls-key", key.string(),
+                                           "--tls-reload-seconds", "1", "--allow-faults"});
+  auto channel = TlsChannel(server.address());
+  auto jobs = v1::Jobs::NewStub(channel);
+  // A job that runs for a few seconds, watched over the first connection.
+  CliResult r =
+      RunCli(server.address(), {"--ca-cert", pki_.ca().string(), "submit", volume_.string(),
+                                "--fault", "sleep:4", "--image-size", "32"});
+  ASSERT_EQ(r.rc, 0) << r.err << server.Log();
+  const std::string job = FirstLine(r.out);
+  grpc::ClientContext watch_ctx;
+  watch_ctx.set_deadline(std::chrono::system_clock::now() + 120s);
+  v1::WatchJobRequest wr;
+  wr.set_name(job);
+  auto reader = jobs->WatchJob(&watch_ctx, wr);
+  v1::JobEvent ev;
+  ASSERT_TRUE(reader->Read(&ev));
+
+  // Renew: a certificate from another CA for the same key, swapped in atomically.
+  fs::path renewed = scratch_ / "renewed.pem";
+  CliResult s =
+      RunProgram({"/usr/bin/openssl", "x509", "-req", "-in", (pki_.dir / "server.csr").string(),
+                  "-CA", (pki_.dir / "other-ca.pem").string(), "-CAkey",
+                  (pki_.dir / "other-ca.key").string(), "-CAcreateserial", "-out", renewed.string(),
+                  "-days", "2", "-extfile", (pki_.dir / "server.ext").string()});
+  ASSERT_EQ(s.rc, 0) << s.err;
+  fs::rename(renewed, cert);
+  // New connections trust the new CA within a few reload periods.
+  bool renewed_served = WaitFor(
+      [&] {
+        CliResult h = RunCli(server.address(), {"--ca-cert", (pki_.dir / "other-ca.pem").string(),
+                                                "--timeout", "2", "health"});
+        return h.rc == 0;
+      },
+      30s);
+  EXPECT_TRUE(renewed_served) << server.Log();
+  // The stream opened before the swap runs to the job's end.
+  v1::JobState last = v1::JOB_STATE_UNSPECIFIED;
+  while (reader->Read(&ev)) {
+    if (ev.has_state_change()) last = ev.state_change().state();
+  }
+  grpc::Status st = reader->Finish();
+  EXPECT_TRUE(st.ok()) << st.error_message();
+  EXPECT_EQ(last, v1::SUCCEEDED);
+}
+
+// --- Who may do what -------------------------------------------------------------------------
+
+struct Caller {
+  std::string label;  // column of the table
+  std::string token;  // "" = no credentials
+};
+
+class OwnershipE2E : public AuthE2E {
+ protected:
+  void SetUp() override {
+    AuthE2E::SetUp();
+    fs::path tokens = scratch_ / "tokens";
+    std::ofstream(tokens) << "# principals of the test\n"
+                          << "token " << Sha256Hex("alice-token") << " alice submitter\n"
+                          << "token " << Sha256Hex("bob-token") << " bob submitter\n"
+                          << "token " << Sha256Hex("rita-token") << " rita reader\n"
+                          << "token " << Sha256Hex("root-token") << " root admin\n";
+    audit_ = scratch_ / "audit" / "audit.log";
+    fs::create_directories(audit_.parent_path());
+    server_ = std::make_unique<ServerProcess>(
+        scratch_ / "data",
+        std::vector<std::string>{"--tokens-file", tokens.string(), "--audit-log", audit_.string()});
+    auto ch = grpc::CreateChannel(server_->address(), grpc::InsecureChannelCredentials());
+    uploads_ = v1::Uploads::NewStub(ch);
+    volumes_ = v1::Volumes::NewStub(ch);
+    jobs_ = v1::Jobs::NewStub(ch);
+    artifacts_ = v1::Artifacts::NewStub(ch);
+    health_ = ch;
+  }
+  std::unique_ptr<grpc::ClientContext> Ctx(const std::string& token) {
+    auto ctx = std::make_unique<grpc::ClientContext>();
+    ctx->set_deadline(std::chrono::system_clock::now() + 30s);
+    if (!token.empty()) ctx->AddMetadata("authorization", "Bearer " + token);
+    return ctx;
+  }
+  grpc::StatusCode Upload(const std::string& token, const std::string& bytes,
+                          std::string* sha = nullptr) {
+    v1::UploadRequest req;
+    req.set_sha256(Sha256Hex(bytes));
+    req.set_size_bytes(static_cast<int64_t>(bytes.size()));
+    req.set_data(bytes);
+    if (sha) *sha = req.sha256();
+    v1::Blob blob;
+    auto ctx = Ctx(token);
+    auto w = uploads_->Upload(ctx.get(), &blob);
+    w->Write(req);
+    w->WritesDone();
+    return w->Finish().error_code();
+  }
+  grpc::StatusCode CreateVolume(const std::string& token, const std::string& sha,
+                                std::string* name = nullptr) {
+    v1::CreateVolumeRequest req;
+    auto* f = req.mutable_volume()->add_files();
+    f->set_path("phantom.nii");
+    f->set_blob("blobs/" + sha);
+    v1::Volume v;
+    auto s = volumes_->CreateVolume(Ctx(token).get(), req, &v);
+    if (name) *name = v.name();
+    return s.error_code();
+  }
+  grpc::StatusCode CreateJob(const std::string& token, const std::string& volume,
+                             std::string* name = nullptr) {
+    v1::CreateJobRequest req;
+    req.mutable_spec()->set_volume(volume);
+    req.mutable_spec()->set_image_size(32);
+    v1::Job j;
+    auto s = jobs_->CreateJob(Ctx(token).get(), req, &j);
+    if (name) *name = j.name();
+    return s.error_code();
+  }
+  v1::Job WaitFinal(const std::string& name) {
+    v1::Job j;
+    WaitFor(
+        [&] {
+          v1::GetJobRequest g;
+          g.set_name(name);
+          jobs_->GetJob(Ctx("root-token").get(), g, &j);
+          return j.state() == v1::SUCCEEDED || j.state() == v1::FAILED ||
+                 j.state() == v1::CANCELLED;
+        },
+        120s);
+    return j;
+  }
+  // A final (cancelled or finished) job of alice's, for one DeleteJob.
+  std::string FinalJobOfAlice() {
+    std::string name;
+    EXPECT_EQ(CreateJob("alice-token", volume_name_, &name), grpc::StatusCode::OK);
+    v1::CancelJobRequest c;
+    c.set_name(name);
+    v1::Job j;
+    jobs_->CancelJob(Ctx("alice-token").get(), c, &j);
+    WaitFinal(name);
+    return name;
+  }
+
+  fs::path audit_;
+  std::unique_ptr<ServerProcess> server_;
+  std::unique_ptr<v1::Uploads::Stub> uploads_;
+  std::unique_ptr<v1::Volumes::Stub> volumes_;
+  std::unique_ptr<v1::Jobs::Stub> jobs_;
+  std::unique_ptr<v1::Artifacts::Stub> artifacts_;
+  std::shared_ptr<grpc::Channel> health_;
+  std::string phantom_sha_, volume_name_;
+};
+
+TEST_F(OwnershipE2E, EveryRpcByEveryRoleGetsTheExpectedCode) {
+  using C = grpc::StatusCode;
+  const std::string phantom = ReadFile(volume_);
+  // alice (a submitter) owns a volume and a succeeded job.
+  ASSERT_EQ(Upload("alice-token", phantom, &phantom_sha_), C::OK);
+  ASSERT_EQ(CreateVolume("alice-token", phantom_sha_, &volume_name_), C::OK);
+  std::string job;
+  ASSERT_EQ(CreateJob("alice-token", volume_name_, &job), C::OK);
+  v1::Job done = WaitFinal(job);
+  ASSERT_EQ(done.state(), v1::SUCCEEDED) << server_->Log();
+  ASSERT_EQ(done.creator(), "alice");
+  ASSERT_GT(done.artifacts_size(), 0);
+  const std::string artifact = done.artifacts(0).name();
+
+  // Columns: the owner, another submitter, a reader, an admin, no credentials.
+  const std::vector<Caller> callers = {{"owner alice", "alice-token"},
+                                       {"submitter bob", "bob-token"},
+                                       {"reader rita", "rita-token"},
+                                       {"admin root", "root-token"},
+                                       {"anonymous", ""}};
+  constexpr C OK = C::OK, PD = C::PERMISSION_DENIED, UA = C::UNAUTHENTICATED,
+              FP = C::FAILED_PRECONDITION;
+  struct Row {
+    const char* rpc;
+    std::vector<C> expected;  // one per caller
+    std::function<C(const std::string& token)> call;
+  };
+  int uploads = 0;
+  const std::vector<Row> table = {
+      {"Uploads.Upload",
+       {OK, OK, PD, OK, UA},
+       [&](const std::string& t) { return Upload(t, "bytes " + std::to_string(++uploads)); }},
+      {"Uploads.GetUploadStatus",
+       {OK, OK, OK, OK, UA},
+       [&](const std::string& t) {
+         v1::GetUploadStatusRequest r;
+         r.set_sha256(phantom_sha_);
+         r.set_size_bytes(static_cast<int64_t>(phantom.size()));
+         v1::UploadStatus s;
+         return uploads_->GetUploadStatus(Ctx(t).get(), r, &s).error_code();
+       }},
+      {"Volumes.CreateVolume",
+       {OK, OK, PD, OK, UA},
+       [&](const std::string& t) { return CreateVolume(t, phantom_sha_); }},
+      {"Volumes.GetVolume",
+       {OK, PD, OK, OK, UA},
+       [&](const std::string& t) {
+         v1::GetVolumeRequest r;
+         r.set_name(volume_name_);
+         v1::Volume v;
+         return volumes_->GetVolume(Ctx(t).get(), r, &v).error_code();
+       }},
+      {"Volumes.ListVolumes",
+       {OK, OK, OK, OK, UA},
+       [&](const std::string& t) {
+         v1::ListVolumesResponse resp;
+         auto s = volumes_->ListVolumes(Ctx(t).get(), {}, &resp);
+         // A submitter lists only its own volumes; reader and admin see alice's too.
+         bool sees_alices = false;
+         for (const auto& v : resp.volumes()) {
+           if (v.name() == volume_name_) sees_alices = true;
+           if (t == "bob-token") {
+             EXPECT_EQ(v.creator(), "bob");
+           }
+         }
+         if (s.ok()) {
+           EXPECT_EQ(sees_alices, t != "bob-token") << t;
+         }
+         return s.error_code();
+       }},
+      {"Volumes.DeleteVolume",
+       {OK, PD, PD, OK, UA},
+       [&](const std::string& t) {
+         std::string victim;
+         EXPECT_EQ(CreateVolume("alice-token", phantom_sha_, &victim), OK);
+         v1::DeleteVolumeRequest r;
+         r.set_name(victim);
+         v1::DeleteVolumeResponse resp;
+         return volumes_->DeleteVolume(Ctx(t).get(), r, &resp).error_code();
+       }},
+      {"Jobs.CreateJob (on alice's volume)",
+       {OK, PD, PD, OK, UA},
+       [&](const std::string& t) {
+         std::string name;
+         C c = CreateJob(t, volume_name_, &name);
+         if (c == OK) WaitFinal(name);
+         return c;
+       }},
+      {"Jobs.GetJob",
+       {OK, PD, OK, OK, UA},
+       [&](const std::string& t) {
+         v1::GetJobRequest r;
+         r.set_name(job);
+         v1::Job j;
+         return jobs_->GetJob(Ctx(t).get(), r, &j).error_code();
+       }},
+      {"Jobs.ListJobs",
+       {OK, OK, OK, OK, UA},
+       [&](const std::string& t) {
+         v1::ListJobsResponse resp;
+         auto s = jobs_->ListJobs(Ctx(t).get(), {}, &resp);
+         bool sees_alices = false;
+         for (const auto& j : resp.jobs()) sees_alices |= j.name() == job;
+         if (s.ok()) {
+           EXPECT_EQ(sees_alices, t != "bob-token") << t;
+         }
+         return s.error_code();
+       }},
+      {"Jobs.CancelJob (a succeeded job: unchanged)",
+       {OK, PD, PD, OK, UA},
+       [&](const std::string& t) {
+         v1::CancelJobRequest r;
+         r.set_name(job);
+         v1::Job j;
+         return jobs_->CancelJob(Ctx(t).get(), r, &j).error_code();
+       }},
+      {"Jobs.RetryJob (a succeeded job)",
+       {FP, PD, PD, FP, UA},
+       [&](const std::string& t) {
+         v1::RetryJobRequest r;
+         r.set_name(job);
+         v1::Job j;
+         return jobs_->RetryJob(Ctx(t).get(), r, &j).error_code();
+       }},
+      {"Jobs.DeleteJob",
+       {OK, PD, PD, OK, UA},
+       [&](const std::string& t) {
+         v1::DeleteJobRequest r;
+         r.set_name(FinalJobOfAlice());
+         v1::DeleteJobResponse resp;
+         return jobs_->DeleteJob(Ctx(t).get(), r, &resp).error_code();
+       }},
+      {"Jobs.WatchJob",
+       {OK, PD, OK, OK, UA},
+       [&](const std::string& t) {
+         v1::WatchJobRequest r;
+         r.set_name(job);
+         auto ctx = Ctx(t);
+         auto reader = jobs_->WatchJob(ctx.get(), r);
+         v1::JobEvent ev;
+         int n = 0;
+         while (reader->Read(&ev)) ++n;
+         C c = reader->Finish().error_code();
+         if (c == OK) {
+           EXPECT_GT(n, 0);
+         }
+         return c;
+       }},
+      {"Artifacts.ReadArtifact",
+       {OK, PD, OK, OK, UA},
+       [&](const std::string& t) {
+         v1::ReadArtifactRequest r;
+         r.set_name(artifact);
+         auto ctx = Ctx(t);
+         auto reader = artifacts_->ReadArtifact(ctx.get(), r);
+         v1::ReadArtifactResponse chunk;
+         int64_t bytes = 0;
+         while (reader->Read(&chunk)) bytes += static_cast<int64_t>(chunk.data().size());
+         C c = reader->Finish().error_code();
+         if (c == OK) {
+           EXPECT_EQ(bytes, done.artifacts(0).size_bytes());
+         }
+         return c;
+       }},
+  };
+  int checked = 0;
+  for (const auto& row : table) {
+    for (size_t i = 0; i < callers.size(); ++i) {
+      C got = row.call(callers[i].token);
+      EXPECT_EQ(got, row.expected[i]) << row.rpc << " by " << callers[i].label;
+      ++checked;
+    }
+  }
+  EXPECT_EQ(checked, 14 * 5);
+  // Health stays open without credentials.
+  CliResult h = RunCli(server_->address(), {"health"});
+  EXPECT_EQ(h.rc, 0) << h.err;
+  // The CLI's exit code for PERMISSION_DENIED is 7, with the reason.
+  CliResult r = RunCli(server_->address(), {"--token", "bob-token", "status", job});
+  EXPECT_EQ(r.rc, 7) << r.out << r.err;
+  EXPECT_THAT(r.err, HasSubstr("PERMISSION_DENIED"));
+  EXPECT_THAT(r.err, HasSubstr("bob (submitter)"));
+  // No token ever reaches the audit log.
+  const std::string audit = ReadFile(audit_);
+  for (const char* t : {"alice-token", "bob-token", "rita-token", "root-token"}) {
+    EXPECT_EQ(audit.find(t), std::string::npos) << t;
+  }
+}
+
+TEST_F(OwnershipE2E, AuditLogHoldsExactlyOneLinePerStateChangingCallOfAScriptedSession) {
+  using C = grpc::StatusCode;
+  const std::string phantom = ReadFile(volume_);
+  ASSERT_EQ(Upload("alice-token", phantom, &phantom_sha_), C::OK);
+  ASSERT_EQ(CreateVolume("alice-token", phantom_sha_, &volume_name_), C::OK);
+  std::string job;
+  ASSERT_EQ(CreateJob("alice-token", volume_name_, &job), C::OK);
+  // Reads are not audited.
+  v1::GetJobRequest g;
+  g.set_name(job);
+  v1::Job j;
+  ASSERT_TRUE(jobs_->GetJob(Ctx("rita-token").get(), g, &j).ok());
+  v1::CancelJobRequest c;
+  c.set_name(job);
+  EXPECT_EQ(jobs_->CancelJob(Ctx("bob-token").get(), c, &j).error_code(), C::PERMISSION_DENIED);
+  EXPECT_EQ(jobs_->CancelJob(Ctx("wrong-token").get(), c, &j).error_code(), C::UNAUTHENTICATED);
+  EXPECT_EQ(jobs_->CancelJob(Ctx("alice-token").get(), c, &j).error_code(), C::OK);
+  WaitFinal(job);
+  v1::DeleteJobRequest d;
+  d.set_name(job);
+  v1::DeleteJobResponse dr;
+  EXPECT_EQ(jobs_->DeleteJob(Ctx("rita-token").get(), d, &dr).error_code(), C::PERMISSION_DENIED);
+  EXPECT_EQ(jobs_->DeleteJob(Ctx("root-token").get(), d, &dr).error_code(), C::OK);
+  v1::DeleteVolumeRequest dv;
+  dv.set_name(volume_name_);
+  v1::DeleteVolumeResponse dvr;
+  EXPECT_EQ(volumes_->DeleteVolume(Ctx("alice-token").get(), dv, &dvr).error_code(), C::OK);
+
+  const std::vector<std::string> expected = {
+      R"({"principal":"alice","role":"submitter","rpc":"Upload","resource":"blobs/)" +
+          phantom_sha_ + R"(","result":"OK"})",
+      R"({"principal":"alice","role":"submitter","rpc":"CreateVolume","resource":")" +
+          volume_name_ + R"(","result":"OK"})",
+      R"({"principal":"alice","role":"submitter","rpc":"CreateJob","resource":")" + job +
+          R"(","result":"OK"})",
+      R"({"principal":"bob","role":"submitter","rpc":"CancelJob","resource":")" + job +
+          R"(","result":"PERMISSION_DENIED"})",
+      R"({"principal":"","role":"","rpc":"CancelJob","resource":")" + job +
+          R"(","result":"UNAUTHENTICATED"})",
+      R"({"principal":"alice","role":"submitter","rpc":"CancelJob","resource":")" + job +
+          R"(","result":"OK"})",
+      R"({"principal":"rita","role":"reader","rpc":"DeleteJob","resource":")" + job +
+          R"(","result":"PERMISSION_DENIED"})",
+      R"({"principal":"root","role":"admin","rpc":"DeleteJob","resource":")" + job +
+          R"(","result":"OK"})",
+      R"({"principal":"alice","role":"submitter","rpc":"DeleteVolume","resource":")" +
+          volume_name_ + R"(","result":"OK"})",
+  };
+  std::vector<std::string> lines;
+  std::istringstream in(ReadFile(audit_));
+  for (std::string line; std::getline(in, line);) {
+    // "<UTC time>Z {json}": the time, then the object.
+    auto space = line.find(' ');
+    ASSERT_NE(space, std::string::npos) << line;
+    EXPECT_EQ(line[space - 1], 'Z') << line;
+    auto obj = nlohmann::json::parse(line.substr(space + 1), nullptr, false);
+    EXPECT_TRUE(obj.is_object()) << line;
+    lines.push_back(line.substr(space + 1));
+  }
+  EXPECT_EQ(lines, expected);
+}
+
+}  // namespace
+}  // namespace decima::e2e
