@@ -5,7 +5,8 @@
 // needs TLS credentials (auth must hold without TLS too), so every handler's first line is
 // `guard.Check(ctx, &caller)` and every handler that touches a stored resource asks
 // `guard.MayRead` / `MayWrite` with its creator; the rules themselves live here only.
-// The health and reflection services are not behind it (probes call them without credentials).
+// Server reflection is behind it too (reflection_service.cc); the health service is not (probes
+// call it without credentials).
 // Thread-safety: Check and May* from any thread; StartDraining once.
 #pragma once
 

@@ -17,7 +17,6 @@
 #include <sys/file.h>
 #include <unistd.h>
 
-#include <grpcpp/ext/proto_server_reflection_plugin.h>
 #include <grpcpp/grpcpp.h>
 #include <grpcpp/health_check_service_interface.h>
 #include <grpcpp/security/server_credentials.h>
@@ -434,7 +433,6 @@ int main(int argc, char** argv) {
   PeriodicTask collector(std::chrono::milliseconds(static_cast<int64_t>(period_s * 1000)), collect);
 
   grpc::EnableDefaultHealthCheckService(true);
-  grpc::reflection::InitProtoReflectionServerBuilderPlugin();
   grpc::ServerBuilder builder;
   std::shared_ptr<grpc::ServerCredentials> creds = grpc::InsecureServerCredentials();
   if (!tls_cert.empty()) {
@@ -462,6 +460,7 @@ int main(int argc, char** argv) {
   builder.RegisterService(services.volumes());
   builder.RegisterService(services.jobs());
   builder.RegisterService(services.artifacts());
+  builder.RegisterService(services.reflection());
   builder.SetMaxReceiveMessageSize(4 << 20);
   std::unique_ptr<grpc::Server> server = builder.BuildAndStart();
   if (!server || port == 0) {

@@ -1,5 +1,10 @@
 #include "server/service.h"
 
+#include "decima/v1/artifacts.grpc.pb.h"
+#include "decima/v1/jobs.grpc.pb.h"
+#include "decima/v1/uploads.grpc.pb.h"
+#include "decima/v1/volumes.grpc.pb.h"
+#include "grpc/reflection/v1alpha/reflection.grpc.pb.h"
 #include "spdlog/spdlog.h"
 
 namespace decima::server {
@@ -19,6 +24,11 @@ Services::Services(ServiceOptions options, JobStore* jobs, BlobStore* blobs, Eve
   volumes_ = MakeVolumesService(deps);
   jobs_ = MakeJobsService(deps);
   artifacts_ = MakeArtifactsService(deps);
+  reflection_ = MakeReflectionService(
+      &guard_,
+      {v1::Uploads::service_full_name(), v1::Volumes::service_full_name(),
+       v1::Jobs::service_full_name(), v1::Artifacts::service_full_name(), "grpc.health.v1.Health",
+       grpc::reflection::v1alpha::ServerReflection::service_full_name()});
 }
 
 BlobSweepStats Services::CollectGarbage() {

@@ -56,6 +56,9 @@ std::unique_ptr<grpc::Service> MakeUploadsService(const ServiceDeps& deps);
 std::unique_ptr<grpc::Service> MakeVolumesService(const ServiceDeps& deps);
 std::unique_ptr<grpc::Service> MakeJobsService(const ServiceDeps& deps);
 std::unique_ptr<grpc::Service> MakeArtifactsService(const ServiceDeps& deps);
+// grpc.reflection.v1alpha for the callers `guard` admits, listing `service_names`.
+std::unique_ptr<grpc::Service> MakeReflectionService(const CallGuard* guard,
+                                                     std::vector<std::string> service_names);
 
 // The four services over one set of stores, with their guard.
 class Services {
@@ -71,9 +74,13 @@ class Services {
   grpc::Service* volumes() { return volumes_.get(); }
   grpc::Service* jobs() { return jobs_.get(); }
   grpc::Service* artifacts() { return artifacts_.get(); }
+  // Server reflection behind the same caller check (decima-server registers it; the standard
+  // health service stays open for probes).
+  grpc::Service* reflection() { return reflection_.get(); }
 
   // One collector pass: blobs nobody holds and abandoned partial uploads are removed, the job
-  // store gives back deleted rows' space, the disk reserve is allocated again if there is room. Called by the server's collector timer.
+  // store gives back deleted rows' space, the disk reserve is allocated again if there is room.
+  // Called by the server's collector timer.
   BlobSweepStats CollectGarbage();
   DiskSpace& disk() { return disk_; }
   // The volume catalog the services use (the DICOM receiver creates its volumes through it).
@@ -86,7 +93,7 @@ class Services {
   std::shared_ptr<AuditLog> audit_;
   DiskSpace disk_;
   VolumeCatalog catalog_;
-  std::unique_ptr<grpc::Service> uploads_, volumes_, jobs_, artifacts_;
+  std::unique_ptr<grpc::Service> uploads_, volumes_, jobs_, artifacts_, reflection_;
 };
 
 }  // namespace decima::server

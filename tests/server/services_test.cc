@@ -11,6 +11,8 @@
 #include "decima/v1/uploads.grpc.pb.h"
 #include "decima/v1/volumes.grpc.pb.h"
 #include "gmock/gmock.h"
+#include "google/protobuf/descriptor.pb.h"
+#include "grpc/reflection/v1alpha/reflection.grpc.pb.h"
 #include "gtest/gtest.h"
 #include "server/sha256.h"
 #include "tests/server/bad_job_specs.h"
@@ -50,6 +52,7 @@ class ServicesTest : public ::testing::Test {
     builder.RegisterService(services_->volumes());
     builder.RegisterService(services_->jobs());
     builder.RegisterService(services_->artifacts());
+    builder.RegisterService(services_->reflection());
     server_ = builder.BuildAndStart();
     ASSERT_TRUE(server_);
     channel_ = server_->InProcessChannel(grpc::ChannelArguments());
@@ -108,6 +111,54 @@ TEST_F(ServicesTest, EveryServiceRefusesAMissingOrWrongTokenAndServesTheRightOne
   EXPECT_TRUE(jobs->ListJobs(Ctx().get(), {}, &lj).ok());
   services_->StartDraining();
   EXPECT_EQ(jobs->ListJobs(Ctx().get(), {}, &lj).error_code(), grpc::UNAVAILABLE);
+}
+
+// Reflection names every method and field of the API: only a caller the guard admits may ask.
+TEST_F(ServicesTest, ReflectionAnswersOnlyAnIdentifiedCaller) {
+  Start();
+  namespace rv = ::grpc::reflection::v1alpha;
+  auto stub = rv::ServerReflection::NewStub(channel_);
+  auto ask = [&](const std::string& token, const std::vector<rv::ServerReflectionRequest>& reqs,
+                 std::vector<rv::ServerReflectionResponse>* out) {
+    auto ctx = Ctx(token);
+    auto stream = stub->ServerReflectionInfo(ctx.get());
+    // Request, answer, as the reflection clients do (the in-process transport does not buffer).
+    for (const auto& r : reqs) {
+      rv::ServerReflectionResponse resp;
+      if (!stream->Write(r) || !stream->Read(&resp)) break;
+      out->push_back(resp);
+    }
+    stream->WritesDone();
+    return stream->Finish();
+  };
+  rv::ServerReflectionRequest list;
+  list.set_list_services("");
+  rv::ServerReflectionRequest symbol;
+  symbol.set_file_containing_symbol("decima.v1.Jobs");
+  rv::ServerReflectionRequest unknown;
+  unknown.set_file_containing_symbol("decima.v1.NoSuchThing");
+  for (const std::string token : {"", "wrong"}) {
+    std::vector<rv::ServerReflectionResponse> out;
+    EXPECT_EQ(ask(token, {list}, &out).error_code(), grpc::UNAUTHENTICATED) << token;
+    EXPECT_TRUE(out.empty());
+  }
+  std::vector<rv::ServerReflectionResponse> out;
+  ASSERT_TRUE(ask(kToken, {list, symbol, unknown}, &out).ok());
+  ASSERT_EQ(out.size(), 3u);
+  std::vector<std::string> names;
+  for (const auto& s : out[0].list_services_response().service()) names.push_back(s.name());
+  EXPECT_THAT(names, ::testing::IsSupersetOf({"decima.v1.Jobs", "decima.v1.Volumes",
+                                              "decima.v1.Uploads", "decima.v1.Artifacts"}));
+  // The defining file first, then what it imports, each a parseable FileDescriptorProto.
+  const auto& files = out[1].file_descriptor_response().file_descriptor_proto();
+  ASSERT_GE(files.size(), 2);
+  google::protobuf::FileDescriptorProto first;
+  ASSERT_TRUE(first.ParseFromString(files[0]));
+  EXPECT_EQ(first.name(), "decima/v1/jobs.proto");
+  ASSERT_EQ(first.service_size(), 1);
+  EXPECT_EQ(first.service(0).name(), "Jobs");
+  EXPECT_EQ(out[2].error_response().error_code(), grpc::NOT_FOUND);
+  EXPECT_THAT(out[2].error_response().error_message(), HasSubstr("decima.v1.NoSuchThing"));
 }
 
 TEST_F(ServicesTest, EveryBadJobSpecIsInvalidArgumentAtSubmitNamingItsFieldAndQueuesNothing) {
