@@ -669,9 +669,10 @@ bool MatchesOnly(const std::string& file, const std::vector<std::string>& only) 
     if (o == "labels" && file == "labels.nii.gz") return true;
     if (o == "segmentation" && file == "segmentation.png") return true;
     if (o == "report" && file == "report.html") return true;
+    if (o == "curve" && file == "curve.png") return true;
     if (o == "metrics" && file == "metrics.json") return true;
     if (o == "images" && file.size() > 4 && file.compare(file.size() - 4, 4, ".png") == 0 &&
-        file != "segmentation.png") {
+        file != "segmentation.png" && file != "curve.png") {
       return true;
     }
   }
@@ -695,7 +696,7 @@ int Fetch(const v1::Job& job, const fs::path& out, const std::vector<std::string
       for (const auto& a : job.artifacts()) names += " " + a.file_name();
       std::fprintf(stderr,
                    "decima: fetch --only %s: no such artifact in %s; it has:%s (or the kinds "
-                   "vtu, msh, medit, labels, images, segmentation, report, metrics)\n",
+                   "vtu, msh, medit, labels, images, segmentation, report, curve, metrics)\n",
                    o.c_str(), job.name().c_str(), names.c_str());
       return kUsage;
     }
@@ -993,11 +994,13 @@ int main(int argc, char** argv) {
   submit
       ->add_option("--outputs", outputs,
                    "artifacts to produce, comma-separated: vtu, msh, medit, labels, images, "
-                   "segmentation, report (default vtu,labels,images,segmentation,report; "
-                   "metrics.json always)")
+                   "segmentation, report, curve (default vtu,labels,images,segmentation,report; "
+                   "metrics.json always; curve = diff1 against cells removed, one more "
+                   "simplification per 10 % step)")
       ->delimiter(',')
       ->transform(CLI::IsMember(
-          {"vtu", "msh", "medit", "labels", "images", "segmentation", "report"}, CLI::ignore_case));
+          {"vtu", "msh", "medit", "labels", "images", "segmentation", "report", "curve"},
+          CLI::ignore_case));
   submit
       ->add_option("--vtu-level", vtu_level,
                    "zlib level of mesh.vtu: 0 uncompressed, 1 fastest (default) .. 9 smallest")
@@ -1051,7 +1054,7 @@ int main(int argc, char** argv) {
   fetch->add_option("--out", out, "destination folder")->required();
   fetch->add_option("--only", only,
                     "only these artifacts: file names (mesh.vtu) or kinds (vtu, msh, medit, "
-                    "labels, images, segmentation, report, metrics)");
+                    "labels, images, segmentation, report, curve, metrics)");
   AddOutputFlags(fetch);
   auto* del = app.add_subcommand("delete", "delete finished jobs with their artifacts");
   del->alias("rm");

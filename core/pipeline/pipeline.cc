@@ -13,6 +13,7 @@
 #include <nlohmann/json.hpp>
 
 #include "absl/strings/str_cat.h"
+#include "absl/strings/str_join.h"
 #include "core/common/status.h"
 #include "core/io/dicom.h"
 #include "core/io/png.h"
@@ -25,6 +26,7 @@
 #include "core/render/camera.h"
 #include "core/render/canvas.h"
 #include "core/render/diff.h"
+#include "core/render/plot.h"
 #include "core/render/renderer.h"
 #include "core/render/transfer_function.h"
 #include "core/segment/montage.h"
@@ -165,6 +167,45 @@ void JsonRows(const Json& j, const std::string& prefix, std::string* out) {
       absl::StrAppend(out, "<tr><th>", Html(key), "</th><td>", JsonCell(*it), "</td></tr>\n");
     }
   }
+}
+
+// One point of the diff1 curve: a simplification of the original to `reduction`.
+struct CurvePoint {
+  double reduction = 0;
+  int64_t cells_removed = 0;
+  double diff1 = 0;
+};
+
+// The paper's Fig. 5 for one job: diff1 of the first view against the cells removed, from
+// separate simplifications of the original (same options, targets 10 %, 20 %, ... below the
+// job's achieved reduction), rendered with the job's camera and transfer function. The job's
+// own point is added by the caller.
+absl::StatusOr<std::vector<CurvePoint>> DiffCurve(const TetMesh& original, SimplifyOptions options,
+                                                  double job_reduction, const Camera& camera,
+                                                  const TransferFunction& tf,
+                                                  const RenderedImage& original_render,
+                                                  const ProgressFn& progress,
+                                                  const CancelToken* cancel) {
+  std::vector<double> targets;
+  for (int step = 1; step <= 9 && step * 0.1 < job_reduction - 0.05; ++step) {
+    targets.push_back(step * 0.1);
+  }
+  std::vector<CurvePoint> points;
+  for (size_t i = 0; i < targets.size(); ++i) {
+    // Under "diff" (the analyses after the render), its first fifth.
+    Report(progress, {"diff",
+                      0.2 * i / (targets.size() + 1),
+                      absl::StrCat("curve: simplifying to ", FormatPercent(targets[i])),
+                      {}});
+    options.target_reduction = targets[i];
+    options.error_tolerance = 0;
+    DECIMA_ASSIGN_OR_RETURN(const SimplifyResult s, Simplify(original, options, nullptr, cancel));
+    DECIMA_ASSIGN_OR_RETURN(const RenderableMesh r, BuildRenderableMesh(s.mesh, {}, cancel));
+    DECIMA_ASSIGN_OR_RETURN(const RenderedImage img, Render(r, camera, tf, {}, cancel));
+    DECIMA_ASSIGN_OR_RETURN(const DiffResult d, Diff(original_render, img));
+    points.push_back({s.achieved_reduction, s.input_cells - s.output_cells, d.diff1});
+  }
+  return points;
 }
 
 // report.html: one self-contained page (pictures inline as data: URIs, no script, no outside
@@ -322,10 +363,9 @@ absl::Status ValidateJobSpec(const JobSpec& spec, std::string* field) {
     const std::string& o = spec.outputs[i];
     if (std::find_if(std::begin(kOutputKinds), std::end(kOutputKinds),
                      [&](const char* k) { return o == k; }) == std::end(kOutputKinds)) {
-      return check("outputs", absl::InvalidArgumentError(absl::StrCat(
-                                  "'", o.substr(0, 32),
-                                  "' is not an output (vtu, msh, medit, labels, images, "
-                                  "segmentation, report)")));
+      return check("outputs", absl::InvalidArgumentError(
+                                  absl::StrCat("'", o.substr(0, 32), "' is not an output (",
+                                               absl::StrJoin(kOutputKinds, ", "), ")")));
     }
     if (std::find(spec.outputs.begin(), spec.outputs.begin() + i, o) != spec.outputs.begin() + i) {
       return check("outputs", absl::InvalidArgumentError(absl::StrCat("'", o, "' appears twice")));
@@ -594,6 +634,38 @@ absl::StatusOr<JobResult> RunJob(const JobSpec& spec, const std::filesystem::pat
                        {"views", views}};
   metrics["diff1"] = views[0]["diff1"];
   metrics["outputs"] = spec.outputs;
+
+  if (wants("curve")) {
+    t = Clock::now();
+    DECIMA_ASSIGN_OR_RETURN(std::vector<CurvePoint> curve,
+                            DiffCurve(original, simplify_options, simplified.achieved_reduction,
+                                      renders[0].camera, tf, renders[0].a, progress, cancel));
+    curve.push_back({simplified.achieved_reduction,
+                     simplified.input_cells - simplified.output_cells, renders[0].diff.diff1});
+    PlotSeries series{absl::StrCat(SimplifyPolicyName(spec.policy), " policy"), {}};
+    Json points = Json::array();
+    for (const CurvePoint& c : curve) {
+      series.points.push_back({double(c.cells_removed), c.diff1});
+      points.push_back(
+          {{"reduction", c.reduction}, {"cells_removed", c.cells_removed}, {"diff1", c.diff1}});
+    }
+    metrics["curve"] = {{"view", renders[0].name}, {"points", points}};
+    PlotOptions po;
+    po.title = absl::StrCat("diff1 vs cells removed, view ", renders[0].name);
+    po.y_label = "diff1 (RGB distance 0-442)";
+    DECIMA_ASSIGN_OR_RETURN(const Image plot, DiffPlotImage({series}, po));
+    DECIMA_RETURN_IF_ERROR(WritePng(
+        out_dir / "curve.png",
+        AddFooter(plot,
+                  {absl::StrCat("INPUT ", input_name, "  POLICY ", SimplifyPolicyName(spec.policy),
+                                "  VIEW ", renders[0].name)}),
+        {{"Software", "decima"}, {"Source", input_name}, {"decima:job", spec.job_name}}));
+    add_artifact("curve.png");
+    pictures.push_back(
+        {"diff1 against cells removed (the paper's Fig. 5 for this job)", out_dir / "curve.png"});
+    timings["curve"] = Seconds(t);
+    Report(progress, {"diff", 0.2, absl::StrCat("curve: ", curve.size(), " points"), {}});
+  }
 
   // segmentation.png: what a clinician checks first, the labels over the slices.
   if (wants("segmentation") || wants("report")) {

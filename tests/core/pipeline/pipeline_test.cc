@@ -6,10 +6,12 @@
 #include <gtest/gtest.h>
 
 #include <cmath>
+#include <fstream>
 #include <limits>
 #include <nlohmann/json.hpp>
 #include <set>
 
+#include "core/io/png.h"
 #include "core/io/volume_io.h"
 #include "core/volume/phantom.h"
 #include "tests/testing/test_data.h"
@@ -104,6 +106,44 @@ TEST(RunJob, WritesOnlyTheOutputsAskedFor) {
   bad.vtu_compression_level = 10;
   EXPECT_EQ(ValidateJobSpec(bad, &field).code(), absl::StatusCode::kInvalidArgument);
   EXPECT_EQ(field, "vtu_compression_level");
+}
+
+// The paper's Fig. 5 for one job: a point per 10 % below the job's reduction plus the job's own,
+// cells removed increasing, diff1 finite; the curve in the report, and only when asked for.
+TEST(RunJob, TheCurveOutputPlotsDiff1AgainstCellsRemovedUpToTheJobsReduction) {
+  const fs::path dir = decima::testing::MakeScratchDir("pipeline");
+  JobSpec spec = SmallSpec(PhantomFile(dir));
+  spec.target_reduction = 0.35;
+  spec.outputs = {"curve", "report"};
+  auto result = RunJob(spec, dir / "out", nullptr, nullptr);
+  ASSERT_TRUE(result.ok()) << result.status();
+  std::set<std::string> names;
+  for (const auto& a : result->artifacts) names.insert(a.name);
+  EXPECT_EQ(names, (std::set<std::string>{"curve.png", "metrics.json", "report.html"}));
+  auto png = decima::ReadPng(dir / "out" / "curve.png");
+  ASSERT_TRUE(png.ok()) << png.status();
+  EXPECT_GE(png->width, 200);
+  auto m = nlohmann::json::parse(result->metrics_json);
+  const auto& points = m["curve"]["points"];
+  ASSERT_EQ(points.size(), 4u);  // 10 %, 20 %, 30 % and the job's 35 %
+  for (size_t i = 0; i < points.size(); ++i) {
+    EXPECT_TRUE(std::isfinite(points[i]["diff1"].get<double>()));
+    if (i > 0) {
+      EXPECT_GT(points[i]["cells_removed"].get<int64_t>(),
+                points[i - 1]["cells_removed"].get<int64_t>());
+    }
+  }
+  EXPECT_DOUBLE_EQ(points.back()["diff1"].get<double>(), m["diff1"].get<double>());
+  EXPECT_NEAR(points[0]["reduction"].get<double>(), 0.1, 0.01);
+  std::ifstream in(dir / "out" / "report.html");
+  const std::string html((std::istreambuf_iterator<char>(in)), {});
+  EXPECT_NE(html.find("Fig. 5"), std::string::npos);
+  // Without "curve" there is no curve, in the metrics or the report.
+  spec.outputs = {"report"};
+  auto plain = RunJob(spec, dir / "out2", nullptr, nullptr);
+  ASSERT_TRUE(plain.ok()) << plain.status();
+  EXPECT_FALSE(nlohmann::json::parse(plain->metrics_json).contains("curve"));
+  EXPECT_FALSE(fs::exists(dir / "out2" / "curve.png"));
 }
 
 TEST(RunJob, ABadSpecIsInvalidArgumentBeforeAnyFileIsWritten) {
