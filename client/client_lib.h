@@ -70,15 +70,18 @@ bool AddHeaderDataFiles(std::vector<InputFile>* files, std::string* error);
 std::vector<std::string> KeepDicomFiles(std::vector<InputFile>* files);
 
 // Overall progress of a running job across its stages, from the stage's own fraction and the
-// stage weights measured on a CT job (client/README.md "Progress"). 0..1.
-double OverallFraction(const std::string& stage, double stage_fraction);
+// stage weights measured on a CT job (client/README.md "Progress"). 0..1. `with_curve`: the job
+// asked for the "curve" output, which adds its stage (JobWithCurve).
+double OverallFraction(const std::string& stage, double stage_fraction, bool with_curve = false);
+// Whether the job's spec asks for the "curve" output (its own, long stage).
+bool JobWithCurve(const v1::Job& job);
 // "1:05", "12:03:09"; "-" for a negative value.
 std::string FormatDuration(double seconds);
 // "15.6 MB", "812 KB", "73 B".
 std::string FormatBytes(int64_t bytes);
 // One status line for a TTY (no newline): "[#####.....]  45% simplify  elapsed 0:12  ETA 0:15".
 // ETA is left out while the overall fraction is below 2 % (too early to say).
-std::string OverallBar(const v1::Progress& p, double elapsed_s, int width);
+std::string OverallBar(const v1::Progress& p, double elapsed_s, int width, bool with_curve = false);
 
 // After a succeeded job: achieved against target reduction, cells, the artifacts' total size
 // and its ratio to the input's bytes. `target_reached` false when metrics say so.

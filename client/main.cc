@@ -405,8 +405,9 @@ void DescribeJob(const v1::Job& j) {
     const v1::Progress& p = j.progress();
     line("Progress:", p.stage().empty()
                           ? "-"
-                          : Percent(OverallFraction(p.stage(), p.fraction())) + " overall, " +
-                                p.stage() + " " + Percent(p.fraction()) + " " + p.message());
+                          : Percent(OverallFraction(p.stage(), p.fraction(), JobWithCurve(j))) +
+                                " overall, " + p.stage() + " " + Percent(p.fraction()) + " " +
+                                p.message());
   }
   if (!j.error().message().empty()) line("Error:", j.error().message());
   const v1::Volume* vol = GetVolume(j.spec().volume());
@@ -504,6 +505,7 @@ int Watch(const std::string& name, v1::Job* final) {
   const auto watch_start = std::chrono::steady_clock::now();
   google::protobuf::Timestamp start_time;
   v1::Progress current;
+  bool with_curve = false;   // from the snapshot's spec: the curve stage counts in the bar
   int64_t replay_until = 0;  // the snapshot's last_sequence: events up to it are replayed
   // Plain (non-TTY) lines: one per stage change, every 10 points of overall progress, or every
   // 15 s, so a log shows motion without one line per event.
@@ -519,13 +521,14 @@ int Watch(const std::string& name, v1::Job* final) {
   auto draw = [&] {
     if (Quiet() || current.stage().empty()) return;
     if (stderr_tty) {
-      std::string l = OverallBar(current, elapsed(), 24) + "  " + current.message();
+      std::string l = OverallBar(current, elapsed(), 24, with_curve) + "  " + current.message();
       l.resize(std::min<size_t>(l.size(), static_cast<size_t>(TerminalColumns() - 1)));
       std::fprintf(stderr, "\r\033[K%s", l.c_str());
       bar_open = true;
       return;
     }
-    const int decile = static_cast<int>(OverallFraction(current.stage(), current.fraction()) * 10);
+    const int decile =
+        static_cast<int>(OverallFraction(current.stage(), current.fraction(), with_curve) * 10);
     if (current.stage() == plain_stage && decile == plain_decile &&
         std::chrono::steady_clock::now() - plain_at < std::chrono::seconds(15)) {
       return;
@@ -534,7 +537,8 @@ int Watch(const std::string& name, v1::Job* final) {
     plain_decile = decile;
     plain_at = std::chrono::steady_clock::now();
     std::fprintf(stderr, "%s %s %s\n", ShortId(name).c_str(),
-                 OverallBar(current, elapsed(), 0).substr(3).c_str(), current.message().c_str());
+                 OverallBar(current, elapsed(), 0, with_curve).substr(3).c_str(),
+                 current.message().c_str());
   };
   auto say = [&](const std::string& text) {
     if (Quiet()) return;
@@ -565,6 +569,7 @@ int Watch(const std::string& name, v1::Job* final) {
       }
       if (ev.has_snapshot()) {
         *final = ev.snapshot();
+        with_curve = JobWithCurve(ev.snapshot());
         start_time = ev.snapshot().start_time();
         if (last == 0) replay_until = ev.snapshot().last_sequence();
         if (last == 0) {

@@ -179,7 +179,7 @@ struct CurvePoint {
 // The paper's Fig. 5 for one job: diff1 of the first view against the cells removed, from
 // separate simplifications of the original (same options, targets 10 %, 20 %, ... below the
 // job's achieved reduction), rendered with the job's camera and transfer function. The job's
-// own point is added by the caller.
+// own point is added by the caller. Progress under its own stage, "curve".
 absl::StatusOr<std::vector<CurvePoint>> DiffCurve(const TetMesh& original, SimplifyOptions options,
                                                   double job_reduction, const Camera& camera,
                                                   const TransferFunction& tf,
@@ -192,10 +192,9 @@ absl::StatusOr<std::vector<CurvePoint>> DiffCurve(const TetMesh& original, Simpl
   }
   std::vector<CurvePoint> points;
   for (size_t i = 0; i < targets.size(); ++i) {
-    // Under "diff" (the analyses after the render), its first fifth.
-    Report(progress, {"diff",
-                      0.2 * i / (targets.size() + 1),
-                      absl::StrCat("curve: simplifying to ", FormatPercent(targets[i])),
+    Report(progress, {"curve",
+                      double(i) / (targets.size() + 1),
+                      absl::StrCat("simplifying to ", FormatPercent(targets[i])),
                       {}});
     options.target_reduction = targets[i];
     options.error_tolerance = 0;
@@ -664,7 +663,7 @@ absl::StatusOr<JobResult> RunJob(const JobSpec& spec, const std::filesystem::pat
     pictures.push_back(
         {"diff1 against cells removed (the paper's Fig. 5 for this job)", out_dir / "curve.png"});
     timings["curve"] = Seconds(t);
-    Report(progress, {"diff", 0.2, absl::StrCat("curve: ", curve.size(), " points"), {}});
+    Report(progress, {"curve", 1, absl::StrCat(curve.size(), " points"), {}});
   }
 
   // segmentation.png: what a clinician checks first, the labels over the slices.

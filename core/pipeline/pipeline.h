@@ -69,7 +69,8 @@ struct JobResult {
 };
 
 // Runs the job, writing every artifact into `out_dir` (created if missing). Progress stages, in
-// order: "load", "segment", "tetra", "simplify", "write", "render", "diff". Returns
+// order: "load", "segment", "tetra", "simplify", "write", "render", "curve" (only with the
+// "curve" output), "diff". Returns
 // InvalidArgument for bad input (the message names the file and the problem), Cancelled if
 // `cancel` fired (checked at least once per iteration of every stage).
 absl::StatusOr<JobResult> RunJob(const JobSpec& spec, const std::filesystem::path& out_dir,

@@ -162,6 +162,25 @@ TEST(ProgressTest, OverallFractionIsMonotonicAcrossStagesAndTheBarHasAnEta) {
   }
   EXPECT_DOUBLE_EQ(OverallFraction("diff", 1), 1.0);
   EXPECT_DOUBLE_EQ(OverallFraction("load", 0), 0.0);
+  // The curve stage counts only for a job that asked for it, and then it is long: the bar does
+  // not sit at 99 % while it runs.
+  last = -1;
+  for (const char* stage :
+       {"load", "segment", "tetra", "simplify", "write", "render", "curve", "diff"}) {
+    for (double f : {0.0, 0.5, 1.0}) {
+      const double o = OverallFraction(stage, f, /*with_curve=*/true);
+      EXPECT_GE(o, last) << stage << " " << f;
+      last = o;
+    }
+  }
+  EXPECT_DOUBLE_EQ(OverallFraction("diff", 1, true), 1.0);
+  EXPECT_LT(OverallFraction("curve", 0, true), 0.5);
+  EXPECT_GT(OverallFraction("curve", 1, true), 0.95);
+  EXPECT_DOUBLE_EQ(OverallFraction("render", 1), OverallFraction("diff", 0));
+  v1::Job job;
+  EXPECT_FALSE(JobWithCurve(job));
+  job.mutable_spec()->add_outputs("curve");
+  EXPECT_TRUE(JobWithCurve(job));
   // Simplify dominates the measured weights: half of it is well past a third overall.
   EXPECT_GT(OverallFraction("simplify", 0.5), 0.35);
   EXPECT_EQ(FormatDuration(65), "1:05");

@@ -115,11 +115,19 @@ TEST(RunJob, TheCurveOutputPlotsDiff1AgainstCellsRemovedUpToTheJobsReduction) {
   JobSpec spec = SmallSpec(PhantomFile(dir));
   spec.target_reduction = 0.35;
   spec.outputs = {"curve", "report"};
-  auto result = RunJob(spec, dir / "out", nullptr, nullptr);
+  std::vector<std::string> stages;
+  auto result = RunJob(
+      spec, dir / "out",
+      [&](const Progress& p) {
+        if (stages.empty() || stages.back() != p.stage) stages.push_back(p.stage);
+      },
+      nullptr);
   ASSERT_TRUE(result.ok()) << result.status();
   std::set<std::string> names;
   for (const auto& a : result->artifacts) names.insert(a.name);
   EXPECT_EQ(names, (std::set<std::string>{"curve.png", "metrics.json", "report.html"}));
+  EXPECT_EQ(stages, (std::vector<std::string>{"load", "segment", "tetra", "simplify", "write",
+                                              "render", "curve", "diff"}));
   auto png = decima::ReadPng(dir / "out" / "curve.png");
   ASSERT_TRUE(png.ok()) << png.status();
   EXPECT_GE(png->width, 200);
