@@ -218,8 +218,26 @@ int main(int argc, char** argv) {
   fs::path volume, create_volume;
   int jobs = 20, repeat = 15;
   bool security = false;
-  for (int i = 1; i + 1 < argc; i += 2) {
-    std::string k = argv[i];
+  constexpr char kUsage[] =
+      "usage: decima-service-bench [--volume FILE] [--jobs N]\n"
+      "       decima-service-bench --create-volume FILE [--repeat N]\n"
+      "       decima-service-bench --security 1 [--jobs N]\n"
+      "Prints one JSON object: submit -> RUNNING latency, upload MB/s, watcher cost and job\n"
+      "overhead; --create-volume: CreateVolume latency of FILE; --security: the same over\n"
+      "plaintext, TLS and mutual TLS.\n";
+  for (int i = 1; i < argc; i += 2) {
+    const std::string k = argv[i];
+    if (k == "--help" || k == "-h") {
+      std::fputs(kUsage, stdout);
+      return 0;
+    }
+    const bool known = k == "--volume" || k == "--jobs" || k == "--create-volume" ||
+                       k == "--repeat" || k == "--security";
+    if (!known || i + 1 >= argc) {
+      std::fprintf(stderr, "decima-service-bench: %s %s\n%s", k.c_str(),
+                   known ? "needs a value" : "is not an option", kUsage);
+      return 2;
+    }
     if (k == "--volume") volume = argv[i + 1];
     if (k == "--jobs") jobs = std::atoi(argv[i + 1]);
     if (k == "--create-volume") create_volume = argv[i + 1];
