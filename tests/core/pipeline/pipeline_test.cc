@@ -42,17 +42,19 @@ JobSpec SmallSpec(const fs::path& input) {
   return s;
 }
 
+// A progress callback that records each stage once, in order.
+ProgressFn StageRecorder(std::vector<std::string>* stages) {
+  return [stages](const Progress& p) {
+    if (stages->empty() || stages->back() != p.stage) stages->push_back(p.stage);
+  };
+}
+
 TEST(RunJob, WritesEveryArtifactAndTheDocumentedMetricsKeys) {
   const fs::path dir = decima::testing::MakeScratchDir("pipeline");
   JobSpec spec = SmallSpec(PhantomFile(dir));
   spec.views = {"anterior", "lateral"};
   std::vector<std::string> stages;
-  auto result = RunJob(
-      spec, dir / "out",
-      [&](const Progress& p) {
-        if (stages.empty() || stages.back() != p.stage) stages.push_back(p.stage);
-      },
-      nullptr);
+  auto result = RunJob(spec, dir / "out", StageRecorder(&stages), nullptr);
   ASSERT_TRUE(result.ok()) << result.status();
   std::set<std::string> names;
   for (const auto& a : result->artifacts) {
@@ -116,12 +118,7 @@ TEST(RunJob, TheCurveOutputPlotsDiff1AgainstCellsRemovedUpToTheJobsReduction) {
   spec.target_reduction = 0.35;
   spec.outputs = {"curve", "report"};
   std::vector<std::string> stages;
-  auto result = RunJob(
-      spec, dir / "out",
-      [&](const Progress& p) {
-        if (stages.empty() || stages.back() != p.stage) stages.push_back(p.stage);
-      },
-      nullptr);
+  auto result = RunJob(spec, dir / "out", StageRecorder(&stages), nullptr);
   ASSERT_TRUE(result.ok()) << result.status();
   std::set<std::string> names;
   for (const auto& a : result->artifacts) names.insert(a.name);
