@@ -14,6 +14,7 @@
 #include "decima/v1/uploads.grpc.pb.h"
 #include "decima/v1/volumes.grpc.pb.h"
 #include "gmock/gmock.h"
+#include "grpc/reflection/v1alpha/reflection.grpc.pb.h"
 #include "gtest/gtest.h"
 #include "server/sha256.h"
 #include "tests/e2e/e2e_util.h"
@@ -488,6 +489,25 @@ TEST_F(OwnershipE2E, EveryRpcByEveryRoleGetsTheExpectedCode) {
          }
          return c;
        }},
+      {"ServerReflection.ServerReflectionInfo (list_services)",
+       {OK, OK, OK, OK, UA},
+       [&](const std::string& t) {
+         namespace rv = ::grpc::reflection::v1alpha;
+         auto stub = rv::ServerReflection::NewStub(health_);
+         auto ctx = Ctx(t);
+         auto stream = stub->ServerReflectionInfo(ctx.get());
+         rv::ServerReflectionRequest req;
+         req.set_list_services("");
+         rv::ServerReflectionResponse resp;
+         const bool answered = stream->Write(req) && stream->Read(&resp);
+         stream->WritesDone();
+         C c = stream->Finish().error_code();
+         if (c == OK) {
+           EXPECT_TRUE(answered);
+           EXPECT_GE(resp.list_services_response().service_size(), 4);
+         }
+         return c;
+       }},
   };
   int checked = 0;
   for (const auto& row : table) {
@@ -497,7 +517,7 @@ TEST_F(OwnershipE2E, EveryRpcByEveryRoleGetsTheExpectedCode) {
       ++checked;
     }
   }
-  EXPECT_EQ(checked, 14 * 5);
+  EXPECT_EQ(checked, 15 * 5);
   // Health stays open without credentials.
   CliResult h = RunCli(server_->address(), {"health"});
   EXPECT_EQ(h.rc, 0) << h.err;
