@@ -242,6 +242,38 @@ v1::Job GetJob(const std::string& address, const std::string& name) {
   return job;
 }
 
+std::vector<v1::JobEvent> WatchAll(const std::string& address, const std::string& name,
+                                   int64_t after, int stop_after, grpc::Status* status,
+                                   std::chrono::seconds deadline) {
+  auto stub = v1::Jobs::NewStub(grpc::CreateChannel(address, grpc::InsecureChannelCredentials()));
+  grpc::ClientContext ctx;
+  ctx.set_deadline(std::chrono::system_clock::now() + deadline);
+  v1::WatchJobRequest req;
+  req.set_name(name);
+  req.set_after_sequence(after);
+  auto reader = stub->WatchJob(&ctx, req);
+  std::vector<v1::JobEvent> events;
+  v1::JobEvent ev;
+  while (reader->Read(&ev)) {
+    events.push_back(ev);
+    if (stop_after >= 0 && ev.has_progress() && --stop_after == 0) {
+      ctx.TryCancel();
+      break;
+    }
+  }
+  grpc::Status s = reader->Finish();
+  if (status != nullptr) *status = s;
+  return events;
+}
+
+std::vector<int64_t> Sequences(const std::vector<v1::JobEvent>& events) {
+  std::vector<int64_t> seqs;
+  for (const auto& e : events) {
+    if (!e.has_snapshot() && !e.has_heartbeat()) seqs.push_back(e.sequence());
+  }
+  return seqs;
+}
+
 std::string NiftiHeader(int nx, int ny, int nz, int16_t datatype, int16_t bitpix, float mm) {
   std::string hdr(352, '\0');
   auto put32 = [&](int off, int32_t v) { std::memcpy(&hdr[off], &v, 4); };

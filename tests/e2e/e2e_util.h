@@ -10,6 +10,8 @@
 #include <string>
 #include <vector>
 
+#include <grpcpp/grpcpp.h>
+
 #include "decima/v1/jobs.pb.h"
 
 namespace decima::e2e {
@@ -70,6 +72,16 @@ CliResult RunProgram(const std::vector<std::string>& argv,
 
 // GetJob over a fresh plaintext channel (fails the test on an error status).
 v1::Job GetJob(const std::string& address, const std::string& name);
+
+// The events of one WatchJob stream over a fresh plaintext channel, from `after` to the end of
+// the stream, or until `stop_after` progress events were read (then the watch is cancelled).
+// The stream's status goes to *status when given.
+std::vector<v1::JobEvent> WatchAll(const std::string& address, const std::string& name,
+                                   int64_t after = 0, int stop_after = -1,
+                                   grpc::Status* status = nullptr,
+                                   std::chrono::seconds deadline = std::chrono::seconds(120));
+// The sequence numbers of the events that are neither the snapshot nor heartbeats.
+std::vector<int64_t> Sequences(const std::vector<v1::JobEvent>& events);
 
 // A NIfTI-1 single-file header (352 bytes): dims, datatype code and bits, isotropic voxel size
 // `mm`, identity qform.

@@ -70,40 +70,6 @@ v1::Job GetJob(const std::string& address, const std::string& name) {
 
 bool IsFinal(v1::JobState s) { return s == v1::SUCCEEDED || s == v1::FAILED || s == v1::CANCELLED; }
 
-// Every event of a job a watcher reads from `after` to the end of the stream; stops after
-// `stop_after` progress events when >= 0.
-std::vector<v1::JobEvent> WatchAll(const std::string& address, const std::string& name,
-                                   int64_t after = 0, int stop_after = -1,
-                                   grpc::Status* status = nullptr) {
-  auto stub = JobsStub(address);
-  grpc::ClientContext ctx;
-  ctx.set_deadline(std::chrono::system_clock::now() + 120s);
-  v1::WatchJobRequest req;
-  req.set_name(name);
-  req.set_after_sequence(after);
-  auto reader = stub->WatchJob(&ctx, req);
-  std::vector<v1::JobEvent> events;
-  v1::JobEvent ev;
-  while (reader->Read(&ev)) {
-    events.push_back(ev);
-    if (stop_after >= 0 && ev.has_progress() && --stop_after == 0) {
-      ctx.TryCancel();
-      break;
-    }
-  }
-  grpc::Status s = reader->Finish();
-  if (status != nullptr) *status = s;
-  return events;
-}
-
-std::vector<int64_t> Sequences(const std::vector<v1::JobEvent>& events) {
-  std::vector<int64_t> seqs;
-  for (const auto& e : events) {
-    if (!e.has_snapshot() && !e.has_heartbeat()) seqs.push_back(e.sequence());
-  }
-  return seqs;
-}
-
 void ExpectGapless(const std::vector<int64_t>& seqs, const std::string& what) {
   for (size_t i = 0; i < seqs.size(); ++i) {
     ASSERT_EQ(seqs[i], static_cast<int64_t>(i + 1)) << what << " at index " << i;
