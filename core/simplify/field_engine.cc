@@ -15,7 +15,6 @@
 #include <array>
 #include <cmath>
 #include <limits>
-#include <queue>
 #include <vector>
 
 #include "absl/strings/str_cat.h"
@@ -94,10 +93,64 @@ struct HeapEntry {
   float cost;
   int32_t vertex;
   uint32_t version;
-  // std::priority_queue is a max-heap: "less" means "worse".
-  bool operator<(const HeapEntry& o) const {
-    return cost != o.cost ? cost > o.cost : vertex > o.vertex;
+  // The queue order: cost, then the lower vertex id.
+  bool Before(const HeapEntry& o) const {
+    return cost < o.cost || (cost == o.cost && vertex < o.vertex);
   }
+};
+
+// A 4-ary min-heap of queue entries. Why not std::priority_queue: the queue holds up to a
+// million entries, far out of cache, and a binary heap's pop touches ~20 levels (perf: the
+// sift's loads were a third of the serial loop's own time); four children per node halve the
+// levels and sit on one or two cache lines. Any heap pops the same sequence of (cost, vertex)
+// keys, and entries with equal keys are copies for one vertex of which one is current, so the
+// collapses do not change.
+class QueueHeap {
+ public:
+  bool empty() const { return h_.empty(); }
+  size_t size() const { return h_.size(); }
+  const HeapEntry& top() const { return h_[0]; }
+  void Assign(std::vector<HeapEntry> entries) {
+    h_ = std::move(entries);
+    if (h_.size() < 2) return;
+    for (size_t i = (h_.size() - 2) / 4 + 1; i-- > 0;) SiftDown(i, h_[i]);
+  }
+  void push(const HeapEntry& e) {
+    size_t i = h_.size();
+    h_.push_back(e);
+    while (i > 0) {
+      const size_t parent = (i - 1) / 4;
+      if (!e.Before(h_[parent])) break;
+      h_[i] = h_[parent];
+      i = parent;
+    }
+    h_[i] = e;
+  }
+  void pop() {
+    const HeapEntry last = h_.back();
+    h_.pop_back();
+    if (!h_.empty()) SiftDown(0, last);
+  }
+
+ private:
+  // Places e at or below slot i.
+  void SiftDown(size_t i, const HeapEntry e) {
+    const size_t n = h_.size();
+    for (;;) {
+      const size_t first = 4 * i + 1;
+      if (first >= n) break;
+      const size_t end = std::min(first + 4, n);
+      size_t best = first;
+      for (size_t k = first + 1; k < end; ++k) {
+        if (h_[k].Before(h_[best])) best = k;
+      }
+      if (!h_[best].Before(e)) break;
+      h_[i] = h_[best];
+      i = best;
+    }
+    h_[i] = e;
+  }
+  std::vector<HeapEntry> h_;
 };
 
 struct Candidate {
@@ -156,18 +209,33 @@ class FieldEngine {
   void Push(int32_t u) { heap_.push({static_cast<float>(cost_[u]), u, ++version_[u]}); }
   void Finish(SimplifyResult* result);
 
+  // u's quadric in double with its point and cost factor: the candidates of u share it.
+  struct Source {
+    int32_t u;
+    double q[kQuadricSize];
+    double factor;
+  };
+  void LoadSource(int32_t u, Source* src) const {
+    src->u = u;
+    const float* qf = &quadric_[kQuadricSize * int64_t(u)];
+    for (int k = 0; k < kQuadricSize; ++k) src->q[k] = qf[k];
+    src->factor = (flags_[u] & kFeatureVertex) ? kFeatureCostFactor : 1.0;
+  }
   // Cost of the collapse u -> x: u's quadric at x's point (x's position and value), plus the
   // shortest-edge tie break. Depends only on Q_u and x, both fixed until u or x collapses.
-  double Cost(int32_t u, int32_t x) const {
+  double Cost(const Source& src, int32_t x) const {
+    const int32_t u = src.u;
     // Quadrics are stored around their own vertex's point (x_u, s_u), so floats suffice.
     const double p[5] = {
         double(pos_[3 * x]) - pos_[3 * u], double(pos_[3 * x + 1]) - pos_[3 * u + 1],
         double(pos_[3 * x + 2]) - pos_[3 * u + 2], double(in_.scalars[x]) - in_.scalars[u], 1.0};
-    const float* qf = &quadric_[kQuadricSize * int64_t(u)];
-    double qd[kQuadricSize];
-    for (int k = 0; k < kQuadricSize; ++k) qd[k] = qf[k];
-    const double q = std::max(0.0, EvaluateQuadric(qd, p));
-    return ((flags_[u] & kFeatureVertex) ? kFeatureCostFactor : 1.0) * q + TieBreak(u, x);
+    const double q = std::max(0.0, EvaluateQuadric(src.q, p));
+    return src.factor * q + TieBreak(u, x);
+  }
+  double Cost(int32_t u, int32_t x) const {
+    Source src;
+    LoadSource(u, &src);
+    return Cost(src, x);
   }
   double TieBreak(int32_t u, int32_t x) const {
     const double dx = double(pos_[3 * x]) - pos_[3 * u],
@@ -209,7 +277,7 @@ class FieldEngine {
   std::vector<uint32_t> version_;
   std::vector<uint8_t> blocked_;  // no valid collapse at the last try; re-tried when touched
   std::vector<uint8_t> stale_;    // constrained vertex whose star changed: re-score when popped
-  std::priority_queue<HeapEntry> heap_;
+  QueueHeap heap_;
   double voxel_volume_ = 1, min_volume_ = 0, tie_break_ = 0;
   // Scratch of the serial loop.
   Scratch scratch_;
@@ -433,15 +501,17 @@ void FieldEngine::Candidates(int32_t u, Scratch& s) {
   int32_t along[2];
   const Freedom freedom = Classify(u, s, along);
   if (freedom == Freedom::kPinned) return;
+  Source src;
+  LoadSource(u, &src);
   if (freedom == Freedom::kCrease) {
-    for (int32_t x : along) s.candidates.push_back({Cost(u, x), x});
+    for (int32_t x : along) s.candidates.push_back({Cost(src, x), x});
     return;
   }
   const uint32_t stamp = s.NextStamp(nv_);
   auto add = [&](int32_t x) {
     if (s.mark[x] == stamp) return;
     s.mark[x] = stamp;
-    s.candidates.push_back({Cost(u, x), x});
+    s.candidates.push_back({Cost(src, x), x});
   };
   if (freedom == Freedom::kPlanar) {
     for (int32_t x : s.patch) add(x);  // neighbours joined to u by a face of its patch
@@ -571,7 +641,7 @@ absl::Status FieldEngine::Run(int64_t target, double tolerance, const ProgressFn
     for (int64_t v = 0; v < nv_; ++v) {
       if (best_[v] >= 0) entries.push_back({float(cost_[v]), int32_t(v), ++version_[v]});
     }
-    heap_ = std::priority_queue<HeapEntry>(std::less<HeapEntry>(), std::move(entries));
+    heap_.Assign(std::move(entries));
   }
   SimplifyPassStats stats;
   stats.candidates = int64_t(heap_.size());

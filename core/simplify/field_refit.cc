@@ -134,24 +134,63 @@ absl::Status RefitValues(const TetMesh& original, TetMesh* simplified, int itera
   // CGLS on min |A s - f|^2, A = the barycentric weights of each located sample.
   std::vector<double> s(simplified->scalars.begin(), simplified->scalars.end());
   std::vector<double> r(n, 0), q(n, 0), z(nv), p(nv);
+  // The vertices of each located sample's cell, next to its weights (A x reads one record).
+  struct Row {
+    std::array<int32_t, 4> vertex;
+    std::array<float, 4> w;
+  };
+  std::vector<Row> rows(n);
+  ParallelFor(n, threads, 16384, [&](int64_t i0, int64_t i1) {
+    for (int64_t i = i0; i < i1; ++i) {
+      if (loc[i].cell < 0) continue;
+      const int32_t* c = &tets[4 * int64_t(loc[i].cell)];
+      rows[i] = {{c[0], c[1], c[2], c[3]}, loc[i].w};
+    }
+  });
   auto apply = [&](const std::vector<double>& x, std::vector<double>& out) {  // out = A x
     ParallelFor(n, threads, 16384, [&](int64_t i0, int64_t i1) {
       for (int64_t i = i0; i < i1; ++i) {
         if (loc[i].cell < 0) continue;
-        const int32_t* c = &tets[4 * int64_t(loc[i].cell)];
+        const Row& row = rows[i];
         double sum = 0;
-        for (int k = 0; k < 4; ++k) sum += double(loc[i].w[k]) * x[c[k]];
+        for (int k = 0; k < 4; ++k) sum += double(row.w[k]) * x[row.vertex[k]];
         out[i] = sum;
       }
     });
   };
-  auto apply_t = [&](const std::vector<double>& y, std::vector<double>& out) {  // out = A^T y
-    std::fill(out.begin(), out.end(), 0.0);
+  // A^T as rows per vertex (its samples in increasing order, with their weights), so that
+  // out = A^T y runs in parallel over vertices and still adds every vertex's terms in sample
+  // order: the same sums, bit for bit, on any thread count.
+  std::vector<int64_t> at_start(nv + 1, 0);
+  for (int64_t i = 0; i < n; ++i) {
+    if (loc[i].cell < 0) continue;
+    const int32_t* c = &tets[4 * int64_t(loc[i].cell)];
+    for (int k = 0; k < 4; ++k) ++at_start[c[k] + 1];
+  }
+  for (int64_t v = 0; v < nv; ++v) at_start[v + 1] += at_start[v];
+  struct Term {
+    int32_t sample;
+    float weight;
+  };
+  std::vector<Term> at_terms(at_start[nv]);
+  {
+    std::vector<int64_t> fill(at_start.begin(), at_start.end() - 1);
     for (int64_t i = 0; i < n; ++i) {
       if (loc[i].cell < 0) continue;
       const int32_t* c = &tets[4 * int64_t(loc[i].cell)];
-      for (int k = 0; k < 4; ++k) out[c[k]] += double(loc[i].w[k]) * y[i];
+      for (int k = 0; k < 4; ++k) at_terms[fill[c[k]]++] = {int32_t(i), loc[i].w[k]};
     }
+  }
+  auto apply_t = [&](const std::vector<double>& y, std::vector<double>& out) {  // out = A^T y
+    ParallelFor(nv, threads, 16384, [&](int64_t v0, int64_t v1) {
+      for (int64_t v = v0; v < v1; ++v) {
+        double sum = 0;
+        for (int64_t j = at_start[v]; j < at_start[v + 1]; ++j) {
+          sum += double(at_terms[j].weight) * y[at_terms[j].sample];
+        }
+        out[v] = sum;
+      }
+    });
   };
   RefitStats st;
   apply(s, q);

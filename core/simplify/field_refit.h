@@ -23,8 +23,8 @@ struct RefitStats {
 // each sample is located in the simplified mesh (lowest cell id on shared faces) and the normal
 // equations are solved by conjugate gradients (CGLS) from the current values, at most
 // `iterations` steps. Positions, cells and labels are untouched; a linear field stays exact.
-// The location and A x run on `threads`; every sum has a fixed order, so the result does not
-// depend on the thread count.
+// The location, A x and A^T y run on `threads`; every sum has a fixed order, so the result does
+// not depend on the thread count.
 absl::Status RefitValues(const TetMesh& original, TetMesh* simplified, int iterations, int threads,
                          const CancelToken* cancel, RefitStats* stats);
 

@@ -287,6 +287,19 @@ TEST(FieldPolicy, SameResultOnOneAndTwoThreads) {
   EXPECT_EQ(a->vertex_map, b->vertex_map);
 }
 
+// The refit's A x and A^T y run on contiguous ranges of samples and of vertices (at least 16384
+// each): a mesh large enough for two ranges checks that the split changes no sum.
+TEST(FieldPolicy, RefitSameResultOnOneAndTwoThreadsWithSplitRanges) {
+  auto pm = MakePhantomMesh(48, 40);
+  auto a = Simplify(pm.mesh, Field(0.2, 1));
+  auto b = Simplify(pm.mesh, Field(0.2, 2));
+  ASSERT_TRUE(a.ok() && b.ok());
+  EXPECT_GT(pm.mesh.vertex_count(), 2 * 16384);
+  EXPECT_GT(a->mesh.vertex_count(), 2 * 16384);
+  EXPECT_EQ(a->mesh.tets, b->mesh.tets);
+  EXPECT_EQ(a->mesh.scalars, b->mesh.scalars);
+}
+
 TEST(FieldPolicy, ToleranceStopsTheLoopAndSaysSo) {
   auto pm = MakePhantomMesh(16, 40);
   SimplifyOptions o = Field(0);  // no target: run to the tolerance
