@@ -408,7 +408,7 @@ uint16_t DicomReceiver::StoreInstance(const fs::path& file, const std::string& c
     // instances), so the blob collector cannot take it in between.
     blobs_->Claim(*sha);
     st = store_->PutDicomInstance(
-        {header->series_uid, header->sop_uid, *sha, calling_ae, called_ae, WallMs()});
+        {header->series_uid, header->sop_uid, *sha, calling_ae, called_ae, WallMs(), 0});
   }
   if (!st.ok()) {
     spdlog::error("dicom: storing instance {}: {}", header->sop_uid, st.ToString());
