@@ -59,7 +59,11 @@ struct DicomReceiverOptions {
   std::string host = "127.0.0.1";
   int port = 11112;
   std::string aet = "DECIMA";  // our AE title: the called AE title we answer to
-  double quiet_seconds = 3;    // a series is checked once no instance came for this long
+  // A series is checked once no instance came for this long. 1 s: a sender's instances
+  // follow each other within milliseconds, completeness is judged by CheckSeriesComplete (and
+  // an aborted association never queues), so the quiet time only has to outlast the gaps of a
+  // send; 3 s made the Orthanc -> Decima -> SEG + SC loop miss "job time + 3 s".
+  double quiet_seconds = 1;
   int64_t min_free_mb = 1024;  // refuse associations / instances below this much free disk
   int max_queued = 1000;       // as --max-queued
   double poll_seconds = 0.2;   // settle loop period

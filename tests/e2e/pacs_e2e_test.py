@@ -7,6 +7,7 @@ and stopped by its PID; every wait is bounded.
      an hour (so no job); the instances are in the job store, also after a restart.
   B  a 113-slice copy of the CT head at 1/8 in-plane resolution (so the job takes seconds, not
      minutes, on a loaded 2-core machine), new UIDs, goes into Orthanc and then to Decima:
+       (the receiver runs with the default quiet time)
        - one slice missing: no job; `decima series` shows it INCOMPLETE with the reason
          ("missing");
        - the missing slice follows: the series is complete, one job runs, created by the
@@ -394,7 +395,7 @@ def main():
                                    "called_ae": "DECIMA", "spec": spec,
                                    "destination": {"dicom": f"127.0.0.1:{orthanc.dicom}",
                                                    "aet": "ORTHANC"}}]}, f)
-        b = Decima(server_bin, cli_bin, tmp, "b", dicom_port, 1.0, routes)
+        b = Decima(server_bin, cli_bin, tmp, "b", dicom_port, None, routes)  # default quiet time
         procs.append(b.proc)
         started = wait_for("the receiver's start line",
                            lambda: [l for l in b.proc.text().splitlines() if "(quiet " in l], 30)
@@ -558,7 +559,7 @@ def main():
               f"after the abort: {aborted} (storescu: {r.stderr[-300:]})")
         b.proc.stop()
         procs.remove(b.proc)
-        b = Decima(server_bin, cli_bin, tmp, "b", dicom_port, 1.0, routes)  # restart
+        b = Decima(server_bin, cli_bin, tmp, "b", dicom_port, None, routes)  # restart
         procs.append(b.proc)
         wait_for("the restarted receiver to check the aborted series",
                  lambda: f"series {series3} (60 instances from ORTHANC) not queued: the "
