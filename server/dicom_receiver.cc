@@ -20,6 +20,8 @@
 #include <Eigen/Core>
 #include <Eigen/Geometry>
 
+#include <google/protobuf/util/time_util.h>
+
 #include "absl/strings/numbers.h"
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_format.h"
@@ -34,6 +36,7 @@
 
 namespace decima::server {
 namespace fs = std::filesystem;
+using google::protobuf::util::TimeUtil;
 namespace {
 
 int64_t WallMs() {
@@ -379,10 +382,14 @@ void DicomReceiver::Stop() {
 }
 
 void DicomReceiver::MarkAborted(const std::set<std::string>& series) {
-  std::lock_guard<std::mutex> lock(mu_);
+  const int64_t now = WallMs();
   for (const auto& s : series) {
-    aborted_[s] = WallMs();
     spdlog::warn("dicom: the association sending series {} was aborted", s);
+    // Unrecorded, a restart would judge the series by its geometry alone and might queue a
+    // send cut short after a contiguous run of slices.
+    if (auto st = store_->MarkDicomSeriesAborted(s, now); !st.ok()) {
+      spdlog::error("dicom: recording the abort of series {}: {}", s, st.ToString());
+    }
   }
 }
 
@@ -408,7 +415,7 @@ uint16_t DicomReceiver::StoreInstance(const fs::path& file, const std::string& c
     // instances), so the blob collector cannot take it in between.
     blobs_->Claim(*sha);
     st = store_->PutDicomInstance(
-        {header->series_uid, header->sop_uid, *sha, calling_ae, called_ae, WallMs()});
+        {header->series_uid, header->sop_uid, *sha, calling_ae, called_ae, WallMs(), 0});
   }
   if (!st.ok()) {
     spdlog::error("dicom: storing instance {}: {}", header->sop_uid, st.ToString());
@@ -447,12 +454,15 @@ void DicomReceiver::SettleLoop() {
       }
       const std::string key = InstanceSetKey(uids);
       pending_keys.insert(key);
-      if (now - newest < quiet_ms || checked_.count(key) > 0) continue;
-      checked_.insert(key);
+      // Once per set and newest arrival: the same set sent again (a retry after an abort, which
+      // lifts the abort mark) is checked again.
+      auto seen = checked_.find(key);
+      if (now - newest < quiet_ms || (seen != checked_.end() && seen->second == newest)) continue;
+      checked_[key] = newest;
       SettleSeries(series, list, key);
     }
     for (auto it = checked_.begin(); it != checked_.end();) {
-      it = pending_keys.count(*it) > 0 ? std::next(it) : checked_.erase(it);
+      it = pending_keys.count(it->first) > 0 ? std::next(it) : checked_.erase(it);
     }
     SendPendingResults();
   }
@@ -468,7 +478,20 @@ void DicomReceiver::SettleSeries(const std::string& series_uid,
   rec.series_instance_uid = series_uid;
   rec.route = route != nullptr ? route->name : "";
   rec.update_ms = WallMs();
-  auto not_queued = [&](const std::string& reason) {
+  rec.calling_ae = last.calling_ae;
+  rec.called_ae = last.called_ae;
+  rec.instance_count = static_cast<int>(instances.size());
+  rec.first_received_ms = INT64_MAX;
+  int64_t newest = 0, aborted = 0;
+  for (const auto& i : instances) {
+    rec.first_received_ms = std::min(rec.first_received_ms, i.received_ms);
+    newest = std::max(newest, i.received_ms);
+    aborted = std::max(aborted, i.aborted_ms);
+  }
+  rec.last_received_ms = newest;
+  const std::string owner = DicomOwner(last.calling_ae);
+  auto not_queued = [&](v1::ReceivedSeries::State state, const std::string& reason) {
+    rec.state = state;
     rec.reason = reason;
     spdlog::warn("dicom: series {} ({} instances from {}) not queued: {}", series_uid,
                  instances.size(), last.calling_ae, reason);
@@ -476,18 +499,15 @@ void DicomReceiver::SettleSeries(const std::string& series_uid,
       spdlog::error("dicom: recording series {}: {}", series_uid, st.ToString());
     }
   };
-  if (route == nullptr) return not_queued("no route for its AE titles any more");
-  {
-    // An aborted association may have cut a series short anywhere, also after a contiguous
-    // run of slices that the geometry check cannot tell from a whole series: wait for more.
-    int64_t newest = 0;
-    for (const auto& i : instances) newest = std::max(newest, i.received_ms);
-    std::lock_guard<std::mutex> lock(mu_);
-    auto it = aborted_.find(series_uid);
-    if (it != aborted_.end() && it->second >= newest) {
-      return not_queued(absl::StrCat("the association that sent it was aborted after ",
-                                     instances.size(), " instances; waiting for the rest"));
-    }
+  constexpr auto kIncomplete = v1::ReceivedSeries::INCOMPLETE;
+  constexpr auto kNotQueued = v1::ReceivedSeries::NOT_QUEUED;
+  if (route == nullptr) return not_queued(kNotQueued, "no route for its AE titles any more");
+  // An aborted association may have cut a series short anywhere, also after a contiguous run
+  // of slices that the geometry check cannot tell from a whole series: wait for more.
+  if (aborted >= newest) {
+    return not_queued(kIncomplete,
+                      absl::StrCat("the association that sent it was aborted after ",
+                                   instances.size(), " instances; waiting for the rest"));
   }
   std::vector<fs::path> files;
   v1::CreateVolumeRequest vreq;
@@ -496,7 +516,7 @@ void DicomReceiver::SettleSeries(const std::string& series_uid,
     auto path = blobs_->LocalPath(i.sha256);
     if (!path.ok())
       return not_queued(
-          absl::StrCat("instance ", i.sop_instance_uid, ": ", path.status().message()));
+          kNotQueued, absl::StrCat("instance ", i.sop_instance_uid, ": ", path.status().message()));
     files.push_back(*path);
     uids.push_back(i.sop_instance_uid);
     auto* f = vreq.mutable_volume()->add_files();
@@ -504,25 +524,30 @@ void DicomReceiver::SettleSeries(const std::string& series_uid,
     f->set_blob(absl::StrCat("blobs/", i.sha256));
   }
   if (auto st = CheckSeriesComplete(files); !st.ok()) {
-    return not_queued(absl::StrCat("incomplete: ", st.message()));
+    return not_queued(kIncomplete, absl::StrCat("incomplete: ", st.message()));
   }
   const std::string request_id = absl::StrCat("dicom-", key);
   vreq.set_request_id(request_id);
   vreq.mutable_volume()->set_display_name(absl::StrCat("DICOM series ", series_uid));
   v1::ErrorDetail detail;
-  // Receiver-made volumes and jobs have no principal (the creator is ""): only admins and
-  // readers see them until routes name an owner.
-  auto volume = catalog_->Create(vreq, "", &detail);
-  if (!volume.ok()) return not_queued(absl::StrCat("volume: ", volume.status().message()));
+  // Created by the sender's principal, so that a submitter token of that name sees them and
+  // readers and admins see them as any other.
+  auto volume = catalog_->Create(vreq, owner, &detail);
+  if (!volume.ok()) {
+    return not_queued(kNotQueued, absl::StrCat("volume: ", volume.status().message()));
+  }
   v1::JobSpec spec = route->spec;
   spec.set_volume(volume->name());
   auto normalized = NormalizeJobSpec(spec);
-  if (!normalized.ok()) return not_queued(absl::StrCat("spec: ", normalized.status().message()));
+  if (!normalized.ok()) {
+    return not_queued(kNotQueued, absl::StrCat("spec: ", normalized.status().message()));
+  }
   bool created = false;
   const std::string id = NewId();
-  auto job = store_->CreateJob(id, *normalized, request_id, options_.max_queued, "", &created);
+  auto job = store_->CreateJob(id, *normalized, request_id, options_.max_queued, owner, &created);
   if (!created) data_dir_->RemoveJob(id);
-  if (!job.ok()) return not_queued(absl::StrCat("job: ", job.status().ToString()));
+  if (!job.ok()) return not_queued(kNotQueued, absl::StrCat("job: ", job.status().ToString()));
+  rec.state = v1::ReceivedSeries::QUEUED;
   rec.job = job->name();
   rec.results_pending = route->destination.configured();
   if (!created) {
@@ -607,6 +632,98 @@ void DicomReceiver::SendPendingResults() {
       spdlog::error("dicom: recording the send of {}: {}", rec.job, st.ToString());
     }
   }
+}
+
+std::string DicomOwner(const std::string& calling_ae) { return absl::StrCat("dicom:", calling_ae); }
+
+namespace {
+
+v1::ReceivedSeries ToProto(const DicomSeriesRecord& r) {
+  v1::ReceivedSeries out;
+  out.set_series_instance_uid(r.series_instance_uid);
+  out.set_calling_ae(r.calling_ae);
+  out.set_called_ae(r.called_ae);
+  out.set_instance_count(r.instance_count);
+  // Rows written before the state column: derived from what they hold.
+  out.set_state(r.state != v1::ReceivedSeries::STATE_UNSPECIFIED ? r.state
+                : r.job.empty()                                  ? v1::ReceivedSeries::NOT_QUEUED
+                                                                 : v1::ReceivedSeries::QUEUED);
+  out.set_job(r.job);
+  out.set_reason(r.reason);
+  out.set_route(r.route);
+  out.set_owner(r.calling_ae.empty() ? "" : DicomOwner(r.calling_ae));
+  *out.mutable_first_receive_time() = TimeUtil::MillisecondsToTimestamp(r.first_received_ms);
+  *out.mutable_last_receive_time() = TimeUtil::MillisecondsToTimestamp(r.last_received_ms);
+  out.set_send_status(r.send_status);
+  return out;
+}
+
+}  // namespace
+
+absl::StatusOr<ReceivedSeriesPage> ListReceivedSeries(JobStore* store, const std::string& owner,
+                                                      int page_size,
+                                                      const std::string& page_token) {
+  size_t offset = 0;
+  if (!page_token.empty() &&
+      (page_token[0] != 'r' || !absl::SimpleAtoi(page_token.substr(1), &offset))) {
+    return absl::InvalidArgumentError(
+        absl::StrCat("page_token '", page_token, "' is not a token this server returned"));
+  }
+  const size_t size = page_size <= 0 ? 50 : std::min(page_size, 1000);
+  auto instances = store->ListDicomInstances();
+  if (!instances.ok()) return instances.status();
+  auto checks = store->ListDicomSeries(/*pending_only=*/false, 1000);
+  if (!checks.ok()) return checks.status();
+  std::map<std::string, const DicomSeriesRecord*> by_set;
+  for (const auto& c : *checks) by_set.emplace(c.instance_set, &c);
+
+  // Instances still waiting: the series' newest state is theirs (the check of exactly this set
+  // if one was made, else RECEIVING).
+  std::map<std::string, std::vector<const DicomInstanceRecord*>> waiting;
+  for (const auto& i : *instances) waiting[i.series_instance_uid].push_back(&i);
+  std::vector<v1::ReceivedSeries> all;
+  for (const auto& [uid, list] : waiting) {
+    std::vector<std::string> sops;
+    int64_t first = INT64_MAX, last = 0;
+    for (const auto* i : list) {
+      sops.push_back(i->sop_instance_uid);
+      first = std::min(first, i->received_ms);
+      last = std::max(last, i->received_ms);
+    }
+    auto checked = by_set.find(InstanceSetKey(sops));
+    DicomSeriesRecord r;
+    if (checked != by_set.end()) {
+      r = *checked->second;
+    } else {
+      r.state = v1::ReceivedSeries::RECEIVING;
+    }
+    r.first_received_ms = first;
+    r.last_received_ms = last;
+    r.series_instance_uid = uid;
+    r.calling_ae = list.back()->calling_ae;
+    r.called_ae = list.back()->called_ae;
+    r.instance_count = static_cast<int>(list.size());
+    all.push_back(ToProto(r));
+  }
+  // Series with nothing waiting: their newest check (ListDicomSeries is newest first).
+  std::set<std::string> shown;
+  for (const auto& [uid, list] : waiting) shown.insert(uid);
+  for (const auto& c : *checks) {
+    if (shown.insert(c.series_instance_uid).second) all.push_back(ToProto(c));
+  }
+  std::stable_sort(all.begin(), all.end(), [](const auto& a, const auto& b) {
+    return TimeUtil::TimestampToMilliseconds(a.last_receive_time()) >
+           TimeUtil::TimestampToMilliseconds(b.last_receive_time());
+  });
+  if (!owner.empty()) {
+    std::erase_if(all, [&](const v1::ReceivedSeries& r) { return r.owner() != owner; });
+  }
+  ReceivedSeriesPage page;
+  for (size_t k = offset; k < all.size() && page.series.size() < size; ++k) {
+    page.series.push_back(std::move(all[k]));
+  }
+  if (offset + size < all.size()) page.next_page_token = absl::StrCat("r", offset + size);
+  return page;
 }
 
 }  // namespace decima::server

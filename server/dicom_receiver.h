@@ -7,17 +7,22 @@
 //               acknowledged instance survives a restart.
 //   group       instances are grouped by SeriesInstanceUID. A series whose newest instance is
 //               older than the quiet time is checked once per set of SOP Instance UIDs
-//               (CheckSeriesComplete): quiet alone does not mean complete (Orthanc's "stable"
-//               fired after 1 of 113 instances, and an aborted send looked stable at 79).
+//               and newest arrival (CheckSeriesComplete): quiet alone does not mean complete
+//               (Orthanc's "stable" fired after 1 of 113 instances, and an aborted send looked
+//               stable at 79).
 //   job         a complete series becomes a volume and a job with the route's spec; both use
 //               the request id "dicom-<sha256 of the sorted SOP Instance UIDs>", so the same
 //               set sent again returns the first job instead of making a second one. An
 //               incomplete series queues nothing: the reason is logged and stored
 //               (JobStore::PutDicomSeries), its instances wait for more (a resumed send).
 //               Nor does a series whose last association was aborted (a send cut short after
-//               a contiguous run of slices looks geometrically whole) until more arrives; that
-//               mark is kept in memory only, so after a restart such a series is judged by
-//               its geometry alone.
+//               a contiguous run of slices looks geometrically whole) until more arrives; the
+//               mark is stored with its instances (JobStore::MarkDicomSeriesAborted), so it
+//               holds over a restart. The volume and the job are created by the principal
+//               "dicom:<calling AE title>" (DicomOwner), so the ownership rules of
+//               call_guard.h apply to them as to any submitter's.
+//   listing     ListReceivedSeries (decima.v1.Volumes.ListReceivedSeries) shows each series'
+//               state and reason from the same two tables.
 //   results     when the route has a destination, the job's DICOM artifacts (segmentation.dcm,
 //               sc-*.dcm; dicom_results.h) are sent there once it SUCCEEDED (dicom_sender.h),
 //               at most 3 attempts 5 s apart; the outcome is stored with the series.
@@ -54,7 +59,11 @@ struct DicomReceiverOptions {
   std::string host = "127.0.0.1";
   int port = 11112;
   std::string aet = "DECIMA";  // our AE title: the called AE title we answer to
-  double quiet_seconds = 3;    // a series is checked once no instance came for this long
+  // A series is checked once no instance came for this long. 1 s: a sender's instances
+  // follow each other within milliseconds, completeness is judged by CheckSeriesComplete (and
+  // an aborted association never queues), so the quiet time only has to outlast the gaps of a
+  // send; 3 s made the Orthanc -> Decima -> SEG + SC loop miss "job time + 3 s".
+  double quiet_seconds = 1;
   int64_t min_free_mb = 1024;  // refuse associations / instances below this much free disk
   int max_queued = 1000;       // as --max-queued
   double poll_seconds = 0.2;   // settle loop period
@@ -70,6 +79,22 @@ struct DicomReceiverOptions {
 // INVALID_ARGUMENT saying what is wrong, e.g. "1 slice missing between z=22 and z=26 mm (gap
 // 4 mm, expected 2 mm); 112 instances".
 absl::Status CheckSeriesComplete(const std::vector<std::filesystem::path>& files);
+
+// The principal a received series' volume and job are created by: "dicom:<calling AE title>".
+// A tokens-file submitter of that name sees them (and only them, of the received ones).
+std::string DicomOwner(const std::string& calling_ae);
+
+struct ReceivedSeriesPage {
+  std::vector<v1::ReceivedSeries> series;
+  std::string next_page_token;
+};
+
+// decima.v1.Volumes.ListReceivedSeries: the received series from the job store, one per
+// SeriesInstanceUID in its newest state (the instances still waiting, else the newest check
+// among the last 1000), newest arrival first. `owner` non-empty: only the series it owns.
+// INVALID_ARGUMENT for a page token this did not return.
+absl::StatusOr<ReceivedSeriesPage> ListReceivedSeries(JobStore* store, const std::string& owner,
+                                                      int page_size, const std::string& page_token);
 
 class DicomReceiver {
  public:
@@ -89,7 +114,8 @@ class DicomReceiver {
   uint16_t StoreInstance(const std::filesystem::path& file, const std::string& calling_ae,
                          const std::string& called_ae, std::string* series_uid);
   // Called by the SCP thread when an association that brought these series ended without a
-  // release: they are not queued until an instance newer than the abort arrives.
+  // release: they are not queued until an instance newer than the abort arrives (the mark is
+  // stored with their instances).
   void MarkAborted(const std::set<std::string>& series);
   // True when the data dir has at least min_free_mb free.
   bool DiskSpaceAllows(std::string* why) const;
@@ -115,11 +141,9 @@ class DicomReceiver {
   std::mutex mu_;
   std::condition_variable cv_;
   bool wake_ ABSL_GUARDED_BY(mu_) = false;
-  // series -> wall ms of the abort (in memory only)
-  std::map<std::string, int64_t> aborted_ ABSL_GUARDED_BY(mu_);
   // Settle-loop only: instance sets already checked (pruned to those still pending), send
   // attempts per job.
-  std::set<std::string> checked_;
+  std::map<std::string, int64_t> checked_;  // instance set -> its newest arrival when checked
   std::map<std::string, int> send_attempts_;
   std::map<std::string, int64_t> next_send_ms_;
   absl::Status scp_status_;

@@ -20,7 +20,9 @@
 //     ]
 //   }
 // The first route matching both AE titles wins. Without a file, every caller gets the default
-// route: the default JobSpec and no destination.
+// route: the default JobSpec and no destination. Whatever the route, the volume and job of a
+// received series are created by the principal "dicom:<calling AE title>" (not per route: the
+// sender is what the AE title identifies), so a tokens-file submitter of that name sees them.
 #pragma once
 
 #include <string>

@@ -1,5 +1,5 @@
-// The JobStore's PACS receiver methods for stores that do not keep that state (yet): they say
-// so, and decima-server refuses --dicom-listen on such a store at start-up.
+// The JobStore's PACS receiver methods for stores that do not keep that state (test doubles):
+// they say so, and the DICOM receiver refuses to start on such a store.
 #include "absl/strings/str_cat.h"
 #include "server/job_store.h"
 
@@ -16,6 +16,9 @@ absl::Status JobStore::PutDicomInstance(const DicomInstanceRecord&) {
 }
 absl::StatusOr<std::vector<DicomInstanceRecord>> JobStore::ListDicomInstances() {
   return NotKept("ListDicomInstances");
+}
+absl::Status JobStore::MarkDicomSeriesAborted(const std::string&, int64_t) {
+  return NotKept("MarkDicomSeriesAborted");
 }
 absl::Status JobStore::PutDicomSeries(const DicomSeriesRecord&, const std::vector<std::string>&) {
   return NotKept("PutDicomSeries");

@@ -69,6 +69,9 @@ struct DicomInstanceRecord {
   std::string sha256;            // the instance's file in the blob store
   std::string calling_ae, called_ae;
   int64_t received_ms = 0;  // wall clock, ms since the epoch
+  // When an association that sent instances of this series was aborted while this instance
+  // was held (0 never): stored, so a restart still queues no job for a series cut short.
+  int64_t aborted_ms = 0;
 };
 
 // One completeness check of a series: queued as a job, or not and why.
@@ -81,6 +84,11 @@ struct DicomSeriesRecord {
   bool results_pending = false;  // results still to be sent to the route's destination
   std::string send_status;       // last send attempt: "" none, "sent ...", or the error
   int64_t update_ms = 0;
+  // What decima.v1.ReceivedSeries shows of the checked set.
+  v1::ReceivedSeries::State state = v1::ReceivedSeries::STATE_UNSPECIFIED;
+  std::string calling_ae, called_ae;  // of the newest instance
+  int instance_count = 0;
+  int64_t first_received_ms = 0, last_received_ms = 0;
 };
 
 bool IsFinal(v1::JobState state);
@@ -168,13 +176,17 @@ class JobStore {
   // True if any stored volume lists blob `sha256` (or a received DICOM instance holds it).
   virtual absl::StatusOr<bool> BlobInUse(const std::string& sha256) = 0;
 
-  // PACS receiver state. Not pure: a store without them answers UNIMPLEMENTED, and
-  // decima-server refuses --dicom-listen on it at start-up (the PostgreSQL store can add them
-  // as two small tables, see sqlite_job_store.cc).
-  // Inserts or replaces (by SOP Instance UID) a received instance.
+  // PACS receiver state (tables dicom_instances and dicom_series in both stores). Not pure: a
+  // store without them answers UNIMPLEMENTED, and the receiver refuses to start on it.
+  // Inserts or replaces (by SOP Instance UID) a received instance; a replaced one moves to the
+  // end of the arrival order.
   virtual absl::Status PutDicomInstance(const DicomInstanceRecord& instance);
   // Every received instance not yet consumed by a job, in arrival order.
   virtual absl::StatusOr<std::vector<DicomInstanceRecord>> ListDicomInstances();
+  // Sets aborted_ms of every received (not consumed) instance of the series: an association
+  // that sent some of them ended without a release.
+  virtual absl::Status MarkDicomSeriesAborted(const std::string& series_instance_uid,
+                                              int64_t aborted_ms);
   // Inserts or replaces (by instance_set) a check's outcome and, in the same transaction,
   // removes the instances `consumed` (SOP Instance UIDs) from the received ones.
   virtual absl::Status PutDicomSeries(const DicomSeriesRecord& series,

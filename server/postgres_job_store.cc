@@ -79,6 +79,32 @@ const char* const kMigrations[] = {
       CREATE INDEX jobs_by_creator ON jobs(creator, ord);
       CREATE INDEX volumes_by_creator ON volumes(creator, ord);
     )sql",
+    // 3: the DICOM receiver's state (server/dicom_receiver.h), as in the SQLite store: instances
+    // received but not yet in a job, and one row per checked instance set.
+    R"sql(
+      CREATE TABLE dicom_instances(
+        ord BIGSERIAL PRIMARY KEY,
+        sop_instance_uid TEXT UNIQUE NOT NULL,
+        series_instance_uid TEXT NOT NULL,
+        sha256 TEXT NOT NULL,
+        calling_ae TEXT NOT NULL, called_ae TEXT NOT NULL,
+        received_ms BIGINT NOT NULL,
+        aborted_ms BIGINT NOT NULL DEFAULT 0);
+      CREATE INDEX dicom_instances_by_sha ON dicom_instances(sha256);
+      CREATE INDEX dicom_instances_by_series ON dicom_instances(series_instance_uid);
+      CREATE TABLE dicom_series(
+        ord BIGSERIAL PRIMARY KEY,
+        instance_set TEXT UNIQUE NOT NULL,
+        series_instance_uid TEXT NOT NULL,
+        job TEXT NOT NULL, reason TEXT NOT NULL, route TEXT NOT NULL,
+        results_pending BOOLEAN NOT NULL, send_status TEXT NOT NULL,
+        update_ms BIGINT NOT NULL,
+        state INTEGER NOT NULL,
+        calling_ae TEXT NOT NULL, called_ae TEXT NOT NULL,
+        instance_count INTEGER NOT NULL,
+        first_received_ms BIGINT NOT NULL, last_received_ms BIGINT NOT NULL);
+      CREATE INDEX dicom_series_pending ON dicom_series(ord) WHERE results_pending;
+    )sql",
 };
 static_assert(v1::RUNNING == 2, "migration 1's partial index names RUNNING as 2");
 
@@ -707,9 +733,105 @@ class PostgresJobStore : public JobStore {
   absl::StatusOr<bool> BlobInUse(const std::string& sha256) override {
     return Run<absl::StatusOr<bool>>(
         "checking blob use", [&](pqxx::work& w) -> absl::StatusOr<bool> {
-          return !w.exec_params("SELECT 1 FROM volume_blobs WHERE sha256=$1 LIMIT 1", sha256)
+          return !w.exec_params(
+                       "SELECT 1 FROM volume_blobs WHERE sha256=$1 UNION ALL "
+                       "SELECT 1 FROM dicom_instances WHERE sha256=$1 LIMIT 1",
+                       sha256)
                       .empty();
         });
+  }
+
+  absl::Status PutDicomInstance(const DicomInstanceRecord& r) override {
+    return Run<absl::Status>("storing a DICOM instance", [&](pqxx::work& w) -> absl::Status {
+      // Delete + insert (not ON CONFLICT UPDATE): a re-sent instance gets a new ord, so the
+      // series order stays "as last received", as in the SQLite store.
+      w.exec_params("DELETE FROM dicom_instances WHERE sop_instance_uid=$1", r.sop_instance_uid);
+      w.exec_params(
+          "INSERT INTO dicom_instances(sop_instance_uid, series_instance_uid, sha256, calling_ae, "
+          "called_ae, received_ms, aborted_ms) VALUES($1,$2,$3,$4,$5,$6,$7)",
+          r.sop_instance_uid, r.series_instance_uid, r.sha256, r.calling_ae, r.called_ae,
+          r.received_ms, r.aborted_ms);
+      return absl::OkStatus();
+    });
+  }
+
+  absl::StatusOr<std::vector<DicomInstanceRecord>> ListDicomInstances() override {
+    using Out = absl::StatusOr<std::vector<DicomInstanceRecord>>;
+    return Run<Out>("listing DICOM instances", [&](pqxx::work& w) -> Out {
+      std::vector<DicomInstanceRecord> out;
+      for (const auto& row :
+           w.exec("SELECT series_instance_uid, sop_instance_uid, sha256, calling_ae, called_ae, "
+                  "received_ms, aborted_ms FROM dicom_instances ORDER BY ord")) {
+        out.push_back({row[0].as<std::string>(), row[1].as<std::string>(), row[2].as<std::string>(),
+                       row[3].as<std::string>(), row[4].as<std::string>(), row[5].as<int64_t>(),
+                       row[6].as<int64_t>()});
+      }
+      return out;
+    });
+  }
+
+  absl::Status MarkDicomSeriesAborted(const std::string& series_instance_uid,
+                                      int64_t aborted_ms) override {
+    return Run<absl::Status>("marking a DICOM series aborted", [&](pqxx::work& w) -> absl::Status {
+      w.exec_params("UPDATE dicom_instances SET aborted_ms=$1 WHERE series_instance_uid=$2",
+                    aborted_ms, series_instance_uid);
+      return absl::OkStatus();
+    });
+  }
+
+  absl::Status PutDicomSeries(const DicomSeriesRecord& r,
+                              const std::vector<std::string>& consumed) override {
+    return Run<absl::Status>("storing a DICOM series outcome", [&](pqxx::work& w) -> absl::Status {
+      w.exec_params(
+          "INSERT INTO dicom_series(instance_set, series_instance_uid, job, reason, route, "
+          "results_pending, send_status, update_ms, state, calling_ae, called_ae, "
+          "instance_count, first_received_ms, last_received_ms) "
+          "VALUES($1,$2,$3,$4,$5,$6,$7,$8,$9,$10,$11,$12,$13,$14) "
+          "ON CONFLICT(instance_set) DO UPDATE SET job=$3, reason=$4, route=$5, "
+          "results_pending=$6, send_status=$7, update_ms=$8, state=$9, calling_ae=$10, "
+          "called_ae=$11, instance_count=$12, first_received_ms=$13, last_received_ms=$14",
+          r.instance_set, r.series_instance_uid, r.job, r.reason, r.route, r.results_pending,
+          r.send_status, r.update_ms, static_cast<int>(r.state), r.calling_ae, r.called_ae,
+          r.instance_count, r.first_received_ms, r.last_received_ms);
+      for (const auto& uid : consumed) {
+        w.exec_params("DELETE FROM dicom_instances WHERE sop_instance_uid=$1", uid);
+      }
+      return absl::OkStatus();
+    });
+  }
+
+  absl::StatusOr<std::vector<DicomSeriesRecord>> ListDicomSeries(bool pending_only,
+                                                                 int limit) override {
+    using Out = absl::StatusOr<std::vector<DicomSeriesRecord>>;
+    return Run<Out>("listing DICOM series", [&](pqxx::work& w) -> Out {
+      std::vector<DicomSeriesRecord> out;
+      for (const auto& row : w.exec_params(
+               absl::StrCat("SELECT instance_set, series_instance_uid, job, reason, route, "
+                            "results_pending, send_status, update_ms, state, calling_ae, "
+                            "called_ae, instance_count, first_received_ms, last_received_ms "
+                            "FROM dicom_series ",
+                            pending_only ? "WHERE results_pending " : "",
+                            "ORDER BY ord DESC LIMIT $1"),
+               limit)) {
+        DicomSeriesRecord r;
+        r.instance_set = row[0].as<std::string>();
+        r.series_instance_uid = row[1].as<std::string>();
+        r.job = row[2].as<std::string>();
+        r.reason = row[3].as<std::string>();
+        r.route = row[4].as<std::string>();
+        r.results_pending = row[5].as<bool>();
+        r.send_status = row[6].as<std::string>();
+        r.update_ms = row[7].as<int64_t>();
+        r.state = static_cast<v1::ReceivedSeries::State>(row[8].as<int>());
+        r.calling_ae = row[9].as<std::string>();
+        r.called_ae = row[10].as<std::string>();
+        r.instance_count = row[11].as<int>();
+        r.first_received_ms = row[12].as<int64_t>();
+        r.last_received_ms = row[13].as<int64_t>();
+        out.push_back(std::move(r));
+      }
+      return out;
+    });
   }
 
  private:

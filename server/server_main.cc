@@ -211,7 +211,7 @@ int main(int argc, char** argv) {
   app.add_option("--port-file", port_file, "write the bound port here once serving (tests)")
       ->envname("DECIMA_PORT_FILE");
   std::string dicom_listen, dicom_aet = "DECIMA", dicom_routes;
-  double dicom_quiet_seconds = 3;
+  double dicom_quiet_seconds = DicomReceiverOptions().quiet_seconds;
   int64_t dicom_min_free_mb = 1024;
   app.add_option("--dicom-listen", dicom_listen,
                  "receive DICOM by C-STORE on HOST:PORT (off when unset)")

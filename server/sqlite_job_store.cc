@@ -141,7 +141,8 @@ class SqliteJobStore : public JobStore {
         series_instance_uid TEXT NOT NULL,
         sha256 TEXT NOT NULL,
         calling_ae TEXT NOT NULL, called_ae TEXT NOT NULL,
-        received_ms INTEGER NOT NULL);
+        received_ms INTEGER NOT NULL,
+        aborted_ms INTEGER NOT NULL DEFAULT 0);
       CREATE INDEX IF NOT EXISTS dicom_instances_by_sha ON dicom_instances(sha256);
       CREATE TABLE IF NOT EXISTS dicom_series(
         ord INTEGER PRIMARY KEY AUTOINCREMENT,
@@ -149,7 +150,12 @@ class SqliteJobStore : public JobStore {
         series_instance_uid TEXT NOT NULL,
         job TEXT NOT NULL, reason TEXT NOT NULL, route TEXT NOT NULL,
         results_pending INTEGER NOT NULL, send_status TEXT NOT NULL,
-        update_ms INTEGER NOT NULL);
+        update_ms INTEGER NOT NULL,
+        state INTEGER NOT NULL DEFAULT 0,
+        calling_ae TEXT NOT NULL DEFAULT '', called_ae TEXT NOT NULL DEFAULT '',
+        instance_count INTEGER NOT NULL DEFAULT 0,
+        first_received_ms INTEGER NOT NULL DEFAULT 0,
+        last_received_ms INTEGER NOT NULL DEFAULT 0);
     )sql";
     DECIMA_RETURN_IF_ERROR_LOCAL(Exec(kSchema));
     // Data dirs created before leases had epochs: add the column (0 for every job).
@@ -171,6 +177,28 @@ class SqliteJobStore : public JobStore {
         DECIMA_RETURN_IF_ERROR_LOCAL(
             Exec(absl::StrCat("ALTER TABLE ", table, " ADD COLUMN creator TEXT NOT NULL DEFAULT ''")
                      .c_str()));
+      }
+    }
+    // Data dirs whose receiver tables predate the persisted abort mark and the
+    // ReceivedSeries fields: the columns, zero / "" for the old rows (their state is then
+    // derived from job and reason, dicom_receiver.cc).
+    const char* const kDicomColumns[][2] = {
+        {"dicom_instances", "aborted_ms INTEGER NOT NULL DEFAULT 0"},
+        {"dicom_series", "state INTEGER NOT NULL DEFAULT 0"},
+        {"dicom_series", "calling_ae TEXT NOT NULL DEFAULT ''"},
+        {"dicom_series", "called_ae TEXT NOT NULL DEFAULT ''"},
+        {"dicom_series", "instance_count INTEGER NOT NULL DEFAULT 0"},
+        {"dicom_series", "first_received_ms INTEGER NOT NULL DEFAULT 0"},
+        {"dicom_series", "last_received_ms INTEGER NOT NULL DEFAULT 0"}};
+    for (const auto& [table, decl] : kDicomColumns) {
+      const std::string column(decl, std::string_view(decl).find(' '));
+      Stmt c(db_, absl::StrCat("SELECT COUNT(*) FROM pragma_table_info('", table, "') WHERE name='",
+                               column, "'")
+                      .c_str());
+      if (c.Step() != SQLITE_ROW) return c.Error("reading the schema");
+      if (c.Int(0) == 0) {
+        DECIMA_RETURN_IF_ERROR_LOCAL(
+            Exec(absl::StrCat("ALTER TABLE ", table, " ADD COLUMN ", decl).c_str()));
       }
     }
     return absl::OkStatus();
@@ -644,9 +672,9 @@ class SqliteJobStore : public JobStore {
     // REPLACE gives a re-sent instance a new ord: the series order stays "as last received".
     Stmt q(db_,
            "INSERT OR REPLACE INTO dicom_instances(sop_instance_uid, series_instance_uid, sha256, "
-           "calling_ae, called_ae, received_ms) VALUES(?,?,?,?,?,?)");
+           "calling_ae, called_ae, received_ms, aborted_ms) VALUES(?,?,?,?,?,?,?)");
     q.Bind(1, r.sop_instance_uid).Bind(2, r.series_instance_uid).Bind(3, r.sha256);
-    q.Bind(4, r.calling_ae).Bind(5, r.called_ae).Bind(6, r.received_ms);
+    q.Bind(4, r.calling_ae).Bind(5, r.called_ae).Bind(6, r.received_ms).Bind(7, r.aborted_ms);
     if (q.Step() != SQLITE_DONE) return q.Error("storing a DICOM instance");
     return absl::OkStatus();
   }
@@ -655,14 +683,23 @@ class SqliteJobStore : public JobStore {
     std::lock_guard<std::mutex> lock(mu_);
     Stmt q(db_,
            "SELECT series_instance_uid, sop_instance_uid, sha256, calling_ae, called_ae, "
-           "received_ms FROM dicom_instances ORDER BY ord");
+           "received_ms, aborted_ms FROM dicom_instances ORDER BY ord");
     std::vector<DicomInstanceRecord> out;
     int rc;
     while ((rc = q.Step()) == SQLITE_ROW) {
-      out.push_back({q.Text(0), q.Text(1), q.Text(2), q.Text(3), q.Text(4), q.Int(5)});
+      out.push_back({q.Text(0), q.Text(1), q.Text(2), q.Text(3), q.Text(4), q.Int(5), q.Int(6)});
     }
     if (rc != SQLITE_DONE) return q.Error("listing DICOM instances");
     return out;
+  }
+
+  absl::Status MarkDicomSeriesAborted(const std::string& series_instance_uid,
+                                      int64_t aborted_ms) override {
+    std::lock_guard<std::mutex> lock(mu_);
+    Stmt q(db_, "UPDATE dicom_instances SET aborted_ms=? WHERE series_instance_uid=?");
+    q.Bind(1, aborted_ms).Bind(2, series_instance_uid);
+    if (q.Step() != SQLITE_DONE) return q.Error("marking a DICOM series aborted");
+    return absl::OkStatus();
   }
 
   absl::Status PutDicomSeries(const DicomSeriesRecord& r,
@@ -672,12 +709,17 @@ class SqliteJobStore : public JobStore {
     if (!tx.ok()) return tx.status();
     Stmt q(db_,
            "INSERT INTO dicom_series(instance_set, series_instance_uid, job, reason, route, "
-           "results_pending, send_status, update_ms) VALUES(?1,?2,?3,?4,?5,?6,?7,?8) "
+           "results_pending, send_status, update_ms, state, calling_ae, called_ae, "
+           "instance_count, first_received_ms, last_received_ms) "
+           "VALUES(?1,?2,?3,?4,?5,?6,?7,?8,?9,?10,?11,?12,?13,?14) "
            "ON CONFLICT(instance_set) DO UPDATE SET job=?3, reason=?4, route=?5, "
-           "results_pending=?6, send_status=?7, update_ms=?8");
+           "results_pending=?6, send_status=?7, update_ms=?8, state=?9, calling_ae=?10, "
+           "called_ae=?11, instance_count=?12, first_received_ms=?13, last_received_ms=?14");
     q.Bind(1, r.instance_set).Bind(2, r.series_instance_uid).Bind(3, r.job).Bind(4, r.reason);
     q.Bind(5, r.route).Bind(6, int64_t{r.results_pending ? 1 : 0}).Bind(7, r.send_status);
-    q.Bind(8, r.update_ms);
+    q.Bind(8, r.update_ms).Bind(9, int64_t{r.state}).Bind(10, r.calling_ae);
+    q.Bind(11, r.called_ae).Bind(12, int64_t{r.instance_count}).Bind(13, r.first_received_ms);
+    q.Bind(14, r.last_received_ms);
     if (q.Step() != SQLITE_DONE) return q.Error("storing a DICOM series outcome");
     for (const auto& uid : consumed) {
       Stmt d(db_, "DELETE FROM dicom_instances WHERE sop_instance_uid=?");
@@ -692,18 +734,32 @@ class SqliteJobStore : public JobStore {
                                                                  int limit) override {
     std::lock_guard<std::mutex> lock(mu_);
     Stmt q(db_,
-           pending_only
-               ? "SELECT instance_set, series_instance_uid, job, reason, route, results_pending, "
-                 "send_status, update_ms FROM dicom_series WHERE results_pending=1 "
-                 "ORDER BY ord DESC LIMIT ?"
-               : "SELECT instance_set, series_instance_uid, job, reason, route, results_pending, "
-                 "send_status, update_ms FROM dicom_series ORDER BY ord DESC LIMIT ?");
+           absl::StrCat("SELECT instance_set, series_instance_uid, job, reason, route, "
+                        "results_pending, send_status, update_ms, state, calling_ae, "
+                        "called_ae, instance_count, first_received_ms, last_received_ms "
+                        "FROM dicom_series ",
+                        pending_only ? "WHERE results_pending=1 " : "", "ORDER BY ord DESC LIMIT ?")
+               .c_str());
     q.Bind(1, int64_t{limit});
     std::vector<DicomSeriesRecord> out;
     int rc;
     while ((rc = q.Step()) == SQLITE_ROW) {
-      out.push_back({q.Text(0), q.Text(1), q.Text(2), q.Text(3), q.Text(4), q.Int(5) != 0,
-                     q.Text(6), q.Int(7)});
+      DicomSeriesRecord r;
+      r.instance_set = q.Text(0);
+      r.series_instance_uid = q.Text(1);
+      r.job = q.Text(2);
+      r.reason = q.Text(3);
+      r.route = q.Text(4);
+      r.results_pending = q.Int(5) != 0;
+      r.send_status = q.Text(6);
+      r.update_ms = q.Int(7);
+      r.state = static_cast<v1::ReceivedSeries::State>(q.Int(8));
+      r.calling_ae = q.Text(9);
+      r.called_ae = q.Text(10);
+      r.instance_count = static_cast<int>(q.Int(11));
+      r.first_received_ms = q.Int(12);
+      r.last_received_ms = q.Int(13);
+      out.push_back(std::move(r));
     }
     if (rc != SQLITE_DONE) return q.Error("listing DICOM series");
     return out;

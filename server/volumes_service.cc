@@ -1,5 +1,7 @@
-// decima.v1.Volumes: volumes made of uploaded blobs (volume_catalog.h).
+// decima.v1.Volumes: volumes made of uploaded blobs (volume_catalog.h), and the series the
+// DICOM receiver got (dicom_receiver.h), which become volumes.
 #include "decima/v1/volumes.grpc.pb.h"
+#include "server/dicom_receiver.h"
 #include "server/grpc_util.h"
 #include "server/service.h"
 
@@ -58,6 +60,22 @@ class VolumesService final : public v1::Volumes::Service {
         d_.jobs->ListVolumes(CallGuard::ListFilter(caller), req->page_size(), req->page_token());
     if (!page.ok()) return ToGrpc(page.status());
     for (auto& v : page->volumes) *resp->add_volumes() = std::move(v);
+    resp->set_next_page_token(page->next_page_token);
+    return grpc::Status::OK;
+  }
+
+  // Readers and admins see every received series; a submitter those it owns (the principal
+  // "dicom:<calling AE>" that also creates their volumes and jobs), as with ListVolumes.
+  grpc::Status ListReceivedSeries(grpc::ServerContext* ctx,
+                                  const v1::ListReceivedSeriesRequest* req,
+                                  v1::ListReceivedSeriesResponse* resp) override {
+    Principal caller;
+    if (auto g = d_.guard->Check(ctx, &caller); !g.ok()) return g;
+    if (req->page_size() < 0) return InvalidField(ctx, "page_size", "must be >= 0");
+    auto page = server::ListReceivedSeries(d_.jobs, CallGuard::ListFilter(caller), req->page_size(),
+                                           req->page_token());
+    if (!page.ok()) return ToGrpc(page.status());
+    for (auto& r : page->series) *resp->add_received_series() = std::move(r);
     resp->set_next_page_token(page->next_page_token);
     return grpc::Status::OK;
   }

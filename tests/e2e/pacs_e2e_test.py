@@ -7,8 +7,11 @@ and stopped by its PID; every wait is bounded.
      an hour (so no job); the instances are in the job store, also after a restart.
   B  a 113-slice copy of the CT head at 1/8 in-plane resolution (so the job takes seconds, not
      minutes, on a loaded 2-core machine), new UIDs, goes into Orthanc and then to Decima:
-       - one slice missing: no job, the reason ("missing") is stored;
-       - the missing slice follows: the series is complete, one job runs;
+       (the receiver runs with the default quiet time)
+       - one slice missing: no job; `decima series` shows it INCOMPLETE with the reason
+         ("missing");
+       - the missing slice follows: the series is complete, one job runs, created by the
+         principal "dicom:ORTHANC";
        - the whole series again: the same SOP instance set, still one job;
        - an unknown calling AE title: the association is refused;
        - the job's SEG and SC come back into Orthanc (QIDO-RS) in the source study; the SEG
@@ -18,6 +21,9 @@ and stopped by its PID; every wait is bounded.
      Another copy comes in as calling AE ORTHANC2, whose route sends the results by C-STORE.
   C  DICOMweb: `decima pull` of the 113-slice series (timed), `decima submit --dicomweb` of the
      small one runs as a job.
+  D  abort: storescu --abort sends the first 60 slices of another copy (a contiguous run that
+     looks whole): not queued; after a server restart still not queued (the abort mark is
+     stored); the other 53 slices sent normally complete it and a job is queued.
 Prints one JSON object of figures on the last line. Exit 77 (ctest: skipped) when a tool or the
 shared data is missing.
 
@@ -182,15 +188,18 @@ class Orthanc:
 
 
 class Decima:
-    def __init__(self, server_bin, cli_bin, tmp, name, dicom_port, quiet, routes=None):
+    def __init__(self, server_bin, cli_bin, tmp, name, dicom_port, quiet=None, routes=None):
+        """quiet None: the server's default --dicom-quiet-seconds."""
         self.cli_bin = cli_bin
         self.data = os.path.join(tmp, f"{name}-data")
         self.port_file = os.path.join(tmp, f"{name}.port")
         self.dicom_port = dicom_port
         argv = [server_bin, "--listen", "127.0.0.1:0", "--port-file", self.port_file,
                 "--data-dir", self.data, "--dicom-listen", f"127.0.0.1:{dicom_port}",
-                "--dicom-aet", "DECIMA", "--dicom-quiet-seconds", str(quiet),
-                "--dicom-min-free-mb", "64", "--heartbeat-seconds", "0.5"]
+                "--dicom-aet", "DECIMA", "--dicom-min-free-mb", "64",
+                "--heartbeat-seconds", "0.5"]
+        if quiet is not None:
+            argv += ["--dicom-quiet-seconds", str(quiet)]
         if routes:
             argv += ["--dicom-routes", routes]
         if os.path.exists(self.port_file):
@@ -210,6 +219,13 @@ class Decima:
         r = self.cli("list", "--all")
         check(r.returncode == 0, f"decima list: {r.stderr}")
         return [json.loads(line) for line in r.stdout.splitlines() if line.strip()]
+
+    def series(self, uid=None):
+        """`decima series -o json`: the received series (only `uid`'s when given)."""
+        r = self.cli("series", "--all")
+        check(r.returncode == 0, f"decima series: {r.stderr}")
+        rows = [json.loads(line) for line in r.stdout.splitlines() if line.strip()]
+        return [x for x in rows if uid is None or x["series_instance_uid"] == uid]
 
     def db(self, sql):
         con = sqlite3.connect(f"file:{os.path.join(self.data, 'jobs.sqlite')}?mode=ro", uri=True,
@@ -379,18 +395,29 @@ def main():
                                    "called_ae": "DECIMA", "spec": spec,
                                    "destination": {"dicom": f"127.0.0.1:{orthanc.dicom}",
                                                    "aet": "ORTHANC"}}]}, f)
-        quiet = 1.0
-        b = Decima(server_bin, cli_bin, tmp, "b", dicom_port, quiet, routes)
+        b = Decima(server_bin, cli_bin, tmp, "b", dicom_port, None, routes)  # default quiet time
         procs.append(b.proc)
+        started = wait_for("the receiver's start line",
+                           lambda: [l for l in b.proc.text().splitlines() if "(quiet " in l], 30)
+        quiet = float(started[0].split("(quiet ")[1].split(" s")[0])
         small_ids = orthanc.upload(small_files)
         missing = small_ids[56]
         ok, _, answer = orthanc.store_to_decima([i for i in small_ids if i != missing])
         check(ok, f"C-STORE of 112 slices failed: {answer}")
-        rows = wait_for("the incomplete series' reason",
-                        lambda: b.db("SELECT reason FROM dicom_series WHERE job=''"), 30)
-        check("missing" in rows[0][0], f"reason does not say a slice is missing: {rows[0][0]}")
+        # The reason through the API (decima series), not only the log and the job store.
+        listed = wait_for("the series listed INCOMPLETE", lambda: [
+            x for x in b.series(series_uid) if x.get("state") == "INCOMPLETE"], 30, 0.1)[0]
+        check("missing" in listed.get("reason", ""),
+              f"reason does not say a slice is missing: {listed}")
+        check(listed["instance_count"] == 112 and listed["calling_ae"] == "ORTHANC"
+              and listed["called_ae"] == "DECIMA" and listed["owner"] == "dicom:ORTHANC",
+              f"listed series: {listed}")
         check(b.jobs() == [], "an incomplete series queued a job")
-        figures["incomplete_reason"] = rows[0][0]
+        figures["incomplete_reason"] = listed["reason"]
+        table = subprocess.run([cli_bin, "--server", b.server, "series"], capture_output=True,
+                               text=True, timeout=60)
+        check(table.returncode == 0 and table.stdout.startswith("SERIES") and
+              "INCOMPLETE" in table.stdout, f"decima series table: {table.stdout} {table.stderr}")
 
         ok, _, answer = orthanc.store_to_decima([missing], local_aet="STRANGER")
         check(not ok, "an unknown calling AE title was accepted")
@@ -402,6 +429,7 @@ def main():
         job = wait_for("one job", lambda: b.jobs(), 30)
         check(len(job) == 1, f"{len(job)} jobs")
         job_name = job[0]["name"]
+        check(job[0].get("creator") == "dicom:ORTHANC", f"job creator: {job[0].get('creator')}")
         final = wait_for("the job to end", lambda: [j for j in b.jobs()
                                                      if j["state"] in ("SUCCEEDED", "FAILED",
                                                                        "CANCELLED")], 600, 0.2)[0]
@@ -428,6 +456,9 @@ def main():
         figures["overhead_seconds"] = round(t_back - job_seconds, 3)
         figures["quiet_seconds"] = quiet
         check(mods.count("CT") == 1, f"series in the study: {mods}")
+        queued = b.series(series_uid)
+        check(len(queued) == 1 and queued[0]["state"] == "QUEUED" and queued[0]["job"] == job_name
+              and queued[0]["instance_count"] == 113, f"listed after the job: {queued}")
 
         # The whole series again: same SOP instance set, no second job.
         all_small_series = orthanc.json("GET", f"/instances/{small_ids[0]}")["ParentSeries"]
@@ -512,6 +543,38 @@ def main():
                   "--policy", "paper", "--reduction", "0.2", "--watch", timeout=600)
         check(r.returncode == 0, f"decima submit --dicomweb: {r.returncode} {r.stderr[-500:]}")
         check(len(b.jobs()) == 3, "the DICOMweb job is not there")
+
+        # --- D: an aborted association, a restart, then the rest -------------------------------
+        files3, _, series3 = make_small_series(series_dir, os.path.join(tmp, "small3"), 8)
+
+        def storescu(files, abort):
+            argv = ["storescu", "-aet", "ORTHANC", "-aec", "DECIMA", "127.0.0.1", str(dicom_port)]
+            return subprocess.run(argv + (["--abort"] if abort else []) + files,
+                                  capture_output=True, text=True, timeout=120)
+
+        r = storescu(files3[:60], True)
+        aborted = wait_for("the aborted series listed", lambda: [
+            x for x in b.series(series3) if x.get("state") == "INCOMPLETE"], 30, 0.1)[0]
+        check("aborted" in aborted["reason"] and aborted["instance_count"] == 60,
+              f"after the abort: {aborted} (storescu: {r.stderr[-300:]})")
+        b.proc.stop()
+        procs.remove(b.proc)
+        b = Decima(server_bin, cli_bin, tmp, "b", dicom_port, None, routes)  # restart
+        procs.append(b.proc)
+        wait_for("the restarted receiver to check the aborted series",
+                 lambda: f"series {series3} (60 instances from ORTHANC) not queued: the "
+                         "association that sent it was aborted" in b.proc.text(), quiet + 30, 0.1)
+        check(len(b.jobs()) == 3, "the aborted series was queued after a restart")
+        still = b.series(series3)
+        check(len(still) == 1 and still[0]["state"] == "INCOMPLETE", f"after the restart: {still}")
+        r = storescu(files3[60:], False)
+        check(r.returncode == 0, f"storescu of the other 53 slices: {r.stderr[-500:]}")
+        wait_for("the completed series' job", lambda: len(b.jobs()) == 4, quiet + 30, 0.1)
+        done = b.series(series3)
+        check(len(done) == 1 and done[0]["state"] == "QUEUED" and done[0]["instance_count"] == 113,
+              f"after the rest: {done}")
+        job3 = [j for j in b.jobs() if j["name"] == done[0]["job"]]
+        check(job3 and job3[0].get("creator") == "dicom:ORTHANC", f"job of the rest: {job3}")
         print(json.dumps(figures))
     finally:
         for p in reversed(procs):

@@ -1,6 +1,5 @@
-// The PACS side's pieces on their own: routes file, series completeness, the job store's
-// receiver state, the SEG/SC writer's refusals. The whole loop against Orthanc is
-// tests/e2e/pacs_e2e_test.py.
+// The PACS side's pieces on their own: routes file, series completeness, the SEG/SC writer's
+// refusals. The whole loop against Orthanc is tests/e2e/pacs_e2e_test.py.
 #include <fstream>
 
 #include "core/io/dicom.h"
@@ -93,47 +92,7 @@ TEST(CheckSeriesCompleteTest, TheSharedSeriesIsCompleteAndOneMissingSliceIsNamed
   EXPECT_THAT(CheckSeriesComplete(twice).message(), HasSubstr("same position"));
 }
 
-TEST(DicomJobStoreTest, InstancesAndSeriesOutcomesPersistAndConsumeInOneStep) {
-  const std::string path = (testing::MakeScratchDir("dicom_store") / "jobs.sqlite").string();
-  {
-    auto store = OpenSqliteJobStore(path);
-    ASSERT_TRUE(store.ok()) << store.status();
-    ASSERT_TRUE((*store)->PutDicomInstance({"s1", "i1", "aa", "ORTHANC", "DECIMA", 1}).ok());
-    ASSERT_TRUE((*store)->PutDicomInstance({"s1", "i2", "bb", "ORTHANC", "DECIMA", 2}).ok());
-    // The same SOP instance again replaces its row.
-    ASSERT_TRUE((*store)->PutDicomInstance({"s1", "i1", "aa", "ORTHANC", "DECIMA", 3}).ok());
-    EXPECT_TRUE(*(*store)->BlobInUse("aa"));
-    EXPECT_FALSE(*(*store)->BlobInUse("cc"));
-  }
-  auto store = OpenSqliteJobStore(path);  // reopened: a restart
-  ASSERT_TRUE(store.ok());
-  auto instances = (*store)->ListDicomInstances();
-  ASSERT_TRUE(instances.ok());
-  ASSERT_EQ(instances->size(), 2u);
-  EXPECT_EQ((*instances)[0].sop_instance_uid, "i2");  // arrival order, i1 re-sent last
-  EXPECT_EQ((*instances)[1].received_ms, 3);
-
-  DicomSeriesRecord incomplete{"set-a", "s1",  "", "incomplete: 1 slice(s) missing",
-                               "r",     false, "", 10};
-  ASSERT_TRUE((*store)->PutDicomSeries(incomplete, {}).ok());
-  EXPECT_EQ((*store)->ListDicomInstances()->size(), 2u);
-  DicomSeriesRecord queued{"set-b", "s1", "jobs/j1", "", "r", true, "", 11};
-  ASSERT_TRUE((*store)->PutDicomSeries(queued, {"i1", "i2"}).ok());
-  EXPECT_TRUE((*store)->ListDicomInstances()->empty());
-  EXPECT_FALSE(*(*store)->BlobInUse("aa"));
-  auto pending = (*store)->ListDicomSeries(true, 10);
-  ASSERT_TRUE(pending.ok());
-  ASSERT_EQ(pending->size(), 1u);
-  EXPECT_EQ((*pending)[0].job, "jobs/j1");
-  queued.results_pending = false;
-  queued.send_status = "sent: 3 instances";
-  ASSERT_TRUE((*store)->PutDicomSeries(queued, {}).ok());
-  EXPECT_TRUE((*store)->ListDicomSeries(true, 10)->empty());
-  auto all = (*store)->ListDicomSeries(false, 10);
-  ASSERT_EQ(all->size(), 2u);
-  EXPECT_EQ((*all)[0].send_status, "sent: 3 instances");
-  EXPECT_EQ((*all)[1].reason, "incomplete: 1 slice(s) missing");
-}
+// The job store's receiver state is in the JobStore contract (job_store_test.cc, both stores).
 
 TEST(DicomExportTest, RefusesALabelMapOnAnotherGrid) {
   DECIMA_REQUIRE_SHARED_DATA(dir, kSeries);

@@ -309,6 +309,87 @@ TEST_P(JobStoreTest, LabelMapOfAQueuedJobCannotBeDeleted) {
   EXPECT_TRUE(store_->DeleteVolume("labels").ok());
 }
 
+// A check's outcome as the receiver stores it (the fields the tests set).
+DicomSeriesRecord Check(const std::string& set, const std::string& series, const std::string& job,
+                        const std::string& reason, v1::ReceivedSeries::State state) {
+  DicomSeriesRecord r;
+  r.instance_set = set;
+  r.series_instance_uid = series;
+  r.job = job;
+  r.reason = reason;
+  r.route = "r";
+  r.state = state;
+  return r;
+}
+
+// The DICOM receiver's state (dicom_receiver.h): received instances, the persisted abort mark
+// and the checks' outcomes survive a restart; a check consumes its instances in one step.
+TEST_P(JobStoreTest, DicomReceiverStateSurvivesReopeningAndAJobConsumesItsInstances) {
+  const std::string aa(64, 'a'), bb(64, 'b');
+  ASSERT_TRUE(store_->PutDicomInstance({"s1", "i1", aa, "ORTHANC", "DECIMA", 1, 0}).ok());
+  ASSERT_TRUE(store_->PutDicomInstance({"s1", "i2", bb, "ORTHANC", "DECIMA", 2, 0}).ok());
+  ASSERT_TRUE(store_->PutDicomInstance({"s2", "k1", bb, "OTHER", "DECIMA", 2, 0}).ok());
+  // The same SOP instance again replaces its row and moves to the end.
+  ASSERT_TRUE(store_->PutDicomInstance({"s1", "i1", aa, "ORTHANC", "DECIMA", 3, 0}).ok());
+  ASSERT_TRUE(store_->MarkDicomSeriesAborted("s1", 4).ok());
+  EXPECT_TRUE(*store_->BlobInUse(aa));
+  EXPECT_FALSE(*store_->BlobInUse(std::string(64, 'c')));
+  DicomSeriesRecord incomplete =
+      Check("set-a", "s1", "", "incomplete: 1 slice(s) missing", v1::ReceivedSeries::INCOMPLETE);
+  incomplete.calling_ae = "ORTHANC";
+  incomplete.called_ae = "DECIMA";
+  incomplete.instance_count = 2;
+  incomplete.first_received_ms = 2;
+  incomplete.last_received_ms = 3;
+  ASSERT_TRUE(store_->PutDicomSeries(incomplete, {}).ok());
+
+  store_.reset();  // a restart
+  auto reopened = Reopen();
+  ASSERT_TRUE(reopened.ok()) << reopened.status();
+  store_ = std::move(*reopened);
+  auto instances = store_->ListDicomInstances();
+  ASSERT_TRUE(instances.ok()) << instances.status();
+  ASSERT_EQ(instances->size(), 3u);
+  EXPECT_EQ((*instances)[0].sop_instance_uid, "i2");  // arrival order, i1 re-sent last
+  EXPECT_EQ((*instances)[0].aborted_ms, 4);
+  EXPECT_EQ((*instances)[1].aborted_ms, 0);  // another series
+  EXPECT_EQ((*instances)[2].sop_instance_uid, "i1");
+  EXPECT_EQ((*instances)[2].received_ms, 3);
+  EXPECT_EQ((*instances)[2].aborted_ms, 4);
+  auto checks = store_->ListDicomSeries(false, 10);
+  ASSERT_TRUE(checks.ok()) << checks.status();
+  ASSERT_EQ(checks->size(), 1u);
+  const DicomSeriesRecord& c = (*checks)[0];
+  EXPECT_EQ(c.state, v1::ReceivedSeries::INCOMPLETE);
+  EXPECT_EQ(c.reason, "incomplete: 1 slice(s) missing");
+  EXPECT_EQ(c.calling_ae, "ORTHANC");
+  EXPECT_EQ(c.called_ae, "DECIMA");
+  EXPECT_EQ(c.instance_count, 2);
+  EXPECT_EQ(c.first_received_ms, 2);
+  EXPECT_EQ(c.last_received_ms, 3);
+
+  DicomSeriesRecord queued = Check("set-b", "s1", "jobs/j1", "", v1::ReceivedSeries::QUEUED);
+  queued.results_pending = true;
+  ASSERT_TRUE(store_->PutDicomSeries(queued, {"i1", "i2"}).ok());
+  ASSERT_EQ(store_->ListDicomInstances()->size(), 1u);  // s2's only
+  EXPECT_FALSE(*store_->BlobInUse(aa));
+  EXPECT_TRUE(*store_->BlobInUse(bb));  // still held by s2's instance
+  auto pending = store_->ListDicomSeries(true, 10);
+  ASSERT_TRUE(pending.ok());
+  ASSERT_EQ(pending->size(), 1u);
+  EXPECT_EQ((*pending)[0].job, "jobs/j1");
+  queued.results_pending = false;
+  queued.send_status = "sent: 3 instances";
+  ASSERT_TRUE(store_->PutDicomSeries(queued, {}).ok());
+  EXPECT_TRUE(store_->ListDicomSeries(true, 10)->empty());
+  auto all = store_->ListDicomSeries(false, 10);
+  ASSERT_EQ(all->size(), 2u);
+  EXPECT_EQ((*all)[0].send_status, "sent: 3 instances");  // newest first
+  EXPECT_EQ((*all)[0].state, v1::ReceivedSeries::QUEUED);
+  EXPECT_EQ((*all)[1].reason, "incomplete: 1 slice(s) missing");
+  EXPECT_EQ(store_->ListDicomSeries(false, 1)->size(), 1u);
+}
+
 TEST_P(JobStoreTest, CompactGivesDeletedJobsSpaceBack) {
   if (GetParam() != "sqlite")
     GTEST_SKIP() << "file compaction is SQLite's (PostgreSQL autovacuums)";

@@ -42,7 +42,7 @@ TEST(PostgresJobStoreTest, ReplicasStartingTogetherApplyTheSchemaOnce) {
   const std::string db = dsn.substr(dsn.rfind('/') + 1);
   EXPECT_EQ(
       SharedPostgres()->Sql("SELECT COUNT(*), MAX(version) FROM decima_schema_migrations", db),
-      "2|2");  // every migration once (2: creator columns)
+      "3|3");  // every migration once (2: creator columns, 3: DICOM receiver tables)
 }
 
 TEST(PostgresJobStoreTest, ConcurrentClaimersTakeEveryJobExactlyOnce) {

@@ -5,6 +5,7 @@
 
 #include <grpcpp/grpcpp.h>
 
+#include "absl/strings/str_cat.h"
 #include "decima/v1/artifacts.grpc.pb.h"
 #include "decima/v1/errors.pb.h"
 #include "decima/v1/jobs.grpc.pb.h"
@@ -29,7 +30,7 @@ constexpr char kToken[] = "s3cret";
 
 class ServicesTest : public ::testing::Test {
  protected:
-  void Start(bool allow_faults = false) {
+  void Start(bool allow_faults = false, Identities identities = Identities::SingleToken(kToken)) {
     dir_ = testing::MakeScratchDir("services");
     auto s = OpenSqliteJobStore((dir_ / "jobs.sqlite").string());
     ASSERT_TRUE(s.ok()) << s.status();
@@ -44,7 +45,7 @@ class ServicesTest : public ::testing::Test {
     pool_ = std::make_unique<WorkerPool>(store_.get(), wo);  // never started: jobs stay QUEUED
     ServiceOptions so;
     so.data_dir = DataDir(dir_);
-    so.identities = Identities::SingleToken(kToken);
+    so.identities = std::move(identities);
     so.allow_faults = allow_faults;
     services_ = std::make_unique<Services>(so, store_.get(), blobs_.get(), &bus_, pool_.get());
     grpc::ServerBuilder builder;
@@ -261,6 +262,106 @@ TEST_F(ServicesTest, AManifestFileThatIsAlsoAFolderOfAnotherIsInvalidArgument) {
     EXPECT_THAT(Detail(*ctx).field(), StartsWith("volume.files["));
     EXPECT_FALSE(fs::exists(dir_ / "volumes") && !fs::is_empty(dir_ / "volumes"));
   }
+}
+
+// A check's outcome as the receiver stores it (the fields the tests set).
+DicomSeriesRecord Check(const std::string& set, const std::string& series, const std::string& job,
+                        const std::string& reason, v1::ReceivedSeries::State state) {
+  DicomSeriesRecord r;
+  r.instance_set = set;
+  r.series_instance_uid = series;
+  r.job = job;
+  r.reason = reason;
+  r.route = "r";
+  r.state = state;
+  return r;
+}
+
+std::string HexSha256(const std::string& s) {
+  Sha256 h;
+  h.Update(s.data(), s.size());
+  return h.HexDigest();
+}
+
+// ListReceivedSeries: the store's receiver state through the handler; a reader sees every
+// series, a submitter named as a sender's principal ("dicom:<calling AE>") its own, another
+// submitter none; a bad token is INVALID_ARGUMENT.
+TEST_F(ServicesTest, ListReceivedSeriesShowsStateAndReasonByOwner) {
+  auto ids =
+      Identities::Parse(absl::StrCat("token ", HexSha256("pacs"), " dicom:ORTHANC submitter\n",
+                                     "token ", HexSha256("alice"), " alice submitter\n", "token ",
+                                     HexSha256("rita"), " rita reader\n"),
+                        "tokens");
+  ASSERT_TRUE(ids.ok()) << ids.status();
+  Start(false, *ids);
+  const std::string aa(64, 'a'), bb(64, 'b');
+  ASSERT_TRUE(
+      store_->PutDicomInstance({"1.2.3", "i1", aa, "ORTHANC", "DECIMA", 1700000000000, 0}).ok());
+  ASSERT_TRUE(
+      store_->PutDicomInstance({"1.2.4", "k1", bb, "CT1", "DECIMA", 1700000001000, 0}).ok());
+  DicomSeriesRecord incomplete =
+      Check("set", "1.2.4", "", "incomplete: 1 slice(s) missing", v1::ReceivedSeries::INCOMPLETE);
+  // A check of another set than the one waiting now: the waiting one is RECEIVING.
+  ASSERT_TRUE(store_->PutDicomSeries(incomplete, {}).ok());
+  DicomSeriesRecord queued = Check("set2", "1.2.5", "jobs/j1", "", v1::ReceivedSeries::QUEUED);
+  queued.send_status = "sent: 3 instances";
+  queued.calling_ae = "ORTHANC";
+  queued.called_ae = "DECIMA";
+  queued.instance_count = 113;
+  queued.first_received_ms = 1700000002000;
+  queued.last_received_ms = 1700000003000;
+  ASSERT_TRUE(store_->PutDicomSeries(queued, {}).ok());
+
+  auto stub = v1::Volumes::NewStub(channel_);
+  auto list = [&](const std::string& token, v1::ListReceivedSeriesResponse* resp,
+                  const std::string& page_token = "", int page_size = 0) {
+    v1::ListReceivedSeriesRequest req;
+    req.set_page_token(page_token);
+    req.set_page_size(page_size);
+    return stub->ListReceivedSeries(Ctx(token).get(), req, resp);
+  };
+  v1::ListReceivedSeriesResponse all;
+  ASSERT_TRUE(list("rita", &all).ok());
+  ASSERT_EQ(all.received_series_size(), 3);
+  const v1::ReceivedSeries& newest = all.received_series(0);  // newest arrival first
+  EXPECT_EQ(newest.series_instance_uid(), "1.2.5");
+  EXPECT_EQ(newest.state(), v1::ReceivedSeries::QUEUED);
+  EXPECT_EQ(newest.job(), "jobs/j1");
+  EXPECT_EQ(newest.instance_count(), 113);
+  EXPECT_EQ(newest.owner(), "dicom:ORTHANC");
+  EXPECT_EQ(newest.send_status(), "sent: 3 instances");
+  EXPECT_EQ(newest.last_receive_time().seconds(), 1700000003);
+  EXPECT_EQ(all.received_series(1).series_instance_uid(), "1.2.4");
+  EXPECT_EQ(all.received_series(1).state(), v1::ReceivedSeries::RECEIVING);
+  EXPECT_EQ(all.received_series(1).calling_ae(), "CT1");
+  EXPECT_EQ(all.received_series(2).state(), v1::ReceivedSeries::RECEIVING);
+
+  // The waiting set of 1.2.4 checked (its key: sha256 of the sorted SOP Instance UIDs, one a
+  // line): INCOMPLETE with the reason.
+  incomplete.instance_set = HexSha256("k1\n");
+  ASSERT_TRUE(store_->PutDicomSeries(incomplete, {}).ok());
+  v1::ListReceivedSeriesResponse again;
+  ASSERT_TRUE(list("rita", &again).ok());
+  ASSERT_EQ(again.received_series_size(), 3);
+  EXPECT_EQ(again.received_series(1).state(), v1::ReceivedSeries::INCOMPLETE);
+  EXPECT_EQ(again.received_series(1).reason(), "incomplete: 1 slice(s) missing");
+
+  v1::ListReceivedSeriesResponse own, none, page;
+  ASSERT_TRUE(list("pacs", &own).ok());
+  ASSERT_EQ(own.received_series_size(), 2);
+  for (const auto& r : own.received_series()) EXPECT_EQ(r.owner(), "dicom:ORTHANC");
+  ASSERT_TRUE(list("alice", &none).ok());
+  EXPECT_EQ(none.received_series_size(), 0);
+  ASSERT_TRUE(list("rita", &page, "", 2).ok());
+  ASSERT_EQ(page.received_series_size(), 2);
+  ASSERT_FALSE(page.next_page_token().empty());
+  v1::ListReceivedSeriesResponse rest;
+  ASSERT_TRUE(list("rita", &rest, page.next_page_token(), 2).ok());
+  ASSERT_EQ(rest.received_series_size(), 1);
+  EXPECT_TRUE(rest.next_page_token().empty());
+  v1::ListReceivedSeriesResponse bad;
+  EXPECT_EQ(list("rita", &bad, "o7").error_code(), grpc::INVALID_ARGUMENT);
+  EXPECT_EQ(list("wrong", &bad).error_code(), grpc::UNAUTHENTICATED);
 }
 
 TEST(IdentitiesTest, TokensFileNamesTheLineAndKeepsOnlyHashes) {
