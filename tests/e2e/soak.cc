@@ -613,7 +613,18 @@ int main(int argc, char** argv) {
          }
          return g;
        }()},
-      {"returns_to_empty", after_delete["bytes"].get<int64_t>() <= empty["bytes"].get<int64_t>()}};
+      // The audit log is the record of every call, deletes included, and is rotated by size:
+      // it is meant to grow, so it is reported above but not counted as data left behind.
+      {"returns_to_empty", [&] {
+         auto bytes = [](const json& d) {
+           int64_t b = d["bytes"].get<int64_t>();
+           if (d["by_entry"].contains("audit.log")) {
+             b -= d["by_entry"]["audit.log"]["bytes"].get<int64_t>();
+           }
+           return b;
+         };
+         return bytes(after_delete) <= bytes(empty);
+       }()}};
   std::printf("%s\n", out.dump(2).c_str());
   if (!o.keep) fs::remove_all(scratch);
   return (lost == 0 && duplicated == 0 && failed == failed_by_kill) ? 0 : 1;
