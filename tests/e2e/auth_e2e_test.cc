@@ -395,6 +395,16 @@ TEST_F(OwnershipE2E, EveryRpcByEveryRoleGetsTheExpectedCode) {
          }
          return s.error_code();
        }},
+      {"Volumes.ListReceivedSeries",
+       {OK, OK, OK, OK, UA},
+       [&](const std::string& t) {
+         v1::ListReceivedSeriesResponse resp;
+         auto s = volumes_->ListReceivedSeries(Ctx(t).get(), {}, &resp);
+         if (s.ok()) {
+           EXPECT_EQ(resp.received_series_size(), 0);  // no DICOM receiver in this server
+         }
+         return s.error_code();
+       }},
       {"Volumes.DeleteVolume",
        {OK, PD, PD, OK, UA},
        [&](const std::string& t) {
@@ -517,7 +527,7 @@ TEST_F(OwnershipE2E, EveryRpcByEveryRoleGetsTheExpectedCode) {
       ++checked;
     }
   }
-  EXPECT_EQ(checked, 15 * 5);
+  EXPECT_EQ(checked, 16 * 5);
   // Health stays open without credentials.
   CliResult h = RunCli(server_->address(), {"health"});
   EXPECT_EQ(h.rc, 0) << h.err;
