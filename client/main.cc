@@ -394,6 +394,19 @@ std::vector<std::string> JobRow(const v1::Job& j, bool wide) {
   return r;
 }
 
+// After one page of a listing: true to fetch the next page (--all); else, when there is one,
+// says how to get it (a JSON line, or a hint on stderr) and returns false.
+bool ContinueListing(const std::string& next_page_token, bool all) {
+  if (next_page_token.empty()) return false;
+  if (all) return true;
+  if (JsonOut()) {
+    std::printf("{\"next_page_token\":%s}\n", JsonString(next_page_token).c_str());
+  } else {
+    std::fprintf(stderr, "more: --page-token %s (or --all)\n", next_page_token.c_str());
+  }
+  return false;
+}
+
 // `decima status`: kubectl describe for one job.
 void DescribeJob(const v1::Job& j) {
   auto line = [](const char* key, const std::string& value) {
@@ -1371,16 +1384,7 @@ int main(int argc, char** argv) {
           rows.push_back(JobRow(j, wide));
         }
       }
-      if (resp.next_page_token().empty()) break;
-      if (!all) {
-        if (JsonOut()) {
-          std::printf("{\"next_page_token\":%s}\n", JsonString(resp.next_page_token()).c_str());
-        } else {
-          std::fprintf(stderr, "more: --page-token %s (or --all)\n",
-                       resp.next_page_token().c_str());
-        }
-        break;
-      }
+      if (!ContinueListing(resp.next_page_token(), all)) break;
       req.set_page_token(resp.next_page_token());
     }
     if (!JsonOut()) {
@@ -1425,16 +1429,7 @@ int main(int argc, char** argv) {
                                                  r.send_status().empty() ? "-" : r.send_status()});
         }
       }
-      if (resp.next_page_token().empty()) break;
-      if (!series_all) {
-        if (JsonOut()) {
-          std::printf("{\"next_page_token\":%s}\n", JsonString(resp.next_page_token()).c_str());
-        } else {
-          std::fprintf(stderr, "more: --page-token %s (or --all)\n",
-                       resp.next_page_token().c_str());
-        }
-        break;
-      }
+      if (!ContinueListing(resp.next_page_token(), series_all)) break;
       req.set_page_token(resp.next_page_token());
     }
     if (!JsonOut()) {

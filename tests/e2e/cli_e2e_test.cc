@@ -190,6 +190,24 @@ TEST_F(CliE2E, TablesOutputFormatsPrefixesDeleteAndPrune) {
   EXPECT_THAT(r.out, HasSubstr("30.0%"));
   EXPECT_EQ(RunCli(server.address(), {"list", "--state", "running"}).out, "");
   EXPECT_EQ(RunCli(server.address(), {"list", "--state", "done"}).rc, 2);
+  // Paging: one job per page says how to go on; the token gives the other; --all follows.
+  r = RunCli(server.address(), {"list", "--page-size", "1"});
+  ASSERT_EQ(r.rc, 0) << r.err;
+  EXPECT_EQ(Lines(r.out).size(), 2u) << r.out;
+  const std::string more = "more: --page-token ";
+  ASSERT_THAT(r.err, HasSubstr(more));
+  std::string token = r.err.substr(r.err.find(more) + more.size());
+  token = token.substr(0, token.find(' '));
+  CliResult next = RunCli(server.address(), {"list", "--page-size", "1", "--page-token", token});
+  ASSERT_EQ(next.rc, 0) << next.err;
+  ASSERT_EQ(Lines(next.out).size(), 2u) << next.out;
+  EXPECT_NE(Lines(next.out)[1], Lines(r.out)[1]);
+  r = RunCli(server.address(), {"list", "--page-size", "1", "--all", "-o", "json"});
+  ASSERT_EQ(r.rc, 0) << r.err;
+  EXPECT_EQ(Lines(r.out).size(), 2u) << r.out;
+  EXPECT_THAT(r.out, ::testing::Not(HasSubstr("next_page_token")));
+  r = RunCli(server.address(), {"list", "--page-size", "1", "-o", "json"});
+  EXPECT_THAT(r.out, HasSubstr("{\"next_page_token\":"));
 
   // describe-like status through a unique prefix (the shortest one that tells them apart).
   size_t n = 1;
