@@ -41,6 +41,7 @@ configure "$asan" address
 cmake --build "$asan" -j "$jobs"
 asan_logs=$PWD/$asan/sanitizer-logs
 rm -rf "$asan_logs" && mkdir -p "$asan_logs"
+LSAN_OPTIONS="suppressions=$PWD/tests/lsan.supp:print_suppressions=0" \
 ASAN_OPTIONS="log_path=$asan_logs/asan:detect_leaks=1:strict_string_checks=1" \
 UBSAN_OPTIONS="log_path=$asan_logs/ubsan:print_stacktrace=1:halt_on_error=1" \
   run_ctest "$asan" unit || status=1
