@@ -9,6 +9,7 @@
 #include "gmock/gmock.h"
 #include "gtest/gtest.h"
 #include "server/job_store.h"
+#include "tests/server/dicom_series_record.h"
 #include "tests/server/postgres_fixture.h"
 #include "tests/testing/test_data.h"
 
@@ -307,19 +308,6 @@ TEST_P(JobStoreTest, LabelMapOfAQueuedJobCannotBeDeleted) {
   EXPECT_THAT(std::string(st.message()), HasSubstr("label map"));
   ASSERT_TRUE(store_->Cancel("a").ok());
   EXPECT_TRUE(store_->DeleteVolume("labels").ok());
-}
-
-// A check's outcome as the receiver stores it (the fields the tests set).
-DicomSeriesRecord Check(const std::string& set, const std::string& series, const std::string& job,
-                        const std::string& reason, v1::ReceivedSeries::State state) {
-  DicomSeriesRecord r;
-  r.instance_set = set;
-  r.series_instance_uid = series;
-  r.job = job;
-  r.reason = reason;
-  r.route = "r";
-  r.state = state;
-  return r;
 }
 
 // The DICOM receiver's state (dicom_receiver.h): received instances, the persisted abort mark

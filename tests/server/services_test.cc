@@ -2,6 +2,7 @@
 // service, each bad job spec refused at submit naming its field (message and ErrorDetail), the
 // normalized spec stored, and the fault seam closed unless the server allows faults.
 #include "server/service.h"
+#include "tests/server/dicom_series_record.h"
 
 #include <grpcpp/grpcpp.h>
 
@@ -262,19 +263,6 @@ TEST_F(ServicesTest, AManifestFileThatIsAlsoAFolderOfAnotherIsInvalidArgument) {
     EXPECT_THAT(Detail(*ctx).field(), StartsWith("volume.files["));
     EXPECT_FALSE(fs::exists(dir_ / "volumes") && !fs::is_empty(dir_ / "volumes"));
   }
-}
-
-// A check's outcome as the receiver stores it (the fields the tests set).
-DicomSeriesRecord Check(const std::string& set, const std::string& series, const std::string& job,
-                        const std::string& reason, v1::ReceivedSeries::State state) {
-  DicomSeriesRecord r;
-  r.instance_set = set;
-  r.series_instance_uid = series;
-  r.job = job;
-  r.reason = reason;
-  r.route = "r";
-  r.state = state;
-  return r;
 }
 
 std::string HexSha256(const std::string& s) {
