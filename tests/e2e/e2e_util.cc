@@ -244,7 +244,7 @@ v1::Job GetJob(const std::string& address, const std::string& name) {
 
 std::vector<v1::JobEvent> WatchAll(const std::string& address, const std::string& name,
                                    int64_t after, int stop_after, grpc::Status* status,
-                                   std::chrono::seconds deadline) {
+                                   std::chrono::seconds deadline, std::atomic<int>* first_event) {
   auto stub = v1::Jobs::NewStub(grpc::CreateChannel(address, grpc::InsecureChannelCredentials()));
   grpc::ClientContext ctx;
   ctx.set_deadline(std::chrono::system_clock::now() + deadline);
@@ -255,6 +255,7 @@ std::vector<v1::JobEvent> WatchAll(const std::string& address, const std::string
   std::vector<v1::JobEvent> events;
   v1::JobEvent ev;
   while (reader->Read(&ev)) {
+    if (events.empty() && first_event != nullptr) ++*first_event;
     events.push_back(ev);
     if (stop_after >= 0 && ev.has_progress() && --stop_after == 0) {
       ctx.TryCancel();

@@ -4,6 +4,7 @@
 
 #include <sys/types.h>
 
+#include <atomic>
 #include <chrono>
 #include <filesystem>
 #include <map>
@@ -75,11 +76,13 @@ v1::Job GetJob(const std::string& address, const std::string& name);
 
 // The events of one WatchJob stream over a fresh plaintext channel, from `after` to the end of
 // the stream, or until `stop_after` progress events were read (then the watch is cancelled).
-// The stream's status goes to *status when given.
+// The stream's status goes to *status when given; *first_event (when given) is incremented
+// once the first event (the snapshot) was read, so a test can wait for its watchers to be on.
 std::vector<v1::JobEvent> WatchAll(const std::string& address, const std::string& name,
                                    int64_t after = 0, int stop_after = -1,
                                    grpc::Status* status = nullptr,
-                                   std::chrono::seconds deadline = std::chrono::seconds(120));
+                                   std::chrono::seconds deadline = std::chrono::seconds(120),
+                                   std::atomic<int>* first_event = nullptr);
 // The sequence numbers of the events that are neither the snapshot nor heartbeats.
 std::vector<int64_t> Sequences(const std::vector<v1::JobEvent>& events);
 

@@ -358,12 +358,18 @@ TEST_F(ScaleE2E, DatabaseRestartMidRunReplicasReconnectWatchersResyncEveryJobEnd
   std::vector<std::vector<int64_t>> seen(jobs.size());
   std::vector<grpc::Status> ends(jobs.size());
   std::vector<std::thread> watchers;
+  std::atomic<int> watching{0};
   for (size_t i = 0; i < jobs.size(); ++i) {
-    watchers.emplace_back(
-        [&, i] { seen[i] = Sequences(WatchAll(addr((i + 1) % 3), jobs[i], 0, -1, &ends[i])); });
+    watchers.emplace_back([&, i] {
+      seen[i] = Sequences(WatchAll(addr((i + 1) % 3), jobs[i], 0, -1, &ends[i],
+                                   std::chrono::seconds(120), &watching));
+    });
   }
-  // Not an ASSERT: the watcher threads must be joined whatever happens.
+  // Not an ASSERT: the watcher threads must be joined whatever happens. Every watcher has its
+  // snapshot before the database goes away (the case is watchers that resync, not a watch
+  // opened while the database is down).
   EXPECT_TRUE(WaitFor([&] { return GetJob(addr(0), jobs[0]).state() == v1::RUNNING; }, 60s));
+  EXPECT_TRUE(WaitFor([&] { return watching.load() == static_cast<int>(jobs.size()); }, 60s));
   Postgres()->Stop();
   std::this_thread::sleep_for(1s);
   EXPECT_EQ(Postgres()->Start(), "");
