@@ -161,6 +161,24 @@ TEST_F(ServicesTest, ReflectionAnswersOnlyAnIdentifiedCaller) {
   EXPECT_EQ(first.service(0).name(), "Jobs");
   EXPECT_EQ(out[2].error_response().error_code(), grpc::NOT_FOUND);
   EXPECT_THAT(out[2].error_response().error_message(), HasSubstr("decima.v1.NoSuchThing"));
+  // Broken requests get an error answer on the same stream, which goes on serving.
+  rv::ServerReflectionRequest empty;  // no message_request
+  rv::ServerReflectionRequest no_file;
+  no_file.set_file_by_filename("../../etc/passwd" + std::string(4096, 'x'));
+  rv::ServerReflectionRequest bad_extension;
+  bad_extension.mutable_file_containing_extension()->set_containing_type("decima.v1.Job");
+  bad_extension.mutable_file_containing_extension()->set_extension_number(-7);
+  rv::ServerReflectionRequest no_type;
+  no_type.set_all_extension_numbers_of_type("not a type");
+  out.clear();
+  ASSERT_TRUE(ask(kToken, {empty, no_file, bad_extension, no_type, list}, &out).ok());
+  ASSERT_EQ(out.size(), 5u);
+  EXPECT_EQ(out[0].error_response().error_code(), grpc::INVALID_ARGUMENT);
+  for (int i = 1; i <= 3; ++i) {
+    EXPECT_EQ(out[i].error_response().error_code(), grpc::NOT_FOUND) << i;
+    EXPECT_FALSE(out[i].has_file_descriptor_response()) << i;
+  }
+  EXPECT_GE(out[4].list_services_response().service_size(), 4);
 }
 
 TEST_F(ServicesTest, EveryBadJobSpecIsInvalidArgumentAtSubmitNamingItsFieldAndQueuesNothing) {
