@@ -46,12 +46,23 @@ function(decima_core_module name)
   set_property(GLOBAL APPEND PROPERTY DECIMA_CORE_MODULES decima_${name})
 endfunction()
 
+# decima_test_labels(TARGET LABEL...): records a test executable under its ctest labels, so that
+# tests/CMakeLists.txt can offer one build target per label (tests-unit, tests-server, ...). The
+# sanitizer CI builds only the labels it runs; with gtest_discover_tests an executable that was
+# not built has no tests at all, so a list kept by hand could silently drop a new one.
+function(decima_test_labels target)
+  foreach(label IN LISTS ARGN)
+    set_property(GLOBAL APPEND PROPERTY DECIMA_TEST_TARGETS_${label} ${target})
+  endforeach()
+endfunction()
+
 # decima_test(NAME SOURCES ... DEPS ...): one GoogleTest executable registered with ctest.
 function(decima_test name)
   cmake_parse_arguments(ARG "" "" "SOURCES;DEPS;LABELS" ${ARGN})
   add_executable(${name} ${ARG_SOURCES})
   target_link_libraries(${name} PRIVATE ${ARG_DEPS} decima_testing GTest::gtest GTest::gmock GTest::gtest_main)
   decima_target_defaults(${name})
+  decima_test_labels(${name} ${ARG_LABELS})
   gtest_discover_tests(${name} DISCOVERY_TIMEOUT 60
                        PROPERTIES LABELS "${ARG_LABELS}"
                                   ENVIRONMENT "DECIMA_SHARED_DATA=${DECIMA_SHARED_DATA}")
