@@ -15,6 +15,8 @@
 #include <array>
 #include <cmath>
 #include <limits>
+#include <new>
+#include <type_traits>
 #include <vector>
 
 #include "absl/strings/str_cat.h"
@@ -184,6 +186,35 @@ struct Scratch {
   }
 };
 
+// What the queue keeps per vertex, in one 32-byte record: the serial loop reads and writes these
+// fields together for every vertex around a collapse, and they sit at scattered places of the
+// mesh, so one cache line per vertex instead of one per field array.
+struct QueueState {
+  double cost = std::numeric_limits<double>::infinity();  // of the best collapse u -> best
+  double second_cost = std::numeric_limits<double>::infinity();
+  int32_t best = -1;
+  int32_t second = -1;   // runner-up target (-1 unknown), to replace a lost best
+  uint32_t version = 0;  // of the vertex's current queue entry (older entries are stale)
+  uint8_t blocked = 0;   // no valid collapse at the last try; re-tried when touched
+  uint8_t stale = 0;     // constrained vertex whose star changed: re-score when popped
+  uint8_t flags = 0;     // the vertex's flags (a copy of flags_ next to the rest)
+};
+static_assert(sizeof(QueueState) == 32);
+
+// Allocates on cache-line boundaries, so that no 32-byte QueueState straddles two lines.
+template <typename T>
+struct CacheLineAllocator {
+  using value_type = T;
+  CacheLineAllocator() = default;
+  template <typename U>
+  CacheLineAllocator(const CacheLineAllocator<U>&) {}
+  T* allocate(size_t n) {
+    return static_cast<T*>(::operator new(n * sizeof(T), std::align_val_t(64)));
+  }
+  void deallocate(T* p, size_t) { ::operator delete(p, std::align_val_t(64)); }
+  bool operator==(const CacheLineAllocator&) const { return true; }
+};
+
 class FieldEngine {
  public:
   FieldEngine(const TetMesh& mesh, const SimplifyOptions& options, int threads)
@@ -201,12 +232,13 @@ class FieldEngine {
   void Candidates(int32_t u, Scratch& s);
   bool Score(int32_t u, Scratch& s, double* cost, int32_t* best);
   bool Rescore(int32_t u) {
-    stale_[u] = 0;
-    return Score(u, scratch_, &cost_[u], &best_[u]);
+    st_[u].stale = 0;
+    return Score(u, scratch_, &st_[u].cost, &st_[u].best);
   }
   bool Valid(int32_t u, int32_t v, const std::vector<int32_t>& star);
   int64_t Collapse(int32_t u, int32_t v, const std::vector<int32_t>& star);
-  void Push(int32_t u) { heap_.push({static_cast<float>(cost_[u]), u, ++version_[u]}); }
+  void Push(int32_t u) { heap_.push({static_cast<float>(st_[u].cost), u, ++st_[u].version}); }
+  void ReleaseQueue();
   void Finish(SimplifyResult* result);
 
   // u's quadric in double with its point and cost factor: the candidates of u share it.
@@ -243,6 +275,45 @@ class FieldEngine {
                  dz = double(pos_[3 * x + 2]) - pos_[3 * u + 2];
     return tie_break_ * (dx * dx + dy * dy + dz * dz);
   }
+  // The cosine of the cell's smallest dihedral angle (the cell must have positive volume). The
+  // inward normals N_k of the faces opposite each vertex, scaled by their areas, sum to zero;
+  // the dihedral angle at the edge shared by faces i and j is acos(-N_i . N_j / |N_i| |N_j|).
+  double MaxDihedralCos(const int32_t* c) const {
+    double p[4][3];
+    for (int k = 0; k < 4; ++k) {
+      for (int d = 0; d < 3; ++d) p[k][d] = pos_[3 * int64_t(c[k]) + d];
+    }
+    auto sub = [&](int a, int b, double out[3]) {
+      for (int d = 0; d < 3; ++d) out[d] = p[a][d] - p[b][d];
+    };
+    auto cross = [](const double a[3], const double b[3], double out[3]) {
+      out[0] = a[1] * b[2] - a[2] * b[1];
+      out[1] = a[2] * b[0] - a[0] * b[2];
+      out[2] = a[0] * b[1] - a[1] * b[0];
+    };
+    // For a positive cell (p1 - p0) . ((p2 - p0) x (p3 - p0)) > 0: these are the inward normals
+    // of the faces opposite p1, p2, p3 (each points from its face towards that vertex).
+    double e1[3], e2[3], e3[3], n[4][3];
+    sub(1, 0, e1);
+    sub(2, 0, e2);
+    sub(3, 0, e3);
+    cross(e2, e3, n[1]);
+    cross(e3, e1, n[2]);
+    cross(e1, e2, n[3]);
+    double len[4];
+    for (int d = 0; d < 3; ++d) n[0][d] = -(n[1][d] + n[2][d] + n[3][d]);
+    for (int k = 0; k < 4; ++k) {
+      len[k] = std::sqrt(n[k][0] * n[k][0] + n[k][1] * n[k][1] + n[k][2] * n[k][2]);
+    }
+    double worst = -1;
+    for (int i = 0; i < 4; ++i) {
+      for (int j = i + 1; j < 4; ++j) {
+        const double dot = n[i][0] * n[j][0] + n[i][1] * n[j][1] + n[i][2] * n[j][2];
+        worst = std::max(worst, -dot / (len[i] * len[j]));
+      }
+    }
+    return worst;
+  }
   double SignedVolume(const int32_t* c) const {
     const float* a = &pos_[3 * c[0]];
     const float* b = &pos_[3 * c[1]];
@@ -270,15 +341,10 @@ class FieldEngine {
   std::vector<int32_t> parent_;   // -1 alive, else the vertex it collapsed onto
   // Per vertex, centred at its own point (position, value) so that float keeps the precision.
   std::vector<float> quadric_;
-  std::vector<double> cost_;
-  std::vector<int32_t> best_;
-  std::vector<int32_t> second_;  // runner-up target (-1 unknown), to replace a lost best
-  std::vector<double> second_cost_;
-  std::vector<uint32_t> version_;
-  std::vector<uint8_t> blocked_;  // no valid collapse at the last try; re-tried when touched
-  std::vector<uint8_t> stale_;    // constrained vertex whose star changed: re-score when popped
+  std::vector<QueueState, CacheLineAllocator<QueueState>> st_;
   QueueHeap heap_;
   double voxel_volume_ = 1, min_volume_ = 0, tie_break_ = 0;
+  double max_cos_ = 1;  // cos of the dihedral floor (1: no shape guard)
   // Scratch of the serial loop.
   Scratch scratch_;
   std::vector<int32_t> touched_, changed_;
@@ -338,6 +404,9 @@ void FieldEngine::Setup() {
     voxel_volume_ = nt_ > 0 ? 5 * total_volume / double(nt_) : 1;
   }
   min_volume_ = options_.min_volume_fraction * voxel_volume_;
+  max_cos_ = options_.min_dihedral_degrees > 0
+                 ? std::cos(options_.min_dihedral_degrees * M_PI / 180.0)
+                 : 1.0;
   float lo_s = std::numeric_limits<float>::infinity(), hi_s = -lo_s;
   for (float s : in_.scalars) {
     lo_s = std::min(lo_s, s);
@@ -379,13 +448,8 @@ void FieldEngine::Setup() {
     }
   });
 
-  cost_.assign(nv_, std::numeric_limits<double>::infinity());
-  best_.assign(nv_, -1);
-  second_.assign(nv_, -1);
-  second_cost_.assign(nv_, std::numeric_limits<double>::infinity());
-  version_.assign(nv_, 0);
-  blocked_.assign(nv_, 0);
-  stale_.assign(nv_, 0);
+  st_.assign(nv_, QueueState{});
+  for (int64_t v = 0; v < nv_; ++v) st_[v].flags = flags_[v];
 }
 
 Freedom FieldEngine::Classify(int32_t u, Scratch& s, int32_t along[2]) const {
@@ -539,8 +603,8 @@ bool FieldEngine::Score(int32_t u, Scratch& s, double* cost, int32_t* best) {
   }
   *cost = first.cost;
   *best = first.target;
-  second_[u] = second.target;
-  second_cost_[u] = second.cost;
+  st_[u].second = second.target;
+  st_[u].second_cost = second.cost;
   return *best >= 0;
 }
 
@@ -570,6 +634,12 @@ bool FieldEngine::Valid(int32_t u, int32_t v, const std::vector<int32_t>& star) 
       if (moved[k] == u) moved[k] = v;
     }
     if (!(SignedVolume(moved) >= min_volume_)) return false;
+    // The shape guard: a moved cell may not get a dihedral angle below the floor unless it had
+    // an even smaller one before (cells of the input are never blocked by their own shape).
+    if (max_cos_ < 1) {
+      const double after = MaxDihedralCos(moved);
+      if (after > max_cos_ && after > MaxDihedralCos(t)) return false;
+    }
   }
   for (int i = 0; i < nlost; ++i) {
     if (valence_[lost[i][0]] <= lost[i][1]) return false;
@@ -608,8 +678,8 @@ int64_t FieldEngine::Collapse(int32_t u, int32_t v, const std::vector<int32_t>& 
   for (int k = 0; k < kQuadricSize; ++k) qv[k] = float(double(qv[k]) + moved[k]);
   parent_[u] = v;
   valence_[u] = 0;
-  cost_[u] = std::numeric_limits<double>::infinity();
-  ++version_[u];  // its queue entries are stale
+  st_[u].cost = std::numeric_limits<double>::infinity();
+  ++st_[u].version;  // its queue entries are stale
   const uint32_t stamp = scratch_.NextStamp(nv_);
   size_t n = 0;
   for (int32_t w : touched_) {
@@ -634,12 +704,12 @@ absl::Status FieldEngine::Run(int64_t target, double tolerance, const ProgressFn
   // Initial scores in parallel: no cell is dead yet, so the walks only read shared state.
   ParallelFor(nv_, threads_, 16384, [&](int64_t v0, int64_t v1) {
     Scratch s;
-    for (int64_t v = v0; v < v1; ++v) Score(int32_t(v), s, &cost_[v], &best_[v]);
+    for (int64_t v = v0; v < v1; ++v) Score(int32_t(v), s, &st_[v].cost, &st_[v].best);
   });
   {
     std::vector<HeapEntry> entries;
     for (int64_t v = 0; v < nv_; ++v) {
-      if (best_[v] >= 0) entries.push_back({float(cost_[v]), int32_t(v), ++version_[v]});
+      if (st_[v].best >= 0) entries.push_back({float(st_[v].cost), int32_t(v), ++st_[v].version});
     }
     heap_.Assign(std::move(entries));
   }
@@ -654,12 +724,12 @@ absl::Status FieldEngine::Run(int64_t target, double tolerance, const ProgressFn
     const HeapEntry e = heap_.top();
     heap_.pop();
     const int32_t u = e.vertex;
-    if (e.version != version_[u] || parent_[u] >= 0) continue;
-    if (stale_[u]) {
-      const double old_cost = cost_[u];
-      const int32_t old_best = best_[u];
+    if (e.version != st_[u].version || parent_[u] >= 0) continue;
+    if (st_[u].stale) {
+      const double old_cost = st_[u].cost;
+      const int32_t old_best = st_[u].best;
       if (!Rescore(u)) continue;
-      if (cost_[u] != old_cost || best_[u] != old_best) {
+      if (st_[u].cost != old_cost || st_[u].best != old_best) {
         Push(u);
         continue;
       }
@@ -667,17 +737,17 @@ absl::Status FieldEngine::Run(int64_t target, double tolerance, const ProgressFn
     if ((++pops & 0xffff) == 0) DECIMA_RETURN_IF_ERROR(CheckCancelled(cancel, "simplify"));
     if (tolerance > 0) {
       const double w = quadric_[kQuadricSize * int64_t(u) + kWeightEntry];
-      if (w > 0 && std::sqrt(cost_[u] / w) > tolerance) {
+      if (w > 0 && std::sqrt(st_[u].cost / w) > tolerance) {
         tolerance_hit = true;
-        blocked_[u] = 1;
+        st_[u].blocked = 1;
         continue;
       }
     }
     // u's cells, once: the validity checks, the fallback's candidates and the collapse share it.
     const std::vector<int32_t>& star = scratch_.star;
     GatherStar(u, &scratch_.star);
-    int32_t v = best_[u];
-    double cost = cost_[u];
+    int32_t v = st_[u].best;
+    double cost = st_[u].cost;
     if (!Valid(u, v, star)) {
       ++invalid_tries_;
       Candidates(u, scratch_);
@@ -691,19 +761,19 @@ absl::Status FieldEngine::Run(int64_t target, double tolerance, const ProgressFn
         }
       }
       if (v < 0) {
-        blocked_[u] = 1;
+        st_[u].blocked = 1;
         continue;
       }
       if (!heap_.empty() && float(cost) > heap_.top().cost) {
         // The best valid target costs more than the next vertex in the queue: wait for it.
-        cost_[u] = cost;
-        best_[u] = v;
+        st_[u].cost = cost;
+        st_[u].best = v;
         Push(u);
         ++requeued_;
         continue;
       }
     }
-    const bool u_free = flags_[u] == 0;
+    const bool u_free = st_[u].flags == 0;
     if (!u_free) ++constrained_moves_;
     removed += Collapse(u, v, star);
     ++collapses;
@@ -718,62 +788,60 @@ absl::Status FieldEngine::Run(int64_t target, double tolerance, const ProgressFn
     // The loop below is bound by cache misses on these scattered records: ask for them first.
     for (int32_t w2 : changed_) {
       __builtin_prefetch(&quadric_[kQuadricSize * int64_t(w2)]);
-      __builtin_prefetch(&cost_[w2]);
-      __builtin_prefetch(&second_[w2]);
-      __builtin_prefetch(&best_[w2]);
+      __builtin_prefetch(&st_[w2]);
     }
     for (const int32_t w2 : changed_) {
-      if (second_[w2] == u) second_[w2] = -1;  // u is gone
-      const bool was_blocked = blocked_[w2];
-      blocked_[w2] = 0;  // its star changed: worth another try
-      if (u_free && w2 != v && flags_[w2] != 0 && !was_blocked && best_[w2] >= 0) {
+      QueueState& ws = st_[w2];
+      if (ws.second == u) ws.second = -1;  // u is gone
+      const bool was_blocked = ws.blocked;
+      ws.blocked = 0;  // its star changed: worth another try
+      if (u_free && w2 != v && ws.flags != 0 && !was_blocked && ws.best >= 0) {
         // A free vertex's collapse changes no constraint face, so w2's patch, candidates and
         // their costs are unchanged; only its validity may differ: re-checked when popped.
-        stale_[w2] = 1;
+        ws.stale = 1;
         continue;
       }
-      if (w2 != v && flags_[w2] == 0 && best_[w2] == u && second_[w2] >= 0 && second_[w2] != v) {
+      if (w2 != v && ws.flags == 0 && ws.best == u && ws.second >= 0 && ws.second != v) {
         // Its best target is gone; the runner-up and v are the only contenders (every other
         // candidate's cost is unchanged and was not below the runner-up's).
         const double c = Cost(w2, v);
-        if (c < second_cost_[w2] || (c == second_cost_[w2] && v < second_[w2])) {
-          cost_[w2] = c;
-          best_[w2] = v;
+        if (c < ws.second_cost || (c == ws.second_cost && v < ws.second)) {
+          ws.cost = c;
+          ws.best = v;
         } else {
-          cost_[w2] = second_cost_[w2];
-          best_[w2] = second_[w2];
+          ws.cost = ws.second_cost;
+          ws.best = ws.second;
         }
-        second_[w2] = -1;  // unknown now: the next loss of the best re-scores fully
+        ws.second = -1;  // unknown now: the next loss of the best re-scores fully
         Push(w2);
         continue;
       }
-      if (w2 != v && flags_[w2] == 0 && best_[w2] != u && best_[w2] >= 0) {
+      if (w2 != v && ws.flags == 0 && ws.best != u && ws.best >= 0) {
         const double c = Cost(w2, v);
-        if (c < cost_[w2] || (c == cost_[w2] && v < best_[w2])) {
-          second_[w2] = best_[w2];
-          second_cost_[w2] = cost_[w2];
-          cost_[w2] = c;
-          best_[w2] = v;
+        if (c < ws.cost || (c == ws.cost && v < ws.best)) {
+          ws.second = ws.best;
+          ws.second_cost = ws.cost;
+          ws.cost = c;
+          ws.best = v;
           Push(w2);
         } else {
-          if (second_[w2] >= 0 &&
-              (c < second_cost_[w2] || (c == second_cost_[w2] && v < second_[w2]))) {
-            second_[w2] = v;
-            second_cost_[w2] = c;
+          if (ws.second >= 0 && (c < ws.second_cost || (c == ws.second_cost && v < ws.second))) {
+            ws.second = v;
+            ws.second_cost = c;
           }
           if (was_blocked) Push(w2);  // a blocked vertex has no queue entry
         }
         continue;
       }
-      const double old_cost = cost_[w2];
-      const int32_t old_best = best_[w2];
+      const double old_cost = ws.cost;
+      const int32_t old_best = ws.best;
       if (Rescore(w2)) {
         // An unchanged score keeps its queue entry (unless it was blocked: it has none).
-        if (was_blocked || cost_[w2] != old_cost || best_[w2] != old_best) {
+        if (was_blocked || ws.cost != old_cost || ws.best != old_best) {
           Push(w2);
         }
       } else {
-        ++version_[w2];
+        ++ws.version;
       }
     }
     if (removed >= next_report) {
@@ -802,8 +870,28 @@ absl::Status FieldEngine::Run(int64_t target, double tolerance, const ProgressFn
     result->stop_reason =
         tolerance_hit ? StopReason::kErrorTolerance : StopReason::kNoValidCollapse;
   }
+  ReleaseQueue();
   Finish(result);
   return absl::OkStatus();
+}
+
+// Frees what only the collapse loop needs before Finish builds the output mesh: with both
+// alive, the output was the peak of the whole simplification (about 1 GB of queue, quadrics
+// and adjacency per 10 M input cells on top of the output).
+void FieldEngine::ReleaseQueue() {
+  auto release = [](auto& v) { std::decay_t<decltype(v)>().swap(v); };
+  release(quadric_);
+  release(st_);
+  release(row_start_);
+  release(row_len_);
+  release(class_next_);
+  release(class_tail_);
+  release(cell_ids_);
+  release(flags_);
+  release(touched_);
+  release(changed_);
+  heap_ = QueueHeap();
+  scratch_ = Scratch();
 }
 
 void FieldEngine::Finish(SimplifyResult* result) {

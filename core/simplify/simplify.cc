@@ -160,6 +160,10 @@ absl::Status ValidateSimplifyOptions(const SimplifyOptions& o) {
     return bad(absl::StrCat("min_volume_fraction = ", o.min_volume_fraction,
                             ": expected a value in (0, 1) voxels^3"));
   }
+  if (!(o.min_dihedral_degrees >= 0 && o.min_dihedral_degrees <= 30)) {
+    return bad(absl::StrCat("min_dihedral_degrees = ", o.min_dihedral_degrees,
+                            ": expected [0, 30] degrees"));
+  }
   if (!(o.min_pass_gain >= 0 && o.min_pass_gain <= 0.5)) {
     return bad(absl::StrCat("min_pass_gain = ", o.min_pass_gain, ": expected [0, 0.5]"));
   }

@@ -79,6 +79,10 @@ struct SimplifyOptions {
   // A collapse is rejected if a moved cell would end with volume below this many voxels^3
   // (rule 6's sign test plus a guard against slivers). Must be > 0.
   double min_volume_fraction = 1e-3;
+  // kField, the shape guard: a collapse may not give a cell it changes a dihedral angle below
+  // this many degrees, unless that cell already had a smaller one (so cells of the input never
+  // block themselves). 0 = no guard. In [0, 30]. README "Shape guard" has what it costs.
+  double min_dihedral_degrees = 5;
   // §2.2.4 step 2g (default): after a collapse, lock the cells it changed for the rest of the
   // pass (a pass is then an independent set of collapses; passes repeat). false: no lock;
   // cells whose neighbourhood changed are re-scored when they reach the front of the queue and

@@ -275,6 +275,28 @@ TEST(FieldPolicy, RefitLowersTheErrorAndKeepsTheMesh) {
   EXPECT_LT(mr->rmse, 0.95 * mk->rmse) << mk->rmse << " -> " << mr->rmse;
 }
 
+// The shape guard: no collapse leaves a cell with a dihedral angle below the floor (the input's
+// cells are all above it), whatever order the queue takes. Without the guard the same run makes
+// slivers, so the check can fail.
+TEST(FieldPolicy, ShapeGuardKeepsEveryDihedralAngleAboveTheFloor) {
+  auto pm = MakePhantomMesh(24, 40);
+  const double input_min = MeasureQuality(pm.mesh, 0).min_dihedral_deg;
+  ASSERT_GT(input_min, 45);  // 5 tets per cube: 54.7 deg
+  SimplifyOptions o = Field(0.7);
+  o.min_dihedral_degrees = 0;
+  auto unguarded = Simplify(pm.mesh, o);
+  o.min_dihedral_degrees = 8;
+  auto guarded = Simplify(pm.mesh, o);
+  ASSERT_TRUE(unguarded.ok() && guarded.ok());
+  EXPECT_TRUE(guarded->reached_target) << guarded->stop_message;
+  EXPECT_LT(MeasureQuality(unguarded->mesh, 0).min_dihedral_deg, 8);
+  EXPECT_GE(MeasureQuality(guarded->mesh, 0).min_dihedral_deg, 8 - 1e-9);
+  ExpectBoxHull(guarded->mesh, pm.mesh);
+  SimplifyOptions bad = Field(0.5);
+  bad.min_dihedral_degrees = 31;
+  EXPECT_EQ(Simplify(pm.mesh, bad).status().code(), absl::StatusCode::kInvalidArgument);
+}
+
 TEST(FieldPolicy, SameResultOnOneAndTwoThreads) {
   auto pm = MakePhantomMesh(20, 40);
   auto a = Simplify(pm.mesh, Field(0.6, 1));
