@@ -11,7 +11,6 @@
 
 #include <cstring>
 #include <fstream>
-#include <future>
 #include <sstream>
 
 #include "decima/v1/jobs.grpc.pb.h"
@@ -333,7 +332,7 @@ TEST_F(HardeningE2E, WatchersSurviveAGracefulRestartAndShortJobsFinishInTheDrain
   const std::string listen = "127.0.0.1:" + std::to_string(FreePort());
   const fs::path data = scratch_ / "data";
   std::string requeued, finished;
-  std::future<CliResult> watch;
+  CliProcess watch;
   {
     const std::string drain = std::to_string(8 * kSlowdown);
     ServerProcess server(
@@ -346,17 +345,23 @@ TEST_F(HardeningE2E, WatchersSurviveAGracefulRestartAndShortJobsFinishInTheDrain
     finished = FirstLine(r.out);
     ASSERT_TRUE(WaitFor([&] { return GetJob(listen, finished).state() == v1::RUNNING; }, 30s));
     ASSERT_TRUE(WaitFor([&] { return GetJob(listen, requeued).state() == v1::RUNNING; }, 30s));
-    watch = std::async(std::launch::async, [&] {
-      return RunCli(listen, {"watch", requeued}, 180s * kSlowdown);
-    });
-    std::this_thread::sleep_for(500ms);
+    // The watcher must be on its stream before the drain starts (a CLI that only starts
+    // during the drain meets a server that refuses new calls, which is not this case): under
+    // load a fixed pause was too short.
+    watch = StartCli(listen, {"watch", requeued});
+    if (!WaitFor([&] { return ReadFile(watch.err).find("watching") != std::string::npos; },
+                 30s * kSlowdown)) {
+      kill(watch.pid, SIGKILL);
+      WaitCli(watch, 10s);
+      FAIL() << "the watcher never got its snapshot: " << ReadFile(watch.err);
+    }
     server.Kill(SIGTERM);
   }
   ServerProcess restarted(data, {"--listen", listen, "--allow-faults", "--workers", "2"});
   const v1::Job done = GetJob(listen, finished);
   EXPECT_EQ(done.state(), v1::SUCCEEDED);
   EXPECT_EQ(done.attempts(), 1) << "a job that ends within the drain time is not re-run";
-  CliResult w = watch.get();
+  CliResult w = WaitCli(watch, 180s * kSlowdown);
   EXPECT_EQ(w.rc, 0) << w.err;
   EXPECT_THAT(w.err, Not(HasSubstr("CANCELLED")));
   EXPECT_THAT(w.err, HasSubstr("reconnecting"));
