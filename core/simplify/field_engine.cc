@@ -314,6 +314,38 @@ class FieldEngine {
     }
     return worst;
   }
+  // Whether every dihedral angle of the (positive) cell is at least the floor: the test of
+  // MaxDihedralCos(c) <= max_cos_ without square roots (-N_i . N_j <= cos |N_i| |N_j|, squared
+  // where the left side is positive). Valid runs it on every moved cell of every try, so it is
+  // the guard's whole cost; the exact angles are computed only for the few cells it fails.
+  bool AboveFloor(const int32_t* c) const {
+    const float* a = &pos_[3 * int64_t(c[0])];
+    double e[3][3];
+    for (int k = 0; k < 3; ++k) {
+      const float* b = &pos_[3 * int64_t(c[k + 1])];
+      for (int d = 0; d < 3; ++d) e[k][d] = double(b[d]) - a[d];
+    }
+    double n[4][3];
+    auto cross = [](const double* x, const double* y, double* out) {
+      out[0] = x[1] * y[2] - x[2] * y[1];
+      out[1] = x[2] * y[0] - x[0] * y[2];
+      out[2] = x[0] * y[1] - x[1] * y[0];
+    };
+    cross(e[1], e[2], n[1]);
+    cross(e[2], e[0], n[2]);
+    cross(e[0], e[1], n[3]);
+    for (int d = 0; d < 3; ++d) n[0][d] = -(n[1][d] + n[2][d] + n[3][d]);
+    double sq[4];
+    for (int k = 0; k < 4; ++k) sq[k] = n[k][0] * n[k][0] + n[k][1] * n[k][1] + n[k][2] * n[k][2];
+    const double cos2 = max_cos_ * max_cos_;
+    for (int i = 0; i < 4; ++i) {
+      for (int j = i + 1; j < 4; ++j) {
+        const double dot = n[i][0] * n[j][0] + n[i][1] * n[j][1] + n[i][2] * n[j][2];
+        if (dot < 0 && dot * dot > cos2 * sq[i] * sq[j]) return false;
+      }
+    }
+    return true;
+  }
   double SignedVolume(const int32_t* c) const {
     const float* a = &pos_[3 * c[0]];
     const float* b = &pos_[3 * c[1]];
@@ -348,6 +380,7 @@ class FieldEngine {
   // Scratch of the serial loop.
   Scratch scratch_;
   std::vector<int32_t> touched_, changed_;
+  std::vector<int32_t> guarded_;  // Valid: the moved cells the shape guard checks last
   int64_t invalid_tries_ = 0, requeued_ = 0, constrained_moves_ = 0;
 };
 
@@ -613,6 +646,7 @@ bool FieldEngine::Score(int32_t u, Scratch& s, double* cost, int32_t* best) {
 bool FieldEngine::Valid(int32_t u, int32_t v, const std::vector<int32_t>& star) {
   int32_t lost[64][2];
   int nlost = 0;
+  guarded_.clear();
   for (int32_t c : star) {
     const int32_t* t = &tets_[4 * int64_t(c)];
     if (t[0] == v || t[1] == v || t[2] == v || t[3] == v) {
@@ -634,15 +668,24 @@ bool FieldEngine::Valid(int32_t u, int32_t v, const std::vector<int32_t>& star) 
       if (moved[k] == u) moved[k] = v;
     }
     if (!(SignedVolume(moved) >= min_volume_)) return false;
-    // The shape guard: a moved cell may not get a dihedral angle below the floor unless it had
-    // an even smaller one before (cells of the input are never blocked by their own shape).
-    if (max_cos_ < 1) {
-      const double after = MaxDihedralCos(moved);
-      if (after > max_cos_ && after > MaxDihedralCos(t)) return false;
-    }
+    if (max_cos_ < 1) guarded_.push_back(c);
   }
   for (int i = 0; i < nlost; ++i) {
     if (valence_[lost[i][0]] <= lost[i][1]) return false;
+  }
+  // The shape guard, once every cheaper test passed (most tries fail on volume): a moved cell
+  // may not get a dihedral angle below the floor unless it had an even smaller one before
+  // (cells of the input are never blocked by their own shape).
+  for (int32_t c : guarded_) {
+    const int32_t* t = &tets_[4 * int64_t(c)];
+    int32_t moved[4] = {t[0], t[1], t[2], t[3]};
+    for (int k = 0; k < 4; ++k) {
+      if (moved[k] == u) moved[k] = v;
+    }
+    if (!AboveFloor(moved)) {
+      const double after = MaxDihedralCos(moved);
+      if (after > max_cos_ && after > MaxDihedralCos(t)) return false;
+    }
   }
   return true;
 }
@@ -890,6 +933,7 @@ void FieldEngine::ReleaseQueue() {
   release(flags_);
   release(touched_);
   release(changed_);
+  release(guarded_);
   heap_ = QueueHeap();
   scratch_ = Scratch();
 }

@@ -71,6 +71,7 @@ struct BenchOptions {
   int regions = 3;
   double reduction = 0.5;
   std::string policy = "field";
+  double min_dihedral = SimplifyOptions().min_dihedral_degrees;
   int size = 512;
   std::string view = "anterior";
 };
@@ -164,6 +165,7 @@ absl::Status RunSimplify(const BenchOptions& o, BenchState& state, Json& out) {
   SimplifyOptions so;
   so.policy = *ParseSimplifyPolicy(o.policy);  // the flag accepts only known names
   so.target_reduction = o.reduction;
+  so.min_dihedral_degrees = o.min_dihedral;
   absl::Status s = Time(o.repeat, out, [&]() -> absl::Status {
     state.simplified.reset();
     auto r = Simplify(*state.mesh, so);
@@ -175,6 +177,7 @@ absl::Status RunSimplify(const BenchOptions& o, BenchState& state, Json& out) {
   const SimplifyResult& r = *state.simplified;
   out["policy"] = o.policy;
   out["target_reduction"] = o.reduction;
+  if (so.policy == SimplifyPolicy::kField) out["min_dihedral_degrees"] = o.min_dihedral;
   out["achieved_reduction"] = r.achieved_reduction;
   out["reached_target"] = r.reached_target;
   out["stop_reason"] = StopReasonName(r.stop_reason);
@@ -254,6 +257,10 @@ int Main(int argc, char** argv) {
       ->capture_default_str();
   app.add_option("--policy", o.policy, "simplify: field, paper or tetfusion")
       ->check(CLI::IsMember({"field", "paper", "tetfusion"}))
+      ->capture_default_str();
+  app.add_option("--min-dihedral", o.min_dihedral,
+                 "simplify, field policy: the shape guard's floor in degrees (0 = no guard)")
+      ->check(CLI::Range(0.0, 30.0))
       ->capture_default_str();
   app.add_option("--size", o.size, "render: image width and height in pixels")
       ->check(CLI::Range(16, 4096))
