@@ -72,6 +72,7 @@ struct BenchOptions {
   double reduction = 0.5;
   std::string policy = "field";
   double min_dihedral = SimplifyOptions().min_dihedral_degrees;
+  int refit_iterations = SimplifyOptions().refit_iterations;
   int size = 512;
   std::string view = "anterior";
 };
@@ -166,6 +167,7 @@ absl::Status RunSimplify(const BenchOptions& o, BenchState& state, Json& out) {
   so.policy = *ParseSimplifyPolicy(o.policy);  // the flag accepts only known names
   so.target_reduction = o.reduction;
   so.min_dihedral_degrees = o.min_dihedral;
+  so.refit_iterations = o.refit_iterations;
   absl::Status s = Time(o.repeat, out, [&]() -> absl::Status {
     state.simplified.reset();
     auto r = Simplify(*state.mesh, so);
@@ -177,7 +179,10 @@ absl::Status RunSimplify(const BenchOptions& o, BenchState& state, Json& out) {
   const SimplifyResult& r = *state.simplified;
   out["policy"] = o.policy;
   out["target_reduction"] = o.reduction;
-  if (so.policy == SimplifyPolicy::kField) out["min_dihedral_degrees"] = o.min_dihedral;
+  if (so.policy == SimplifyPolicy::kField) {
+    out["min_dihedral_degrees"] = o.min_dihedral;
+    out["refit_iterations"] = o.refit_iterations;
+  }
   out["achieved_reduction"] = r.achieved_reduction;
   out["reached_target"] = r.reached_target;
   out["stop_reason"] = StopReasonName(r.stop_reason);
@@ -261,6 +266,10 @@ int Main(int argc, char** argv) {
   app.add_option("--min-dihedral", o.min_dihedral,
                  "simplify, field policy: the shape guard's floor in degrees (0 = no guard)")
       ->check(CLI::Range(0.0, 30.0))
+      ->capture_default_str();
+  app.add_option("--refit-iterations", o.refit_iterations,
+                 "simplify, field policy: least-squares refit steps (0 = keep the samples)")
+      ->check(CLI::Range(0, 1000))
       ->capture_default_str();
   app.add_option("--size", o.size, "render: image width and height in pixels")
       ->check(CLI::Range(16, 4096))
