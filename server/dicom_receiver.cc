@@ -22,6 +22,7 @@
 
 #include <google/protobuf/util/time_util.h>
 
+#include "absl/strings/escaping.h"
 #include "absl/strings/numbers.h"
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_format.h"
@@ -95,6 +96,19 @@ absl::Status CopyIntoBlobs(BlobStore* blobs, const fs::path& file, const std::st
   }
   if (in.bad()) return absl::InternalError(absl::StrCat(file.string(), ": read failed"));
   return (*writer)->Commit();
+}
+
+bool IsDicomUid(const std::string& uid) {
+  return !uid.empty() && uid.size() <= 64 &&
+         uid.find_first_not_of("0123456789.") == std::string::npos;
+}
+
+bool IsAeTitle(const std::string& ae) {
+  if (ae.empty() || ae.size() > 16) return false;
+  for (char c : ae) {
+    if (c < 0x20 || c > 0x7E || c == '\\') return false;
+  }
+  return true;
 }
 
 std::string InstanceSetKey(std::vector<std::string> sop_uids) {
@@ -400,9 +414,17 @@ uint16_t DicomReceiver::StoreInstance(const fs::path& file, const std::string& c
     spdlog::warn("dicom: instance from {} refused: {}", calling_ae, why);
     return STATUS_STORE_Refused_OutOfResources;
   }
+  // What the store keeps of a sender goes into ListReceivedSeries' answers (protobuf strings):
+  // AE titles are printable ASCII (PS3.5 6.2, AE), UIDs digits and dots (PS3.5 9.1).
   auto header = ReadUids(file);
+  if (header.ok() && !(IsDicomUid(header->series_uid) && IsDicomUid(header->sop_uid))) {
+    header = absl::InvalidArgumentError("SeriesInstanceUID or SOPInstanceUID is not a DICOM UID");
+  }
+  if (header.ok() && !(IsAeTitle(calling_ae) && IsAeTitle(called_ae))) {
+    header = absl::InvalidArgumentError("an AE title is not printable ASCII of 1-16 characters");
+  }
   if (!header.ok()) {
-    spdlog::warn("dicom: instance from {} refused: {}", calling_ae,
+    spdlog::warn("dicom: instance from {} refused: {}", absl::CHexEscape(calling_ae),
                  std::string(header.status().message()));
     return STATUS_STORE_Error_CannotUnderstand;
   }

@@ -43,6 +43,7 @@
 #include "absl/strings/str_split.h"
 #include "absl/types/span.h"
 #include "core/common/status.h"
+#include "core/common/utf8.h"
 #include "core/io/dicom_preflight.h"
 
 namespace decima {
@@ -126,7 +127,9 @@ std::optional<std::string> GetText(const gdcm::DataSet& ds, const gdcm::Tag& tag
   while (!s.empty() && (s.back() == ' ' || s.back() == '\0')) s.pop_back();
   absl::StripLeadingAsciiWhitespace(&s);
   if (s.empty()) return std::nullopt;
-  return s;
+  // Text may reach protobuf string fields (Volume.modality): a header's stray non-UTF-8 byte
+  // (a Latin-1 description, a broken Modality) must not make every answer carrying it fail.
+  return ValidUtf8(s);
 }
 
 // US value of `tag`, or nullopt if absent or not exactly 2 bytes. GDCM keeps binary values in

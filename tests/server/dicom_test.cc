@@ -6,9 +6,12 @@
 #include "core/io/dicom_export.h"
 #include "gmock/gmock.h"
 #include "gtest/gtest.h"
+#include "server/blob_store.h"
+#include "server/data_dir.h"
 #include "server/dicom_receiver.h"
 #include "server/dicom_routes.h"
 #include "server/job_store.h"
+#include "tests/testing/dicom_writer.h"
 #include "tests/testing/test_data.h"
 
 namespace decima::server {
@@ -113,6 +116,42 @@ TEST(DicomExportTest, NewUidsAreUuidDerivedAndDistinct) {
   EXPECT_EQ(a.rfind("2.25.", 0), 0u);
   EXPECT_LE(a.size(), 64u);
   EXPECT_EQ(a.find_first_not_of("0123456789.", 0), std::string::npos);
+}
+
+// What a sender's instance carries into the job store ends up in ListReceivedSeries' answers
+// (protobuf strings): an AE title that is not printable ASCII, or a UID that is not digits and
+// dots, is refused (a C-STORE failure status) and nothing of it is kept.
+TEST(DicomReceiverTest, InstancesWithABrokenAeTitleOrUidAreRefusedAndNothingIsKept) {
+  const std::filesystem::path dir = testing::MakeScratchDir("dicom_receiver");
+  auto store = OpenSqliteJobStore((dir / "jobs.sqlite").string());
+  ASSERT_TRUE(store.ok()) << store.status();
+  auto blobs = LocalBlobStore::Open(dir / "blobs", false);
+  ASSERT_TRUE(blobs.ok()) << blobs.status();
+  const DataDir data(dir);
+  DicomReceiverOptions options;
+  options.min_free_mb = 0;
+  DicomReceiver receiver(options, &data, store->get(), blobs->get(), nullptr, nullptr);
+  testing::SliceSpec good;
+  testing::WriteSlice(dir / "good.dcm", good);
+  testing::SliceSpec bad_uid = good;
+  bad_uid.series_uid = "1.2.826.0.1.\xE4";
+  testing::WriteSlice(dir / "bad-uid.dcm", bad_uid);
+  std::string series;
+  EXPECT_NE(receiver.StoreInstance(dir / "good.dcm", "SEND\xE4R", "DECIMA", &series), 0);
+  EXPECT_NE(receiver.StoreInstance(dir / "good.dcm", "SENDER", "LINE\nBREAK", &series), 0);
+  EXPECT_NE(receiver.StoreInstance(dir / "good.dcm", "SENDER", std::string(17, 'A'), &series), 0);
+  EXPECT_NE(receiver.StoreInstance(dir / "bad-uid.dcm", "SENDER", "DECIMA", &series), 0);
+  EXPECT_TRUE(series.empty());
+  auto kept = (*store)->ListDicomInstances();
+  ASSERT_TRUE(kept.ok()) << kept.status();
+  EXPECT_TRUE(kept->empty());
+  // The same file from a well-named sender is stored.
+  EXPECT_EQ(receiver.StoreInstance(dir / "good.dcm", "SENDER", "DECIMA", &series), 0);
+  EXPECT_EQ(series, good.series_uid);
+  kept = (*store)->ListDicomInstances();
+  ASSERT_TRUE(kept.ok()) << kept.status();
+  ASSERT_EQ(kept->size(), 1u);
+  EXPECT_EQ(kept->front().calling_ae, "SENDER");
 }
 
 }  // namespace

@@ -1,10 +1,11 @@
-// core/common: the cancellation token, progress forwarding, the status macros, BitSet and the
-// one ParallelFor (ranges cover [0, n) exactly once, contiguous, at most `threads`).
+// core/common: the cancellation token, progress forwarding, the status macros, BitSet, the
+// one ParallelFor (ranges cover [0, n) exactly once, contiguous, at most `threads`) and ValidUtf8.
 #include <gtest/gtest.h>
 
 #include <algorithm>
 #include <atomic>
 #include <mutex>
+#include <string>
 #include <thread>
 #include <vector>
 
@@ -12,6 +13,7 @@
 #include "core/common/parallel.h"
 #include "core/common/progress.h"
 #include "core/common/status.h"
+#include "core/common/utf8.h"
 
 namespace decima {
 namespace {
@@ -93,6 +95,27 @@ TEST(ParallelFor, MinChunkLimitsTheNumberOfRanges) {
   std::atomic<int> ranges{0};
   ParallelFor(100, 8, 40, [&](int64_t, int64_t) { ranges++; });
   EXPECT_EQ(ranges.load(), 2) << "100 items in chunks of at least 40";
+}
+
+TEST(ValidUtf8, KeepsValidTextAndReplacesEveryBrokenByte) {
+  using std::string;
+  // Valid: ASCII, NUL, 2-, 3- and 4-byte forms at the edges of their ranges.
+  for (const string& s : {string("CT"), string("a\0b", 3),
+                          string("Sch\xC3\xA4"
+                                 "del"),
+                          string("\xE0\xA0\x80\xED\x9F\xBF\xEF\xBF\xBF"),
+                          string("\xF0\x90\x80\x80\xF4\x8F\xBF\xBF"), string()}) {
+    EXPECT_EQ(ValidUtf8(s), s);
+  }
+  const string r = "\xEF\xBF\xBD";  // U+FFFD
+  EXPECT_EQ(ValidUtf8("Sch\xE4"
+                      "del"),
+            "Sch" + r + "del");                             // Latin-1
+  EXPECT_EQ(ValidUtf8("\xC0\xAF"), r + r);                  // overlong '/'
+  EXPECT_EQ(ValidUtf8("\xED\xA0\x80"), r + r + r);          // a surrogate
+  EXPECT_EQ(ValidUtf8("\xF4\x90\x80\x80"), r + r + r + r);  // above U+10FFFF
+  EXPECT_EQ(ValidUtf8("ab\xE2\x82"), "ab" + r + r);         // cut short
+  EXPECT_EQ(ValidUtf8("\x80x\xFF"), r + "x" + r);
 }
 
 }  // namespace
