@@ -275,57 +275,18 @@ class FieldEngine {
                  dz = double(pos_[3 * x + 2]) - pos_[3 * u + 2];
     return tie_break_ * (dx * dx + dy * dy + dz * dz);
   }
-  // The cosine of the cell's smallest dihedral angle (the cell must have positive volume). The
-  // inward normals N_k of the faces opposite each vertex, scaled by their areas, sum to zero;
-  // the dihedral angle at the edge shared by faces i and j is acos(-N_i . N_j / |N_i| |N_j|).
-  double MaxDihedralCos(const int32_t* c) const {
-    double p[4][3];
-    for (int k = 0; k < 4; ++k) {
-      for (int d = 0; d < 3; ++d) p[k][d] = pos_[3 * int64_t(c[k]) + d];
-    }
-    auto sub = [&](int a, int b, double out[3]) {
-      for (int d = 0; d < 3; ++d) out[d] = p[a][d] - p[b][d];
-    };
-    auto cross = [](const double a[3], const double b[3], double out[3]) {
-      out[0] = a[1] * b[2] - a[2] * b[1];
-      out[1] = a[2] * b[0] - a[0] * b[2];
-      out[2] = a[0] * b[1] - a[1] * b[0];
-    };
-    // For a positive cell (p1 - p0) . ((p2 - p0) x (p3 - p0)) > 0: these are the inward normals
-    // of the faces opposite p1, p2, p3 (each points from its face towards that vertex).
-    double e1[3], e2[3], e3[3], n[4][3];
-    sub(1, 0, e1);
-    sub(2, 0, e2);
-    sub(3, 0, e3);
-    cross(e2, e3, n[1]);
-    cross(e3, e1, n[2]);
-    cross(e1, e2, n[3]);
-    double len[4];
-    for (int d = 0; d < 3; ++d) n[0][d] = -(n[1][d] + n[2][d] + n[3][d]);
-    for (int k = 0; k < 4; ++k) {
-      len[k] = std::sqrt(n[k][0] * n[k][0] + n[k][1] * n[k][1] + n[k][2] * n[k][2]);
-    }
-    double worst = -1;
-    for (int i = 0; i < 4; ++i) {
-      for (int j = i + 1; j < 4; ++j) {
-        const double dot = n[i][0] * n[j][0] + n[i][1] * n[j][1] + n[i][2] * n[j][2];
-        worst = std::max(worst, -dot / (len[i] * len[j]));
-      }
-    }
-    return worst;
-  }
-  // Whether every dihedral angle of the (positive) cell is at least the floor: the test of
-  // MaxDihedralCos(c) <= max_cos_ without square roots (-N_i . N_j <= cos |N_i| |N_j|, squared
-  // where the left side is positive). Valid runs it on every moved cell of every try, so it is
-  // the guard's whole cost; the exact angles are computed only for the few cells it fails.
-  bool AboveFloor(const int32_t* c) const {
+  // The inward normals N_k of the faces opposite each vertex of a positive cell, scaled by
+  // twice their areas, and their squared lengths. For a positive cell
+  // (p1 - p0) . ((p2 - p0) x (p3 - p0)) > 0, so N_1..N_3 point from their faces towards p1..p3;
+  // the four sum to zero. The dihedral angle at the edge shared by faces i and j is
+  // acos(-N_i . N_j / |N_i| |N_j|).
+  void InwardNormals(const int32_t* c, double n[4][3], double sq[4]) const {
     const float* a = &pos_[3 * int64_t(c[0])];
     double e[3][3];
     for (int k = 0; k < 3; ++k) {
       const float* b = &pos_[3 * int64_t(c[k + 1])];
       for (int d = 0; d < 3; ++d) e[k][d] = double(b[d]) - a[d];
     }
-    double n[4][3];
     auto cross = [](const double* x, const double* y, double* out) {
       out[0] = x[1] * y[2] - x[2] * y[1];
       out[1] = x[2] * y[0] - x[0] * y[2];
@@ -335,12 +296,35 @@ class FieldEngine {
     cross(e[2], e[0], n[2]);
     cross(e[0], e[1], n[3]);
     for (int d = 0; d < 3; ++d) n[0][d] = -(n[1][d] + n[2][d] + n[3][d]);
-    double sq[4];
     for (int k = 0; k < 4; ++k) sq[k] = n[k][0] * n[k][0] + n[k][1] * n[k][1] + n[k][2] * n[k][2];
+  }
+  static double Dot(const double* x, const double* y) {
+    return x[0] * y[0] + x[1] * y[1] + x[2] * y[2];
+  }
+  // The cosine of the (positive) cell's smallest dihedral angle.
+  double MaxDihedralCos(const int32_t* c) const {
+    double n[4][3], sq[4];
+    InwardNormals(c, n, sq);
+    double worst = -1;
+    for (int i = 0; i < 4; ++i) {
+      for (int j = i + 1; j < 4; ++j) {
+        worst = std::max(worst, -Dot(n[i], n[j]) / (std::sqrt(sq[i]) * std::sqrt(sq[j])));
+      }
+    }
+    return worst;
+  }
+  // Whether every dihedral angle of the (positive) cell is at least the floor: the test of
+  // MaxDihedralCos(c) <= max_cos_ without square roots (-N_i . N_j <= cos |N_i| |N_j|, squared
+  // where the left side is positive). Valid runs it on every moved cell of every try that
+  // passed the cheaper tests, so it is the guard's whole cost; the exact angles are computed
+  // only for the few cells it fails.
+  bool AboveFloor(const int32_t* c) const {
+    double n[4][3], sq[4];
+    InwardNormals(c, n, sq);
     const double cos2 = max_cos_ * max_cos_;
     for (int i = 0; i < 4; ++i) {
       for (int j = i + 1; j < 4; ++j) {
-        const double dot = n[i][0] * n[j][0] + n[i][1] * n[j][1] + n[i][2] * n[j][2];
+        const double dot = Dot(n[i], n[j]);
         if (dot < 0 && dot * dot > cos2 * sq[i] * sq[j]) return false;
       }
     }
