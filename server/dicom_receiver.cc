@@ -65,6 +65,13 @@ struct Header {
   std::string series_uid, sop_uid;
 };
 
+// A UID as PS3.5 9.1 defines it: digits and dots, at most 64 characters. What the receiver
+// keeps of an instance goes into ListReceivedSeries' answers (protobuf strings).
+bool IsDicomUid(const std::string& uid) {
+  return !uid.empty() && uid.size() <= 64 &&
+         uid.find_first_not_of("0123456789.") == std::string::npos;
+}
+
 absl::StatusOr<Header> ReadUids(const fs::path& file) {
   DcmFileFormat ff;
   OFCondition c = ff.loadFileUntilTag(file.c_str(), EXS_Unknown, EGL_noChange, DCM_MaxReadLength,
@@ -76,7 +83,11 @@ absl::StatusOr<Header> ReadUids(const fs::path& file) {
   if (series.empty() || sop.empty()) {
     return absl::InvalidArgumentError("no SeriesInstanceUID or SOPInstanceUID");
   }
-  return Header{series.c_str(), sop.c_str()};
+  Header h{series.c_str(), sop.c_str()};
+  if (!IsDicomUid(h.series_uid) || !IsDicomUid(h.sop_uid)) {
+    return absl::InvalidArgumentError("SeriesInstanceUID or SOPInstanceUID is not a DICOM UID");
+  }
+  return h;
 }
 
 absl::Status CopyIntoBlobs(BlobStore* blobs, const fs::path& file, const std::string& sha,
@@ -96,11 +107,6 @@ absl::Status CopyIntoBlobs(BlobStore* blobs, const fs::path& file, const std::st
   }
   if (in.bad()) return absl::InternalError(absl::StrCat(file.string(), ": read failed"));
   return (*writer)->Commit();
-}
-
-bool IsDicomUid(const std::string& uid) {
-  return !uid.empty() && uid.size() <= 64 &&
-         uid.find_first_not_of("0123456789.") == std::string::npos;
 }
 
 bool IsAeTitle(const std::string& ae) {
@@ -414,12 +420,8 @@ uint16_t DicomReceiver::StoreInstance(const fs::path& file, const std::string& c
     spdlog::warn("dicom: instance from {} refused: {}", calling_ae, why);
     return STATUS_STORE_Refused_OutOfResources;
   }
-  // What the store keeps of a sender goes into ListReceivedSeries' answers (protobuf strings):
-  // AE titles are printable ASCII (PS3.5 6.2, AE), UIDs digits and dots (PS3.5 9.1).
+  // The AE titles go into ListReceivedSeries' answers too: printable ASCII (PS3.5 6.2, AE).
   auto header = ReadUids(file);
-  if (header.ok() && !(IsDicomUid(header->series_uid) && IsDicomUid(header->sop_uid))) {
-    header = absl::InvalidArgumentError("SeriesInstanceUID or SOPInstanceUID is not a DICOM UID");
-  }
   if (header.ok() && !(IsAeTitle(calling_ae) && IsAeTitle(called_ae))) {
     header = absl::InvalidArgumentError("an AE title is not printable ASCII of 1-16 characters");
   }

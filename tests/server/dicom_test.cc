@@ -136,11 +136,18 @@ TEST(DicomReceiverTest, InstancesWithABrokenAeTitleOrUidAreRefusedAndNothingIsKe
   testing::SliceSpec bad_uid = good;
   bad_uid.series_uid = "1.2.826.0.1.\xE4";
   testing::WriteSlice(dir / "bad-uid.dcm", bad_uid);
+  // The C-STORE status "Error: cannot understand" (PS3.4 B.2.3; DCMTK's
+  // STATUS_STORE_Error_CannotUnderstand, not visible here: DCMTK is private to the server).
+  constexpr uint16_t kCannotUnderstand = 0xC000;
   std::string series;
-  EXPECT_NE(receiver.StoreInstance(dir / "good.dcm", "SEND\xE4R", "DECIMA", &series), 0);
-  EXPECT_NE(receiver.StoreInstance(dir / "good.dcm", "SENDER", "LINE\nBREAK", &series), 0);
-  EXPECT_NE(receiver.StoreInstance(dir / "good.dcm", "SENDER", std::string(17, 'A'), &series), 0);
-  EXPECT_NE(receiver.StoreInstance(dir / "bad-uid.dcm", "SENDER", "DECIMA", &series), 0);
+  EXPECT_EQ(receiver.StoreInstance(dir / "good.dcm", "SEND\xE4R", "DECIMA", &series),
+            kCannotUnderstand);
+  EXPECT_EQ(receiver.StoreInstance(dir / "good.dcm", "SENDER", "LINE\nBREAK", &series),
+            kCannotUnderstand);
+  EXPECT_EQ(receiver.StoreInstance(dir / "good.dcm", "SENDER", std::string(17, 'A'), &series),
+            kCannotUnderstand);
+  EXPECT_EQ(receiver.StoreInstance(dir / "bad-uid.dcm", "SENDER", "DECIMA", &series),
+            kCannotUnderstand);
   EXPECT_TRUE(series.empty());
   auto kept = (*store)->ListDicomInstances();
   ASSERT_TRUE(kept.ok()) << kept.status();
