@@ -138,15 +138,27 @@ class StorageScp : public DcmSCP {
   OFBool stopAfterCurrentAssociation() override { return r_->stopping(); }
 
  protected:
+  // The peer's AE titles are text from the network: escaped in every log line, so that a line
+  // break cannot forge log lines.
   OFBool checkCalledAETitleAccepted(const OFString& called) override {
     if (called == r_->options().aet.c_str()) return OFTrue;
     spdlog::warn("dicom: association refused: called AE title '{}' is not ours ('{}')",
-                 called.c_str(), r_->options().aet);
+                 absl::CHexEscape(called.c_str()), r_->options().aet);
     return OFFalse;
   }
   OFBool checkCallingAETitleAccepted(const OFString& calling) override {
+    // Refused here, before any instance is sent: the title is what every instance of the
+    // association would be recorded under (ListReceivedSeries, the owner "dicom:<AE>").
+    if (!IsAeTitle(calling.c_str())) {
+      spdlog::warn(
+          "dicom: association refused: calling AE title '{}' is not printable ASCII "
+          "of 1-16 characters",
+          absl::CHexEscape(calling.c_str()));
+      return OFFalse;
+    }
     if (r_->options().routes.Match(calling.c_str(), r_->options().aet) != nullptr) return OFTrue;
-    spdlog::warn("dicom: association refused: no route for calling AE title '{}'", calling.c_str());
+    spdlog::warn("dicom: association refused: no route for calling AE title '{}'",
+                 absl::CHexEscape(calling.c_str()));
     return OFFalse;
   }
   OFBool checkCallingHostAccepted(const OFString& host_or_ip) override {
@@ -160,8 +172,8 @@ class StorageScp : public DcmSCP {
   void notifyAssociationRequest(const T_ASC_Parameters& params, DcmSCPActionType& action) override {
     std::string why;
     if (!r_->DiskSpaceAllows(&why)) {
-      spdlog::warn("dicom: association from '{}' refused: {}", params.DULparams.callingAPTitle,
-                   why);
+      spdlog::warn("dicom: association from '{}' refused: {}",
+                   absl::CHexEscape(params.DULparams.callingAPTitle), why);
       action = DCMSCP_ACTION_REFUSE_ASSOCIATION;
     }
   }
@@ -417,7 +429,7 @@ uint16_t DicomReceiver::StoreInstance(const fs::path& file, const std::string& c
                                       const std::string& called_ae, std::string* series_uid) {
   std::string why;
   if (!DiskSpaceAllows(&why)) {
-    spdlog::warn("dicom: instance from {} refused: {}", calling_ae, why);
+    spdlog::warn("dicom: instance from {} refused: {}", absl::CHexEscape(calling_ae), why);
     return STATUS_STORE_Refused_OutOfResources;
   }
   // The AE titles go into ListReceivedSeries' answers too: printable ASCII (PS3.5 6.2, AE).

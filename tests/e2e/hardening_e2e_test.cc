@@ -3,9 +3,7 @@
 // busy port, watchers across a graceful restart, leftovers of refused and cancelled work). Real
 // decima-server and decima processes on loopback, one server per test.
 #include <grpcpp/grpcpp.h>
-#include <netinet/in.h>
 #include <signal.h>
-#include <sys/socket.h>
 #include <unistd.h>
 #include <zlib.h>
 
@@ -21,6 +19,7 @@
 #include "server/sha256.h"
 #include "tests/e2e/e2e_util.h"
 #include "tests/testing/dicom_writer.h"
+#include "tests/testing/process.h"
 #include "tests/testing/test_data.h"
 
 namespace decima::e2e {
@@ -115,19 +114,6 @@ size_t FileCount(const fs::path& dir) {
     n += it->is_regular_file();
   }
   return n;
-}
-
-// A port nobody listens on right now.
-int FreePort() {
-  int fd = ::socket(AF_INET, SOCK_STREAM, 0);
-  sockaddr_in a{};
-  a.sin_family = AF_INET;
-  a.sin_addr.s_addr = htonl(INADDR_LOOPBACK);
-  ::bind(fd, reinterpret_cast<sockaddr*>(&a), sizeof a);
-  socklen_t len = sizeof a;
-  ::getsockname(fd, reinterpret_cast<sockaddr*>(&a), &len);
-  ::close(fd);
-  return ntohs(a.sin_port);
 }
 
 // The peak resident set of process `pid` in bytes (VmHWM), or -1.
@@ -329,7 +315,7 @@ TEST_F(HardeningE2E, BusyPortIsRefusedAtStart) {
 // Issue case 7: SIGTERM ends watch streams with UNAVAILABLE, the client reconnects to the
 // restarted server and sees the job through; a job that ends within the drain time finishes.
 TEST_F(HardeningE2E, WatchersSurviveAGracefulRestartAndShortJobsFinishInTheDrain) {
-  const std::string listen = "127.0.0.1:" + std::to_string(FreePort());
+  const std::string listen = "127.0.0.1:" + std::to_string(decima::testing::FreePort());
   const fs::path data = scratch_ / "data";
   std::string requeued, finished;
   CliProcess watch;

@@ -1,6 +1,7 @@
 // The PACS side's pieces on their own: routes file, series completeness, the SEG/SC writer's
 // refusals. The whole loop against Orthanc is tests/e2e/pacs_e2e_test.py.
 #include <fstream>
+#include <sstream>
 
 #include "core/io/dicom.h"
 #include "core/io/dicom_export.h"
@@ -12,6 +13,7 @@
 #include "server/dicom_routes.h"
 #include "server/job_store.h"
 #include "tests/testing/dicom_writer.h"
+#include "tests/testing/process.h"
 #include "tests/testing/test_data.h"
 
 namespace decima::server {
@@ -159,6 +161,61 @@ TEST(DicomReceiverTest, InstancesWithABrokenAeTitleOrUidAreRefusedAndNothingIsKe
   ASSERT_TRUE(kept.ok()) << kept.status();
   ASSERT_EQ(kept->size(), 1u);
   EXPECT_EQ(kept->front().calling_ae, "SENDER");
+}
+
+// An association whose calling AE title is not an AE title (PS3.5 6.2: printable ASCII without
+// a backslash, 1-16 characters) is refused when it is requested, before any instance is sent;
+// a well-named sender on the same receiver then stores its instance. The association comes
+// from DCMTK's storescu, as a sender's would.
+TEST(DicomReceiverTest, AnAssociationWithABrokenCallingAeTitleIsRefusedBeforeAnyInstance) {
+  const fs::path storescu = "/usr/bin/storescu";
+  if (!fs::exists(storescu)) GTEST_SKIP() << "storescu (Debian package dcmtk) is not installed";
+  const fs::path dir = testing::MakeScratchDir("dicom_receiver_association");
+  auto store = OpenSqliteJobStore((dir / "jobs.sqlite").string());
+  ASSERT_TRUE(store.ok()) << store.status();
+  auto blobs = LocalBlobStore::Open(dir / "blobs", false);
+  ASSERT_TRUE(blobs.ok()) << blobs.status();
+  const DataDir data(dir);
+  DicomReceiverOptions options;
+  options.min_free_mb = 0;
+  options.quiet_seconds = 3600;  // no series is judged while the test runs
+  options.port = testing::FreePort();
+  ASSERT_GT(options.port, 0);
+  DicomReceiver receiver(options, &data, store->get(), blobs->get(), nullptr, nullptr);
+  ASSERT_TRUE(receiver.Start().ok());
+  testing::WriteSlice(dir / "slice.dcm", testing::SliceSpec{});
+  auto send = [&](const std::string& calling_ae, const fs::path& log) {
+    return testing::WaitExit(
+        testing::Spawn({storescu.string(), "-aet", calling_ae, "-aec", "DECIMA", "127.0.0.1",
+                        std::to_string(options.port), (dir / "slice.dcm").string()},
+                       log.string()),
+        std::chrono::seconds(60));
+  };
+  auto text = [](const fs::path& p) {
+    std::ifstream in(p);
+    std::stringstream ss;
+    ss << in.rdbuf();
+    return ss.str();
+  };
+  for (const std::string bad : {"SEND\\ER", "SEND\xE4R", "TAB\tAE"}) {
+    SCOPED_TRACE(bad);
+    const fs::path log = dir / "refused.log";
+    fs::remove(log);
+    EXPECT_NE(send(bad, log), 0);
+    // Refused at association time: storescu never got to send (with the title checked only per
+    // instance, the association was accepted and the C-STORE answered 0xC000).
+    EXPECT_THAT(text(log), HasSubstr("Association Rejected"));
+  }
+  auto kept = (*store)->ListDicomInstances();
+  ASSERT_TRUE(kept.ok()) << kept.status();
+  EXPECT_TRUE(kept->empty());
+  const fs::path log = dir / "accepted.log";
+  EXPECT_EQ(send("SENDER", log), 0) << text(log);
+  kept = (*store)->ListDicomInstances();
+  ASSERT_TRUE(kept.ok()) << kept.status();
+  ASSERT_EQ(kept->size(), 1u);
+  EXPECT_EQ(kept->front().calling_ae, "SENDER");
+  receiver.Stop();
 }
 
 }  // namespace
