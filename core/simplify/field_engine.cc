@@ -169,9 +169,18 @@ struct Face {
   int32_t a, b, cell;
 };
 
+// A cell of a vertex's star with its current vertices, resolved once per gather: the rules, the
+// candidates and the collapse all read the star, and each resolution is four root_ loads.
+struct StarCell {
+  int32_t id;
+  int32_t v[4];
+};
+using Star = std::vector<StarCell>;
+
 // Per-thread working memory of the scoring functions (the initial scoring runs in parallel).
 struct Scratch {
-  std::vector<int32_t> star, patch;
+  Star star;
+  std::vector<int32_t> patch;
   std::vector<Face> faces;
   std::vector<Candidate> candidates;
   std::vector<uint32_t> mark;  // mark[v] == stamp: v already listed in this call
@@ -227,7 +236,7 @@ class FieldEngine {
   void Setup();
   template <typename Fn>
   void ForEachCell(int32_t v, Fn&& fn);
-  void GatherStar(int32_t v, std::vector<int32_t>* cells);
+  void GatherStar(int32_t v, Star* star);
   Freedom Classify(int32_t u, Scratch& s, int32_t along[2]) const;
   void Candidates(int32_t u, Scratch& s);
   bool Score(int32_t u, Scratch& s, double* cost, int32_t* best);
@@ -235,8 +244,8 @@ class FieldEngine {
     st_[u].stale = 0;
     return Score(u, scratch_, &st_[u].cost, &st_[u].best);
   }
-  bool Valid(int32_t u, int32_t v, const std::vector<int32_t>& star);
-  int64_t Collapse(int32_t u, int32_t v, const std::vector<int32_t>& star);
+  bool Valid(int32_t u, int32_t v, const Star& star);
+  int64_t Collapse(int32_t u, int32_t v, const Star& star);
   void Push(int32_t u) { heap_.push({static_cast<float>(st_[u].cost), u, ++st_[u].version}); }
   void ReleaseQueue();
   void Finish(SimplifyResult* result);
@@ -341,6 +350,12 @@ class FieldEngine {
     return (b0 * (d1 * e2 - d2 * e1) - b1 * (d0 * e2 - d2 * e0) + b2 * (d0 * e1 - d1 * e0)) / 6;
   }
 
+  // Cell c as it is now: its input vertices, each replaced by the live vertex it became.
+  void CellAt(int32_t c, int32_t t[4]) const {
+    const int32_t* in = &in_.tets[4 * int64_t(c)];
+    for (int k = 0; k < 4; ++k) t[k] = root_[in[k]];
+  }
+
   const TetMesh& in_;
   const SimplifyOptions& options_;
   const int threads_;
@@ -348,13 +363,15 @@ class FieldEngine {
   int64_t nv_ = 0, nt_ = 0;
   const float* pos_ = nullptr;  // the input positions, mm (they never change)
   std::vector<uint8_t> flags_;
-  std::vector<int32_t> tets_;
   BitSet dead_;
   // Adjacency: the input CSR rows, linked per merge class (survivor first).
   std::vector<int32_t> row_start_;  // int32: 4 * cells fits (Simplify checks)
   std::vector<int32_t> row_len_, class_next_, class_tail_, cell_ids_;
   std::vector<int32_t> valence_;  // live cells around a live vertex
-  std::vector<int32_t> parent_;   // -1 alive, else the vertex it collapsed onto
+  // The live vertex each input vertex is now: itself while alive, else the survivor of its merge
+  // class. A cell is its input vertices through root_, so the engine keeps no copy of the cells
+  // (16 bytes per cell: 1.3 GB on phantom:256) and a collapse rewrites no cell.
+  std::vector<int32_t> root_;
   // Per vertex, centred at its own point (position, value) so that float keeps the precision.
   std::vector<float> quadric_;
   std::vector<QueueState, CacheLineAllocator<QueueState>> st_;
@@ -364,7 +381,7 @@ class FieldEngine {
   // Scratch of the serial loop.
   Scratch scratch_;
   std::vector<int32_t> touched_, changed_;
-  std::vector<int32_t> guarded_;  // Valid: the moved cells the shape guard checks last
+  std::vector<const StarCell*> guarded_;  // Valid: the moved cells the shape guard checks last
   int64_t invalid_tries_ = 0, requeued_ = 0, constrained_moves_ = 0;
 };
 
@@ -385,9 +402,13 @@ void FieldEngine::ForEachCell(int32_t v, Fn&& fn) {
   }
 }
 
-void FieldEngine::GatherStar(int32_t v, std::vector<int32_t>* cells) {
-  cells->clear();
-  ForEachCell(v, [&](int32_t c) { cells->push_back(c); });
+void FieldEngine::GatherStar(int32_t v, Star* star) {
+  star->clear();
+  ForEachCell(v, [&](int32_t c) {
+    StarCell& sc = star->emplace_back();
+    sc.id = c;
+    CellAt(c, sc.v);
+  });
 }
 
 void FieldEngine::Setup() {
@@ -396,7 +417,6 @@ void FieldEngine::Setup() {
   pos_ = in_.positions.data();
   flags_ = in_.vertex_flags;
   ApplyFeatureThreshold(options_, in_.interface_distance, &flags_);
-  tets_ = in_.tets;
   dead_ = BitSet(nt_);
 
   VertexTetAdjacency adjacency = BuildVertexTetAdjacency(in_);
@@ -411,10 +431,11 @@ void FieldEngine::Setup() {
   class_next_.assign(nv_, -1);
   class_tail_.resize(nv_);
   for (int64_t v = 0; v < nv_; ++v) class_tail_[v] = int32_t(v);
-  parent_.assign(nv_, -1);
+  root_.resize(nv_);
+  for (int64_t v = 0; v < nv_; ++v) root_[v] = int32_t(v);
 
   double total_volume = 0;
-  for (int64_t t = 0; t < nt_; ++t) total_volume += SignedVolume(&tets_[4 * t]);
+  for (int64_t t = 0; t < nt_; ++t) total_volume += SignedVolume(&in_.tets[4 * t]);
   if (options_.voxel_size_mm > 0) {
     voxel_volume_ = std::pow(options_.voxel_size_mm, 3);
   } else {
@@ -443,7 +464,7 @@ void FieldEngine::Setup() {
       double q[kQuadricSize] = {};
       const Eigen::Vector3d origin(pos_[3 * v], pos_[3 * v + 1], pos_[3 * v + 2]);
       for (int64_t i = adjacency.offsets[v]; i < adjacency.offsets[v + 1]; ++i) {
-        const int32_t* c = &tets_[4 * int64_t(cell_ids_[i])];
+        const int32_t* c = &in_.tets[4 * int64_t(cell_ids_[i])];
         const Eigen::Vector3d p0 =
             Eigen::Vector3d(pos_[3 * c[0]], pos_[3 * c[0] + 1], pos_[3 * c[0] + 2]) - origin;
         Eigen::Matrix3d e;
@@ -470,7 +491,7 @@ void FieldEngine::Setup() {
 }
 
 Freedom FieldEngine::Classify(int32_t u, Scratch& s, int32_t along[2]) const {
-  const std::vector<int32_t>& star = s.star;
+  const Star& star = s.star;
   std::vector<Face>& faces_ = s.faces;
   std::vector<int32_t>& patch_ = s.patch;
   const uint8_t fu = flags_[u];
@@ -479,8 +500,9 @@ Freedom FieldEngine::Classify(int32_t u, Scratch& s, int32_t along[2]) const {
   const uint8_t label = in_.labels[u];
   // Faces around u, as the pair of their other two vertices; a face met once is on the hull.
   faces_.clear();
-  for (int32_t c : star) {
-    const int32_t* t = &tets_[4 * int64_t(c)];
+  for (const StarCell& sc : star) {
+    const int32_t* t = sc.v;
+    const int32_t c = sc.id;
     int32_t o[3], n = 0;
     for (int k = 0; k < 4; ++k) {
       if (t[k] != u) o[n++] = t[k];
@@ -597,8 +619,8 @@ void FieldEngine::Candidates(int32_t u, Scratch& s) {
   if (freedom == Freedom::kPlanar) {
     for (int32_t x : s.patch) add(x);  // neighbours joined to u by a face of its patch
   } else {
-    for (int32_t c : s.star) {
-      const int32_t* t = &tets_[4 * int64_t(c)];
+    for (const StarCell& sc : s.star) {
+      const int32_t* t = sc.v;
       for (int k = 0; k < 4; ++k) {
         if (t[k] != u) add(t[k]);
       }
@@ -627,12 +649,12 @@ bool FieldEngine::Score(int32_t u, Scratch& s, double* cost, int32_t* best) {
 
 // Rule 6 of the paper for a half-edge collapse: every cell that keeps u (now at v's place) stays
 // positive with at least min_volume; no vertex loses its last cell.
-bool FieldEngine::Valid(int32_t u, int32_t v, const std::vector<int32_t>& star) {
+bool FieldEngine::Valid(int32_t u, int32_t v, const Star& star) {
   int32_t lost[64][2];
   int nlost = 0;
   guarded_.clear();
-  for (int32_t c : star) {
-    const int32_t* t = &tets_[4 * int64_t(c)];
+  for (const StarCell& sc : star) {
+    const int32_t* t = sc.v;
     if (t[0] == v || t[1] == v || t[2] == v || t[3] == v) {
       for (int k = 0; k < 4; ++k) {
         if (t[k] == u || t[k] == v) continue;
@@ -652,7 +674,7 @@ bool FieldEngine::Valid(int32_t u, int32_t v, const std::vector<int32_t>& star) 
       if (moved[k] == u) moved[k] = v;
     }
     if (!(SignedVolume(moved) >= min_volume_)) return false;
-    if (max_cos_ < 1) guarded_.push_back(c);
+    if (max_cos_ < 1) guarded_.push_back(&sc);
   }
   for (int i = 0; i < nlost; ++i) {
     if (valence_[lost[i][0]] <= lost[i][1]) return false;
@@ -660,8 +682,8 @@ bool FieldEngine::Valid(int32_t u, int32_t v, const std::vector<int32_t>& star) 
   // The shape guard, once every cheaper test passed (most tries fail on volume): a moved cell
   // may not get a dihedral angle below the floor unless it had an even smaller one before
   // (cells of the input are never blocked by their own shape).
-  for (int32_t c : guarded_) {
-    const int32_t* t = &tets_[4 * int64_t(c)];
+  for (const StarCell* sc : guarded_) {
+    const int32_t* t = sc->v;
     int32_t moved[4] = {t[0], t[1], t[2], t[3]};
     for (int k = 0; k < 4; ++k) {
       if (moved[k] == u) moved[k] = v;
@@ -674,11 +696,12 @@ bool FieldEngine::Valid(int32_t u, int32_t v, const std::vector<int32_t>& star) 
   return true;
 }
 
-int64_t FieldEngine::Collapse(int32_t u, int32_t v, const std::vector<int32_t>& star) {
+int64_t FieldEngine::Collapse(int32_t u, int32_t v, const Star& star) {
   int64_t removed = 0;
   touched_.clear();
-  for (int32_t c : star) {
-    int32_t* t = &tets_[4 * int64_t(c)];
+  for (const StarCell& sc : star) {
+    const int32_t c = sc.id;
+    int32_t t[4] = {sc.v[0], sc.v[1], sc.v[2], sc.v[3]};
     if (t[0] == v || t[1] == v || t[2] == v || t[3] == v) {
       dead_.Set(c);
       ++removed;
@@ -693,6 +716,8 @@ int64_t FieldEngine::Collapse(int32_t u, int32_t v, const std::vector<int32_t>& 
       if (t[k] != u) touched_.push_back(t[k]);
     }
   }
+  // Every vertex merged into u so far (u's class) is v now; this is what moves u's cells to v.
+  for (int32_t r = u; r >= 0; r = class_next_[r]) root_[r] = v;
   class_next_[class_tail_[v]] = u;
   class_tail_[v] = class_tail_[u];
   // Q_v += Q_u, moved from u's origin to v's.
@@ -703,7 +728,6 @@ int64_t FieldEngine::Collapse(int32_t u, int32_t v, const std::vector<int32_t>& 
   TranslateQuadric(&quadric_[kQuadricSize * int64_t(u)], d, moved);
   float* qv = &quadric_[kQuadricSize * int64_t(v)];
   for (int k = 0; k < kQuadricSize; ++k) qv[k] = float(double(qv[k]) + moved[k]);
-  parent_[u] = v;
   valence_[u] = 0;
   st_[u].cost = std::numeric_limits<double>::infinity();
   ++st_[u].version;  // its queue entries are stale
@@ -751,7 +775,7 @@ absl::Status FieldEngine::Run(int64_t target, double tolerance, const ProgressFn
     const HeapEntry e = heap_.top();
     heap_.pop();
     const int32_t u = e.vertex;
-    if (e.version != st_[u].version || parent_[u] >= 0) continue;
+    if (e.version != st_[u].version || root_[u] != u) continue;
     if (st_[u].stale) {
       const double old_cost = st_[u].cost;
       const int32_t old_best = st_[u].best;
@@ -771,7 +795,7 @@ absl::Status FieldEngine::Run(int64_t target, double tolerance, const ProgressFn
       }
     }
     // u's cells, once: the validity checks, the fallback's candidates and the collapse share it.
-    const std::vector<int32_t>& star = scratch_.star;
+    const Star& star = scratch_.star;
     GatherStar(u, &scratch_.star);
     int32_t v = st_[u].best;
     double cost = st_[u].cost;
@@ -927,7 +951,7 @@ void FieldEngine::Finish(SimplifyResult* result) {
   TetMesh& out = result->mesh;
   int32_t n = 0;
   for (int64_t v = 0; v < nv_; ++v) {
-    if (parent_[v] < 0 && valence_[v] > 0) index[v] = n++;
+    if (root_[v] == v && valence_[v] > 0) index[v] = n++;
   }
   out.positions.resize(3 * int64_t(n));
   out.scalars.resize(n);
@@ -951,18 +975,14 @@ void FieldEngine::Finish(SimplifyResult* result) {
   out.cell_regions.reserve(live);
   for (int64_t t = 0; t < nt_; ++t) {
     if (dead_.Test(t)) continue;
-    const int32_t* c = &tets_[4 * t];
+    int32_t c[4];
+    CellAt(int32_t(t), c);
     for (int k = 0; k < 4; ++k) out.tets.push_back(index[c[k]]);
     out.cell_regions.push_back(
         CellRegion(in_.labels[c[0]], in_.labels[c[1]], in_.labels[c[2]], in_.labels[c[3]]));
   }
-  // vertex_map: follow the collapse chain to the survivor.
   result->vertex_map.resize(nv_);
-  for (int64_t v = 0; v < nv_; ++v) {
-    int32_t r = int32_t(v);
-    while (parent_[r] >= 0) r = parent_[r];
-    result->vertex_map[v] = index[r];
-  }
+  for (int64_t v = 0; v < nv_; ++v) result->vertex_map[v] = index[root_[v]];
 }
 
 }  // namespace
