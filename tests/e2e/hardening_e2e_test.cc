@@ -169,6 +169,36 @@ TEST_F(HardeningE2E, FailedCreateVolumeDeletesNoBlobAnotherClientUploaded) {
   EXPECT_EQ(vol.dims_size(), 3);
 }
 
+// Found by upload_fuzz: for a blob it already holds the server answers after the first message
+// (deduplicated). A client still streaming its chunks (a second client sending the same scan, a
+// retry after a lost answer) must get that answer, not wait on flow control for ever.
+TEST_F(HardeningE2E, AnUploadOfABlobTheServerHoldsIsAnsweredWhileTheClientIsStillSending) {
+  ServerProcess server(scratch_ / "data");
+  const std::string bytes(size_t{6} << 20, 'z');  // 6 chunks of 1 MiB
+  ASSERT_TRUE(Upload(server.address(), bytes).ok());
+  const auto start = std::chrono::steady_clock::now();
+  const grpc::Status again = Upload(server.address(), bytes);  // deadline 30 s
+  const auto took = std::chrono::steady_clock::now() - start;
+  EXPECT_TRUE(again.ok()) << again.error_code() << " " << again.error_message();
+  EXPECT_LT(took, 10s);
+  // The fuzzer's case: the empty blob, declared alone, then an over-long chunk.
+  ASSERT_TRUE(Upload(server.address(), "").ok());
+  auto stub = v1::Uploads::NewStub(Channel(server.address()));
+  auto ctx = Ctx();
+  v1::Blob blob;
+  auto writer = stub->Upload(ctx.get(), &blob);
+  v1::UploadRequest req;
+  req.set_sha256(Sha(""));
+  EXPECT_TRUE(writer->Write(req));
+  v1::UploadRequest chunk;
+  chunk.set_data(std::string((size_t{1} << 20) + 1, 'z'));
+  writer->Write(chunk);
+  writer->WritesDone();
+  const grpc::Status s = writer->Finish();
+  EXPECT_TRUE(s.ok()) << s.error_code() << " " << s.error_message();
+  EXPECT_LT(std::chrono::steady_clock::now() - start, 10s);
+}
+
 // Issue case 2 (collection): a blob leaves once no volume holds it and its upload's claim
 // lapsed; an interrupted upload leaves after its expiry; deleting everything returns the data
 // dir to its empty size.

@@ -1,5 +1,5 @@
 // Replays the corpora of the server's request-handling fuzz entries (Upload, CreateVolume)
-// through them in the normal build (in-process gRPC over real stores in a temp folder).
+// through them in the normal build (gRPC on a loopback port over real stores in a temp folder).
 #include <gtest/gtest.h>
 
 #include "tests/fuzz/fuzz_entries.h"
