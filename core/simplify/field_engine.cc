@@ -166,7 +166,8 @@ inline bool Cheaper(const Candidate& a, const Candidate& b) {
 }
 
 struct Face {
-  int32_t a, b, cell;
+  int32_t a, b;
+  bool mixed;  // its cell holds vertices of two labels
 };
 
 // A cell of a vertex's star with its current vertices, resolved once per gather: the rules, the
@@ -496,27 +497,35 @@ Freedom FieldEngine::Classify(int32_t u, Scratch& s, int32_t along[2]) const {
   std::vector<int32_t>& patch_ = s.patch;
   const uint8_t fu = flags_[u];
   if (fu == 0) return Freedom::kFree;
-  const bool feature = fu & kFeatureVertex;
   const uint8_t label = in_.labels[u];
   // Faces around u, as the pair of their other two vertices; a face met once is on the hull.
   faces_.clear();
+  bool touches_mixed = false;
   for (const StarCell& sc : star) {
     const int32_t* t = sc.v;
-    const int32_t c = sc.id;
+    const uint8_t l0 = in_.labels[t[0]];
+    const bool mixed = in_.labels[t[1]] != l0 || in_.labels[t[2]] != l0 || in_.labels[t[3]] != l0;
+    touches_mixed |= mixed;
     int32_t o[3], n = 0;
     for (int k = 0; k < 4; ++k) {
       if (t[k] != u) o[n++] = t[k];
     }
     for (int i = 0; i < 3; ++i) {
       for (int j = i + 1; j < 3; ++j) {
-        faces_.push_back({std::min(o[i], o[j]), std::max(o[i], o[j]), c});
+        faces_.push_back({std::min(o[i], o[j]), std::max(o[i], o[j]), mixed});
       }
     }
   }
+  // A feature vertex is on an interface only if a cell around it holds two labels. The feature
+  // band is a distance threshold and can be more than one vertex deep; a vertex whose cells
+  // all hold its own label lies inside its region, and collapsing it changes no interface.
+  const bool feature = (fu & kFeatureVertex) && touches_mixed;
   std::sort(faces_.begin(), faces_.end(),
             [](const Face& x, const Face& y) { return x.a != y.a ? x.a < y.a : x.b < y.b; });
-  // Constraint faces: hull faces (key 0), and faces of three feature vertices of u's label
-  // (key 1): the voxel-interface layer u belongs to.
+  // Constraint faces: hull faces (key 0), and faces of three feature vertices of u's label that
+  // border a two-label cell (key 1): the voxel-interface layer u belongs to. A face of the band
+  // between two cells of one label is inside the region: counted, it made every vertex of a
+  // band two vertices deep look like a corner.
   struct CFace {
     int32_t a, b;
     uint8_t key;
@@ -535,7 +544,8 @@ Freedom FieldEngine::Classify(int32_t u, Scratch& s, int32_t along[2]) const {
       key = 0;
     } else if (j - i > 2) {
       return Freedom::kPinned;  // non-manifold around u: leave it alone
-    } else if (feature && (flags_[a] & kFeatureVertex) && (flags_[b] & kFeatureVertex) &&
+    } else if (feature && (faces_[i].mixed || faces_[i + 1].mixed) &&
+               (flags_[a] & kFeatureVertex) && (flags_[b] & kFeatureVertex) &&
                in_.labels[a] == label && in_.labels[b] == label) {
       key = 1;
     }
@@ -549,7 +559,10 @@ Freedom FieldEngine::Classify(int32_t u, Scratch& s, int32_t along[2]) const {
     }
     i = j;
   }
-  if (ncf == 0) return Freedom::kPinned;  // a feature vertex off any layer (a thin line, a dot)
+  if (ncf == 0) {
+    // Off every layer: a thin line or a dot of its label (pinned), or inside its region.
+    return feature ? Freedom::kPinned : Freedom::kFree;
+  }
   if (feature) {
     // A feature vertex moves only within (or along the rim of) its own interface layer.
     bool on_layer = false;
