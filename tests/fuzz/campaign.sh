@@ -55,7 +55,10 @@ run_target() {  # target
         -artifact_prefix="$work/artifacts/$t/" "$work/corpus/$t" "$repo/tests/fuzz/corpus/$t" \
         >"$work/logs/$t.log.$runs" 2>&1 || true
     # The last line: /usr/bin/time writes "Command exited with non-zero status N" before it.
-    cpu=$(tail -n 1 "$work/logs/$t.time.$runs" | awk -v c="$cpu" '{print c + $1 + $2}')
+    # A run whose time file is empty (time itself was killed) adds nothing instead of resetting
+    # the count.
+    cpu=$(tail -n 1 "$work/logs/$t.time.$runs" |
+          awk -v c="$cpu" '$1 ~ /^[0-9.]+$/ {c += $1 + $2} END {print c + 0}')
   done
   local execs
   execs=$(grep -h "stat::number_of_executed_units" "$work/logs/$t.log."* |
