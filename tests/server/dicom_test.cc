@@ -1,6 +1,7 @@
 // The PACS side's pieces on their own: routes file, series completeness, the SEG/SC writer's
 // refusals. The whole loop against Orthanc is tests/e2e/pacs_e2e_test.py.
 #include <fstream>
+#include <optional>
 #include <sstream>
 
 #include "core/io/dicom.h"
@@ -120,19 +121,40 @@ TEST(DicomExportTest, NewUidsAreUuidDerivedAndDistinct) {
   EXPECT_EQ(a.find_first_not_of("0123456789.", 0), std::string::npos);
 }
 
+// A DicomReceiver's job store, blob store and data dir in a fresh scratch folder.
+class DicomReceiverTest : public ::testing::Test {
+ protected:
+  void SetUp() override {
+    dir_ = testing::MakeScratchDir("dicom_receiver");
+    auto store = OpenSqliteJobStore((dir_ / "jobs.sqlite").string());
+    ASSERT_TRUE(store.ok()) << store.status();
+    store_ = *std::move(store);
+    auto blobs = LocalBlobStore::Open(dir_ / "blobs", false);
+    ASSERT_TRUE(blobs.ok()) << blobs.status();
+    blobs_ = *std::move(blobs);
+    data_.emplace(dir_);
+  }
+  // A receiver that never refuses for disk space (the scratch folder's disk may be nearly
+  // full) and has no catalog or workers: the tests look at what it stores.
+  std::unique_ptr<DicomReceiver> Receiver(DicomReceiverOptions options = {}) {
+    options.min_free_mb = 0;
+    return std::make_unique<DicomReceiver>(options, &*data_, store_.get(), blobs_.get(), nullptr,
+                                           nullptr);
+  }
+
+  fs::path dir_;
+  std::unique_ptr<JobStore> store_;
+  std::unique_ptr<LocalBlobStore> blobs_;
+  std::optional<DataDir> data_;
+};
+
 // What a sender's instance carries into the job store ends up in ListReceivedSeries' answers
 // (protobuf strings): an AE title that is not printable ASCII, or a UID that is not digits and
 // dots, is refused (a C-STORE failure status) and nothing of it is kept.
-TEST(DicomReceiverTest, InstancesWithABrokenAeTitleOrUidAreRefusedAndNothingIsKept) {
-  const std::filesystem::path dir = testing::MakeScratchDir("dicom_receiver");
-  auto store = OpenSqliteJobStore((dir / "jobs.sqlite").string());
-  ASSERT_TRUE(store.ok()) << store.status();
-  auto blobs = LocalBlobStore::Open(dir / "blobs", false);
-  ASSERT_TRUE(blobs.ok()) << blobs.status();
-  const DataDir data(dir);
-  DicomReceiverOptions options;
-  options.min_free_mb = 0;
-  DicomReceiver receiver(options, &data, store->get(), blobs->get(), nullptr, nullptr);
+TEST_F(DicomReceiverTest, InstancesWithABrokenAeTitleOrUidAreRefusedAndNothingIsKept) {
+  const fs::path& dir = dir_;
+  auto receiver_ptr = Receiver();
+  DicomReceiver& receiver = *receiver_ptr;
   testing::SliceSpec good;
   testing::WriteSlice(dir / "good.dcm", good);
   testing::SliceSpec bad_uid = good;
@@ -151,13 +173,13 @@ TEST(DicomReceiverTest, InstancesWithABrokenAeTitleOrUidAreRefusedAndNothingIsKe
   EXPECT_EQ(receiver.StoreInstance(dir / "bad-uid.dcm", "SENDER", "DECIMA", &series),
             kCannotUnderstand);
   EXPECT_TRUE(series.empty());
-  auto kept = (*store)->ListDicomInstances();
+  auto kept = store_->ListDicomInstances();
   ASSERT_TRUE(kept.ok()) << kept.status();
   EXPECT_TRUE(kept->empty());
   // The same file from a well-named sender is stored.
   EXPECT_EQ(receiver.StoreInstance(dir / "good.dcm", "SENDER", "DECIMA", &series), 0);
   EXPECT_EQ(series, good.series_uid);
-  kept = (*store)->ListDicomInstances();
+  kept = store_->ListDicomInstances();
   ASSERT_TRUE(kept.ok()) << kept.status();
   ASSERT_EQ(kept->size(), 1u);
   EXPECT_EQ(kept->front().calling_ae, "SENDER");
@@ -167,21 +189,16 @@ TEST(DicomReceiverTest, InstancesWithABrokenAeTitleOrUidAreRefusedAndNothingIsKe
 // a backslash, 1-16 characters) is refused when it is requested, before any instance is sent;
 // a well-named sender on the same receiver then stores its instance. The association comes
 // from DCMTK's storescu, as a sender's would.
-TEST(DicomReceiverTest, AnAssociationWithABrokenCallingAeTitleIsRefusedBeforeAnyInstance) {
+TEST_F(DicomReceiverTest, AnAssociationWithABrokenCallingAeTitleIsRefusedBeforeAnyInstance) {
   const fs::path storescu = "/usr/bin/storescu";
   if (!fs::exists(storescu)) GTEST_SKIP() << "storescu (Debian package dcmtk) is not installed";
-  const fs::path dir = testing::MakeScratchDir("dicom_receiver_association");
-  auto store = OpenSqliteJobStore((dir / "jobs.sqlite").string());
-  ASSERT_TRUE(store.ok()) << store.status();
-  auto blobs = LocalBlobStore::Open(dir / "blobs", false);
-  ASSERT_TRUE(blobs.ok()) << blobs.status();
-  const DataDir data(dir);
+  const fs::path& dir = dir_;
   DicomReceiverOptions options;
-  options.min_free_mb = 0;
   options.quiet_seconds = 3600;  // no series is judged while the test runs
   options.port = testing::FreePort();
   ASSERT_GT(options.port, 0);
-  DicomReceiver receiver(options, &data, store->get(), blobs->get(), nullptr, nullptr);
+  auto receiver_ptr = Receiver(options);
+  DicomReceiver& receiver = *receiver_ptr;
   ASSERT_TRUE(receiver.Start().ok());
   testing::WriteSlice(dir / "slice.dcm", testing::SliceSpec{});
   auto send = [&](const std::string& calling_ae, const fs::path& log) {
@@ -206,12 +223,12 @@ TEST(DicomReceiverTest, AnAssociationWithABrokenCallingAeTitleIsRefusedBeforeAny
     // instance, the association was accepted and the C-STORE answered 0xC000).
     EXPECT_THAT(text(log), HasSubstr("Association Rejected"));
   }
-  auto kept = (*store)->ListDicomInstances();
+  auto kept = store_->ListDicomInstances();
   ASSERT_TRUE(kept.ok()) << kept.status();
   EXPECT_TRUE(kept->empty());
   const fs::path log = dir / "accepted.log";
   EXPECT_EQ(send("SENDER", log), 0) << text(log);
-  kept = (*store)->ListDicomInstances();
+  kept = store_->ListDicomInstances();
   ASSERT_TRUE(kept.ok()) << kept.status();
   ASSERT_EQ(kept->size(), 1u);
   EXPECT_EQ(kept->front().calling_ae, "SENDER");

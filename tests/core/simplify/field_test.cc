@@ -3,6 +3,7 @@
 #include <algorithm>
 #include <array>
 #include <cmath>
+#include <functional>
 #include <random>
 #include <vector>
 
@@ -26,9 +27,11 @@ struct Labeled {
 };
 
 // A float image and uint8 labels on an n^3 grid from per-voxel functions, meshed with the
-// stand-in interface distance (feature vertices = voxels with a 6-neighbour of another label).
+// stand-in interface distance (feature vertices = voxels with a 6-neighbour of another label)
+// or, when `distance` is given, with its per-voxel interface distance in voxels.
 template <typename ValueFn, typename LabelFn>
-Labeled MakeLabeled(int64_t n, ValueFn value, LabelFn label) {
+Labeled MakeLabeled(int64_t n, ValueFn value, LabelFn label,
+                    std::function<double(int64_t, int64_t, int64_t)> distance = nullptr) {
   Labeled out;
   auto image = MakeVolume({n, n, n}, VoxelType::kFloat32);
   auto labels = MakeVolume({n, n, n}, VoxelType::kUInt8);
@@ -41,7 +44,12 @@ Labeled MakeLabeled(int64_t n, ValueFn value, LabelFn label) {
         out.image.mutable_data<float>()[p] = float(value(i, j, k));
         out.labels.mutable_data<uint8_t>()[p] = uint8_t(label(i, j, k));
       }
-  const std::vector<float> dist = SimpleInterfaceDistance(out.labels);
+  std::vector<float> dist = SimpleInterfaceDistance(out.labels);
+  if (distance) {
+    for (int64_t k = 0, p = 0; k < n; ++k)
+      for (int64_t j = 0; j < n; ++j)
+        for (int64_t i = 0; i < n; ++i, ++p) dist[p] = float(distance(i, j, k));
+  }
   TetrahedralizeOptions t;
   t.labels = &out.labels;
   t.interface_distance = dist.data();
@@ -223,24 +231,10 @@ TEST(FieldPolicy, InterfaceCornersNeverMove) {
 // inside their region and collapse like any other.
 TEST(FieldPolicy, AFeatureBandThickerThanTheInterfaceDoesNotPinIt) {
   const int64_t n = 20;
-  auto image = MakeVolume({n, n, n}, VoxelType::kFloat32);
-  auto labels = MakeVolume({n, n, n}, VoxelType::kUInt8);
-  ASSERT_TRUE(image.ok() && labels.ok());
-  Labeled b{*std::move(image), *std::move(labels), {}};
-  std::vector<float> dist(n * n * n);
-  for (int64_t k = 0, p = 0; k < n; ++k)
-    for (int64_t j = 0; j < n; ++j)
-      for (int64_t i = 0; i < n; ++i, ++p) {
-        b.image.mutable_data<float>()[p] = float(3 * i - 2 * j + 5 * k);
-        b.labels.mutable_data<uint8_t>()[p] = k >= n / 2 ? 1 : 0;
-        dist[p] = float(std::abs(double(k) + 0.5 - double(n / 2)));  // 0.5, 1.5, ...
-      }
-  TetrahedralizeOptions t;
-  t.labels = &b.labels;
-  t.interface_distance = dist.data();
-  auto mesh = Tetrahedralize(b.image, t);
-  ASSERT_TRUE(mesh.ok()) << mesh.status();
-  b.mesh = *std::move(mesh);
+  const Labeled b = MakeLabeled(
+      n, [](int64_t i, int64_t j, int64_t k) { return double(3 * i - 2 * j + 5 * k); },
+      [](int64_t, int64_t, int64_t k) { return k >= n / 2 ? 1 : 0; },
+      [](int64_t, int64_t, int64_t k) { return std::abs(double(k) + 0.5 - double(n / 2)); });
   SimplifyOptions o = Field(0.9);
   o.feature_threshold_voxels = 1.6f;
   auto r = Simplify(b.mesh, o);
