@@ -404,12 +404,24 @@ void FieldEngine::ForEachCell(int32_t v, Fn&& fn) {
 }
 
 void FieldEngine::GatherStar(int32_t v, Star* star) {
+  // In phases, because each step waits on memory the previous one names: the cell ids (the
+  // adjacency rows), their input vertices (asked for all at once), then what those vertices
+  // became.
   star->clear();
   ForEachCell(v, [&](int32_t c) {
-    StarCell& sc = star->emplace_back();
-    sc.id = c;
-    CellAt(c, sc.v);
+    star->emplace_back().id = c;
+    __builtin_prefetch(&in_.tets[4 * int64_t(c)]);
   });
+  for (StarCell& sc : *star) {
+    const int32_t* in = &in_.tets[4 * int64_t(sc.id)];
+    for (int k = 0; k < 4; ++k) {
+      sc.v[k] = in[k];
+      __builtin_prefetch(&root_[in[k]]);
+    }
+  }
+  for (StarCell& sc : *star) {
+    for (int k = 0; k < 4; ++k) sc.v[k] = root_[sc.v[k]];
+  }
 }
 
 void FieldEngine::Setup() {
