@@ -196,6 +196,9 @@ TEST_F(HardeningE2E, AnUploadOfABlobTheServerHoldsIsAnsweredWhileTheClientIsStil
   writer->WritesDone();
   const grpc::Status s = writer->Finish();
   EXPECT_TRUE(s.ok()) << s.error_code() << " " << s.error_message();
+  EXPECT_TRUE(blob.deduplicated());  // answered from what the server holds
+  EXPECT_EQ(blob.sha256(), Sha(""));
+  EXPECT_EQ(blob.size_bytes(), 0);
   EXPECT_LT(std::chrono::steady_clock::now() - start, 10s);
 }
 
