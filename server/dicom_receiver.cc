@@ -391,14 +391,16 @@ absl::Status DicomReceiver::Start() {
     return absl::UnavailableError(
         absl::StrCat("--dicom-listen ", options_.host, ":", options_.port, ": ", c.text()));
   }
+  // Logged before the threads start: the first spdlog call of a process builds spdlog's
+  // registry, and the threads' own log calls must come after it (thread start orders them).
+  spdlog::info("dicom: storage SCP {} listening on {}:{} (quiet {} s, {} route(s))", options_.aet,
+               options_.host, options_.port, options_.quiet_seconds, options_.routes.routes.size());
   stop_ = false;
   scp_thread_ = std::thread([this] {
     OFCondition c = scp_->acceptAssociations();
     if (c.bad() && !stop_) spdlog::error("dicom: the storage SCP stopped: {}", c.text());
   });
   settle_thread_ = std::thread([this] { SettleLoop(); });
-  spdlog::info("dicom: storage SCP {} listening on {}:{} (quiet {} s, {} route(s))", options_.aet,
-               options_.host, options_.port, options_.quiet_seconds, options_.routes.routes.size());
   return absl::OkStatus();
 }
 
