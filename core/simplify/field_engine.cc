@@ -430,6 +430,16 @@ void FieldEngine::Setup() {
   pos_ = in_.positions.data();
   flags_ = in_.vertex_flags;
   ApplyFeatureThreshold(options_, in_.interface_distance, &flags_);
+  // With a label per vertex, the interface is the set of cells that hold two labels, and every
+  // vertex of such a cell is on it. The distance threshold misses some: a 5-tet cell's diagonal
+  // reaches a vertex 1.12 voxels from the level set (20,680 of the CT head's 141,494). Left
+  // free, they moved and took the label boundary with them (mean Dice 0.998 at 90 %).
+  for (int64_t t = 0; t < nt_; ++t) {
+    const int32_t* c = &in_.tets[4 * t];
+    const uint8_t l = in_.labels[c[0]];
+    if (in_.labels[c[1]] == l && in_.labels[c[2]] == l && in_.labels[c[3]] == l) continue;
+    for (int k = 0; k < 4; ++k) flags_[c[k]] |= kFeatureVertex;
+  }
   dead_ = BitSet(nt_);
 
   VertexTetAdjacency adjacency = BuildVertexTetAdjacency(in_);

@@ -98,12 +98,20 @@ void ExpectBoxHull(const TetMesh& m, const TetMesh& original) {
 }
 
 // Every original feature vertex is still a vertex at its place, or lies on a face of the
-// simplified mesh whose three vertices are feature vertices of its own label (it lies on its
-// interface layer, which the collapses re-triangulated). Returns the number that are neither.
+// simplified mesh whose three vertices are on its own label's interface layer: they have its
+// label and belong to a two-label cell (the collapses re-triangulated the layer). Returns the
+// number that are neither.
 int64_t FeatureVerticesOffTheirLayer(const Labeled& in, const SimplifyResult& r) {
   auto resample = ResampleOnGrid(in.image, r.mesh, 1, 1e-6);
   EXPECT_TRUE(resample.ok());
   const TetMesh& out = r.mesh;
+  std::vector<bool> on_interface(out.vertex_count(), false);
+  for (int64_t c = 0; c < out.tet_count(); ++c) {
+    const int32_t* t = &out.tets[4 * c];
+    const uint8_t l = out.labels[t[0]];
+    if (out.labels[t[1]] == l && out.labels[t[2]] == l && out.labels[t[3]] == l) continue;
+    for (int k = 0; k < 4; ++k) on_interface[t[k]] = true;
+  }
   int64_t off = 0;
   for (int64_t v = 0; v < in.mesh.vertex_count(); ++v) {
     if (!(in.mesh.vertex_flags[v] & kFeatureVertex)) continue;
@@ -122,8 +130,7 @@ int64_t FeatureVerticesOffTheirLayer(const Labeled& in, const SimplifyResult& r)
     const double w[4] = {1 - l.sum(), l.x(), l.y(), l.z()};
     double stray = 0;
     for (int k = 0; k < 4; ++k) {
-      const bool same_layer =
-          (out.vertex_flags[t[k]] & kFeatureVertex) && out.labels[t[k]] == in.mesh.labels[v];
+      const bool same_layer = on_interface[t[k]] && out.labels[t[k]] == in.mesh.labels[v];
       if (!same_layer) stray += std::abs(w[k]);
     }
     off += stray > 1e-5;
@@ -248,6 +255,32 @@ TEST(FieldPolicy, AFeatureBandThickerThanTheInterfaceDoesNotPinIt) {
   EXPECT_EQ(m->inverted_cells, 0);
   EXPECT_DOUBLE_EQ(m->label_mismatch, 0);  // the interface plane stays a plane of the mesh
   EXPECT_GT(m->psnr_db, 100);              // a linear field stays exact
+}
+
+// The interface is where the cells hold two labels, whatever the feature threshold says. Here
+// the band of the threshold holds no vertex at all (every vertex is half a voxel or more from
+// the level set, the threshold is 0.4); the vertices of the two-label cells still keep their
+// layer, so the label plane stays where it is at 90 %. Before, they were free and collapsed
+// across it.
+TEST(FieldPolicy, EveryVertexOfATwoLabelCellKeepsItsLayerWhateverTheFeatureThreshold) {
+  const int64_t n = 20;
+  const Labeled b = MakeLabeled(
+      n, [](int64_t i, int64_t j, int64_t k) { return double(3 * i - 2 * j + 5 * k); },
+      [](int64_t, int64_t j, int64_t) { return j >= n / 2 ? 1 : 0; },
+      [](int64_t, int64_t j, int64_t) { return std::abs(double(j) + 0.5 - double(n / 2)); });
+  SimplifyOptions o = Field(0.9);
+  o.feature_threshold_voxels = 0.4f;
+  auto r = Simplify(b.mesh, o);
+  ASSERT_TRUE(r.ok()) << r.status();
+  EXPECT_TRUE(r->reached_target) << r->stop_message;
+  ExpectBoxHull(r->mesh, b.mesh);
+  FidelityOptions fo;
+  fo.labels = &b.labels;
+  auto m = MeasureFidelity(b.image, r->mesh, fo);
+  ASSERT_TRUE(m.ok());
+  EXPECT_EQ(m->inverted_cells, 0);
+  EXPECT_DOUBLE_EQ(m->label_mismatch, 0);
+  EXPECT_DOUBLE_EQ(m->mean_dice, 1.0);
 }
 
 // On a curved interface (the head phantom's ellipsoids) most layer vertices are corners of the
