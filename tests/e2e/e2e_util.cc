@@ -15,6 +15,7 @@
 #include <grpcpp/grpcpp.h>
 #include "decima/v1/jobs.grpc.pb.h"
 #include "gtest/gtest.h"
+#include "tests/testing/process.h"
 
 namespace decima::e2e {
 namespace fs = std::filesystem;
@@ -28,42 +29,15 @@ std::string ReadAll(const fs::path& p) {
   return ss.str();
 }
 
-pid_t Spawn(const std::vector<std::string>& args, const fs::path& out, const fs::path& err,
-            const std::map<std::string, std::string>& env) {
-  std::vector<std::string> a = args;
-  std::vector<char*> argv;
-  for (auto& s : a) argv.push_back(s.data());
-  argv.push_back(nullptr);
-  pid_t pid = fork();
-  if (pid == 0) {
-    int o = open(out.c_str(), O_WRONLY | O_CREAT | O_TRUNC, 0644);
-    int e = open(err.c_str(), O_WRONLY | O_CREAT | O_TRUNC, 0644);
-    int n = open("/dev/null", O_RDONLY);
-    dup2(n, 0);
-    dup2(o, 1);
-    dup2(e, 2);
-    for (const auto& [k, v] : env) setenv(k.c_str(), v.c_str(), 1);
-    execv(argv[0], argv.data());
-    _exit(127);
-  }
-  return pid;
-}
+using testing::Spawn;
 
+// Waits for a child the test started; a child still running after `timeout` is killed and
+// fails the test.
 int Reap(pid_t pid, std::chrono::seconds timeout) {
-  auto until = std::chrono::steady_clock::now() + timeout;
-  int status = 0;
-  for (;;) {
-    pid_t r = waitpid(pid, &status, WNOHANG);
-    if (r == pid) break;
-    if (std::chrono::steady_clock::now() > until) {
-      kill(pid, SIGKILL);
-      waitpid(pid, &status, 0);
-      ADD_FAILURE() << "process " << pid << " timed out after " << timeout.count() << " s";
-      break;
-    }
-    std::this_thread::sleep_for(std::chrono::milliseconds(5));
-  }
-  return WIFEXITED(status) ? WEXITSTATUS(status) : 128 + WTERMSIG(status);
+  const int code = testing::WaitExit(pid, timeout);
+  if (code < 0)
+    ADD_FAILURE() << "process " << pid << " timed out after " << timeout.count() << " s";
+  return code;
 }
 
 }  // namespace

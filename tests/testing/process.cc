@@ -1,12 +1,13 @@
 #include "tests/testing/process.h"
 
+#include <fcntl.h>
 #include <netinet/in.h>
 #include <signal.h>
 #include <sys/socket.h>
 #include <sys/wait.h>
 #include <unistd.h>
 
-#include <cstdio>
+#include <cstdlib>
 #include <thread>
 
 namespace decima::testing {
@@ -28,19 +29,40 @@ int FreePort() {
   return port;
 }
 
+namespace {
+
+// The child's side: the files opened, the environment set, then exec; it never returns.
+[[noreturn]] void Exec(const std::vector<std::string>& argv, int out_fd, int err_fd, int in_fd,
+                       const std::map<std::string, std::string>& env) {
+  if (in_fd >= 0) ::dup2(in_fd, 0);
+  if (out_fd >= 0) ::dup2(out_fd, 1);
+  if (err_fd >= 0) ::dup2(err_fd, 2);
+  for (const auto& [name, value] : env) ::setenv(name.c_str(), value.c_str(), 1);
+  std::vector<char*> args;
+  for (const auto& a : argv) args.push_back(const_cast<char*>(a.c_str()));
+  args.push_back(nullptr);
+  ::execv(args[0], args.data());
+  _exit(127);
+}
+
+}  // namespace
+
 pid_t Spawn(const std::vector<std::string>& argv, const std::string& log) {
   pid_t pid = ::fork();
   if (pid == 0) {
-    FILE* f = std::fopen(log.c_str(), "a");
-    if (f != nullptr) {
-      ::dup2(fileno(f), 1);
-      ::dup2(fileno(f), 2);
-    }
-    std::vector<char*> args;
-    for (const auto& a : argv) args.push_back(const_cast<char*>(a.c_str()));
-    args.push_back(nullptr);
-    ::execv(args[0], args.data());
-    _exit(127);
+    const int fd = ::open(log.c_str(), O_WRONLY | O_CREAT | O_APPEND, 0644);
+    Exec(argv, fd, fd, -1, {});
+  }
+  return pid;
+}
+
+pid_t Spawn(const std::vector<std::string>& argv, const std::string& out, const std::string& err,
+            const std::map<std::string, std::string>& env) {
+  pid_t pid = ::fork();
+  if (pid == 0) {
+    Exec(argv, ::open(out.c_str(), O_WRONLY | O_CREAT | O_TRUNC, 0644),
+         ::open(err.c_str(), O_WRONLY | O_CREAT | O_TRUNC, 0644), ::open("/dev/null", O_RDONLY),
+         env);
   }
   return pid;
 }

@@ -5,6 +5,7 @@
 #include <sys/types.h>
 
 #include <chrono>
+#include <map>
 #include <string>
 #include <vector>
 
@@ -16,6 +17,11 @@ int FreePort();
 // fork + exec `argv` (argv[0] a path) with stdout and stderr appended to the file `log`; the
 // child's PID.
 pid_t Spawn(const std::vector<std::string>& argv, const std::string& log);
+
+// fork + exec `argv` with stdin from /dev/null, stdout and stderr written (truncated) to the
+// files `out` and `err`, and `env` added to the inherited environment; the child's PID.
+pid_t Spawn(const std::vector<std::string>& argv, const std::string& out, const std::string& err,
+            const std::map<std::string, std::string>& env);
 
 // Waits up to `timeout` for `pid`: its exit code (128 + signal if a signal ended it), or -1 if
 // it was still running (it is then killed with SIGKILL and reaped) or is not our child.
