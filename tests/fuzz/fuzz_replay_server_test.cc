@@ -1,4 +1,4 @@
-// Replays the corpora of the server's request-handling fuzz entries (Upload, CreateVolume)
+// Replays the corpora of the server's fuzz entries (Upload, CreateVolume, DICOM receive)
 // through them in the normal build (gRPC on a loopback port over real stores in a temp folder).
 #include <gtest/gtest.h>
 
@@ -12,9 +12,13 @@ TEST(FuzzReplay, EveryUploadSeedRunsThroughItsEntry) { ReplayCorpus("upload", Up
 TEST(FuzzReplay, EveryCreateVolumeSeedRunsThroughItsEntry) {
   ReplayCorpus("create_volume", CreateVolumeEntry);
 }
+TEST(FuzzReplay, EveryDicomReceiveSeedRunsThroughItsEntry) {
+  ReplayCorpus("dicom_receive", DicomReceiveEntry);
+}
 TEST(FuzzReplay, ServerSeedsNamedOkAreAccepted) {
   ExpectOkSeedsAccepted("upload", UploadEntry);
   ExpectOkSeedsAccepted("create_volume", CreateVolumeEntry);
+  ExpectOkSeedsAccepted("dicom_receive", DicomReceiveEntry);
 }
 
 }  // namespace

@@ -194,6 +194,18 @@ write("dicom", "bad-two-series", dicom_slice(0) + SEP + dicom_slice(1, series="1
 write("dicom", "bad-duplicate-position", dicom_slice(0) + SEP + dicom_slice(0))
 write("dicom", "bad-no-marker", b"\0" * 200 + SEP + b"not a dicom file")
 
+# ---- DICOM receive: calling AE choice (0 and 1 are AE titles), then the received file --------
+write("dicom_receive", "ok-explicit", b"\0" + dicom_slice(0))
+write("dicom_receive", "ok-implicit-other-ae", b"\1" + dicom_slice(1, syntax=IMPLICIT))
+write("dicom_receive", "ok-undefined-length-sequence", b"\0" + dicom_slice(2, extra=seq))
+write("dicom_receive", "bad-calling-ae-backslash", b"\3" + dicom_slice(0))
+write("dicom_receive", "bad-calling-ae-17-characters", b"\5" + dicom_slice(0))
+write("dicom_receive", "bad-no-sop-instance-uid",
+      b"\0" + dicom_slice(0).replace(element(8, 0x18, "UI", uid("1.2.3.4.5.1")), b""))
+write("dicom_receive", "bad-series-uid-not-a-uid", b"\0" + dicom_slice(0, series="1.2.x.4"))
+write("dicom_receive", "bad-truncated-element", b"\0" + dicom_slice(0)[:-40])
+write("dicom_receive", "bad-not-dicom", b"\0" + b"not a dicom file")
+
 # ---- Upload: flags, chunk, [sha 64], [size], [offset], [cut], payload ------------------------
 def varint(v):
     out = bytearray()
