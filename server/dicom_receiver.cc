@@ -756,11 +756,13 @@ absl::StatusOr<ReceivedSeriesPage> ListReceivedSeries(JobStore* store, const std
   if (!owner.empty()) {
     std::erase_if(all, [&](const v1::ReceivedSeries& r) { return r.owner() != owner; });
   }
+  // A token past the end (the list shrank, or it was made up) is an empty last page; compared
+  // without offset + size, which a made-up offset near SIZE_MAX wraps around.
   ReceivedSeriesPage page;
-  for (size_t k = offset; k < all.size() && page.series.size() < size; ++k) {
-    page.series.push_back(std::move(all[k]));
-  }
-  if (offset + size < all.size()) page.next_page_token = absl::StrCat("r", offset + size);
+  if (offset >= all.size()) return page;
+  const size_t end = all.size() - offset > size ? offset + size : all.size();
+  for (size_t k = offset; k < end; ++k) page.series.push_back(std::move(all[k]));
+  if (end < all.size()) page.next_page_token = absl::StrCat("r", end);
   return page;
 }
 

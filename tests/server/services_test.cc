@@ -365,8 +365,18 @@ TEST_F(ServicesTest, ListReceivedSeriesShowsStateAndReasonByOwner) {
   ASSERT_TRUE(list("rita", &rest, page.next_page_token(), 2).ok());
   ASSERT_EQ(rest.received_series_size(), 1);
   EXPECT_TRUE(rest.next_page_token().empty());
+  // A token past the end (the list shrank since, or it was made up) is an empty last page; the
+  // largest offset must not wrap around to a token for the start.
+  for (const std::string past : {"r3", "r1000000", "r18446744073709551615"}) {
+    SCOPED_TRACE(past);
+    v1::ListReceivedSeriesResponse empty;
+    ASSERT_TRUE(list("rita", &empty, past, 2).ok());
+    EXPECT_EQ(empty.received_series_size(), 0);
+    EXPECT_TRUE(empty.next_page_token().empty());
+  }
   v1::ListReceivedSeriesResponse bad;
   EXPECT_EQ(list("rita", &bad, "o7").error_code(), grpc::INVALID_ARGUMENT);
+  EXPECT_EQ(list("rita", &bad, "r-1").error_code(), grpc::INVALID_ARGUMENT);
   EXPECT_EQ(list("wrong", &bad).error_code(), grpc::UNAUTHENTICATED);
 }
 
