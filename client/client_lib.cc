@@ -564,6 +564,32 @@ std::string OverallBar(const v1::Progress& p, double elapsed_s, int width, bool 
   return out;
 }
 
+std::vector<std::string> FidelityLines(const std::string& m) {
+  // The value after "key": (plain search, as SummarizeJob); npos if the key is absent.
+  auto value_at = [&](const std::string& key) -> size_t {
+    size_t at = m.find("\"" + key + "\"");
+    if (at == std::string::npos) return at;
+    at = m.find(':', at);
+    return at == std::string::npos ? at : m.find_first_not_of(" \t\n\r", at + 1);
+  };
+  std::vector<std::string> lines;
+  for (const char* key : {"diff1", "psnr_db", "mean_dice"}) {
+    const size_t at = value_at(key);
+    if (at == std::string::npos) continue;
+    if (m.compare(at, 4, "null") == 0) {
+      const size_t rmse = value_at("rmse");
+      const bool exact = rmse != std::string::npos && m.compare(rmse, 4, "null") != 0 &&
+                         std::strtod(m.c_str() + rmse, nullptr) == 0;
+      lines.push_back(std::string(key) + (exact ? " inf (rmse 0)" : " n/a"));
+      continue;
+    }
+    char figure[64];
+    std::snprintf(figure, sizeof figure, "%s %g", key, std::strtod(m.c_str() + at, nullptr));
+    lines.push_back(figure);
+  }
+  return lines;
+}
+
 JobSummary SummarizeJob(const v1::Job& job, int64_t input_bytes) {
   JobSummary s;
   s.input_bytes = input_bytes;

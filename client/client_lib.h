@@ -95,6 +95,11 @@ struct JobSummary {
 JobSummary SummarizeJob(const v1::Job& job, int64_t input_bytes);
 std::vector<std::string> SummaryLines(const JobSummary& s);
 
+// The fidelity figures `decima status` shows from metrics.json: "diff1 0.017", "psnr_db 63.7",
+// "mean_dice 1", each only if present. metrics.json writes a PSNR that is not finite as null:
+// with rmse 0 (the field reproduced exactly) that is "psnr_db inf (rmse 0)", else "psnr_db n/a".
+std::vector<std::string> FidelityLines(const std::string& metrics_json);
+
 // Case-insensitive parse of a job state name ("succeeded" -> SUCCEEDED); false if unknown.
 bool ParseJobState(const std::string& name, v1::JobState* state);
 

@@ -482,14 +482,7 @@ void DescribeJob(const v1::Job& j) {
     for (const auto& l : SummaryLines(SummarizeJob(j, vol != nullptr ? vol->size_bytes() : 0))) {
       std::printf("  %s\n", l.c_str());
     }
-    // A few fidelity figures from metrics.json (plain search keeps the client proto-only).
-    const std::string& m = j.metrics_json();
-    for (const char* key : {"diff1", "psnr_db", "mean_dice"}) {
-      size_t at = m.find(std::string("\"") + key + "\"");
-      if (at == std::string::npos) continue;
-      at = m.find(':', at);
-      std::printf("  %s %g\n", key, std::strtod(m.c_str() + at + 1, nullptr));
-    }
+    for (const auto& l : FidelityLines(j.metrics_json())) std::printf("  %s\n", l.c_str());
     std::printf("Artifacts:\n");
     std::vector<std::vector<std::string>> rows = {{"  FILE", "SIZE", "SHA256"}};
     for (const auto& a : j.artifacts()) {

@@ -197,6 +197,18 @@ TEST(ProgressTest, OverallFractionIsMonotonicAcrossStagesAndTheBarHasAnEta) {
   EXPECT_THAT(OverallBar(p, 1, 10), ::testing::Not(HasSubstr("ETA")));  // too early to say
 }
 
+// A field reproduced exactly has an infinite PSNR, which metrics.json writes as null: shown as
+// "inf (rmse 0)", not as the 0 dB that strtod makes of "null".
+TEST(FidelityLinesTest, ShowsTheFiguresAndAnExactFieldAsInfinitePsnr) {
+  EXPECT_EQ(FidelityLines(R"({"rmse": 2.5, "psnr_db": 63.7, "mean_dice": 1.0, "diff1": 0.017})"),
+            (std::vector<std::string>{"diff1 0.017", "psnr_db 63.7", "mean_dice 1"}));
+  EXPECT_EQ(FidelityLines(R"({"rmse": 0.0, "psnr_db": null, "mean_dice": 1.0, "diff1": 0})"),
+            (std::vector<std::string>{"diff1 0", "psnr_db inf (rmse 0)", "mean_dice 1"}));
+  EXPECT_EQ(FidelityLines(R"({"rmse": 3.0, "psnr_db": null})"),
+            (std::vector<std::string>{"psnr_db n/a"}));
+  EXPECT_TRUE(FidelityLines("{}").empty());
+}
+
 TEST(SummaryTest, ReadsTheReductionFromMetricsAndWarnsWhenShort) {
   v1::Job job;
   job.mutable_spec()->set_target_reduction(0.95);
