@@ -1,4 +1,5 @@
 #include "server/dicom_receiver.h"
+#include "core/common/utf8.h"
 
 // clang-format off
 #include "dcmtk/config/osconfig.h"  // must come first
@@ -530,9 +531,11 @@ void DicomReceiver::SettleSeries(const std::string& series_uid,
   const std::string owner = DicomOwner(last.calling_ae);
   auto not_queued = [&](v1::ReceivedSeries::State state, const std::string& reason) {
     rec.state = state;
-    rec.reason = reason;
+    // The reason may quote the instances' own text (NumberOfFrames, ...): kept as valid UTF-8,
+    // which PostgreSQL's TEXT and the answer's protobuf string both require.
+    rec.reason = ValidUtf8(reason);
     spdlog::warn("dicom: series {} ({} instances from {}) not queued: {}", series_uid,
-                 instances.size(), last.calling_ae, reason);
+                 instances.size(), last.calling_ae, rec.reason);
     if (auto st = store_->PutDicomSeries(rec, {}); !st.ok()) {
       spdlog::error("dicom: recording series {}: {}", series_uid, st.ToString());
     }
@@ -687,12 +690,12 @@ v1::ReceivedSeries ToProto(const DicomSeriesRecord& r) {
                 : r.job.empty()                                  ? v1::ReceivedSeries::NOT_QUEUED
                                                                  : v1::ReceivedSeries::QUEUED);
   out.set_job(r.job);
-  out.set_reason(r.reason);
+  out.set_reason(ValidUtf8(r.reason));  // also rows stored before reasons were made valid
   out.set_route(r.route);
   out.set_owner(r.calling_ae.empty() ? "" : DicomOwner(r.calling_ae));
   *out.mutable_first_receive_time() = TimeUtil::MillisecondsToTimestamp(r.first_received_ms);
   *out.mutable_last_receive_time() = TimeUtil::MillisecondsToTimestamp(r.last_received_ms);
-  out.set_send_status(r.send_status);
+  out.set_send_status(ValidUtf8(r.send_status));
   return out;
 }
 

@@ -3,6 +3,7 @@
 #include <fstream>
 #include <optional>
 #include <sstream>
+#include <thread>
 
 #include "core/io/dicom.h"
 #include "core/io/dicom_export.h"
@@ -183,6 +184,46 @@ TEST_F(DicomReceiverTest, InstancesWithABrokenAeTitleOrUidAreRefusedAndNothingIs
   ASSERT_TRUE(kept.ok()) << kept.status();
   ASSERT_EQ(kept->size(), 1u);
   EXPECT_EQ(kept->front().calling_ae, "SENDER");
+}
+
+// A series that cannot be queued records why, and the reason may quote the instances' own text:
+// here NumberOfFrames "2<0xE4>" (a Latin-1 byte). The reason is kept as valid UTF-8, so the
+// listing still serializes (before, its protobuf string held the raw byte and every
+// ListReceivedSeries answer that included the series failed to parse).
+TEST_F(DicomReceiverTest, AReasonQuotingAnInstanceIsValidUtf8AndTheListingStillParses) {
+  DicomReceiverOptions options;
+  options.quiet_seconds = 0.1;
+  options.poll_seconds = 0.05;
+  options.port = testing::FreePort();
+  ASSERT_GT(options.port, 0);
+  auto receiver = Receiver(options);
+  ASSERT_TRUE(receiver->Start().ok());
+  testing::SliceSpec slice;
+  slice.number_of_frames = "2\xE4";
+  std::string series;
+  for (int z = 0; z < 2; ++z) {
+    slice.instance = z + 1;
+    slice.position = Eigen::Vector3d(0, 0, 2.0 * z);
+    const fs::path file = dir_ / ("slice" + std::to_string(z) + ".dcm");
+    testing::WriteSlice(file, slice);
+    ASSERT_EQ(receiver->StoreInstance(file, "SENDER", "DECIMA", &series), 0);
+  }
+  std::optional<v1::ReceivedSeries> listed;
+  for (int i = 0; i < 200 && !listed; ++i) {  // at most 10 s
+    auto page = ListReceivedSeries(store_.get(), "", 0, "");
+    ASSERT_TRUE(page.ok()) << page.status();
+    if (page->series.size() == 1 && page->series[0].state() == v1::ReceivedSeries::INCOMPLETE) {
+      listed = page->series[0];
+    } else {
+      std::this_thread::sleep_for(std::chrono::milliseconds(50));
+    }
+  }
+  receiver->Stop();
+  ASSERT_TRUE(listed) << "the series was not checked within 10 s";
+  EXPECT_THAT(listed->reason(), HasSubstr("has 2\xEF\xBF\xBD frames; expected 1"));
+  v1::ReceivedSeries parsed;
+  ASSERT_TRUE(parsed.ParseFromString(listed->SerializeAsString()));
+  EXPECT_EQ(parsed.reason(), listed->reason());
 }
 
 // An association whose calling AE title is not an AE title (PS3.5 6.2: printable ASCII without

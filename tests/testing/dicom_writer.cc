@@ -76,6 +76,7 @@ void WriteSlice(const fs::path& path, const SliceSpec& s) {
   PutUs(ds, 0x0028, 0x0002, static_cast<uint16_t>(s.samples_per_pixel));
   PutText(ds, 0x0028, 0x0004, gdcm::VR::CS, s.samples_per_pixel == 1 ? "MONOCHROME2" : "RGB");
   if (s.samples_per_pixel > 1) PutUs(ds, 0x0028, 0x0006, 0);
+  if (!s.number_of_frames.empty()) PutText(ds, 0x0028, 0x0008, gdcm::VR::IS, s.number_of_frames);
   PutUs(ds, 0x0028, 0x0010, static_cast<uint16_t>(s.rows));
   PutUs(ds, 0x0028, 0x0011, static_cast<uint16_t>(s.columns));
   PutText(ds, 0x0028, 0x0030, gdcm::VR::DS, Decimals(s.pixel_spacing));

@@ -30,7 +30,8 @@ struct SliceSpec {
   std::string description = "synthetic";
   std::string modality = "CT";
   int instance = 1;
-  bool with_sequence = false;  // adds a nested Referenced Image Sequence (undefined lengths)
+  bool with_sequence = false;    // adds a nested Referenced Image Sequence (undefined lengths)
+  std::string number_of_frames;  // (0028,0008) written as is when not empty (broken values too)
   gdcm::TransferSyntax::TSType transfer_syntax = gdcm::TransferSyntax::ExplicitVRLittleEndian;
   // Pixel (i, j) = value(i, j); values are cast to the stored type.
   std::function<double(int, int)> value = [](int i, int j) { return 10 * j + i; };
