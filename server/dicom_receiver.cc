@@ -1,5 +1,4 @@
 #include "server/dicom_receiver.h"
-#include "core/common/utf8.h"
 
 // clang-format off
 #include "dcmtk/config/osconfig.h"  // must come first
@@ -29,6 +28,7 @@
 #include "absl/strings/str_format.h"
 #include "absl/strings/str_join.h"
 #include "absl/strings/str_split.h"
+#include "core/common/utf8.h"
 #include "server/dicom_sender.h"
 #include "server/grpc_util.h"
 #include "server/job_spec.h"

@@ -10,6 +10,7 @@
 
 #include "absl/strings/str_cat.h"
 #include "core/common/progress.h"
+#include "core/common/utf8.h"
 #include "core/pipeline/pipeline.h"
 #include "server/dicom_results.h"
 #include "server/disk_space.h"
@@ -35,7 +36,7 @@ void SendProgress(int fd, const Progress& p) {
   v1::Progress* out = m.mutable_progress();
   out->set_stage(p.stage);
   out->set_fraction(p.fraction);
-  out->set_message(p.message);
+  out->set_message(ValidUtf8(p.message));
   for (const auto& [k, v] : p.metrics) (*out->mutable_metrics())[k] = v;
   Send(fd, m);
 }
@@ -43,7 +44,9 @@ void SendProgress(int fd, const Progress& p) {
 int SendError(int fd, const absl::Status& status) {
   worker::WorkerMessage m;
   m.mutable_error()->set_code(static_cast<int>(status.code()));
-  m.mutable_error()->set_message(std::string(status.message()));
+  // A message may quote the input's own text; the frame is a protobuf, whose strings (and the
+  // parent's parse of them) need valid UTF-8.
+  m.mutable_error()->set_message(ValidUtf8(std::string(status.message())));
   Send(fd, m);
   return status.code() == absl::StatusCode::kCancelled ? kWorkerExitCancelled : kWorkerExitError;
 }
