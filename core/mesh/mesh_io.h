@@ -71,9 +71,10 @@ struct VtuReadOptions {
 // vtkZLibDataCompressor; header_type UInt32 or UInt64; any integer/float array types).
 // The field (TetMesh::scalars) is, in this order: the point array the file names as its active
 // scalars (<PointData Scalars="...">; VTK's filters write theirs as "scalars"), the array named
-// "scalar", the only point array. If none applies (no point array, or several and none marked),
-// or the active scalars name a missing array, it is an InvalidArgument error naming the file and
-// the arrays: the field is never defaulted. Point arrays "label", "interface_distance",
+// "scalar", the only point array (which must have a Name: the report names the field's source).
+// If none applies (no point array, or several and none marked), or the active scalars name a
+// missing array, it is an InvalidArgument error naming the file and the arrays: the field is
+// never defaulted. Point arrays "label", "interface_distance",
 // "feature", "boundary" and cell array "region" are optional: missing ones read as 0
 // (interface_distance: +infinity), and `report` (if not null) says which were present.
 // vertex_flags is rebuilt from "feature" and "boundary" (so a WriteVtu -> ReadVtu round trip

@@ -632,8 +632,15 @@ absl::StatusOr<const XmlElement*> VtuReader::FieldArray(const XmlElement* point_
   // 2. Decima's own name (files written before WriteVtu marked the active scalars).
   DECIMA_ASSIGN_OR_RETURN(const XmlElement* own, FindArray(point_data, "scalar", "PointData"));
   if (own != nullptr) return own;
-  // 3. The only point array: nothing else it could be.
-  if (arrays.size() == 1) return arrays[0];
+  // 3. The only point array: nothing else it could be. It must have a name, which the report
+  // gives as the field's source.
+  if (arrays.size() == 1) {
+    if (arrays[0]->Attr("Name").value_or("").empty())
+      return Error(
+          "PointData's only DataArray has no Name, so the field's source cannot be named "
+          "(expected a Name attribute, e.g. Name=\"scalar\")");
+    return arrays[0];
+  }
   std::string names;
   for (const XmlElement* e : arrays)
     absl::StrAppend(&names, names.empty() ? "" : ", ", "'", e->Attr("Name").value_or(""), "'");

@@ -733,6 +733,17 @@ TEST_F(BrokenVtu, OnlyPointArrayIsTheField) {
   ASSERT_TRUE(m.ok()) << m.status();
   EXPECT_EQ(m->scalars, TwoTets().scalars);
   EXPECT_EQ(report.scalar_array, "intensity");
+
+  // The only point array without a Name (found by vtu_fuzz): the report could not say which
+  // array the field came from, so it is an error naming the attribute, not a nameless field.
+  for (const char* unnamed : {"Nime=\"intensity\"", "Name=\"\""}) {
+    SCOPED_TRACE(unnamed);
+    WriteAll(p, Replace(s, "Name=\"intensity\"", unnamed));
+    m = ReadVtu(p, &report);
+    ASSERT_FALSE(m.ok());
+    EXPECT_EQ(m.status().code(), absl::StatusCode::kInvalidArgument);
+    EXPECT_NE(m.status().message().find("no Name"), absl::string_view::npos) << m.status();
+  }
 }
 
 TEST_F(BrokenVtu, FileWithoutAnIdentifiableFieldIsAnErrorNotZeros) {
