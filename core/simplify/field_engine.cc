@@ -165,6 +165,13 @@ inline bool Cheaper(const Candidate& a, const Candidate& b) {
   return a.cost < b.cost || (a.cost == b.cost && a.target < b.target);
 }
 
+// Whether a cell (four vertex ids) holds vertices of two labels: with a label per vertex, the
+// interface is the set of such cells.
+inline bool HoldsTwoLabels(const uint8_t* labels, const int32_t* c) {
+  const uint8_t l = labels[c[0]];
+  return labels[c[1]] != l || labels[c[2]] != l || labels[c[3]] != l;
+}
+
 struct Face {
   int32_t a, b;
   bool mixed;  // its cell holds vertices of two labels
@@ -436,8 +443,7 @@ void FieldEngine::Setup() {
   // free, they moved and took the label boundary with them (mean Dice 0.998 at 90 %).
   for (int64_t t = 0; t < nt_; ++t) {
     const int32_t* c = &in_.tets[4 * t];
-    const uint8_t l = in_.labels[c[0]];
-    if (in_.labels[c[1]] == l && in_.labels[c[2]] == l && in_.labels[c[3]] == l) continue;
+    if (!HoldsTwoLabels(in_.labels.data(), c)) continue;
     for (int k = 0; k < 4; ++k) flags_[c[k]] |= kFeatureVertex;
   }
   dead_ = BitSet(nt_);
@@ -525,8 +531,7 @@ Freedom FieldEngine::Classify(int32_t u, Scratch& s, int32_t along[2]) const {
   bool touches_mixed = false;
   for (const StarCell& sc : star) {
     const int32_t* t = sc.v;
-    const uint8_t l0 = in_.labels[t[0]];
-    const bool mixed = in_.labels[t[1]] != l0 || in_.labels[t[2]] != l0 || in_.labels[t[3]] != l0;
+    const bool mixed = HoldsTwoLabels(in_.labels.data(), t);
     touches_mixed |= mixed;
     int32_t o[3], n = 0;
     for (int k = 0; k < 4; ++k) {
