@@ -51,21 +51,20 @@ std::vector<std::string> Lines(const std::string& s) {
 }
 
 // The summary line "reduction: A% of the cells removed (target T%), B -> C cells": A must be
-// what B and C say, to one decimal, and at least the target. Returns A as printed ("" if the
-// line is missing). The last collapse may remove a few cells more than the target asks.
-std::string ExpectReductionLine(const std::string& text, double target_percent) {
+// what B and C say, to one decimal, and at least the target. The last collapse may remove a few
+// cells more than the target asks.
+void ExpectReductionLine(const std::string& text, double target_percent) {
   static const std::regex line(
       R"(reduction: ([0-9]+\.[0-9])% of the cells removed \(target ([0-9]+\.[0-9])%\), ([0-9]+) -> ([0-9]+) cells)");
   std::smatch m;
   if (!std::regex_search(text, m, line)) {
     ADD_FAILURE() << "no reduction line in:\n" << text;
-    return "";
+    return;
   }
   const double achieved = std::stod(m[1]), before = std::stod(m[3]), after = std::stod(m[4]);
   EXPECT_DOUBLE_EQ(std::stod(m[2]), target_percent);
   EXPECT_GE(achieved, target_percent);
   EXPECT_NEAR(achieved, 100.0 * (1.0 - after / before), 0.05 + 1e-9);
-  return m[1];
 }
 
 int CountOf(const std::string& s, const std::string& what) {
