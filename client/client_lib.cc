@@ -564,14 +564,18 @@ std::string OverallBar(const v1::Progress& p, double elapsed_s, int width, bool 
   return out;
 }
 
+// Where the value of "key" starts in metrics.json (its first character after the colon), or
+// npos if the key is absent. metrics.json is ours; its few fields the client shows are found by
+// plain string search, so the client keeps depending on the proto library only.
+static size_t MetricsValueAt(const std::string& m, const std::string& key) {
+  size_t at = m.find("\"" + key + "\"");
+  if (at == std::string::npos) return at;
+  at = m.find(':', at);
+  return at == std::string::npos ? at : m.find_first_not_of(" \t\n\r", at + 1);
+}
+
 std::vector<std::string> FidelityLines(const std::string& m) {
-  // The value after "key": (plain search, as SummarizeJob); npos if the key is absent.
-  auto value_at = [&](const std::string& key) -> size_t {
-    size_t at = m.find("\"" + key + "\"");
-    if (at == std::string::npos) return at;
-    at = m.find(':', at);
-    return at == std::string::npos ? at : m.find_first_not_of(" \t\n\r", at + 1);
-  };
+  auto value_at = [&](const std::string& key) { return MetricsValueAt(m, key); };
   std::vector<std::string> lines;
   for (const char* key : {"diff1", "psnr_db", "mean_dice"}) {
     const size_t at = value_at(key);
@@ -595,15 +599,10 @@ JobSummary SummarizeJob(const v1::Job& job, int64_t input_bytes) {
   s.input_bytes = input_bytes;
   for (const auto& a : job.artifacts()) s.artifact_bytes += a.size_bytes();
   s.target_reduction = job.spec().target_reduction();
-  // metrics.json is ours; a few fields are read with plain string search so the client keeps
-  // depending on the proto library only.
   const std::string& m = job.metrics_json();
   auto number = [&](const std::string& key, double* out) {
-    size_t at = m.find("\"" + key + "\"");
-    if (at == std::string::npos) return;
-    at = m.find(':', at);
-    if (at == std::string::npos) return;
-    *out = std::strtod(m.c_str() + at + 1, nullptr);
+    const size_t at = MetricsValueAt(m, key);
+    if (at != std::string::npos) *out = std::strtod(m.c_str() + at, nullptr);
   };
   double before = 0, after = 0;
   number("achieved_reduction", &s.achieved_reduction);
