@@ -101,6 +101,11 @@ int DicomReceiveEntry(const uint8_t* data, size_t size) {
       SetLastInputAccepted(true);
     } else {
       Require(kept->empty(), "a refused instance leaves no row");
+      int64_t files_in_blobs = 0;
+      for (const auto& e : fs::recursive_directory_iterator(dir / "blobs", ec)) {
+        files_in_blobs += e.is_regular_file();
+      }
+      Require(files_in_blobs == 0, "a refused instance leaves no blob");
       Require(series.empty(), "a refused instance names no series");
     }
   }

@@ -51,14 +51,14 @@ int CreateVolumeEntry(const uint8_t* data, size_t size);
 // One instance as the DICOM receiver gets it from a C-STORE (DicomReceiver::StoreInstance, real
 // SQLite and blob stores in a temp folder): the first byte chooses the calling AE title (valid
 // or not), the rest is the file. It is stored (one row naming its series, its UIDs, the AE
-// titles and the blob of exactly these bytes) or refused as not understood with nothing kept;
-// an instance from a calling AE that is no AE title is refused.
+// titles and the blob of exactly these bytes) or refused as not understood, with no row and no
+// blob kept; an instance from a calling AE that is no AE title is refused.
 int DicomReceiveEntry(const uint8_t* data, size_t size);
 
-// Whether the last input of the volume, DICOM, DICOM receive, Upload or CreateVolume entries was
-// accepted (a
-// volume read, an upload stored, a volume created): the replay test checks that the seeds named
-// ok-* are, so the corpora keep inputs that reach past the header checks.
+// Whether the last input of the volume, DICOM, DICOM receive, Upload or CreateVolume entries
+// was accepted (a volume read, an instance stored, an upload stored, a volume created): the
+// replay test checks that the seeds named ok-* are, so the corpora keep inputs that reach past
+// the header checks.
 bool LastInputAccepted();
 void SetLastInputAccepted(bool accepted);
 
