@@ -252,6 +252,7 @@ class FieldEngine {
     st_[u].stale = 0;
     return Score(u, scratch_, &st_[u].cost, &st_[u].best);
   }
+  void PreparePlanes(int32_t u, const Star& star);
   bool Valid(int32_t u, int32_t v, const Star& star);
   int64_t Collapse(int32_t u, int32_t v, const Star& star);
   void Push(int32_t u) { heap_.push({static_cast<float>(st_[u].cost), u, ++st_[u].version}); }
@@ -390,6 +391,13 @@ class FieldEngine {
   Scratch scratch_;
   std::vector<int32_t> touched_, changed_;
   std::vector<const StarCell*> guarded_;  // Valid: the moved cells the shape guard checks last
+  // PreparePlanes: per star cell, the plane of the face opposite u, scaled so that n . p >= min
+  // is "u moved to p leaves the cell at least min_volume_".
+  struct Plane {
+    double n[3];
+    double min;
+  };
+  std::vector<Plane> planes_;
   int64_t invalid_tries_ = 0, requeued_ = 0, constrained_moves_ = 0;
 };
 
@@ -687,34 +695,57 @@ bool FieldEngine::Score(int32_t u, Scratch& s, double* cost, int32_t* best) {
   return *best >= 0;
 }
 
+void FieldEngine::PreparePlanes(int32_t u, const Star& star) {
+  // With u in slot k of a positive cell, the other three in this order span a positively
+  // oriented face: V(p) = n . (p - a) / 6 with n = (b - a) x (c - a) (even permutations of the
+  // slots keep the sign).
+  static constexpr int kOthers[4][3] = {{2, 1, 3}, {0, 2, 3}, {0, 3, 1}, {0, 1, 2}};
+  planes_.resize(star.size());
+  for (size_t i = 0; i < star.size(); ++i) {
+    const int32_t* t = star[i].v;
+    int k = 0;
+    while (k < 3 && t[k] != u) ++k;
+    const float* a = &pos_[3 * int64_t(t[kOthers[k][0]])];
+    const float* b = &pos_[3 * int64_t(t[kOthers[k][1]])];
+    const float* c = &pos_[3 * int64_t(t[kOthers[k][2]])];
+    const double e0[3] = {double(b[0]) - a[0], double(b[1]) - a[1], double(b[2]) - a[2]};
+    const double e1[3] = {double(c[0]) - a[0], double(c[1]) - a[1], double(c[2]) - a[2]};
+    Plane& pl = planes_[i];
+    pl.n[0] = e0[1] * e1[2] - e0[2] * e1[1];
+    pl.n[1] = e0[2] * e1[0] - e0[0] * e1[2];
+    pl.n[2] = e0[0] * e1[1] - e0[1] * e1[0];
+    pl.min = pl.n[0] * a[0] + pl.n[1] * a[1] + pl.n[2] * a[2] + 6 * min_volume_;
+  }
+}
+
 // Rule 6 of the paper for a half-edge collapse: every cell that keeps u (now at v's place) stays
-// positive with at least min_volume; no vertex loses its last cell.
+// positive with at least min_volume; no vertex loses its last cell. PreparePlanes(u, star) must
+// have run: a refused best target is followed by tries of every other candidate on the same
+// star, and each try is then one dot product per cell instead of a determinant.
 bool FieldEngine::Valid(int32_t u, int32_t v, const Star& star) {
   int32_t lost[64][2];
   int nlost = 0;
   guarded_.clear();
-  for (const StarCell& sc : star) {
-    const int32_t* t = sc.v;
+  const double pv[3] = {pos_[3 * int64_t(v)], pos_[3 * int64_t(v) + 1], pos_[3 * int64_t(v) + 2]};
+  for (size_t i = 0; i < star.size(); ++i) {
+    const int32_t* t = star[i].v;
     if (t[0] == v || t[1] == v || t[2] == v || t[3] == v) {
       for (int k = 0; k < 4; ++k) {
         if (t[k] == u || t[k] == v) continue;
-        int i = 0;
-        while (i < nlost && lost[i][0] != t[k]) ++i;
-        if (i == nlost) {
+        int j = 0;
+        while (j < nlost && lost[j][0] != t[k]) ++j;
+        if (j == nlost) {
           if (nlost == 64) return false;
           lost[nlost][0] = t[k];
           lost[nlost++][1] = 0;
         }
-        ++lost[i][1];
+        ++lost[j][1];
       }
       continue;
     }
-    int32_t moved[4] = {t[0], t[1], t[2], t[3]};
-    for (int k = 0; k < 4; ++k) {
-      if (moved[k] == u) moved[k] = v;
-    }
-    if (!(SignedVolume(moved) >= min_volume_)) return false;
-    if (max_cos_ < 1) guarded_.push_back(&sc);
+    const Plane& pl = planes_[i];
+    if (!(pl.n[0] * pv[0] + pl.n[1] * pv[1] + pl.n[2] * pv[2] >= pl.min)) return false;
+    if (max_cos_ < 1) guarded_.push_back(&star[i]);
   }
   for (int i = 0; i < nlost; ++i) {
     if (valence_[lost[i][0]] <= lost[i][1]) return false;
@@ -837,6 +868,7 @@ absl::Status FieldEngine::Run(int64_t target, double tolerance, const ProgressFn
     // u's cells, once: the validity checks, the fallback's candidates and the collapse share it.
     const Star& star = scratch_.star;
     GatherStar(u, &scratch_.star);
+    PreparePlanes(u, star);
     int32_t v = st_[u].best;
     double cost = st_[u].cost;
     if (!Valid(u, v, star)) {
@@ -982,6 +1014,7 @@ void FieldEngine::ReleaseQueue() {
   release(touched_);
   release(changed_);
   release(guarded_);
+  release(planes_);
   heap_ = QueueHeap();
   scratch_ = Scratch();
 }
