@@ -1,8 +1,10 @@
-// The one way decima_core splits a loop over both cores: contiguous static ranges, so every
-// thread writes its own slice and results never depend on scheduling.
+// How decima_core splits work over the cores: contiguous static ranges (ParallelFor), so every
+// thread writes its own slice, or independent tasks taken in turn (ParallelTasks); either way
+// results never depend on scheduling.
 #pragma once
 
 #include <algorithm>
+#include <atomic>
 #include <cstdint>
 #include <thread>
 #include <utility>
@@ -32,6 +34,31 @@ void ParallelFor(int64_t n, int threads, int64_t min_chunk, Fn&& fn) {
   for (int t = 0; t < threads; ++t) {
     const int64_t begin = n * t / threads, end = n * (t + 1) / threads;
     pool.emplace_back([&fn, begin, end] { fn(begin, end); });
+  }
+  for (auto& th : pool) th.join();
+}
+
+// Calls fn(thread, task) for every task in [0, n) on up to `threads` threads, each taking the next
+// task when it is done with one (tasks of uneven size keep both cores busy). Which thread runs a
+// task varies from run to run, so tasks must not depend on each other: each writes only what it
+// owns, and `thread` may only pick per-thread scratch memory.
+template <typename Fn>
+void ParallelTasks(int64_t n, int threads, Fn&& fn) {
+  threads = static_cast<int>(std::clamp<int64_t>(std::min<int64_t>(threads, n), 1, 64));
+  if (threads == 1) {
+    for (int64_t i = 0; i < n; ++i) fn(0, i);
+    return;
+  }
+  std::atomic<int64_t> next{0};
+  std::vector<std::thread> pool;
+  pool.reserve(threads);
+  for (int t = 0; t < threads; ++t) {
+    pool.emplace_back([&fn, &next, n, t] {
+      for (int64_t i = next.fetch_add(1, std::memory_order_relaxed); i < n;
+           i = next.fetch_add(1, std::memory_order_relaxed)) {
+        fn(t, i);
+      }
+    });
   }
   for (auto& th : pool) th.join();
 }

@@ -370,6 +370,32 @@ TEST(FieldPolicy, SameResultOnOneAndTwoThreads) {
   EXPECT_EQ(a->vertex_map, b->vertex_map);
 }
 
+// The greedy loop runs in rounds over slabs of the mesh (four here), each slab on its own queue,
+// the slabs taken by whichever thread is free: the result must not depend on the thread count.
+TEST(FieldPolicy, ParallelRoundsGiveTheSameResultOnOneTwoAndThreeThreads) {
+  auto pm = MakePhantomMesh(40, 40);
+  std::vector<SimplifyResult> results;
+  for (int threads : {1, 2, 3}) {
+    SimplifyOptions o = Field(0.7, threads);
+    o.refit_iterations = 0;
+    int rounds = 0;
+    auto r = Simplify(pm.mesh, o, [&](const Progress& e) {
+      rounds += e.message.find("slabs removed") != std::string::npos;
+    });
+    ASSERT_TRUE(r.ok()) << r.status();
+    EXPECT_TRUE(r->reached_target) << r->stop_message;
+    EXPECT_GE(rounds, 2) << threads << " threads";
+    results.push_back(*std::move(r));
+  }
+  for (size_t i = 1; i < results.size(); ++i) {
+    EXPECT_EQ(results[0].mesh.tets, results[i].mesh.tets);
+    EXPECT_EQ(results[0].mesh.positions, results[i].mesh.positions);
+    EXPECT_EQ(results[0].mesh.scalars, results[i].mesh.scalars);
+    EXPECT_EQ(results[0].vertex_map, results[i].vertex_map);
+    EXPECT_EQ(results[0].collapses, results[i].collapses);
+  }
+}
+
 // The refit's A x and A^T y run on contiguous ranges of samples and of vertices (at least 16384
 // each): a mesh large enough for two ranges checks that the split changes no sum.
 TEST(FieldPolicy, RefitSameResultOnOneAndTwoThreadsWithSplitRanges) {
