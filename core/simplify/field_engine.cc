@@ -1045,6 +1045,10 @@ int64_t FieldEngine::ParallelRounds(int64_t target, const ProgressFn& progress,
   int64_t removed = 0;
   float last_stop_cost = 0;
   for (int round = 0; round < kMaxRounds; ++round) {
+    if (cancel != nullptr && cancel->cancelled()) {
+      *status = CheckCancelled(cancel, "simplify");
+      return removed;
+    }
     const int64_t remaining = target - removed;
     if (remaining <= target / kSerialShare) break;
     // The common cost: as many queued vertices below it as a quarter of the collapses still

@@ -446,6 +446,24 @@ TEST(FieldPolicy, ReportsProgressAndHonoursCancellation) {
   EXPECT_EQ(c.status().code(), absl::StatusCode::kCancelled);
 }
 
+// A cancel that arrives while the slabs run (here: with the first round's report) stops the
+// simplification at the next round instead of running on to the target.
+TEST(FieldPolicy, CancelDuringTheParallelRoundsStopsThem) {
+  auto pm = MakePhantomMesh(24, 40);
+  CancelToken cancel;
+  int rounds = 0;
+  auto r = Simplify(
+      pm.mesh, Field(0.7),
+      [&](const Progress& e) {
+        if (e.message.find("slabs removed") == std::string::npos) return;
+        ++rounds;
+        cancel.Cancel();
+      },
+      &cancel);
+  EXPECT_EQ(r.status().code(), absl::StatusCode::kCancelled) << r.status();
+  EXPECT_EQ(rounds, 1);
+}
+
 // A single cube: every vertex is a box corner, so nothing may collapse; the loop says so and
 // returns the mesh unchanged.
 TEST(FieldPolicy, AMeshOfCornersStaysAsItIsAndSaysWhy) {
