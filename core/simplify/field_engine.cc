@@ -268,6 +268,12 @@ struct Worker {
   }
 };
 
+// A vertex with a queue entry and its cost, as the parallel rounds list them.
+struct QueuedVertex {
+  float cost;
+  int32_t v;
+};
+
 // Why Drain returned.
 enum class Drained { kLimit, kStopCost, kEmpty, kCancelled };
 
@@ -1056,11 +1062,24 @@ int64_t FieldEngine::ParallelRounds(int64_t target, const ProgressFn& progress,
     // the ones it makes cheap as well; a cost near the target's own (half the collapses, or
     // all) let the slabs spend the target on collapses the serial order would never make:
     // CT head 80 % 39.9 instead of 48.3 dB.
-    std::vector<float> costs;
-    for (int64_t v = 0; v < nv_; ++v) {
-      if (Queued(v)) costs.push_back(float(st_[v].cost));
+    // The queued vertices in id order, found in parallel (one list per range, joined in order).
+    std::vector<QueuedVertex> queued_list;
+    {
+      const int64_t ranges = std::max(1, threads_);
+      std::vector<std::vector<QueuedVertex>> parts(ranges);
+      ParallelFor(ranges, threads_, [&](int64_t r0, int64_t r1) {
+        for (int64_t r = r0; r < r1; ++r) {
+          for (int64_t v = nv_ * r / ranges; v < nv_ * (r + 1) / ranges; ++v) {
+            if (Queued(v)) parts[r].push_back({float(st_[v].cost), int32_t(v)});
+          }
+        }
+      });
+      for (const auto& part : parts)
+        queued_list.insert(queued_list.end(), part.begin(), part.end());
     }
-    if (costs.empty()) break;
+    if (queued_list.empty()) break;
+    std::vector<float> costs(queued_list.size());
+    for (size_t i = 0; i < queued_list.size(); ++i) costs[i] = queued_list[i].cost;
     const double per_collapse =
         totals->collapses > 0 ? double(removed) / double(totals->collapses) : 4.0;
     const size_t k =
@@ -1074,8 +1093,8 @@ int64_t FieldEngine::ParallelRounds(int64_t target, const ProgressFn& progress,
     // as big), so that what waited at a cut is inside a slab next time. Cuts closer than
     // kMinCutVoxels to the previous one are dropped.
     std::vector<float> coords;
-    for (int64_t v = 0; v < nv_; ++v) {
-      if (Queued(v) && float(st_[v].cost) <= stop_cost) coords.push_back(pos_[3 * v + axis]);
+    for (const QueuedVertex& q : queued_list) {
+      if (q.cost <= stop_cost) coords.push_back(pos_[3 * int64_t(q.v) + axis]);
     }
     const double shift = round % 2 == 0 ? 0.0 : 0.5;
     std::vector<float> cuts;
@@ -1113,9 +1132,9 @@ int64_t FieldEngine::ParallelRounds(int64_t target, const ProgressFn& progress,
     });
     std::vector<std::vector<HeapEntry>> entries(blocks);
     int64_t queued = 0;
-    for (int64_t v = 0; v < nv_; ++v) {
-      if (!Queued(v) || frontier_[v] || float(st_[v].cost) > stop_cost) continue;
-      entries[owner_[v]].push_back({float(st_[v].cost), int32_t(v), ++st_[v].version});
+    for (const QueuedVertex& q : queued_list) {
+      if (frontier_[q.v] || q.cost > stop_cost) continue;
+      entries[owner_[q.v]].push_back({q.cost, q.v, ++st_[q.v].version});
       ++queued;
     }
     if (queued == 0) break;
