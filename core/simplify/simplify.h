@@ -106,7 +106,7 @@ struct SimplifyOptions {
   // original samples after the collapses (README "Refit"); 0 keeps every surviving vertex's
   // voxel sample. 0..1000.
   int refit_iterations = 30;
-  int threads = 0;  // worker threads for the per-pass scoring; 0 = hardware concurrency
+  int threads = 0;  // worker threads (scoring; kField: its slabs too); 0 = hardware concurrency
 };
 
 enum class StopReason : uint8_t {
@@ -159,12 +159,12 @@ struct SimplifyResult {
 absl::Status ValidateSimplifyOptions(const SimplifyOptions& options);
 
 // Simplifies `mesh` (a valid TetMesh, see tet_mesh.h; every cell positively oriented). Progress
-// stage "simplify": once per pass (kField: about every 2 % of the target) with metrics {"pass",
-// "cells_removed", "error"}; kField adds one event after its set-up and, with the refit, a last
-// one with {"refit_rms_before", "refit_rms_after"}. Returns
+// stage "simplify": once per pass (kField: once per parallel round, then about every 2 % of the
+// target) with metrics {"pass", "cells_removed", "error"}; kField adds one event after its
+// set-up and, with the refit, a last one with {"refit_rms_before", "refit_rms_after"}. Returns
 // InvalidArgument (naming the field) for an invalid mesh or options, Cancelled if `cancel`
-// fired (checked every pass and every 65536 queue entries). Not reaching the target is not an
-// error: the result says so (reached_target, stop_reason, stop_message). Thread-safe for
+// fired (checked every pass, every round and every 65536 queue entries). Not reaching the target is
+// not an error: the result says so (reached_target, stop_reason, stop_message). Thread-safe for
 // distinct arguments; uses up to options.threads threads it starts itself.
 absl::StatusOr<SimplifyResult> Simplify(const TetMesh& mesh, const SimplifyOptions& options,
                                         const ProgressFn& progress = nullptr,
