@@ -1024,7 +1024,8 @@ void AddCounts(const Worker& w, Worker* to) {
 // Parallel rounds (README "Parallel rounds"): the mesh is cut into slabs along its longest axis;
 // in each round every slab runs the greedy loop on its own queue up to a common cost, touching
 // only its own vertices and cells, so the slabs run on any number of threads with the same
-// result. The cuts move by half a slab every other round. Returns the cells removed.
+// result. Every other round the cuts sit halfway between the last ones. Returns the cells
+// removed.
 int64_t FieldEngine::ParallelRounds(int64_t target, const ProgressFn& progress,
                                     const CancelToken* cancel, Worker* totals,
                                     absl::Status* status) {
@@ -1057,11 +1058,6 @@ int64_t FieldEngine::ParallelRounds(int64_t target, const ProgressFn& progress,
     }
     const int64_t remaining = target - removed;
     if (remaining <= target / kSerialShare) break;
-    // The common cost: as many queued vertices below it as a quarter of the collapses still
-    // needed (at the cells per collapse seen so far). A round does every collapse below it,
-    // the ones it makes cheap as well; a cost near the target's own (half the collapses, or
-    // all) let the slabs spend the target on collapses the serial order would never make:
-    // CT head 80 % 39.9 instead of 48.3 dB.
     // The queued vertices in id order, found in parallel (one list per range, joined in order).
     std::vector<QueuedVertex> queued_list;
     {
@@ -1080,6 +1076,11 @@ int64_t FieldEngine::ParallelRounds(int64_t target, const ProgressFn& progress,
     if (queued_list.empty()) break;
     std::vector<float> costs(queued_list.size());
     for (size_t i = 0; i < queued_list.size(); ++i) costs[i] = queued_list[i].cost;
+    // The common cost: as many queued vertices below it as a quarter of the collapses still
+    // needed (at the cells per collapse seen so far). A round does every collapse below it,
+    // the ones it makes cheap as well; a cost near the target's own (half the collapses, or
+    // all) let the slabs spend the target on collapses the serial order would never make:
+    // CT head 80 % 39.9 instead of 48.3 dB.
     const double per_collapse =
         totals->collapses > 0 ? double(removed) / double(totals->collapses) : 4.0;
     const size_t k =
@@ -1156,7 +1157,6 @@ int64_t FieldEngine::ParallelRounds(int64_t target, const ProgressFn& progress,
       w.Reset(std::move(entries[b]));
       if (Drain(w, limit[b], stop_cost, true, 0, cancel) == Drained::kCancelled) cancelled = true;
       AddCounts(w, &done[b]);
-      done[b].last_error = w.max_error;
     });
     if (cancelled) {
       *status = CheckCancelled(cancel, "simplify");
@@ -1167,7 +1167,6 @@ int64_t FieldEngine::ParallelRounds(int64_t target, const ProgressFn& progress,
       round_removed += d.removed;
       round_collapses += d.collapses;
       AddCounts(d, totals);
-      totals->last_error = std::max(totals->last_error, d.last_error);
     }
     removed += round_removed;
     Report(progress, {"simplify",
@@ -1238,7 +1237,9 @@ absl::Status FieldEngine::Run(int64_t target, double tolerance, const ProgressFn
   stats.rejected_flip = rounds.invalid_tries;
   stats.requeued = rounds.requeued;
   stats.other_point = rounds.constrained_moves;
-  stats.last_error = w.collapses > 0 ? w.last_error : rounds.last_error;
+  // With no serial collapse, the rounds' largest error stands for the last one (the slabs' last
+  // collapses have no order among each other).
+  stats.last_error = w.collapses > 0 ? w.last_error : rounds.max_error;
   result->pass_stats.push_back(stats);
   result->passes = 1;
   result->collapses = rounds.collapses;
