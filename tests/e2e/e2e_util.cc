@@ -34,9 +34,12 @@ using testing::Spawn;
 // Waits for a child the test started; a child still running after `timeout` is killed and
 // fails the test.
 int Reap(pid_t pid, std::chrono::seconds timeout) {
-  const int code = testing::WaitExit(pid, timeout);
-  if (code < 0)
-    ADD_FAILURE() << "process " << pid << " timed out after " << timeout.count() << " s";
+  std::string state;
+  const int code = testing::WaitExit(pid, timeout, &state);
+  if (code < 0) {
+    ADD_FAILURE() << "process " << pid << " timed out after " << timeout.count() << " s (" << state
+                  << ")";
+  }
   return code;
 }
 

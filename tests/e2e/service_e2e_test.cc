@@ -199,7 +199,7 @@ TEST_F(ServiceE2E, FourClientsTwentyJobsEachTwoWorkersAllSucceedOnceInOrder) {
   }
   std::atomic<int> max_running{0};
   std::atomic<bool> sampling{true};
-  std::thread sampler([&] {
+  std::thread sampler_thread([&] {
     auto stub = v1::Jobs::NewStub(
         grpc::CreateChannel(server.address(), grpc::InsecureChannelCredentials()));
     while (sampling) {
@@ -216,16 +216,27 @@ TEST_F(ServiceE2E, FourClientsTwentyJobsEachTwoWorkersAllSucceedOnceInOrder) {
       std::this_thread::sleep_for(5ms);
     }
   });
+  // Stopped and joined on every way out, a failed ASSERT included (a joinable std::thread
+  // destroyed would abort the whole test binary).
+  struct StopSampler {
+    std::atomic<bool>& sampling;
+    std::thread& thread;
+    void Stop() {
+      sampling = false;
+      if (thread.joinable()) thread.join();
+    }
+    ~StopSampler() { Stop(); }
+  } sampler{sampling, sampler_thread};
   std::vector<std::vector<std::string>> jobs(4);
   std::vector<std::thread> clients;
   for (int c = 0; c < 4; ++c) {
     clients.emplace_back([&, c] {
       for (int i = 0; i < 20; ++i) {
         // Small renders keep 80 real pipeline runs within the watchers' deadline on 2 cores.
-        CliResult r =
-            RunCli(server.address(), {"-q", "submit", vols[c].string(), "--image-size", "32"});
+        // Not quiet: if a submit fails, what it said (retries included) is in the failure.
+        CliResult r = RunCli(server.address(), {"submit", vols[c].string(), "--image-size", "32"});
         if (r.rc != 0) {
-          ADD_FAILURE() << r.err;
+          ADD_FAILURE() << "client " << c << ", submit " << i << ": exit " << r.rc << "\n" << r.err;
           return;
         }
         jobs[c].push_back(FirstLine(r.out));
@@ -243,8 +254,7 @@ TEST_F(ServiceE2E, FourClientsTwentyJobsEachTwoWorkersAllSucceedOnceInOrder) {
     watchers.emplace_back([&, i] { seen[i] = WatchAll(server.address(), all[i]); });
   }
   for (auto& t : watchers) t.join();
-  sampling = false;
-  sampler.join();
+  sampler.Stop();
   for (size_t i = 0; i < all.size(); ++i) {
     const auto& ev = seen[i];
     ASSERT_FALSE(ev.empty()) << all[i];

@@ -123,6 +123,7 @@ std::string PostgresServer::Start() {
   }
   argv.insert(argv.end(), pg.begin(), pg.end());
   pid_ = Spawn(argv, (dir_ / "postgres.log").string());
+  if (pid_ <= 0) return "postgres could not be started: " + argv[0];
   const auto until = std::chrono::steady_clock::now() + std::chrono::seconds(60);
   while (std::chrono::steady_clock::now() < until) {
     int st = 0;
