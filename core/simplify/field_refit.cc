@@ -5,6 +5,7 @@
 #include <atomic>
 #include <cmath>
 #include <limits>
+#include <optional>
 #include <vector>
 
 #include "core/common/parallel.h"
@@ -13,28 +14,109 @@
 namespace decima::simplify_internal {
 namespace {
 
-// Where a sample sits: its cell and barycentric weights.
-struct Location {
-  int32_t cell = -1;
+// A sample's row of A: the vertices of the simplified cell it lies in and its barycentric
+// weights there. vertex[0] == -1: outside every cell.
+struct Row {
+  std::array<int32_t, 4> vertex{-1, -1, -1, -1};
   std::array<float, 4> w{};
 };
 
-// Locates every original vertex in `mesh`: samples are bucketed on a uniform grid over their
-// bounding box; each cell, in id order, tests the samples of the buckets its bounding box
-// overlaps, and the first cell that contains a sample keeps it.
-std::vector<Location> LocateSamples(const TetMesh& original, const TetMesh& mesh, int threads,
-                                    const CancelToken* cancel, absl::Status* status) {
+// Sum of f(i) over [0, n) in fixed blocks added in block order: the same on any thread count.
+template <typename F>
+double BlockSum(int64_t n, int threads, F&& f) {
+  constexpr int64_t kBlock = 16384;
+  std::vector<double> part((n + kBlock - 1) / kBlock, 0.0);
+  ParallelFor(int64_t(part.size()), threads, [&](int64_t b0, int64_t b1) {
+    for (int64_t b = b0; b < b1; ++b) {
+      double sum = 0;
+      for (int64_t i = b * kBlock; i < std::min(n, (b + 1) * kBlock); ++i) sum += f(i);
+      part[b] = sum;
+    }
+  });
+  double sum = 0;
+  for (double x : part) sum += x;
+  return sum;
+}
+
+// Barycentric weights of x in cell t of `mesh` if the cell holds x (to 1e-6), else nullopt.
+std::optional<std::array<float, 4>> WeightsIn(const TetMesh& mesh, int64_t t,
+                                              const Eigen::Vector3d& x) {
+  const int32_t* c = &mesh.tets[4 * t];
+  const Eigen::Vector3d p0 = mesh.Position(c[0]);
+  const Eigen::Vector3d e0 = mesh.Position(c[1]) - p0, e1 = mesh.Position(c[2]) - p0,
+                        e2 = mesh.Position(c[3]) - p0, d = x - p0;
+  // The rows of the inverse of [e0 e1 e2] are these cross products over the determinant.
+  const Eigen::Vector3d r0 = e1.cross(e2), r1 = e2.cross(e0), r2 = e0.cross(e1);
+  const double det = e0.dot(r0);
+  if (!(det > 0)) return std::nullopt;
+  const double eps = 1e-6 * det;
+  const double l0 = r0.dot(d), l1 = r1.dot(d), l2 = r2.dot(d);
+  if (l0 < -eps || l1 < -eps || l2 < -eps || det - l0 - l1 - l2 < -eps) return std::nullopt;
+  return std::array<float, 4>{float((det - l0 - l1 - l2) / det), float(l0 / det), float(l1 / det),
+                              float(l2 / det)};
+}
+
+// Locates every original vertex in `mesh`, where `vertex_map` (may be empty) says which vertex
+// of `mesh` each became. A vertex that survived where it was is that vertex, weight 1 (about
+// half the samples). A collapsed one nearly always lies in a cell around the vertex it became
+// (a valid collapse keeps the union of the two stars; later collapses nearby can move that
+// boundary): those cells are tried first, in id order, and the first that holds the sample
+// keeps it. The few left are bucketed on a uniform grid over their bounding box; each cell, in
+// id order, tests the samples of the buckets its bounding box overlaps, and the first cell that
+// contains a sample keeps it.
+std::vector<Row> LocateSamples(const TetMesh& original, const TetMesh& mesh,
+                               const std::vector<int32_t>& vertex_map, int threads,
+                               const CancelToken* cancel, absl::Status* status) {
   const int64_t n = original.vertex_count();
-  std::vector<Location> loc(n);
-  if (n == 0 || mesh.tet_count() == 0) return loc;
-  Eigen::Vector3d lo = original.Position(0), hi = lo;
-  for (int64_t v = 1; v < n; ++v) {
+  std::vector<Row> rows(n);
+  if (n == 0 || mesh.tet_count() == 0) return rows;
+  std::vector<uint8_t> placed(n, 0);
+  if (int64_t(vertex_map.size()) == n) {
+    const VertexTetAdjacency star = BuildVertexTetAdjacency(mesh);
+    ParallelFor(n, threads, 4096, [&](int64_t v0, int64_t v1) {
+      for (int64_t v = v0; v < v1; ++v) {
+        const int32_t m = vertex_map[v];
+        if (m < 0 || m >= mesh.vertex_count()) continue;
+        const float* p = &original.positions[3 * v];
+        const float* q = &mesh.positions[3 * int64_t(m)];
+        if (p[0] == q[0] && p[1] == q[1] && p[2] == q[2]) {
+          rows[v].vertex = {m, m, m, m};
+          rows[v].w = {1.f, 0.f, 0.f, 0.f};
+          placed[v] = 1;
+          continue;
+        }
+        const Eigen::Vector3d x = original.Position(v);
+        for (int64_t i = star.offsets[m]; i < star.offsets[m + 1]; ++i) {
+          const int32_t t = star.tet_ids[i];
+          if (auto w = WeightsIn(mesh, t, x)) {
+            const int32_t* c = &mesh.tets[4 * int64_t(t)];
+            rows[v].vertex = {c[0], c[1], c[2], c[3]};
+            rows[v].w = *w;
+            placed[v] = 1;
+            break;
+          }
+        }
+      }
+    });
+  }
+  if (cancel != nullptr && cancel->cancelled()) {
+    *status = absl::CancelledError("simplify: cancelled");
+    return rows;
+  }
+  std::vector<int32_t> search;
+  for (int64_t v = 0; v < n; ++v) {
+    if (!placed[v]) search.push_back(int32_t(v));
+  }
+  const int64_t ns = int64_t(search.size());
+  if (ns == 0) return rows;
+  Eigen::Vector3d lo = original.Position(search[0]), hi = lo;
+  for (int32_t v : search) {
     lo = lo.cwiseMin(original.Position(v));
     hi = hi.cwiseMax(original.Position(v));
   }
   // About two samples per bucket.
   const Eigen::Vector3d extent = (hi - lo).cwiseMax(1e-9);
-  const double cell_size = std::cbrt(extent.prod() / std::max<double>(1, double(n) / 2));
+  const double cell_size = std::cbrt(extent.prod() / std::max<double>(1, double(ns) / 2));
   std::array<int64_t, 3> dims;
   for (int k = 0; k < 3; ++k) {
     dims[k] = std::clamp<int64_t>(int64_t(std::ceil(extent[k] / cell_size)), 1, 4096);
@@ -45,17 +127,17 @@ std::vector<Location> LocateSamples(const TetMesh& original, const TetMesh& mesh
   };
   const int64_t buckets = dims[0] * dims[1] * dims[2];
   std::vector<int64_t> start(buckets + 1, 0);
-  std::vector<int64_t> bucket(n);
-  for (int64_t v = 0; v < n; ++v) {
-    const Eigen::Vector3d p = original.Position(v);
-    bucket[v] = bucket_of(p, 0) + dims[0] * (bucket_of(p, 1) + dims[1] * bucket_of(p, 2));
-    ++start[bucket[v] + 1];
+  std::vector<int64_t> bucket(ns);
+  for (int64_t i = 0; i < ns; ++i) {
+    const Eigen::Vector3d p = original.Position(search[i]);
+    bucket[i] = bucket_of(p, 0) + dims[0] * (bucket_of(p, 1) + dims[1] * bucket_of(p, 2));
+    ++start[bucket[i] + 1];
   }
   for (int64_t b = 0; b < buckets; ++b) start[b + 1] += start[b];
-  std::vector<int32_t> members(n);
+  std::vector<int32_t> members(ns);
   {
     std::vector<int64_t> fill(start.begin(), start.end() - 1);
-    for (int64_t v = 0; v < n; ++v) members[fill[bucket[v]]++] = int32_t(v);
+    for (int64_t i = 0; i < ns; ++i) members[fill[bucket[i]]++] = search[i];
   }
   // Cells test in parallel; each sample keeps the lowest containing cell id (an atomic
   // minimum), so the result does not depend on the thread count.
@@ -69,19 +151,11 @@ std::vector<Location> LocateSamples(const TetMesh& original, const TetMesh& mesh
         return;
       }
       const int32_t* c = &mesh.tets[4 * t];
-      Eigen::Vector3d p[4];
-      for (int k = 0; k < 4; ++k) p[k] = mesh.Position(c[k]);
-      Eigen::Vector3d blo = p[0], bhi = p[0];
+      Eigen::Vector3d blo = mesh.Position(c[0]), bhi = blo;
       for (int k = 1; k < 4; ++k) {
-        blo = blo.cwiseMin(p[k]);
-        bhi = bhi.cwiseMax(p[k]);
+        blo = blo.cwiseMin(mesh.Position(c[k]));
+        bhi = bhi.cwiseMax(mesh.Position(c[k]));
       }
-      Eigen::Matrix3d e;
-      for (int k = 0; k < 3; ++k) e.col(k) = p[k + 1] - p[0];
-      const double det = e.determinant();
-      if (!(det > 0)) continue;
-      const Eigen::Matrix3d inv = e.inverse();
-      const double eps = 1e-6;
       for (int64_t bz = bucket_of(blo, 2); bz <= bucket_of(bhi, 2); ++bz) {
         for (int64_t by = bucket_of(blo, 1); by <= bucket_of(bhi, 1); ++by) {
           for (int64_t bx = bucket_of(blo, 0); bx <= bucket_of(bhi, 0); ++bx) {
@@ -89,9 +163,7 @@ std::vector<Location> LocateSamples(const TetMesh& original, const TetMesh& mesh
             for (int64_t i = start[b]; i < start[b + 1]; ++i) {
               const int32_t v = members[i];
               if (owner[v].load(std::memory_order_relaxed) < t) continue;
-              const Eigen::Vector3d l = inv * (original.Position(v) - p[0]);
-              const double w0 = 1 - l.sum();
-              if (w0 < -eps || l.x() < -eps || l.y() < -eps || l.z() < -eps) continue;
+              if (!WeightsIn(mesh, t, original.Position(v))) continue;
               int32_t seen = owner[v].load(std::memory_order_relaxed);
               while (t < seen && !owner[v].compare_exchange_weak(seen, int32_t(t))) {
               }
@@ -103,54 +175,42 @@ std::vector<Location> LocateSamples(const TetMesh& original, const TetMesh& mesh
   });
   if (cancelled) {
     *status = absl::CancelledError("simplify: cancelled");
-    return loc;
+    return rows;
   }
   // Weights in the winning cell.
-  ParallelFor(n, threads, 4096, [&](int64_t v0, int64_t v1) {
-    for (int64_t v = v0; v < v1; ++v) {
+  ParallelFor(ns, threads, 4096, [&](int64_t i0, int64_t i1) {
+    for (int64_t i = i0; i < i1; ++i) {
+      const int32_t v = search[i];
       const int32_t t = owner[v].load(std::memory_order_relaxed);
       if (t == std::numeric_limits<int32_t>::max()) continue;
       const int32_t* c = &mesh.tets[4 * int64_t(t)];
-      const Eigen::Vector3d p0 = mesh.Position(c[0]);
-      Eigen::Matrix3d e;
-      for (int k = 0; k < 3; ++k) e.col(k) = mesh.Position(c[k + 1]) - p0;
-      const Eigen::Vector3d l = e.inverse() * (original.Position(v) - p0);
-      loc[v].cell = t;
-      loc[v].w = {float(1 - l.sum()), float(l.x()), float(l.y()), float(l.z())};
+      rows[v].vertex = {c[0], c[1], c[2], c[3]};
+      rows[v].w = *WeightsIn(mesh, t, original.Position(v));  // it held v in the search
     }
   });
-  return loc;
+  return rows;
 }
 
 }  // namespace
 
-absl::Status RefitValues(const TetMesh& original, TetMesh* simplified, int iterations, int threads,
+absl::Status RefitValues(const TetMesh& original, const std::vector<int32_t>& vertex_map,
+                         TetMesh* simplified, int iterations, int threads,
                          const CancelToken* cancel, RefitStats* stats) {
   absl::Status status;
-  const std::vector<Location> loc = LocateSamples(original, *simplified, threads, cancel, &status);
+  const std::vector<Row> rows =
+      LocateSamples(original, *simplified, vertex_map, threads, cancel, &status);
   DECIMA_RETURN_IF_ERROR(status);
   const int64_t n = original.vertex_count(), nv = simplified->vertex_count();
-  const std::vector<int32_t>& tets = simplified->tets;
-  // CGLS on min |A s - f|^2, A = the barycentric weights of each located sample.
+  auto located = [&](int64_t i) { return rows[i].vertex[0] >= 0; };
+  // CGLS on min |A s - f|^2, A = the barycentric weights of each located sample. r and q stay
+  // 0 at unlocated samples, so the sums over them need no test.
   std::vector<double> s(simplified->scalars.begin(), simplified->scalars.end());
   std::vector<double> r(n, 0), q(n, 0), z(nv), p(nv);
-  // The vertices of each located sample's cell, next to its weights (A x reads one record).
-  struct Row {
-    std::array<int32_t, 4> vertex;
-    std::array<float, 4> w;
-  };
-  std::vector<Row> rows(n);
-  ParallelFor(n, threads, 16384, [&](int64_t i0, int64_t i1) {
-    for (int64_t i = i0; i < i1; ++i) {
-      if (loc[i].cell < 0) continue;
-      const int32_t* c = &tets[4 * int64_t(loc[i].cell)];
-      rows[i] = {{c[0], c[1], c[2], c[3]}, loc[i].w};
-    }
-  });
-  auto apply = [&](const std::vector<double>& x, std::vector<double>& out) {  // out = A x
+  auto apply = [&](const std::vector<double>& x,
+                   std::vector<double>& out) {  // out = A x
     ParallelFor(n, threads, 16384, [&](int64_t i0, int64_t i1) {
       for (int64_t i = i0; i < i1; ++i) {
-        if (loc[i].cell < 0) continue;
+        if (!located(i)) continue;
         const Row& row = rows[i];
         double sum = 0;
         for (int k = 0; k < 4; ++k) sum += double(row.w[k]) * x[row.vertex[k]];
@@ -158,14 +218,14 @@ absl::Status RefitValues(const TetMesh& original, TetMesh* simplified, int itera
       }
     });
   };
-  // A^T as rows per vertex (its samples in increasing order, with their weights), so that
-  // out = A^T y runs in parallel over vertices and still adds every vertex's terms in sample
-  // order: the same sums, bit for bit, on any thread count.
+  // A^T as rows per vertex (its samples in increasing order, with their non-zero weights), so
+  // that out = A^T y runs in parallel over vertices and still adds every vertex's terms in
+  // sample order: the same sums, bit for bit, on any thread count.
   std::vector<int64_t> at_start(nv + 1, 0);
   for (int64_t i = 0; i < n; ++i) {
-    if (loc[i].cell < 0) continue;
-    const int32_t* c = &tets[4 * int64_t(loc[i].cell)];
-    for (int k = 0; k < 4; ++k) ++at_start[c[k] + 1];
+    for (int k = 0; k < 4; ++k) {
+      if (rows[i].w[k] != 0) ++at_start[rows[i].vertex[k] + 1];
+    }
   }
   for (int64_t v = 0; v < nv; ++v) at_start[v + 1] += at_start[v];
   struct Term {
@@ -176,12 +236,13 @@ absl::Status RefitValues(const TetMesh& original, TetMesh* simplified, int itera
   {
     std::vector<int64_t> fill(at_start.begin(), at_start.end() - 1);
     for (int64_t i = 0; i < n; ++i) {
-      if (loc[i].cell < 0) continue;
-      const int32_t* c = &tets[4 * int64_t(loc[i].cell)];
-      for (int k = 0; k < 4; ++k) at_terms[fill[c[k]]++] = {int32_t(i), loc[i].w[k]};
+      for (int k = 0; k < 4; ++k) {
+        if (rows[i].w[k] != 0) at_terms[fill[rows[i].vertex[k]]++] = {int32_t(i), rows[i].w[k]};
+      }
     }
   }
-  auto apply_t = [&](const std::vector<double>& y, std::vector<double>& out) {  // out = A^T y
+  auto apply_t = [&](const std::vector<double>& y,
+                     std::vector<double>& out) {  // out = A^T y
     ParallelFor(nv, threads, 16384, [&](int64_t v0, int64_t v1) {
       for (int64_t v = v0; v < v1; ++v) {
         double sum = 0;
@@ -192,49 +253,38 @@ absl::Status RefitValues(const TetMesh& original, TetMesh* simplified, int itera
       }
     });
   };
+  // Element-wise updates in parallel (each index written by one thread).
+  auto each = [&](int64_t count, auto&& fn) {
+    ParallelFor(count, threads, 65536, [&](int64_t i0, int64_t i1) {
+      for (int64_t i = i0; i < i1; ++i) fn(i);
+    });
+  };
   RefitStats st;
+  for (int64_t i = 0; i < n; ++i) located(i) ? ++st.samples : ++st.unlocated;
   apply(s, q);
-  double rr = 0;
-  for (int64_t i = 0; i < n; ++i) {
-    if (loc[i].cell < 0) {
-      ++st.unlocated;
-      continue;
-    }
-    ++st.samples;
-    r[i] = double(original.scalars[i]) - q[i];
-    rr += r[i] * r[i];
-  }
+  each(n, [&](int64_t i) { r[i] = located(i) ? double(original.scalars[i]) - q[i] : 0.0; });
+  double rr = BlockSum(n, threads, [&](int64_t i) { return r[i] * r[i]; });
   st.rms_before = st.samples > 0 ? std::sqrt(rr / double(st.samples)) : 0;
   apply_t(r, z);
   p = z;
-  double zz = 0;
-  for (double x : z) zz += x * x;
+  double zz = BlockSum(nv, threads, [&](int64_t v) { return z[v] * z[v]; });
   const double stop = 1e-12 * std::max(1.0, zz);
   for (int it = 0; it < iterations && zz > stop; ++it) {
     DECIMA_RETURN_IF_ERROR(CheckCancelled(cancel, "simplify"));
     apply(p, q);
-    double qq = 0;
-    for (int64_t i = 0; i < n; ++i) {
-      if (loc[i].cell >= 0) qq += q[i] * q[i];
-    }
+    const double qq = BlockSum(n, threads, [&](int64_t i) { return q[i] * q[i]; });
     if (!(qq > 0)) break;
     const double alpha = zz / qq;
-    for (int64_t v = 0; v < nv; ++v) s[v] += alpha * p[v];
-    for (int64_t i = 0; i < n; ++i) {
-      if (loc[i].cell >= 0) r[i] -= alpha * q[i];
-    }
+    each(nv, [&](int64_t v) { s[v] += alpha * p[v]; });
+    each(n, [&](int64_t i) { r[i] -= alpha * q[i]; });
     apply_t(r, z);
-    double zz_new = 0;
-    for (double x : z) zz_new += x * x;
+    const double zz_new = BlockSum(nv, threads, [&](int64_t v) { return z[v] * z[v]; });
     const double beta = zz_new / zz;
     zz = zz_new;
-    for (int64_t v = 0; v < nv; ++v) p[v] = z[v] + beta * p[v];
+    each(nv, [&](int64_t v) { p[v] = z[v] + beta * p[v]; });
     st.iterations = it + 1;
   }
-  rr = 0;
-  for (int64_t i = 0; i < n; ++i) {
-    if (loc[i].cell >= 0) rr += r[i] * r[i];
-  }
+  rr = BlockSum(n, threads, [&](int64_t i) { return r[i] * r[i]; });
   st.rms_after = st.samples > 0 ? std::sqrt(rr / double(st.samples)) : 0;
   for (int64_t v = 0; v < nv; ++v) simplified->scalars[v] = static_cast<float>(s[v]);
   if (stats) *stats = st;

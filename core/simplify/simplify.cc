@@ -247,8 +247,9 @@ absl::StatusOr<SimplifyResult> Simplify(const TetMesh& mesh, const SimplifyOptio
         cancel, &result));
     if (options.refit_iterations > 0) {
       simplify_internal::RefitStats refit;
-      DECIMA_RETURN_IF_ERROR(simplify_internal::RefitValues(
-          mesh, &result.mesh, options.refit_iterations, threads, cancel, &refit));
+      DECIMA_RETURN_IF_ERROR(simplify_internal::RefitValues(mesh, result.vertex_map, &result.mesh,
+                                                            options.refit_iterations, threads,
+                                                            cancel, &refit));
       Report(progress,
              {"simplify",
               1.0,

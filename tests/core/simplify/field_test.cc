@@ -10,6 +10,7 @@
 #include <gtest/gtest.h>
 
 #include "core/metrics/fidelity.h"
+#include "core/simplify/field_refit.h"
 #include "core/simplify/simplify.h"
 #include "tests/core/simplify/simplify_test_util.h"
 
@@ -407,6 +408,42 @@ TEST(FieldPolicy, RefitSameResultOnOneAndTwoThreadsWithSplitRanges) {
   EXPECT_GT(a->mesh.vertex_count(), 2 * 16384);
   EXPECT_EQ(a->mesh.tets, b->mesh.tets);
   EXPECT_EQ(a->mesh.scalars, b->mesh.scalars);
+}
+
+// The refit locates samples at their own vertex (survivors) or in the cells around the vertex
+// they became, and searches the whole mesh only for the rest. Without the vertex map every sample
+// goes through the whole-mesh search: the same samples must be located, the fit must come out
+// the same (weights agree to float rounding; a sample on a face shared by two cells may take the
+// other one, with the same weights on that face), and the shortcut must be what the map gives.
+TEST(FieldPolicy, RefitLocatesAroundTheMappedVertexAsTheWholeMeshSearchDoes) {
+  auto pm = MakePhantomMesh(24, 40);
+  SimplifyOptions o = Field(0.8);
+  o.refit_iterations = 0;
+  auto r = Simplify(pm.mesh, o);
+  ASSERT_TRUE(r.ok()) << r.status();
+  ASSERT_EQ(r->vertex_map.size(), size_t(pm.mesh.vertex_count()));
+  int64_t moved = 0;  // collapsed vertices: located through the cells of their survivor
+  for (int64_t v = 0; v < pm.mesh.vertex_count(); ++v) {
+    const int32_t m = r->vertex_map[v];
+    moved += pm.mesh.Position(v) != r->mesh.Position(m);
+  }
+  ASSERT_GT(moved, pm.mesh.vertex_count() / 2);
+  TetMesh with_map = r->mesh, without_map = r->mesh;
+  simplify_internal::RefitStats a, b;
+  ASSERT_TRUE(
+      simplify_internal::RefitValues(pm.mesh, r->vertex_map, &with_map, 30, 2, nullptr, &a).ok());
+  ASSERT_TRUE(simplify_internal::RefitValues(pm.mesh, {}, &without_map, 30, 2, nullptr, &b).ok());
+  EXPECT_EQ(a.samples, pm.mesh.vertex_count());
+  EXPECT_EQ(a.samples, b.samples);
+  EXPECT_EQ(a.unlocated, b.unlocated);
+  EXPECT_EQ(a.iterations, b.iterations);
+  EXPECT_NEAR(a.rms_before, b.rms_before, 1e-6 * (1 + b.rms_before));
+  EXPECT_NEAR(a.rms_after, b.rms_after, 1e-4 * (1 + b.rms_after));
+  double worst = 0;
+  for (int64_t v = 0; v < with_map.vertex_count(); ++v) {
+    worst = std::max(worst, double(std::abs(with_map.scalars[v] - without_map.scalars[v])));
+  }
+  EXPECT_LT(worst, 1e-2) << "image units; the phantom spans about 1000";
 }
 
 TEST(FieldPolicy, ToleranceStopsTheLoopAndSaysSo) {
