@@ -1,22 +1,55 @@
 #include "core/mesh/tet_mesh.h"
 
 #include <algorithm>
+#include <utility>
+
+#include "core/common/parallel.h"
 
 namespace decima {
 
-VertexTetAdjacency BuildVertexTetAdjacency(const TetMesh& mesh) {
+VertexTetAdjacency BuildVertexTetAdjacency(const TetMesh& mesh, int threads) {
   const int64_t nv = mesh.vertex_count(), nt = mesh.tet_count();
   VertexTetAdjacency adj;
   adj.offsets.assign(nv + 1, 0);
-  for (int64_t i = 0; i < 4 * nt; ++i) ++adj.offsets[mesh.tets[i] + 1];
-  for (int64_t v = 0; v < nv; ++v) adj.offsets[v + 1] += adj.offsets[v];
   adj.tet_ids.resize(4 * nt);
-  std::vector<int64_t> cursor(adj.offsets.begin(), adj.offsets.end() - 1);
-  // Tets visited in increasing id, so each row comes out sorted.
-  for (int64_t t = 0; t < nt; ++t) {
-    for (int q = 0; q < 4; ++q)
-      adj.tet_ids[cursor[mesh.tets[4 * t + q]]++] = static_cast<int32_t>(t);
+  // A counting sort in contiguous chunks of tets, one per thread: each chunk counts its own
+  // entries per vertex, then fills its rows' slots after those of the chunks before it. Every
+  // chunk visits its tets in increasing id, so each row comes out sorted whatever the number of
+  // chunks.
+  const int chunks = int(std::clamp<int64_t>(std::min<int64_t>(threads, nt / 65536), 1, 64));
+  std::vector<int64_t> cursor(int64_t(chunks) * nv, 0);  // per chunk: counts, then next slot
+  auto chunk_range = [&](int64_t c) { return std::pair{nt * c / chunks, nt * (c + 1) / chunks}; };
+  ParallelFor(chunks, chunks, [&](int64_t c0, int64_t c1) {
+    for (int64_t c = c0; c < c1; ++c) {
+      int64_t* count = &cursor[c * nv];
+      const auto [t0, t1] = chunk_range(c);
+      for (int64_t i = 4 * t0; i < 4 * t1; ++i) ++count[mesh.tets[i]];
+    }
+  });
+  for (int64_t v = 0; v < nv; ++v) {
+    int64_t row = 0;
+    for (int64_t c = 0; c < chunks; ++c) row += cursor[c * nv + v];
+    adj.offsets[v + 1] = adj.offsets[v] + row;
   }
+  ParallelFor(nv, chunks, 65536, [&](int64_t v0, int64_t v1) {
+    for (int64_t v = v0; v < v1; ++v) {
+      int64_t slot = adj.offsets[v];
+      for (int64_t c = 0; c < chunks; ++c) {
+        const int64_t count = cursor[c * nv + v];
+        cursor[c * nv + v] = slot;
+        slot += count;
+      }
+    }
+  });
+  ParallelFor(chunks, chunks, [&](int64_t c0, int64_t c1) {
+    for (int64_t c = c0; c < c1; ++c) {
+      int64_t* next = &cursor[c * nv];
+      const auto [t0, t1] = chunk_range(c);
+      for (int64_t t = t0; t < t1; ++t) {
+        for (int q = 0; q < 4; ++q) adj.tet_ids[next[mesh.tets[4 * t + q]]++] = int32_t(t);
+      }
+    }
+  });
   return adj;
 }
 

@@ -195,7 +195,7 @@ CollapseEngine::CollapseEngine(TetMesh mesh, const SimplifyOptions& options, int
   }
 
   // Adjacency rows (input CSR), star volumes and the cross-region marks.
-  VertexTetAdjacency adjacency = BuildVertexTetAdjacency(mesh_);
+  VertexTetAdjacency adjacency = BuildVertexTetAdjacency(mesh_, threads);
   adj_ids_ = std::move(adjacency.tet_ids);
   rows_.resize(nv);
   star_.resize(nv);

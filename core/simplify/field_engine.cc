@@ -501,7 +501,7 @@ void FieldEngine::Setup() {
   }
   dead_ = BitSet(nt_);
 
-  VertexTetAdjacency adjacency = BuildVertexTetAdjacency(in_);
+  VertexTetAdjacency adjacency = BuildVertexTetAdjacency(in_, threads_);
   row_start_.assign(adjacency.offsets.begin(), adjacency.offsets.end() - 1);
   cell_ids_ = std::move(adjacency.tet_ids);  // the rows are consumed in place
   row_len_.resize(nv_);

@@ -72,7 +72,7 @@ std::vector<Row> LocateSamples(const TetMesh& original, const TetMesh& mesh,
   if (n == 0 || mesh.tet_count() == 0) return rows;
   std::vector<uint8_t> placed(n, 0);
   if (int64_t(vertex_map.size()) == n) {
-    const VertexTetAdjacency star = BuildVertexTetAdjacency(mesh);
+    const VertexTetAdjacency star = BuildVertexTetAdjacency(mesh, threads);
     ParallelFor(n, threads, 4096, [&](int64_t v0, int64_t v1) {
       for (int64_t v = v0; v < v1; ++v) {
         const int32_t m = vertex_map[v];

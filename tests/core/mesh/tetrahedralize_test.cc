@@ -174,6 +174,22 @@ TEST(MeshTopology, AdjacencyListsEveryIncidentTetOnce) {
   }
 }
 
+// On several threads the tets are counted and filled in chunks (at least 65536 tets each): the
+// rows must come out exactly as the one-thread build makes them.
+TEST(MeshTopology, AdjacencyIsTheSameOnOneTwoAndThreeThreads) {
+  Volume v = Ramp({40, 40, 40});
+  auto m = Tetrahedralize(v);
+  ASSERT_TRUE(m.ok());
+  ASSERT_GT(m->tet_count(), 3 * 65536);  // three chunks
+  const VertexTetAdjacency one = BuildVertexTetAdjacency(*m, 1);
+  for (int threads : {2, 3}) {
+    const VertexTetAdjacency many = BuildVertexTetAdjacency(*m, threads);
+    EXPECT_EQ(one.offsets, many.offsets) << threads;
+    EXPECT_EQ(one.tet_ids, many.tet_ids) << threads;
+  }
+  EXPECT_EQ(one.offsets.back(), 4 * m->tet_count());
+}
+
 TEST(MeshTopology, BoundarySurfaceIsTheBoxHullFacingOutwards) {
   Volume v = Ramp({4, 5, 3}, Eigen::Vector3d(1, 2, 3));
   auto m = Tetrahedralize(v);
