@@ -1099,11 +1099,13 @@ int64_t FieldEngine::ParallelRounds(int64_t target, const ProgressFn& progress,
     }
     const double shift = round % 2 == 0 ? 0.0 : 0.5;
     std::vector<float> cuts;
+    size_t placed = 0;  // coords[0, placed) hold no value above coords[placed] (earlier cuts)
     for (int i = 1; i <= slabs; ++i) {
       const double q = (i - shift) / slabs;
       if (q >= 1) break;
       const size_t at = std::min(coords.size() - 1, size_t(q * double(coords.size())));
-      std::nth_element(coords.begin(), coords.begin() + at, coords.end());
+      std::nth_element(coords.begin() + placed, coords.begin() + at, coords.end());
+      placed = at;
       const float cut = coords[at];
       if (cuts.empty() ? cut - lo[axis] >= kMinCutVoxels * voxel
                        : cut - cuts.back() >= kMinCutVoxels * voxel) {
