@@ -21,6 +21,12 @@ struct Row {
   std::array<float, 4> w{};
 };
 
+// The row of a sample in cell t of `mesh` with weights w.
+Row InCell(const TetMesh& mesh, int64_t t, const std::array<float, 4>& w) {
+  const int32_t* c = &mesh.tets[4 * t];
+  return Row{{c[0], c[1], c[2], c[3]}, w};
+}
+
 // Sum of f(i) over [0, n) in fixed blocks added in block order: the same on any thread count.
 template <typename F>
 double BlockSum(int64_t n, int threads, F&& f) {
@@ -70,7 +76,6 @@ std::vector<Row> LocateSamples(const TetMesh& original, const TetMesh& mesh,
   const int64_t n = original.vertex_count();
   std::vector<Row> rows(n);
   if (n == 0 || mesh.tet_count() == 0) return rows;
-  std::vector<uint8_t> placed(n, 0);
   if (int64_t(vertex_map.size()) == n) {
     const VertexTetAdjacency star = BuildVertexTetAdjacency(mesh, threads);
     ParallelFor(n, threads, 4096, [&](int64_t v0, int64_t v1) {
@@ -80,19 +85,14 @@ std::vector<Row> LocateSamples(const TetMesh& original, const TetMesh& mesh,
         const float* p = &original.positions[3 * v];
         const float* q = &mesh.positions[3 * int64_t(m)];
         if (p[0] == q[0] && p[1] == q[1] && p[2] == q[2]) {
-          rows[v].vertex = {m, m, m, m};
-          rows[v].w = {1.f, 0.f, 0.f, 0.f};
-          placed[v] = 1;
+          rows[v] = Row{{m, m, m, m}, {1.f, 0.f, 0.f, 0.f}};
           continue;
         }
         const Eigen::Vector3d x = original.Position(v);
         for (int64_t i = star.offsets[m]; i < star.offsets[m + 1]; ++i) {
           const int32_t t = star.tet_ids[i];
           if (auto w = WeightsIn(mesh, t, x)) {
-            const int32_t* c = &mesh.tets[4 * int64_t(t)];
-            rows[v].vertex = {c[0], c[1], c[2], c[3]};
-            rows[v].w = *w;
-            placed[v] = 1;
+            rows[v] = InCell(mesh, t, *w);
             break;
           }
         }
@@ -105,7 +105,7 @@ std::vector<Row> LocateSamples(const TetMesh& original, const TetMesh& mesh,
   }
   std::vector<int32_t> search;
   for (int64_t v = 0; v < n; ++v) {
-    if (!placed[v]) search.push_back(int32_t(v));
+    if (rows[v].vertex[0] < 0) search.push_back(int32_t(v));
   }
   const int64_t ns = int64_t(search.size());
   if (ns == 0) return rows;
@@ -183,9 +183,7 @@ std::vector<Row> LocateSamples(const TetMesh& original, const TetMesh& mesh,
       const int32_t v = search[i];
       const int32_t t = owner[v].load(std::memory_order_relaxed);
       if (t == std::numeric_limits<int32_t>::max()) continue;
-      const int32_t* c = &mesh.tets[4 * int64_t(t)];
-      rows[v].vertex = {c[0], c[1], c[2], c[3]};
-      rows[v].w = *WeightsIn(mesh, t, original.Position(v));  // it held v in the search
+      rows[v] = InCell(mesh, t, *WeightsIn(mesh, t, original.Position(v)));  // it held v
     }
   });
   return rows;
