@@ -72,7 +72,7 @@ std::optional<std::array<float, 4>> WeightsIn(const TetMesh& mesh, int64_t t,
 // contains a sample keeps it.
 std::vector<Row> LocateSamples(const TetMesh& original, const TetMesh& mesh,
                                const std::vector<int32_t>& vertex_map, int threads,
-                               const CancelToken* cancel, absl::Status* status) {
+                               const CancelToken* cancel, absl::Status* status, int64_t* searched) {
   const int64_t n = original.vertex_count();
   std::vector<Row> rows(n);
   if (n == 0 || mesh.tet_count() == 0) return rows;
@@ -108,6 +108,7 @@ std::vector<Row> LocateSamples(const TetMesh& original, const TetMesh& mesh,
     if (rows[v].vertex[0] < 0) search.push_back(int32_t(v));
   }
   const int64_t ns = int64_t(search.size());
+  *searched = ns;
   if (ns == 0) return rows;
   Eigen::Vector3d lo = original.Position(search[0]), hi = lo;
   for (int32_t v : search) {
@@ -194,9 +195,10 @@ std::vector<Row> LocateSamples(const TetMesh& original, const TetMesh& mesh,
 absl::Status RefitValues(const TetMesh& original, const std::vector<int32_t>& vertex_map,
                          TetMesh* simplified, int iterations, int threads,
                          const CancelToken* cancel, RefitStats* stats) {
+  RefitStats st;
   absl::Status status;
   const std::vector<Row> rows =
-      LocateSamples(original, *simplified, vertex_map, threads, cancel, &status);
+      LocateSamples(original, *simplified, vertex_map, threads, cancel, &status, &st.searched);
   DECIMA_RETURN_IF_ERROR(status);
   const int64_t n = original.vertex_count(), nv = simplified->vertex_count();
   auto located = [&](int64_t i) { return rows[i].vertex[0] >= 0; };
@@ -204,8 +206,8 @@ absl::Status RefitValues(const TetMesh& original, const std::vector<int32_t>& ve
   // 0 at unlocated samples, so the sums over them need no test.
   std::vector<double> s(simplified->scalars.begin(), simplified->scalars.end());
   std::vector<double> r(n, 0), q(n, 0), z(nv), p(nv);
-  auto apply = [&](const std::vector<double>& x,
-                   std::vector<double>& out) {  // out = A x
+  // out = A x
+  auto apply = [&](const std::vector<double>& x, std::vector<double>& out) {
     ParallelFor(n, threads, 16384, [&](int64_t i0, int64_t i1) {
       for (int64_t i = i0; i < i1; ++i) {
         if (!located(i)) continue;
@@ -257,7 +259,6 @@ absl::Status RefitValues(const TetMesh& original, const std::vector<int32_t>& ve
       for (int64_t i = i0; i < i1; ++i) fn(i);
     });
   };
-  RefitStats st;
   for (int64_t i = 0; i < n; ++i) located(i) ? ++st.samples : ++st.unlocated;
   apply(s, q);
   each(n, [&](int64_t i) { r[i] = located(i) ? double(original.scalars[i]) - q[i] : 0.0; });

@@ -14,6 +14,7 @@ namespace decima::simplify_internal {
 struct RefitStats {
   int64_t samples = 0;    // original vertices located in the simplified mesh
   int64_t unlocated = 0;  // outside every cell (left out of the fit)
+  int64_t searched = 0;   // not placed through vertex_map: went through the whole-mesh search
   double rms_before = 0;  // RMS deviation at the located samples, image units
   double rms_after = 0;
   int iterations = 0;
