@@ -3,6 +3,7 @@
 #include <algorithm>
 #include <utility>
 
+#include "core/common/huge_pages.h"
 #include "core/common/parallel.h"
 
 namespace decima {
@@ -11,7 +12,7 @@ VertexTetAdjacency BuildVertexTetAdjacency(const TetMesh& mesh, int threads) {
   const int64_t nv = mesh.vertex_count(), nt = mesh.tet_count();
   VertexTetAdjacency adj;
   adj.offsets.assign(nv + 1, 0);
-  adj.tet_ids.resize(4 * nt);
+  AssignOnHugePages(&adj.tet_ids, 4 * nt, 0);
   // A counting sort in contiguous chunks of tets, one per thread: each chunk counts its own
   // entries per vertex, then fills its rows' slots after those of the chunks before it. Every
   // chunk visits its tets in increasing id, so each row comes out sorted whatever the number of

@@ -8,6 +8,7 @@
 #include <vector>
 
 #include "absl/strings/str_cat.h"
+#include "core/common/huge_pages.h"
 #include "core/common/parallel.h"
 #include "core/common/status.h"
 
@@ -64,7 +65,7 @@ absl::StatusOr<TetMesh> Tetrahedralize(const Volume& image, const Tetrahedralize
   const int threads = ResolveThreads(options.threads);
 
   TetMesh mesh;
-  mesh.positions.resize(3 * nv);
+  AssignOnHugePages(&mesh.positions, 3 * nv, 0.f);
   mesh.scalars = image.ToFloat();
   mesh.labels.assign(nv, 0);
   if (options.labels != nullptr) {
@@ -72,7 +73,7 @@ absl::StatusOr<TetMesh> Tetrahedralize(const Volume& image, const Tetrahedralize
   }
   mesh.interface_distance.resize(nv);
   mesh.vertex_flags.resize(nv);
-  mesh.tets.resize(cubes * 5 * 4);
+  AssignOnHugePages(&mesh.tets, cubes * 5 * 4, 0);
   mesh.cell_regions.resize(cubes * 5);
   Report(progress, {"tetra", 0.0, "allocated", {}});
 

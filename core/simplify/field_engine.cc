@@ -22,6 +22,7 @@
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_format.h"
 #include "core/common/bit_set.h"
+#include "core/common/huge_pages.h"
 #include "core/common/parallel.h"
 #include "core/common/status.h"
 #include "core/mesh/tetrahedralize.h"
@@ -505,18 +506,19 @@ void FieldEngine::Setup() {
   dead_ = BitSet(nt_);
 
   VertexTetAdjacency adjacency = BuildVertexTetAdjacency(in_, threads_);
+  ReserveOnHugePages(&row_start_, nv_);
   row_start_.assign(adjacency.offsets.begin(), adjacency.offsets.end() - 1);
   cell_ids_ = std::move(adjacency.tet_ids);  // the rows are consumed in place
-  row_len_.resize(nv_);
-  valence_.resize(nv_);
+  AssignOnHugePages(&row_len_, nv_, 0);
+  AssignOnHugePages(&valence_, nv_, 0);
   for (int64_t v = 0; v < nv_; ++v) {
     row_len_[v] = int32_t(adjacency.offsets[v + 1] - adjacency.offsets[v]);
     valence_[v] = row_len_[v];
   }
-  class_next_.assign(nv_, -1);
+  AssignOnHugePages(&class_next_, nv_, -1);
   class_tail_.resize(nv_);
   for (int64_t v = 0; v < nv_; ++v) class_tail_[v] = int32_t(v);
-  root_.resize(nv_);
+  AssignOnHugePages(&root_, nv_, 0);
   for (int64_t v = 0; v < nv_; ++v) root_[v] = int32_t(v);
 
   double total_volume = 0;
@@ -543,7 +545,7 @@ void FieldEngine::Setup() {
 
   // Quadric of every vertex: the planes of its cells' linear interpolants, one unit weight per
   // cell (volume weights, and volume squared, were measured worse on the CT head at 80 %).
-  quadric_.assign(kQuadricSize * nv_, 0.f);
+  AssignOnHugePages(&quadric_, kQuadricSize * nv_, 0.f);
   ParallelFor(nv_, threads_, 4096, [&](int64_t v0, int64_t v1) {
     for (int64_t v = v0; v < v1; ++v) {
       double q[kQuadricSize] = {};
@@ -571,7 +573,7 @@ void FieldEngine::Setup() {
     }
   });
 
-  st_.assign(nv_, QueueState{});
+  AssignOnHugePages(&st_, nv_, QueueState{});
   for (int64_t v = 0; v < nv_; ++v) st_[v].flags = flags_[v];
 }
 
