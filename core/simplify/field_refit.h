@@ -25,9 +25,10 @@ struct RefitStats {
 // each sample is located in the simplified mesh (at its own vertex if it survived in place
 // according to `vertex_map`, the simplification's map from input to output vertices, which may
 // be empty; else in the lowest cell id that holds it) and the normal equations are solved by
-// conjugate gradients (CGLS) from the current values, at most `iterations` steps. Positions, cells and labels are untouched; a linear field stays exact.
-// The location, A x and A^T y run on `threads`; every sum has a fixed order, so the result does
-// not depend on the thread count.
+// Jacobi-preconditioned conjugate gradients (CGLS) from the current values, at most `iterations`
+// steps. Positions, cells and labels are untouched; a linear field stays exact. The location, A x
+// and A^T y run on `threads`; every sum has a fixed order, so the result does not depend on the
+// thread count.
 absl::Status RefitValues(const TetMesh& original, const std::vector<int32_t>& vertex_map,
                          TetMesh* simplified, int iterations, int threads,
                          const CancelToken* cancel, RefitStats* stats);

@@ -102,10 +102,10 @@ struct SimplifyOptions {
   // jammed: later passes gain almost nothing). 0 = run until a pass removes nothing.
   // In [0, 0.5].
   double min_pass_gain = 1e-3;
-  // kField: conjugate-gradient steps of the least-squares refit of the vertex values to the
-  // original samples after the collapses (README "Refit"); 0 keeps every surviving vertex's
+  // kField: preconditioned conjugate-gradient steps of the least-squares refit of the vertex values
+  // to the original samples after the collapses (README "Refit"); 0 keeps every surviving vertex's
   // voxel sample. 0..1000.
-  int refit_iterations = 30;
+  int refit_iterations = 10;
   int threads = 0;  // worker threads (scoring; kField: its slabs too); 0 = hardware concurrency
 };
 
