@@ -10,7 +10,9 @@
 
 #include <cstddef>
 #include <cstdint>
+#include <new>
 #include <type_traits>
+#include <utility>
 #include <vector>
 
 namespace decima {
@@ -44,5 +46,33 @@ void AssignOnHugePages(std::vector<T, A>* v, size_t n, const std::type_identity_
   ReserveOnHugePages(v, n);
   v->assign(n, value);
 }
+
+// The allocator of large arrays that their owner fills itself, in parallel: cache-line aligned,
+// advised for huge pages when allocated, and constructing an element without a value leaves it
+// uninitialised (default-init). With std::allocator, vector::resize zero-fills the whole array
+// in one thread, which is also where every page is first touched: 0.4-1.4 s for the 426 MB of
+// quadrics on Colin27. With this one, the page faults happen in the threads that fill it.
+template <typename T>
+struct FillLaterAllocator {
+  using value_type = T;
+  FillLaterAllocator() = default;
+  template <typename U>
+  FillLaterAllocator(const FillLaterAllocator<U>&) {}
+  T* allocate(size_t n) {
+    T* p = static_cast<T*>(::operator new(n * sizeof(T), std::align_val_t(64)));
+    AdviseHugePages(p, n * sizeof(T));
+    return p;
+  }
+  void deallocate(T* p, size_t) { ::operator delete(p, std::align_val_t(64)); }
+  template <typename U>
+  void construct(U* p) noexcept(std::is_nothrow_default_constructible_v<U>) {
+    ::new (static_cast<void*>(p)) U;
+  }
+  template <typename U, typename... Args>
+  void construct(U* p, Args&&... args) {
+    ::new (static_cast<void*>(p)) U(std::forward<Args>(args)...);
+  }
+  bool operator==(const FillLaterAllocator&) const { return true; }
+};
 
 }  // namespace decima

@@ -214,32 +214,29 @@ struct Scratch {
 
 // What the queue keeps per vertex, in one 32-byte record: the serial loop reads and writes these
 // fields together for every vertex around a collapse, and they sit at scattered places of the
-// mesh, so one cache line per vertex instead of one per field array.
+// mesh, so one cache line per vertex instead of one per field array. Trivial, so that the array
+// is filled in parallel (Setup); Initial is the state of a vertex not scored yet.
 struct QueueState {
-  double cost = std::numeric_limits<double>::infinity();  // of the best collapse u -> best
-  double second_cost = std::numeric_limits<double>::infinity();
-  int32_t best = -1;
-  int32_t second = -1;   // runner-up target (-1 unknown), to replace a lost best
-  uint32_t version = 0;  // of the vertex's current queue entry (older entries are stale)
-  uint8_t blocked = 0;   // no valid collapse at the last try; re-tried when touched
-  uint8_t stale = 0;     // constrained vertex whose star changed: re-score when popped
-  uint8_t flags = 0;     // the vertex's flags (a copy of flags_ next to the rest)
+  double cost;  // of the best collapse u -> best
+  double second_cost;
+  int32_t best;
+  int32_t second;    // runner-up target (-1 unknown), to replace a lost best
+  uint32_t version;  // of the vertex's current queue entry (older entries are stale)
+  uint8_t blocked;   // no valid collapse at the last try; re-tried when touched
+  uint8_t stale;     // constrained vertex whose star changed: re-score when popped
+  uint8_t flags;     // the vertex's flags (a copy of flags_ next to the rest)
+  static QueueState Initial(uint8_t flags) {
+    const double inf = std::numeric_limits<double>::infinity();
+    return {inf, inf, -1, -1, 0, 0, 0, flags};
+  }
 };
 static_assert(sizeof(QueueState) == 32);
+static_assert(std::is_trivially_default_constructible_v<QueueState>);
 
-// Allocates on cache-line boundaries, so that no 32-byte QueueState straddles two lines.
+// The per-vertex arrays of the loop: filled in parallel by Setup, on huge pages, and cache-line
+// aligned so that no 32-byte QueueState straddles two lines (FillLaterAllocator).
 template <typename T>
-struct CacheLineAllocator {
-  using value_type = T;
-  CacheLineAllocator() = default;
-  template <typename U>
-  CacheLineAllocator(const CacheLineAllocator<U>&) {}
-  T* allocate(size_t n) {
-    return static_cast<T*>(::operator new(n * sizeof(T), std::align_val_t(64)));
-  }
-  void deallocate(T* p, size_t) { ::operator delete(p, std::align_val_t(64)); }
-  bool operator==(const CacheLineAllocator&) const { return true; }
-};
+using VertexArray = std::vector<T, FillLaterAllocator<T>>;
 
 // PreparePlanes: per star cell, the plane of the face opposite u, scaled so that n . p >= min is
 // "u moved to p leaves the cell at least min_volume".
@@ -433,16 +430,17 @@ class FieldEngine {
   std::vector<uint8_t> flags_;
   BitSet dead_;
   // Adjacency: the input CSR rows, linked per merge class (survivor first).
-  std::vector<int32_t> row_start_;  // int32: 4 * cells fits (Simplify checks)
-  std::vector<int32_t> row_len_, class_next_, class_tail_, cell_ids_;
-  std::vector<int32_t> valence_;  // live cells around a live vertex
+  VertexArray<int32_t> row_start_;  // int32: 4 * cells fits (Simplify checks)
+  VertexArray<int32_t> row_len_, class_next_, class_tail_;
+  std::vector<int32_t> cell_ids_;
+  VertexArray<int32_t> valence_;  // live cells around a live vertex
   // The live vertex each input vertex is now: itself while alive, else the survivor of its merge
   // class. A cell is its input vertices through root_, so the engine keeps no copy of the cells
   // (16 bytes per cell: 1.3 GB on phantom:256) and a collapse rewrites no cell.
-  std::vector<int32_t> root_;
+  VertexArray<int32_t> root_;
   // Per vertex, centred at its own point (position, value) so that float keeps the precision.
-  std::vector<float> quadric_;
-  std::vector<QueueState, CacheLineAllocator<QueueState>> st_;
+  VertexArray<float> quadric_;
+  VertexArray<QueueState> st_;
   double voxel_volume_ = 1, min_volume_ = 0, tie_break_ = 0;
   double max_cos_ = 1;  // cos of the dihedral floor (1: no shape guard)
   // Parallel rounds: per vertex, the block its position falls in, and whether a neighbour lies in
@@ -506,20 +504,20 @@ void FieldEngine::Setup() {
   dead_ = BitSet(nt_);
 
   VertexTetAdjacency adjacency = BuildVertexTetAdjacency(in_, threads_);
-  ReserveOnHugePages(&row_start_, nv_);
-  row_start_.assign(adjacency.offsets.begin(), adjacency.offsets.end() - 1);
   cell_ids_ = std::move(adjacency.tet_ids);  // the rows are consumed in place
-  AssignOnHugePages(&row_len_, nv_, 0);
-  AssignOnHugePages(&valence_, nv_, 0);
-  for (int64_t v = 0; v < nv_; ++v) {
-    row_len_[v] = int32_t(adjacency.offsets[v + 1] - adjacency.offsets[v]);
-    valence_[v] = row_len_[v];
+  for (auto* a : {&row_start_, &row_len_, &valence_, &class_next_, &class_tail_, &root_}) {
+    a->resize(nv_);  // uninitialised: filled below
   }
-  AssignOnHugePages(&class_next_, nv_, -1);
-  class_tail_.resize(nv_);
-  for (int64_t v = 0; v < nv_; ++v) class_tail_[v] = int32_t(v);
-  AssignOnHugePages(&root_, nv_, 0);
-  for (int64_t v = 0; v < nv_; ++v) root_[v] = int32_t(v);
+  st_.resize(nv_);
+  ParallelFor(nv_, threads_, 65536, [&](int64_t v0, int64_t v1) {
+    for (int64_t v = v0; v < v1; ++v) {
+      row_start_[v] = int32_t(adjacency.offsets[v]);
+      row_len_[v] = valence_[v] = int32_t(adjacency.offsets[v + 1] - adjacency.offsets[v]);
+      class_next_[v] = -1;
+      class_tail_[v] = root_[v] = int32_t(v);
+      st_[v] = QueueState::Initial(flags_[v]);
+    }
+  });
 
   double total_volume = 0;
   for (int64_t t = 0; t < nt_; ++t) total_volume += SignedVolume(&in_.tets[4 * t]);
@@ -545,7 +543,7 @@ void FieldEngine::Setup() {
 
   // Quadric of every vertex: the planes of its cells' linear interpolants, one unit weight per
   // cell (volume weights, and volume squared, were measured worse on the CT head at 80 %).
-  AssignOnHugePages(&quadric_, kQuadricSize * nv_, 0.f);
+  quadric_.resize(kQuadricSize * nv_);  // uninitialised: every entry is written below
   ParallelFor(nv_, threads_, 4096, [&](int64_t v0, int64_t v1) {
     for (int64_t v = v0; v < v1; ++v) {
       double q[kQuadricSize] = {};
@@ -572,9 +570,6 @@ void FieldEngine::Setup() {
       for (int k = 0; k < kQuadricSize; ++k) quadric_[kQuadricSize * v + k] = float(q[k]);
     }
   });
-
-  AssignOnHugePages(&st_, nv_, QueueState{});
-  for (int64_t v = 0; v < nv_; ++v) st_[v].flags = flags_[v];
 }
 
 Freedom FieldEngine::Classify(int32_t u, Scratch& s, int32_t along[2]) const {
