@@ -174,5 +174,22 @@ TEST(HugePages, AssignFillsLikeAssignAndGetsHugePagesWhereTheKernelGivesThem) {
   EXPECT_EQ(small, std::vector<float>(10, 1.5f));
 }
 
+TEST(HugePages, FillLaterArraysAreAlignedHugeAndHoldWhatIsWritten) {
+  std::vector<double, FillLaterAllocator<double>> v;
+  const size_t n = size_t{24} << 20 >> 3;  // 24 MB
+  v.resize(n);                             // uninitialised
+  EXPECT_EQ(reinterpret_cast<uintptr_t>(v.data()) % 64, 0u);
+  ParallelFor(int64_t(n), 2, [&](int64_t i0, int64_t i1) {
+    for (int64_t i = i0; i < i1; ++i) v[i] = double(i);
+  });
+  for (size_t i = 0; i < n; i += 4099) ASSERT_EQ(v[i], double(i));
+  const std::string mode = ThpMode();
+  if (mode == "always" || mode == "madvise") {
+    EXPECT_GT(AnonHugePagesKbAt(v.data() + n / 2), 0) << "THP mode " << mode;
+  }
+  std::vector<int, FillLaterAllocator<int>> w(3, 7);  // with a value: constructed as usual
+  EXPECT_EQ(w, (std::vector<int, FillLaterAllocator<int>>{7, 7, 7}));
+}
+
 }  // namespace
 }  // namespace decima
