@@ -243,6 +243,8 @@ using VertexArray = std::vector<T, FillLaterAllocator<T>>;
 struct Plane {
   double n[3];
   double min;
+  // Whether u moved to p leaves the cell at least min_volume.
+  bool Keeps(const double p[3]) const { return n[0] * p[0] + n[1] * p[1] + n[2] * p[2] >= min; }
 };
 
 // What one run of the greedy loop owns: its queue, its working memory and its counts. The serial
@@ -771,17 +773,14 @@ void FieldEngine::PreparePlanes(int32_t u, const Star& star, Worker& w) {
   }
 }
 
-// Rule 6 of the paper for a half-edge collapse: every cell that keeps u (now at v's place) stays
-// positive with at least min_volume; no vertex loses its last cell. PreparePlanes(u, star) must
-// have run: a refused best target is followed by tries of every other candidate on the same
-// star, and each try is then one dot product per cell instead of a determinant.
+// The volume part of rule 6 alone: every cell that keeps u (now at v's place) keeps at least
+// min_volume. PreparePlanes(u, star) must have run.
 bool FieldEngine::InKernel(int32_t v, const Star& star, Worker& w) {
   const double pv[3] = {pos_[3 * int64_t(v)], pos_[3 * int64_t(v) + 1], pos_[3 * int64_t(v) + 2]};
   auto keeps = [&](size_t i) {
     const int32_t* t = star[i].v;
     if (t[0] == v || t[1] == v || t[2] == v || t[3] == v) return true;  // deleted
-    const Plane& pl = w.planes[i];
-    return pl.n[0] * pv[0] + pl.n[1] * pv[1] + pl.n[2] * pv[2] >= pl.min;
+    return w.planes[i].Keeps(pv);
   };
   // The cell that failed the last try first: the targets of one vertex tend to fail on the same
   // cell.
@@ -795,6 +794,10 @@ bool FieldEngine::InKernel(int32_t v, const Star& star, Worker& w) {
   return true;
 }
 
+// Rule 6 of the paper for a half-edge collapse: every cell that keeps u (now at v's place) stays
+// positive with at least min_volume; no vertex loses its last cell. PreparePlanes(u, star) must
+// have run: a refused best target is followed by tries of every other candidate on the same
+// star, and each try is then one dot product per cell instead of a determinant.
 bool FieldEngine::Valid(int32_t u, int32_t v, const Star& star, Worker& w) {
   int32_t lost[64][2];
   int nlost = 0;
@@ -816,8 +819,7 @@ bool FieldEngine::Valid(int32_t u, int32_t v, const Star& star, Worker& w) {
       }
       continue;
     }
-    const Plane& pl = w.planes[i];
-    if (!(pl.n[0] * pv[0] + pl.n[1] * pv[1] + pl.n[2] * pv[2] >= pl.min)) return false;
+    if (!w.planes[i].Keeps(pv)) return false;
     if (max_cos_ < 1) w.guarded.push_back(&star[i]);
   }
   for (int i = 0; i < nlost; ++i) {
