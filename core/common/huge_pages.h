@@ -32,18 +32,12 @@ inline void AdviseHugePages(void* data, size_t bytes) {
 #endif
 }
 
-// Empties v and reserves n elements, advised for huge pages: fill it next.
-template <typename T, typename A>
-void ReserveOnHugePages(std::vector<T, A>* v, size_t n) {
-  v->clear();
-  v->reserve(n);
-  AdviseHugePages(v->data(), n * sizeof(T));
-}
-
 // v.assign(n, value), with v's buffer advised for huge pages before it is written.
 template <typename T, typename A>
 void AssignOnHugePages(std::vector<T, A>* v, size_t n, const std::type_identity_t<T>& value) {
-  ReserveOnHugePages(v, n);
+  v->clear();
+  v->reserve(n);
+  AdviseHugePages(v->data(), n * sizeof(T));
   v->assign(n, value);
 }
 

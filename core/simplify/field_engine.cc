@@ -294,6 +294,8 @@ class FieldEngine {
   Freedom Classify(int32_t u, Scratch& s, int32_t along[2]) const;
   void Targets(int32_t u, Scratch& s);
   void Candidates(int32_t u, Scratch& s);
+  // Fills in the cost of every collapse u -> c.target.
+  void SetCosts(int32_t u, std::vector<Candidate>* candidates) const;
   bool Score(int32_t u, Scratch& s, double* cost, int32_t* best);
   bool Rescore(int32_t u, Worker& w) {
     st_[u].stale = 0;
@@ -725,9 +727,13 @@ void FieldEngine::Targets(int32_t u, Scratch& s) {
 // in s.candidates (unsorted). s.star must hold u's cells.
 void FieldEngine::Candidates(int32_t u, Scratch& s) {
   Targets(u, s);
+  SetCosts(u, &s.candidates);
+}
+
+void FieldEngine::SetCosts(int32_t u, std::vector<Candidate>* candidates) const {
   Source src;
   LoadSource(u, &src);
-  for (Candidate& c : s.candidates) c.cost = Cost(src, c.target);
+  for (Candidate& c : *candidates) c.cost = Cost(src, c.target);
 }
 
 bool FieldEngine::Score(int32_t u, Scratch& s, double* cost, int32_t* best) {
@@ -951,9 +957,7 @@ Drained FieldEngine::Drain(Worker& w, int64_t limit, float stop_cost, bool in_bl
         if (c.target != v && InKernel(c.target, star, w)) candidates[n++] = c;
       }
       candidates.resize(n);
-      Source src;
-      LoadSource(u, &src);
-      for (Candidate& c : candidates) c.cost = Cost(src, c.target);
+      SetCosts(u, &candidates);
       std::sort(candidates.begin(), candidates.end(), Cheaper);
       v = -1;
       for (const Candidate& c : candidates) {
