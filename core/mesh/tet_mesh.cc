@@ -11,18 +11,21 @@ namespace decima {
 VertexTetAdjacency BuildVertexTetAdjacency(const TetMesh& mesh, int threads) {
   const int64_t nv = mesh.vertex_count(), nt = mesh.tet_count();
   VertexTetAdjacency adj;
-  adj.offsets.assign(nv + 1, 0);
-  AssignOnHugePages(&adj.tet_ids, 4 * nt, 0);
+  adj.offsets.resize(nv + 1);  // written below, by the row sums
+  adj.offsets[0] = 0;
+  adj.tet_ids.resize(4 * nt);  // every slot is written by the fill
   // A counting sort in contiguous chunks of tets, one per thread: each chunk counts its own
   // entries per vertex, then fills its rows' slots after those of the chunks before it. Every
   // chunk visits its tets in increasing id, so each row comes out sorted whatever the number of
   // chunks.
   const int chunks = int(std::clamp<int64_t>(std::min<int64_t>(threads, nt / 65536), 1, 64));
-  std::vector<int64_t> cursor(int64_t(chunks) * nv, 0);  // per chunk: counts, then next slot
+  // Per chunk: counts, then next slot; each chunk zeroes its own part on its thread.
+  std::vector<int64_t, FillLaterAllocator<int64_t>> cursor(int64_t(chunks) * nv);
   auto chunk_range = [&](int64_t c) { return std::pair{nt * c / chunks, nt * (c + 1) / chunks}; };
   ParallelFor(chunks, chunks, [&](int64_t c0, int64_t c1) {
     for (int64_t c = c0; c < c1; ++c) {
       int64_t* count = &cursor[c * nv];
+      std::fill(count, count + nv, 0);
       const auto [t0, t1] = chunk_range(c);
       for (int64_t i = 4 * t0; i < 4 * t1; ++i) ++count[mesh.tets[i]];
     }

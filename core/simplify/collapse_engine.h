@@ -22,6 +22,7 @@
 
 #include "absl/status/status.h"
 #include "core/common/bit_set.h"
+#include "core/common/huge_pages.h"
 #include "core/common/progress.h"
 #include "core/mesh/tet_mesh.h"
 #include "core/simplify/simplify.h"
@@ -185,7 +186,7 @@ class CollapseEngine {
   };
   std::vector<VertexRow> rows_;
   std::vector<VertexStar> star_;
-  std::vector<int32_t> adj_ids_;
+  std::vector<int32_t, FillLaterAllocator<int32_t>> adj_ids_;
   std::vector<uint8_t> cross_touch_;  // in a cross-region cell at set-up (a superset later)
   // Per cell.
   BitSet dead_;                     // deleted cells
