@@ -1366,42 +1366,85 @@ void FieldEngine::ReleaseQueue() {
 }
 
 void FieldEngine::Finish(SimplifyResult* result) {
-  std::vector<int32_t> index(nv_, -1);
+  // On all threads, each over a fixed range of vertices or cells: per range a count, the counts
+  // summed in range order into each range's first output slot, then every range fills its own
+  // slots. The output is the same on any thread count (the serial version took 0.5 s on Colin27).
+  const int64_t ranges = std::max(1, threads_);
+  auto range_of = [&](int64_t n, int64_t r) {
+    return std::pair<int64_t, int64_t>{n * r / ranges, n * (r + 1) / ranges};
+  };
+  // Prefix sums of per-range counts: first[r] is range r's first output slot, first[ranges] the
+  // total.
+  auto prefix = [&](const std::vector<int64_t>& counts) {
+    std::vector<int64_t> first(ranges + 1, 0);
+    for (int64_t r = 0; r < ranges; ++r) first[r + 1] = first[r] + counts[r];
+    return first;
+  };
+  auto live_vertex = [&](int64_t v) { return root_[v] == v && valence_[v] > 0; };
+  std::vector<int64_t> counts(ranges, 0);
+  ParallelFor(ranges, threads_, [&](int64_t r0, int64_t r1) {
+    for (int64_t r = r0; r < r1; ++r) {
+      const auto [v0, v1] = range_of(nv_, r);
+      for (int64_t v = v0; v < v1; ++v) counts[r] += live_vertex(v);
+    }
+  });
+  const std::vector<int64_t> first_vertex = prefix(counts);
+  const int64_t n = first_vertex[ranges];
+  std::vector<int32_t> index(nv_);
   TetMesh& out = result->mesh;
-  int32_t n = 0;
-  for (int64_t v = 0; v < nv_; ++v) {
-    if (root_[v] == v && valence_[v] > 0) index[v] = n++;
-  }
-  out.positions.resize(3 * int64_t(n));
+  out.positions.resize(3 * n);
   out.scalars.resize(n);
   out.labels.resize(n);
   out.interface_distance.resize(n);
   out.vertex_flags.resize(n);
-  for (int64_t v = 0; v < nv_; ++v) {
-    const int32_t i = index[v];
-    if (i < 0) continue;
-    for (int k = 0; k < 3; ++k) out.positions[3 * int64_t(i) + k] = in_.positions[3 * v + k];
-    out.scalars[i] = in_.scalars[v];
-    out.labels[i] = in_.labels[v];
-    out.interface_distance[i] = in_.interface_distance[v];
-    out.vertex_flags[i] = in_.vertex_flags[v];
-  }
-  int64_t live = 0;
-  for (int64_t t = 0; t < nt_; ++t) live += !dead_.Test(t);
-  out.tets.clear();
-  out.cell_regions.clear();
-  out.tets.reserve(4 * live);
-  out.cell_regions.reserve(live);
-  for (int64_t t = 0; t < nt_; ++t) {
-    if (dead_.Test(t)) continue;
-    int32_t c[4];
-    CellAt(int32_t(t), c);
-    for (int k = 0; k < 4; ++k) out.tets.push_back(index[c[k]]);
-    out.cell_regions.push_back(
-        CellRegion(in_.labels[c[0]], in_.labels[c[1]], in_.labels[c[2]], in_.labels[c[3]]));
-  }
+  ParallelFor(ranges, threads_, [&](int64_t r0, int64_t r1) {
+    for (int64_t r = r0; r < r1; ++r) {
+      const auto [v0, v1] = range_of(nv_, r);
+      int64_t i = first_vertex[r];
+      for (int64_t v = v0; v < v1; ++v) {
+        if (!live_vertex(v)) {
+          index[v] = -1;
+          continue;
+        }
+        index[v] = int32_t(i);
+        for (int k = 0; k < 3; ++k) out.positions[3 * i + k] = in_.positions[3 * v + k];
+        out.scalars[i] = in_.scalars[v];
+        out.labels[i] = in_.labels[v];
+        out.interface_distance[i] = in_.interface_distance[v];
+        out.vertex_flags[i] = in_.vertex_flags[v];
+        ++i;
+      }
+    }
+  });
+  std::fill(counts.begin(), counts.end(), 0);
+  ParallelFor(ranges, threads_, [&](int64_t r0, int64_t r1) {
+    for (int64_t r = r0; r < r1; ++r) {
+      const auto [t0, t1] = range_of(nt_, r);
+      for (int64_t t = t0; t < t1; ++t) counts[r] += !dead_.Test(t);
+    }
+  });
+  const std::vector<int64_t> first_cell = prefix(counts);
+  out.tets.resize(4 * first_cell[ranges]);
+  out.cell_regions.resize(first_cell[ranges]);
+  ParallelFor(ranges, threads_, [&](int64_t r0, int64_t r1) {
+    for (int64_t r = r0; r < r1; ++r) {
+      const auto [t0, t1] = range_of(nt_, r);
+      int64_t i = first_cell[r];
+      for (int64_t t = t0; t < t1; ++t) {
+        if (dead_.Test(t)) continue;
+        int32_t c[4];
+        CellAt(int32_t(t), c);
+        for (int k = 0; k < 4; ++k) out.tets[4 * i + k] = index[c[k]];
+        out.cell_regions[i] =
+            CellRegion(in_.labels[c[0]], in_.labels[c[1]], in_.labels[c[2]], in_.labels[c[3]]);
+        ++i;
+      }
+    }
+  });
   result->vertex_map.resize(nv_);
-  for (int64_t v = 0; v < nv_; ++v) result->vertex_map[v] = index[root_[v]];
+  ParallelFor(nv_, threads_, 65536, [&](int64_t v0, int64_t v1) {
+    for (int64_t v = v0; v < v1; ++v) result->vertex_map[v] = index[root_[v]];
+  });
 }
 
 }  // namespace
