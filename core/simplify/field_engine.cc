@@ -570,31 +570,60 @@ void FieldEngine::Setup() {
 
   // Quadric of every vertex: the planes of its cells' linear interpolants, one unit weight per
   // cell (volume weights, and volume squared, were measured worse on the CT head at 80 %).
+  // A cell's gradient is the same for its four vertices, and computing it (a 3x3 inverse, bound
+  // by its division) was most of this loop, four times per cell. So each thread computes the
+  // gradients of a window of consecutive cell ids once, and the vertices of a block read them
+  // there: with the grid's numbering a block's cells are a window not much longer than the
+  // block's rows, and a mesh numbered otherwise computes them per row as before.
+  constexpr int64_t kBlockVertices = 262144;
+  // The gradient of cell c's linear interpolant, in its own frame (edge vectors from its first
+  // vertex: differences of float positions, exact in double); NaN if the cell is not positive.
+  auto gradient = [&](int64_t c) {
+    const int32_t* t = &in_.tets[4 * c];
+    const Eigen::Vector3d p0(pos_[3 * t[0]], pos_[3 * t[0] + 1], pos_[3 * t[0] + 2]);
+    Eigen::Matrix3d e;
+    Eigen::Vector3d ds;
+    for (int k = 1; k < 4; ++k) {
+      e.row(k - 1) = Eigen::Vector3d(pos_[3 * t[k]], pos_[3 * t[k] + 1], pos_[3 * t[k] + 2]) - p0;
+      ds[k - 1] = double(in_.scalars[t[k]]) - double(in_.scalars[t[0]]);
+    }
+    if (!(e.determinant() > 0)) return Eigen::Vector3d::Constant(std::nan("")).eval();
+    return (e.inverse() * ds).eval();  // e * g = ds
+  };
   quadric_.resize(kQuadricSize * nv_);  // uninitialised: every entry is written below
   ParallelFor(nv_, threads_, 4096, [&](int64_t v0, int64_t v1) {
-    for (int64_t v = v0; v < v1; ++v) {
-      double q[kQuadricSize] = {};
-      const Eigen::Vector3d origin(pos_[3 * v], pos_[3 * v + 1], pos_[3 * v + 2]);
-      for (int64_t i = adjacency.offsets[v]; i < adjacency.offsets[v + 1]; ++i) {
-        const int32_t* c = &in_.tets[4 * int64_t(cell_ids_[i])];
-        const Eigen::Vector3d p0 =
-            Eigen::Vector3d(pos_[3 * c[0]], pos_[3 * c[0] + 1], pos_[3 * c[0] + 2]) - origin;
-        Eigen::Matrix3d e;
-        Eigen::Vector3d ds;
-        for (int k = 1; k < 4; ++k) {
-          e.row(k - 1) =
-              Eigen::Vector3d(pos_[3 * c[k]], pos_[3 * c[k] + 1], pos_[3 * c[k] + 2]) - origin - p0;
-          ds[k - 1] = double(in_.scalars[c[k]]) - double(in_.scalars[c[0]]);
-        }
-        const double det = e.determinant();
-        if (!(det > 0)) continue;
-        // Gradient of the cell's linear interpolant: e * g = ds.
-        const Eigen::Vector3d g = e.inverse() * ds;
-        const double a[5] = {g.x(), g.y(), g.z(), -1.0,
-                             double(in_.scalars[c[0]]) - double(in_.scalars[v]) - g.dot(p0)};
-        AddPlane(q, a);
+    std::vector<Eigen::Vector3d> window;
+    for (int64_t b0 = v0; b0 < v1; b0 += kBlockVertices) {
+      const int64_t b1 = std::min(v1, b0 + kBlockVertices);
+      // Rows are sorted by cell id: the block's cells lie in [lo, hi].
+      int64_t lo = nt_, hi = -1;
+      for (int64_t v = b0; v < b1; ++v) {
+        if (adjacency.offsets[v + 1] == adjacency.offsets[v]) continue;
+        lo = std::min<int64_t>(lo, cell_ids_[adjacency.offsets[v]]);
+        hi = std::max<int64_t>(hi, cell_ids_[adjacency.offsets[v + 1] - 1]);
       }
-      for (int k = 0; k < kQuadricSize; ++k) quadric_[kQuadricSize * v + k] = float(q[k]);
+      const int64_t pairs = adjacency.offsets[b1] - adjacency.offsets[b0];
+      const bool windowed = hi >= lo && hi - lo + 1 <= 2 * pairs;
+      if (windowed) {
+        window.resize(hi - lo + 1);
+        for (int64_t c = lo; c <= hi; ++c) window[c - lo] = gradient(c);
+      }
+      for (int64_t v = b0; v < b1; ++v) {
+        double q[kQuadricSize] = {};
+        const Eigen::Vector3d origin(pos_[3 * v], pos_[3 * v + 1], pos_[3 * v + 2]);
+        for (int64_t i = adjacency.offsets[v]; i < adjacency.offsets[v + 1]; ++i) {
+          const int64_t c = cell_ids_[i];
+          const Eigen::Vector3d g = windowed ? window[c - lo] : gradient(c);
+          if (std::isnan(g.x())) continue;
+          const int32_t t0 = in_.tets[4 * c];
+          const Eigen::Vector3d p0 =
+              Eigen::Vector3d(pos_[3 * t0], pos_[3 * t0 + 1], pos_[3 * t0 + 2]) - origin;
+          const double a[5] = {g.x(), g.y(), g.z(), -1.0,
+                               double(in_.scalars[t0]) - double(in_.scalars[v]) - g.dot(p0)};
+          AddPlane(q, a);
+        }
+        for (int k = 0; k < kQuadricSize; ++k) quadric_[kQuadricSize * v + k] = float(q[k]);
+      }
     }
   });
 }
