@@ -575,7 +575,7 @@ void FieldEngine::Setup() {
   // gradients of a window of consecutive cell ids once, and the vertices of a block read them
   // there: with the grid's numbering a block's cells are a window not much longer than the
   // block's rows, and a mesh numbered otherwise computes them per row as before.
-  constexpr int64_t kBlockVertices = 262144;
+  constexpr int64_t kBlockVertices = 65536;
   // The gradient of cell c's linear interpolant, in its own frame (edge vectors from its first
   // vertex: differences of float positions, exact in double); NaN if the cell is not positive.
   auto gradient = [&](int64_t c) {
