@@ -63,6 +63,23 @@ void ParallelTasks(int64_t n, int threads, Fn&& fn) {
   for (auto& th : pool) th.join();
 }
 
+// Sum of f(i) over [0, n), in fixed blocks of `block` items added in block order: the same sum on
+// any thread count (a sum split by thread would change in the last bits with the count).
+template <typename F>
+double BlockSum(int64_t n, int threads, int64_t block, F&& f) {
+  std::vector<double> part((n + block - 1) / block, 0.0);
+  ParallelFor(int64_t(part.size()), threads, 1, [&](int64_t b0, int64_t b1) {
+    for (int64_t b = b0; b < b1; ++b) {
+      double sum = 0;
+      for (int64_t i = b * block; i < std::min(n, (b + 1) * block); ++i) sum += f(i);
+      part[b] = sum;
+    }
+  });
+  double sum = 0;
+  for (double x : part) sum += x;
+  return sum;
+}
+
 // As above with ranges of any length (coarse loops: slices, rows).
 template <typename Fn>
 void ParallelFor(int64_t n, int threads, Fn&& fn) {

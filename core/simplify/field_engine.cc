@@ -533,21 +533,9 @@ void FieldEngine::Setup() {
     }
   });
 
-  // The mesh's volume in fixed blocks of cells, added in block order: the same sum on any
-  // thread count.
-  constexpr int64_t kVolumeBlock = 65536;
-  std::vector<double> block_volume((nt_ + kVolumeBlock - 1) / kVolumeBlock, 0.0);
-  ParallelFor(int64_t(block_volume.size()), threads_, [&](int64_t b0, int64_t b1) {
-    for (int64_t b = b0; b < b1; ++b) {
-      double sum = 0;
-      for (int64_t t = b * kVolumeBlock; t < std::min(nt_, (b + 1) * kVolumeBlock); ++t) {
-        sum += SignedVolume(&in_.tets[4 * t]);
-      }
-      block_volume[b] = sum;
-    }
-  });
-  double total_volume = 0;
-  for (double v : block_volume) total_volume += v;
+  // The mesh's volume in fixed blocks of cells: the same sum on any thread count.
+  const double total_volume =
+      BlockSum(nt_, threads_, 65536, [&](int64_t t) { return SignedVolume(&in_.tets[4 * t]); });
   if (options_.voxel_size_mm > 0) {
     voxel_volume_ = std::pow(options_.voxel_size_mm, 3);
   } else {
@@ -1402,22 +1390,22 @@ void FieldEngine::Finish(SimplifyResult* result) {
   auto range_of = [&](int64_t n, int64_t r) {
     return std::pair<int64_t, int64_t>{n * r / ranges, n * (r + 1) / ranges};
   };
-  // Prefix sums of per-range counts: first[r] is range r's first output slot, first[ranges] the
-  // total.
-  auto prefix = [&](const std::vector<int64_t>& counts) {
+  // For the items i in [0, n) that `keep`: first[r] is the first output slot of range r's, and
+  // first[ranges] their number.
+  auto first_slots = [&](int64_t n, auto&& keep) {
     std::vector<int64_t> first(ranges + 1, 0);
-    for (int64_t r = 0; r < ranges; ++r) first[r + 1] = first[r] + counts[r];
+    ParallelFor(ranges, threads_, [&](int64_t r0, int64_t r1) {
+      for (int64_t r = r0; r < r1; ++r) {
+        const auto [i0, i1] = range_of(n, r);
+        for (int64_t i = i0; i < i1; ++i) first[r + 1] += keep(i);
+      }
+    });
+    for (int64_t r = 0; r < ranges; ++r) first[r + 1] += first[r];
     return first;
   };
   auto live_vertex = [&](int64_t v) { return root_[v] == v && valence_[v] > 0; };
-  std::vector<int64_t> counts(ranges, 0);
-  ParallelFor(ranges, threads_, [&](int64_t r0, int64_t r1) {
-    for (int64_t r = r0; r < r1; ++r) {
-      const auto [v0, v1] = range_of(nv_, r);
-      for (int64_t v = v0; v < v1; ++v) counts[r] += live_vertex(v);
-    }
-  });
-  const std::vector<int64_t> first_vertex = prefix(counts);
+  auto live_cell = [&](int64_t t) { return !dead_.Test(t); };
+  const std::vector<int64_t> first_vertex = first_slots(nv_, live_vertex);
   const int64_t n = first_vertex[ranges];
   std::vector<int32_t> index(nv_);
   TetMesh& out = result->mesh;
@@ -1445,14 +1433,7 @@ void FieldEngine::Finish(SimplifyResult* result) {
       }
     }
   });
-  std::fill(counts.begin(), counts.end(), 0);
-  ParallelFor(ranges, threads_, [&](int64_t r0, int64_t r1) {
-    for (int64_t r = r0; r < r1; ++r) {
-      const auto [t0, t1] = range_of(nt_, r);
-      for (int64_t t = t0; t < t1; ++t) counts[r] += !dead_.Test(t);
-    }
-  });
-  const std::vector<int64_t> first_cell = prefix(counts);
+  const std::vector<int64_t> first_cell = first_slots(nt_, live_cell);
   out.tets.resize(4 * first_cell[ranges]);
   out.cell_regions.resize(first_cell[ranges]);
   ParallelFor(ranges, threads_, [&](int64_t r0, int64_t r1) {
@@ -1460,7 +1441,7 @@ void FieldEngine::Finish(SimplifyResult* result) {
       const auto [t0, t1] = range_of(nt_, r);
       int64_t i = first_cell[r];
       for (int64_t t = t0; t < t1; ++t) {
-        if (dead_.Test(t)) continue;
+        if (!live_cell(t)) continue;
         int32_t c[4];
         CellAt(int32_t(t), c);
         for (int k = 0; k < 4; ++k) out.tets[4 * i + k] = index[c[k]];

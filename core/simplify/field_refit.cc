@@ -27,21 +27,10 @@ Row InCell(const TetMesh& mesh, int64_t t, const std::array<float, 4>& w) {
   return Row{{c[0], c[1], c[2], c[3]}, w};
 }
 
-// Sum of f(i) over [0, n) in fixed blocks added in block order: the same on any thread count.
+// The CGLS sums: in fixed blocks (core/common BlockSum), so the thread count changes nothing.
 template <typename F>
 double BlockSum(int64_t n, int threads, F&& f) {
-  constexpr int64_t kBlock = 16384;
-  std::vector<double> part((n + kBlock - 1) / kBlock, 0.0);
-  ParallelFor(int64_t(part.size()), threads, [&](int64_t b0, int64_t b1) {
-    for (int64_t b = b0; b < b1; ++b) {
-      double sum = 0;
-      for (int64_t i = b * kBlock; i < std::min(n, (b + 1) * kBlock); ++i) sum += f(i);
-      part[b] = sum;
-    }
-  });
-  double sum = 0;
-  for (double x : part) sum += x;
-  return sum;
+  return decima::BlockSum(n, threads, 16384, std::forward<F>(f));
 }
 
 // Barycentric weights of x in cell t of `mesh` if the cell holds x (to 1e-6), else nullopt.
