@@ -279,7 +279,7 @@ TEST(FieldPolicy, EveryVertexOfATwoLabelCellKeepsItsLayerWhateverTheFeatureThres
 // On a curved interface (the head phantom's ellipsoids) most layer vertices are corners of the
 // voxel staircase: none of them may leave its layer, and the surviving ones keep their place.
 TEST(FieldPolicy, CurvedInterfacesKeepEveryFeatureVertexOnItsLayer) {
-  auto pm = MakePhantomMesh(24, 30);
+  auto pm = MakePhantomMesh(28, 30);
   Labeled in{pm.phantom.image, pm.phantom.labels, pm.mesh};
   SimplifyOptions o = Field(0.7);
   o.refit_iterations = 0;
@@ -297,7 +297,7 @@ TEST(FieldPolicy, CurvedInterfacesKeepEveryFeatureVertexOnItsLayer) {
 }
 
 TEST(FieldPolicy, KeepsPaperGuaranteesAndBeatsPaperOnTheField) {
-  auto pm = MakePhantomMesh(24, 40);
+  auto pm = MakePhantomMesh(28, 40);
   FidelityOptions fo;
   fo.labels = &pm.phantom.labels;
   SimplifyOptions paper;
@@ -513,7 +513,7 @@ TEST(FieldPolicy, ReportsProgressAndHonoursCancellation) {
 // A cancel that arrives while the slabs run (here: with the first round's report) stops the
 // simplification at the next round instead of running on to the target.
 TEST(FieldPolicy, CancelDuringTheParallelRoundsStopsThem) {
-  auto pm = MakePhantomMesh(24, 40);
+  auto pm = MakePhantomMesh(28, 40);
   CancelToken cancel;
   int rounds = 0;
   auto r = Simplify(
