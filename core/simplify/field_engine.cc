@@ -323,7 +323,6 @@ class FieldEngine {
   Drained Drain(Worker& w, int64_t limit, float stop_cost, bool in_block, double tolerance,
                 const CancelToken* cancel);
   bool InTerritory(const Star& star) const;
-  int SlabAxis(const float lo[3], const float hi[3], double voxel) const;
   int64_t ParallelRounds(int64_t target, const ProgressFn& progress, const CancelToken* cancel,
                          Worker* totals, absl::Status* status);
   void ReleaseQueue();
@@ -1116,34 +1115,6 @@ void AddCounts(const Worker& w, Worker* to) {
 }
 }  // namespace
 
-// The axis the parallel rounds cut along: the longest one, since a shorter one gives fewer or
-// thinner slabs (kMinSlabVoxels). Among the axes at least kSlabAxisShare of the longest, the one
-// whose slabs split the vertex ids into the fewest runs: a slab whose vertices are a few long
-// ranges of ids keeps its thread's loads in fewer pages and cache lines than one made of thousands
-// of short rows (grid numbering, slabs along x).
-int FieldEngine::SlabAxis(const float lo[3], const float hi[3], double voxel) const {
-  int longest = 0;
-  for (int k = 1; k < 3; ++k) {
-    if (hi[k] - lo[k] > hi[longest] - lo[longest]) longest = k;
-  }
-  const double width = kMinSlabVoxels * voxel;
-  int axis = longest;
-  int64_t fewest = -1;
-  for (int k = 0; k < 3; ++k) {
-    if (double(hi[k]) - lo[k] < kSlabAxisShare * (double(hi[longest]) - lo[longest])) continue;
-    // Runs of consecutive ids in one slab, with slabs of equal width (the cuts come later).
-    auto slab = [&](int64_t v) { return int64_t((double(pos_[3 * v + k]) - lo[k]) / width); };
-    const auto runs = int64_t(BlockSum(nv_, threads_, 65536, [&](int64_t v) {
-      return v > 0 && slab(v) != slab(v - 1) ? 1.0 : 0.0;
-    }));
-    if (fewest < 0 || runs < fewest) {
-      fewest = runs;
-      axis = k;
-    }
-  }
-  return axis;
-}
-
 // Parallel rounds (README "Parallel rounds"): the mesh is cut into slabs along its longest axis;
 // in each round every slab runs the greedy loop on its own queue up to a common cost, touching
 // only its own vertices and cells, so the slabs run on any number of threads with the same
@@ -1162,7 +1133,7 @@ int64_t FieldEngine::ParallelRounds(int64_t target, const ProgressFn& progress,
     }
   }
   const double voxel = std::cbrt(voxel_volume_);
-  const int axis = SlabAxis(lo, hi, voxel);
+  const int axis = SlabAxis(pos_, nv_, lo, hi, kMinSlabVoxels * voxel, threads_);
   const int slabs = int(
       std::clamp((double(hi[axis]) - lo[axis]) / (kMinSlabVoxels * voxel), 1.0, double(kMaxSlabs)));
   if (slabs < 2) return 0;
@@ -1488,6 +1459,28 @@ void FieldEngine::Finish(SimplifyResult* result) {
 }
 
 }  // namespace
+
+int SlabAxis(const float* positions, int64_t n, const float lo[3], const float hi[3], double width,
+             int threads) {
+  int longest = 0;
+  for (int k = 1; k < 3; ++k) {
+    if (hi[k] - lo[k] > hi[longest] - lo[longest]) longest = k;
+  }
+  int axis = longest;
+  int64_t fewest = -1;
+  for (int k = 0; k < 3; ++k) {
+    if (double(hi[k]) - lo[k] < kSlabAxisShare * (double(hi[longest]) - lo[longest])) continue;
+    // Runs of consecutive ids in one slab, with slabs of equal width (the cuts come later).
+    auto slab = [&](int64_t v) { return int64_t((double(positions[3 * v + k]) - lo[k]) / width); };
+    const auto runs = int64_t(BlockSum(
+        n, threads, 65536, [&](int64_t v) { return v > 0 && slab(v) != slab(v - 1) ? 1.0 : 0.0; }));
+    if (fewest < 0 || runs < fewest) {
+      fewest = runs;
+      axis = k;
+    }
+  }
+  return axis;
+}
 
 absl::Status RunFieldSimplify(const TetMesh& mesh, const SimplifyOptions& options, int threads,
                               int64_t target, double tolerance, const ProgressFn& progress,

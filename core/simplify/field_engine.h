@@ -20,4 +20,13 @@ absl::Status RunFieldSimplify(const TetMesh& mesh, const SimplifyOptions& option
                               int64_t target, double tolerance, const ProgressFn& progress,
                               const CancelToken* cancel, SimplifyResult* result);
 
+// The axis (0, 1, 2) the parallel rounds cut into slabs of `width` mm, for n vertices at
+// `positions` (x, y, z each) inside the box [lo, hi]. The longest axis, since a shorter one gives
+// fewer or thinner slabs; among the axes at least 0.9 of the longest, the one whose slabs split
+// the vertex ids into the fewest runs. A slab whose vertices are a few long ranges of ids keeps
+// its thread's loads in fewer pages and cache lines than one made of thousands of short rows
+// (the grid's numbering with slabs along x: core/simplify/README.md, "Slab axis and slab width").
+int SlabAxis(const float* positions, int64_t n, const float lo[3], const float hi[3], double width,
+             int threads);
+
 }  // namespace decima::simplify_internal

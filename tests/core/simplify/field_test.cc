@@ -10,6 +10,7 @@
 #include <gtest/gtest.h>
 
 #include "core/metrics/fidelity.h"
+#include "core/simplify/field_engine.h"
 #include "core/simplify/field_refit.h"
 #include "core/simplify/simplify.h"
 #include "tests/core/simplify/simplify_test_util.h"
@@ -508,6 +509,42 @@ TEST(FieldPolicy, ReportsProgressAndHonoursCancellation) {
   cancel.Cancel();
   auto c = Simplify(pm.mesh, Field(0.5), nullptr, &cancel);
   EXPECT_EQ(c.status().code(), absl::StatusCode::kCancelled);
+}
+
+// Grid points of an nx x ny x nz box, one voxel apart, numbered with `order`'s first axis
+// fastest; the slab axis of their parallel rounds (slabs 2 voxels wide), on `threads` threads.
+int SlabAxisOfGrid(std::array<int, 3> dims, std::array<int, 3> order, int threads = 2) {
+  std::vector<float> positions;
+  std::array<int, 3> at{};
+  int& fast = at[order[0]];
+  int& middle = at[order[1]];
+  int& slow = at[order[2]];
+  for (slow = 0; slow < dims[order[2]]; ++slow) {
+    for (middle = 0; middle < dims[order[1]]; ++middle) {
+      for (fast = 0; fast < dims[order[0]]; ++fast) {
+        for (int k = 0; k < 3; ++k) positions.push_back(float(at[k]));
+      }
+    }
+  }
+  const float lo[3] = {0, 0, 0};
+  const float hi[3] = {float(dims[0] - 1), float(dims[1] - 1), float(dims[2] - 1)};
+  return simplify_internal::SlabAxis(positions.data(), int64_t(positions.size() / 3), lo, hi, 2.0,
+                                     threads);
+}
+
+// The slabs go along the longest axis; of axes (nearly) as long, along the one the numbering
+// advances slowest on, so that each slab is a few long ranges of vertex ids.
+TEST(FieldPolicy, SlabsGoAlongTheLongestAxisThatKeepsTheirIdsTogether) {
+  const std::array<int, 3> xyz{0, 1, 2}, zyx{2, 1, 0}, yzx{1, 2, 0};
+  EXPECT_EQ(SlabAxisOfGrid({20, 20, 20}, xyz), 2);  // a cube numbered x fastest: z
+  EXPECT_EQ(SlabAxisOfGrid({20, 20, 20}, zyx), 0);  // numbered z fastest: x
+  EXPECT_EQ(SlabAxisOfGrid({20, 20, 20}, yzx), 0);
+  EXPECT_EQ(SlabAxisOfGrid({20, 20, 8}, xyz), 1);      // x and y tie, z too short: y
+  EXPECT_EQ(SlabAxisOfGrid({19, 20, 8}, xyz), 1);      // x within 10 % of y still counts
+  EXPECT_EQ(SlabAxisOfGrid({30, 20, 20}, xyz), 0);     // the longest by far, whatever the numbering
+  EXPECT_EQ(SlabAxisOfGrid({20, 30, 24}, xyz), 1);     // z is 0.79 of y: not a candidate
+  EXPECT_EQ(SlabAxisOfGrid({20, 20, 20}, xyz, 1), 2);  // the same on one thread
+  EXPECT_EQ(SlabAxisOfGrid({20, 20, 20}, xyz, 3), 2);
 }
 
 // A cancel that arrives while the slabs run (here: with the first round's report) stops the
