@@ -41,9 +41,9 @@ constexpr int kWeightEntry = 12;  // (3, 3): the sum of the weights (a_s = -1 in
 constexpr double kFeatureCostFactor = 4;
 // Parallel rounds: one slab per kMinSlabVoxels of the slab axis, cuts at least kMinCutVoxels
 // apart, at most kMaxSlabs slabs and kMaxRounds rounds, and the last 1/kSerialShare of the
-// target left to the serial loop. A cut freezes about two rings on each side for a round, and
-// slabs of 8-9 voxels gave a visibly worse order than the serial loop (CT head cut along its 53
-// voxels: 60.7 dB where 12 gives 63.2; phantom:96 35.76 dB, 12 gives 36.01, serial 36.04).
+// target left to the serial loop. A cut freezes about two rings on each side for a round, so
+// thin slabs freeze much of themselves and their order departs far from the serial loop's
+// (README "Slab axis and slab width").
 constexpr double kMinSlabVoxels = 12;
 constexpr double kMinCutVoxels = 4;
 constexpr int kMaxSlabs = 8;
@@ -1133,9 +1133,10 @@ int64_t FieldEngine::ParallelRounds(int64_t target, const ProgressFn& progress,
     }
   }
   const double voxel = std::cbrt(voxel_volume_);
-  const int axis = SlabAxis(pos_, nv_, lo, hi, kMinSlabVoxels * voxel, threads_);
-  const int slabs = int(
-      std::clamp((double(hi[axis]) - lo[axis]) / (kMinSlabVoxels * voxel), 1.0, double(kMaxSlabs)));
+  const double slab_width = kMinSlabVoxels * voxel;  // the thinnest slab
+  const int axis = SlabAxis(pos_, nv_, lo, hi, slab_width, threads_);
+  const int slabs =
+      int(std::clamp((double(hi[axis]) - lo[axis]) / slab_width, 1.0, double(kMaxSlabs)));
   if (slabs < 2) return 0;
   owner_.resize(nv_);
   frontier_.resize(nv_);
