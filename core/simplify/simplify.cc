@@ -1,8 +1,10 @@
 #include "core/simplify/simplify.h"
 
 #include <algorithm>
+#include <atomic>
 #include <cmath>
 #include <limits>
+#include <string>
 #include <thread>
 
 #include "absl/strings/str_cat.h"
@@ -19,7 +21,26 @@ namespace {
 using simplify_internal::CollapseEngine;
 using simplify_internal::Outcome;
 
-absl::Status ValidateMesh(const TetMesh& m) {
+// The reason cell t of m is unusable, or "" if it is fine (indexes in range, four distinct
+// vertices, positive volume).
+std::string CellProblem(const TetMesh& m, int64_t t) {
+  const int64_t nv = m.vertex_count();
+  const int32_t* v = &m.tets[4 * t];
+  for (int k = 0; k < 4; ++k) {
+    if (v[k] < 0 || v[k] >= nv) {
+      return absl::StrCat("cell ", t, " has vertex index ", v[k], " outside [0, ", nv, ")");
+    }
+    for (int j = 0; j < k; ++j) {
+      if (v[j] == v[k]) return absl::StrCat("cell ", t, " repeats vertex ", v[k]);
+    }
+  }
+  if (const double volume = TetVolume(m, t); !(volume > 0)) {
+    return absl::StrCat("cell ", t, " is not positively oriented (volume ", volume, " mm^3)");
+  }
+  return "";
+}
+
+absl::Status ValidateMesh(const TetMesh& m, int threads) {
   const int64_t nv = m.vertex_count(), nt = m.tet_count();
   auto bad = [](const std::string& what) {
     return absl::InvalidArgumentError("simplify: input mesh " + what);
@@ -43,21 +64,19 @@ absl::Status ValidateMesh(const TetMesh& m) {
   for (float s : m.scalars) {
     if (!std::isfinite(s)) return bad("has a non-finite scalar");
   }
-  for (int64_t t = 0; t < nt; ++t) {
-    const int32_t* v = &m.tets[4 * t];
-    for (int k = 0; k < 4; ++k) {
-      if (v[k] < 0 || v[k] >= nv) {
-        return bad(absl::StrCat("cell ", t, " has vertex index ", v[k], " outside [0, ", nv, ")"));
+  // The cells on all threads (1.3 s serially on phantom:256); the lowest bad cell is reported,
+  // as a serial scan would.
+  std::atomic<int64_t> first_bad{nt};
+  ParallelFor(nt, threads, 65536, [&](int64_t t0, int64_t t1) {
+    for (int64_t t = t0; t < t1 && t < first_bad.load(std::memory_order_relaxed); ++t) {
+      if (CellProblem(m, t).empty()) continue;
+      int64_t seen = first_bad.load(std::memory_order_relaxed);
+      while (t < seen && !first_bad.compare_exchange_weak(seen, t)) {
       }
-      for (int j = 0; j < k; ++j) {
-        if (v[j] == v[k]) return bad(absl::StrCat("cell ", t, " repeats vertex ", v[k]));
-      }
+      return;
     }
-    if (const double volume = TetVolume(m, t); !(volume > 0)) {
-      return bad(
-          absl::StrCat("cell ", t, " is not positively oriented (volume ", volume, " mm^3)"));
-    }
-  }
+  });
+  if (first_bad < nt) return bad(CellProblem(m, first_bad));
   return absl::OkStatus();
 }
 
@@ -229,9 +248,9 @@ std::string SimplifyPolicyNames() {
 absl::StatusOr<SimplifyResult> Simplify(const TetMesh& mesh, const SimplifyOptions& options,
                                         const ProgressFn& progress, const CancelToken* cancel) {
   DECIMA_RETURN_IF_ERROR(ValidateSimplifyOptions(options));
-  DECIMA_RETURN_IF_ERROR(ValidateMesh(mesh));
-  DECIMA_RETURN_IF_ERROR(CheckCancelled(cancel, "simplify"));
   const int threads = ResolveThreads(options.threads);
+  DECIMA_RETURN_IF_ERROR(ValidateMesh(mesh, threads));
+  DECIMA_RETURN_IF_ERROR(CheckCancelled(cancel, "simplify"));
 
   SimplifyResult result;
   result.input_cells = mesh.tet_count();

@@ -7,6 +7,7 @@
 
 #include <gtest/gtest.h>
 
+#include "absl/strings/str_cat.h"
 #include "core/metrics/fidelity.h"
 #include "core/simplify/collapse_engine.h"
 #include "tests/core/simplify/simplify_test_util.h"
@@ -504,6 +505,33 @@ TEST(Simplify, RejectsBadOptionsAndMeshes) {
   bad = m;
   bad.labels.pop_back();
   EXPECT_EQ(Simplify(bad, {}).status().code(), absl::StatusCode::kInvalidArgument);
+}
+
+// The cells are checked on all threads; the error names the lowest bad cell, as a serial scan
+// would, whichever thread meets a bad cell first.
+TEST(Simplify, ABadMeshNamesItsLowestBadCellOnAnyThreadCount) {
+  TetMesh bad = GridMesh(32);  // 148,955 cells: more than one range per thread
+  ASSERT_GT(bad.tet_count(), 2 * 65536);
+  const int64_t late = bad.tet_count() - 3, early = 7;
+  std::swap(bad.tets[4 * late + 2], bad.tets[4 * late + 3]);  // inverted
+  for (int threads : {1, 2, 3}) {
+    SimplifyOptions o;
+    o.threads = threads;
+    auto s = Simplify(bad, o);
+    EXPECT_EQ(s.status().code(), absl::StatusCode::kInvalidArgument);
+    EXPECT_NE(s.status().message().find(absl::StrCat("cell ", late, " is not positively")),
+              std::string::npos)
+        << s.status();
+  }
+  bad.tets[4 * early + 1] = bad.tets[4 * early];  // repeats a vertex
+  for (int threads : {1, 2, 3}) {
+    SimplifyOptions o;
+    o.threads = threads;
+    auto s = Simplify(bad, o);
+    EXPECT_NE(s.status().message().find(absl::StrCat("cell ", early, " repeats vertex")),
+              std::string::npos)
+        << s.status();
+  }
 }
 
 TEST(Simplify, LinearFieldStaysExactUnderBothPolicies) {
