@@ -9,6 +9,8 @@
 #include <atomic>
 #include <cstring>
 #include <fstream>
+#include <map>
+#include <mutex>
 #include <sstream>
 #include <thread>
 
@@ -205,6 +207,15 @@ CliResult RunCli(const std::string& address, const std::vector<std::string>& arg
   std::vector<std::string> a = {CliBinary().string(), "--server", address};
   a.insert(a.end(), args.begin(), args.end());
   return RunProgram(a, timeout, env);
+}
+
+std::shared_ptr<grpc::Channel> SharedChannel(const std::string& address) {
+  static std::mutex mu;
+  static std::map<std::string, std::shared_ptr<grpc::Channel>> channels;
+  std::lock_guard<std::mutex> lock(mu);
+  auto& channel = channels[address];
+  if (!channel) channel = grpc::CreateChannel(address, grpc::InsecureChannelCredentials());
+  return channel;
 }
 
 v1::Job GetJob(const std::string& address, const std::string& name) {

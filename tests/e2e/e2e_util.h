@@ -8,6 +8,7 @@
 #include <chrono>
 #include <filesystem>
 #include <map>
+#include <memory>
 #include <string>
 #include <vector>
 
@@ -70,6 +71,12 @@ inline constexpr int kSlowdown = 1;
 CliResult RunProgram(const std::vector<std::string>& argv,
                      std::chrono::seconds timeout = std::chrono::seconds(60),
                      const std::map<std::string, std::string>& env = {});
+
+// One plaintext channel per address for the whole process, as a client keeps its channel (and
+// so follows a server restarted on the same address). A channel per call shuts gRPC down
+// whenever the last one closes, and that clean-up waits up to 10 s for the connection of a
+// stream the server answered early to be released.
+std::shared_ptr<grpc::Channel> SharedChannel(const std::string& address);
 
 // GetJob over a fresh plaintext channel (fails the test on an error status).
 v1::Job GetJob(const std::string& address, const std::string& name);

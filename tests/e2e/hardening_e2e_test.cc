@@ -9,8 +9,6 @@
 
 #include <cstring>
 #include <fstream>
-#include <map>
-#include <mutex>
 #include <sstream>
 
 #include "decima/v1/jobs.grpc.pb.h"
@@ -37,19 +35,6 @@ std::unique_ptr<grpc::ClientContext> Ctx() {
   return ctx;
 }
 
-// One channel per address for the whole binary, as a client keeps its channel. A channel per
-// call shuts gRPC down whenever the last one closes, and that shutdown waits up to 10 s for the
-// connection of an upload the server answered early to be released: the timed upload below took
-// 10 s in about 1 run of 100 on a loaded machine, with the answer itself back in milliseconds.
-std::shared_ptr<grpc::Channel> Channel(const std::string& address) {
-  static std::mutex mu;
-  static std::map<std::string, std::shared_ptr<grpc::Channel>> channels;
-  std::lock_guard<std::mutex> lock(mu);
-  auto& channel = channels[address];
-  if (!channel) channel = grpc::CreateChannel(address, grpc::InsecureChannelCredentials());
-  return channel;
-}
-
 std::string ReadFile(const fs::path& p) {
   std::ifstream in(p, std::ios::binary);
   std::stringstream ss;
@@ -65,7 +50,7 @@ std::string Sha(const std::string& bytes) {
 
 // Uploads `bytes` whole (or only the first `send` bytes when >= 0, leaving a partial upload).
 grpc::Status Upload(const std::string& address, const std::string& bytes, int64_t send = -1) {
-  auto stub = v1::Uploads::NewStub(Channel(address));
+  auto stub = v1::Uploads::NewStub(SharedChannel(address));
   auto ctx = Ctx();
   v1::Blob blob;
   auto writer = stub->Upload(ctx.get(), &blob);
@@ -86,7 +71,7 @@ grpc::Status Upload(const std::string& address, const std::string& bytes, int64_
 
 grpc::Status CreateVolume(const std::string& address, const std::string& path,
                           const std::string& sha, v1::Volume* out) {
-  auto stub = v1::Volumes::NewStub(Channel(address));
+  auto stub = v1::Volumes::NewStub(SharedChannel(address));
   v1::CreateVolumeRequest req;
   auto* f = req.mutable_volume()->add_files();
   f->set_path(path);
@@ -95,7 +80,7 @@ grpc::Status CreateVolume(const std::string& address, const std::string& path,
 }
 
 grpc::Status DeleteJob(const std::string& address, const std::string& name) {
-  auto stub = v1::Jobs::NewStub(Channel(address));
+  auto stub = v1::Jobs::NewStub(SharedChannel(address));
   v1::DeleteJobRequest req;
   req.set_name(name);
   v1::DeleteJobResponse resp;
@@ -103,7 +88,7 @@ grpc::Status DeleteJob(const std::string& address, const std::string& name) {
 }
 
 grpc::Status DeleteVolume(const std::string& address, const std::string& name) {
-  auto stub = v1::Volumes::NewStub(Channel(address));
+  auto stub = v1::Volumes::NewStub(SharedChannel(address));
   v1::DeleteVolumeRequest req;
   req.set_name(name);
   v1::DeleteVolumeResponse resp;
@@ -111,7 +96,7 @@ grpc::Status DeleteVolume(const std::string& address, const std::string& name) {
 }
 
 std::vector<v1::Volume> ListVolumes(const std::string& address) {
-  auto stub = v1::Volumes::NewStub(Channel(address));
+  auto stub = v1::Volumes::NewStub(SharedChannel(address));
   v1::ListVolumesResponse resp;
   EXPECT_TRUE(stub->ListVolumes(Ctx().get(), v1::ListVolumesRequest(), &resp).ok());
   return {resp.volumes().begin(), resp.volumes().end()};
@@ -194,7 +179,7 @@ TEST_F(HardeningE2E, AnUploadOfABlobTheServerHoldsIsAnsweredWhileTheClientIsStil
   EXPECT_LT(took, 10s);
   // The fuzzer's case: the empty blob, declared alone, then an over-long chunk.
   ASSERT_TRUE(Upload(server.address(), "").ok());
-  auto stub = v1::Uploads::NewStub(Channel(server.address()));
+  auto stub = v1::Uploads::NewStub(SharedChannel(server.address()));
   auto ctx = Ctx();
   v1::Blob blob;
   auto writer = stub->Upload(ctx.get(), &blob);

@@ -119,16 +119,6 @@ class ServerSlot {
   pid_t pid_ = -1;
 };
 
-// Channels by address, so a client follows the server to its new port after a restart.
-std::shared_ptr<grpc::Channel> Channel(const std::string& address) {
-  static std::mutex mu;
-  static std::map<std::string, std::shared_ptr<grpc::Channel>> channels;
-  std::lock_guard<std::mutex> l(mu);
-  auto& c = channels[address];
-  if (!c) c = grpc::CreateChannel(address, grpc::InsecureChannelCredentials());
-  return c;
-}
-
 bool Transient(grpc::StatusCode c) {
   return c == grpc::StatusCode::UNAVAILABLE || c == grpc::StatusCode::DEADLINE_EXCEEDED ||
          c == grpc::StatusCode::CANCELLED || c == grpc::StatusCode::ABORTED ||
@@ -143,7 +133,8 @@ grpc::Status Retry(ServerSlot& server, Call call, std::atomic<int64_t>* retries)
   for (int attempt = 0; attempt < 3000; ++attempt) {
     grpc::ClientContext ctx;
     ctx.set_deadline(std::chrono::system_clock::now() + 20s);
-    s = call(Channel(server.address()), ctx);
+    // A channel per address: after a restart on a new port the client follows the server.
+    s = call(e2e::SharedChannel(server.address()), ctx);
     if (!Transient(s.error_code())) return s;
     ++*retries;
     std::this_thread::sleep_for(200ms);
