@@ -1115,10 +1115,10 @@ void AddCounts(const Worker& w, Worker* to) {
 }
 }  // namespace
 
-// Parallel rounds (README "Parallel rounds"): the mesh is cut into slabs along its longest axis;
-// in each round every slab runs the greedy loop on its own queue up to a common cost, touching
-// only its own vertices and cells, so the slabs run on any number of threads with the same
-// result. Every other round the cuts sit halfway between the last ones. Returns the cells
+// Parallel rounds (README "Parallel rounds"): the mesh is cut into slabs along the axis SlabAxis
+// picks; in each round every slab runs the greedy loop on its own queue up to a common cost,
+// touching only its own vertices and cells, so the slabs run on any number of threads with the
+// same result. Every other round the cuts sit halfway between the last ones. Returns the cells
 // removed.
 int64_t FieldEngine::ParallelRounds(int64_t target, const ProgressFn& progress,
                                     const CancelToken* cancel, Worker* totals,

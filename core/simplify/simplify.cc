@@ -64,8 +64,8 @@ absl::Status ValidateMesh(const TetMesh& m, int threads) {
   for (float s : m.scalars) {
     if (!std::isfinite(s)) return bad("has a non-finite scalar");
   }
-  // The cells on all threads (1.3 s serially on phantom:256); the lowest bad cell is reported,
-  // as a serial scan would.
+  // The cells on all threads, since a serial scan is slow on the largest meshes (figures in
+  // core/simplify/README.md); the lowest bad cell is reported, as a serial scan would.
   std::atomic<int64_t> first_bad{nt};
   ParallelFor(nt, threads, 65536, [&](int64_t t0, int64_t t1) {
     for (int64_t t = t0; t < t1 && t < first_bad.load(std::memory_order_relaxed); ++t) {
