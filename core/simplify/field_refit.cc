@@ -33,9 +33,9 @@ double BlockSum(int64_t n, int threads, F&& f) {
   return decima::BlockSum(n, threads, 16384, std::forward<F>(f));
 }
 
-// Barycentric weights of x in cell t of `mesh` if the cell holds x (to 1e-6), else nullopt.
-std::optional<std::array<float, 4>> WeightsIn(const TetMesh& mesh, int64_t t,
-                                              const Eigen::Vector3d& x) {
+// The barycentric coordinates of x in cell t of `mesh`, times the cell's determinant (b[k] for
+// its k-th vertex); returns the determinant (not positive: a degenerate or inverted cell).
+double ScaledCoordinates(const TetMesh& mesh, int64_t t, const Eigen::Vector3d& x, double b[4]) {
   const int32_t* c = &mesh.tets[4 * t];
   const Eigen::Vector3d p0 = mesh.Position(c[0]);
   const Eigen::Vector3d e0 = mesh.Position(c[1]) - p0, e1 = mesh.Position(c[2]) - p0,
@@ -43,12 +43,55 @@ std::optional<std::array<float, 4>> WeightsIn(const TetMesh& mesh, int64_t t,
   // The rows of the inverse of [e0 e1 e2] are these cross products over the determinant.
   const Eigen::Vector3d r0 = e1.cross(e2), r1 = e2.cross(e0), r2 = e0.cross(e1);
   const double det = e0.dot(r0);
+  b[1] = r0.dot(d);
+  b[2] = r1.dot(d);
+  b[3] = r2.dot(d);
+  b[0] = det - b[1] - b[2] - b[3];
+  return det;
+}
+
+// Barycentric weights of x in cell t of `mesh` if the cell holds x (to 1e-6), else nullopt.
+std::optional<std::array<float, 4>> WeightsIn(const TetMesh& mesh, int64_t t,
+                                              const Eigen::Vector3d& x) {
+  double b[4];
+  const double det = ScaledCoordinates(mesh, t, x, b);
   if (!(det > 0)) return std::nullopt;
   const double eps = 1e-6 * det;
-  const double l0 = r0.dot(d), l1 = r1.dot(d), l2 = r2.dot(d);
-  if (l0 < -eps || l1 < -eps || l2 < -eps || det - l0 - l1 - l2 < -eps) return std::nullopt;
-  return std::array<float, 4>{float((det - l0 - l1 - l2) / det), float(l0 / det), float(l1 / det),
-                              float(l2 / det)};
+  if (b[1] < -eps || b[2] < -eps || b[3] < -eps || b[0] < -eps) return std::nullopt;
+  return std::array<float, 4>{float(b[0] / det), float(b[1] / det), float(b[2] / det),
+                              float(b[3] / det)};
+}
+
+// A cell of `mesh` that holds x, found by walking from cell t through the face x lies furthest
+// beyond (across it: the other cell around that face, from the face's first vertex's cells in
+// `star`); -1 if the walk leaves the mesh or takes more than kMaxSteps (it can circle in a mesh
+// that is not Delaunay).
+int32_t Walk(const TetMesh& mesh, const VertexTetAdjacency& star, int32_t t,
+             const Eigen::Vector3d& x) {
+  constexpr int kMaxSteps = 64;
+  for (int step = 0; step < kMaxSteps; ++step) {
+    double b[4];
+    const double det = ScaledCoordinates(mesh, t, x, b);
+    if (!(det > 0)) return -1;
+    const int k = int(std::min_element(b, b + 4) - b);
+    if (b[k] >= -1e-6 * det) return t;
+    const int32_t* c = &mesh.tets[4 * int64_t(t)];
+    const int32_t f0 = c[(k + 1) % 4], f1 = c[(k + 2) % 4], f2 = c[(k + 3) % 4];
+    int32_t next = -1;
+    for (int64_t i = star.offsets[f0]; i < star.offsets[f0 + 1] && next < 0; ++i) {
+      const int32_t n = star.tet_ids[i];
+      const int32_t* d = &mesh.tets[4 * int64_t(n)];
+      bool has1 = false, has2 = false;
+      for (int j = 0; j < 4; ++j) {
+        has1 |= d[j] == f1;
+        has2 |= d[j] == f2;
+      }
+      if (n != t && has1 && has2) next = n;
+    }
+    if (next < 0) return -1;
+    t = next;
+  }
+  return -1;
 }
 
 // Locates every original vertex in `mesh`, where `vertex_map` (may be empty) says which vertex
@@ -56,15 +99,18 @@ std::optional<std::array<float, 4>> WeightsIn(const TetMesh& mesh, int64_t t,
 // half the samples). A collapsed one nearly always lies in a cell around the vertex it became
 // (a valid collapse keeps the union of the two stars; later collapses nearby can move that
 // boundary): those cells are tried first, in id order, and the first that holds the sample
-// keeps it. The few left are bucketed on a uniform grid over their bounding box; each cell, in
-// id order, tests the samples of the buckets its bounding box overlaps, and the first cell that
-// contains a sample keeps it.
+// keeps it. For the rest a walk from there finds a cell that holds the sample (README
+// "Refit"). What the walk does not find is bucketed on a uniform grid over the bounding box;
+// each cell, in id order, tests the samples of the buckets its bounding box overlaps, and the
+// first cell that contains a sample keeps it.
 std::vector<Row> LocateSamples(const TetMesh& original, const TetMesh& mesh,
                                const std::vector<int32_t>& vertex_map, int threads,
-                               const CancelToken* cancel, absl::Status* status, int64_t* searched) {
+                               const CancelToken* cancel, absl::Status* status, int64_t* walked,
+                               int64_t* searched) {
   const int64_t n = original.vertex_count();
   std::vector<Row> rows(n);
   if (n == 0 || mesh.tet_count() == 0) return rows;
+  std::atomic<int64_t> walks{0};
   if (int64_t(vertex_map.size()) == n) {
     const VertexTetAdjacency star = BuildVertexTetAdjacency(mesh, threads);
     ParallelFor(n, threads, 4096, [&](int64_t v0, int64_t v1) {
@@ -85,9 +131,33 @@ std::vector<Row> LocateSamples(const TetMesh& original, const TetMesh& mesh,
             break;
           }
         }
+        if (rows[v].vertex[0] >= 0 || star.offsets[m] == star.offsets[m + 1]) continue;
+        // Later collapses nearby moved the boundary of m's cells past the sample: walk there
+        // from m's first cell. Where the sample lies on the boundary of the cell the walk
+        // ends in, the lowest id among the cells around that cell's vertices that hold it.
+        const int32_t t = Walk(mesh, star, star.tet_ids[star.offsets[m]], x);
+        if (t < 0) continue;  // left to the whole-mesh search
+        walks.fetch_add(1, std::memory_order_relaxed);
+        int32_t found = t;
+        std::array<float, 4> found_w = *WeightsIn(mesh, t, x);  // Walk checked that t holds x
+        if (*std::min_element(found_w.begin(), found_w.end()) < 1e-4f) {
+          const int32_t* c = &mesh.tets[4 * int64_t(t)];
+          for (int k = 0; k < 4; ++k) {
+            for (int64_t j = star.offsets[c[k]]; j < star.offsets[c[k] + 1]; ++j) {
+              const int32_t other = star.tet_ids[j];
+              if (other >= found) break;  // rows are in id order
+              if (auto w = WeightsIn(mesh, other, x)) {
+                found = other;
+                found_w = *w;
+              }
+            }
+          }
+        }
+        rows[v] = InCell(mesh, found, found_w);
       }
     });
   }
+  *walked = walks.load();
   if (cancel != nullptr && cancel->cancelled()) {
     *status = absl::CancelledError("simplify: cancelled");
     return rows;
@@ -186,8 +256,8 @@ absl::Status RefitValues(const TetMesh& original, const std::vector<int32_t>& ve
                          const CancelToken* cancel, RefitStats* stats) {
   RefitStats st;
   absl::Status status;
-  const std::vector<Row> rows =
-      LocateSamples(original, *simplified, vertex_map, threads, cancel, &status, &st.searched);
+  const std::vector<Row> rows = LocateSamples(original, *simplified, vertex_map, threads, cancel,
+                                              &status, &st.walked, &st.searched);
   DECIMA_RETURN_IF_ERROR(status);
   const int64_t n = original.vertex_count(), nv = simplified->vertex_count();
   auto located = [&](int64_t i) { return rows[i].vertex[0] >= 0; };

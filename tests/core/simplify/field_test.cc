@@ -434,8 +434,8 @@ TEST(FieldPolicy, RefitSameResultOnOneAndTwoThreadsWithSplitRanges) {
   EXPECT_EQ(a->mesh.scalars, b->mesh.scalars);
 }
 
-// The refit locates samples at their own vertex (survivors) or in the cells around the vertex
-// they became, and searches the whole mesh only for the rest. Without the vertex map every sample
+// The refit locates samples at their own vertex (survivors), in the cells around the vertex they
+// became, or by a walk from there, and searches the whole mesh only for the rest. Without the vertex map every sample
 // goes through the whole-mesh search: the same samples must be located, the fit must come out
 // the same (weights agree to float rounding; a sample on a face shared by two cells may take the
 // other one, with the same weights on that face), and the shortcut must be what the map gives.
@@ -459,8 +459,11 @@ TEST(FieldPolicy, RefitLocatesAroundTheMappedVertexAsTheWholeMeshSearchDoes) {
   ASSERT_TRUE(simplify_internal::RefitValues(pm.mesh, {}, &without_map, 30, 2, nullptr, &b).ok());
   EXPECT_EQ(a.samples, pm.mesh.vertex_count());
   EXPECT_EQ(a.samples, b.samples);
-  // The shortcut did the work: the whole-mesh search saw only a few samples with the map, and
-  // every sample without it.
+  // The shortcut did the work: some samples had left the cells of the vertex they became and the
+  // walk found them, the whole-mesh search saw only a few samples with the map, and every
+  // sample without it.
+  EXPECT_GT(a.walked, 0);
+  EXPECT_EQ(b.walked, 0);
   EXPECT_LT(a.searched, moved / 10) << a.searched << " of " << moved << " moved samples";
   EXPECT_EQ(b.searched, pm.mesh.vertex_count());
   EXPECT_EQ(a.unlocated, b.unlocated);
