@@ -49,6 +49,10 @@ constexpr double kMinCutVoxels = 4;
 constexpr int kMaxSlabs = 8;
 constexpr int kMaxRounds = 16;
 constexpr int64_t kSerialShare = 8;
+// The frontier pass keeps, per block of 2^kRangeShift consecutive cell ids, an interval of the
+// slab axis that holds every current vertex of the block's live cells, and skips the blocks
+// whose interval no cut crosses.
+constexpr int kRangeShift = 10;
 // Axes at least this share of the longest may carry the slabs (SlabAxis).
 constexpr double kSlabAxisShare = 0.9;
 
@@ -456,9 +460,25 @@ class FieldEngine {
   VertexArray<QueueState> st_;
   double voxel_volume_ = 1, min_volume_ = 0, tie_break_ = 0;
   double max_cos_ = 1;  // cos of the dihedral floor (1: no shape guard)
-  // Parallel rounds: per vertex, the block its position falls in, and whether a neighbour lies in
-  // another block (frontier vertices wait for a round with other cuts, or the serial loop).
-  std::vector<uint8_t> owner_, frontier_;
+  // Parallel rounds: per vertex, whether a neighbour lies in another block (frontier vertices
+  // wait for a round with other cuts, or the serial loop). Per block of cell ids, an interval of
+  // the slab axis holding the current vertices of its live cells (kRangeShift); a collapse in a
+  // round widens its cells' intervals to the survivor (slab_axis_ >= 0 while the rounds run).
+  std::vector<uint8_t> frontier_;
+  std::vector<float> range_lo_, range_hi_;
+  int slab_axis_ = -1;
+  // Widens cell c's block interval to hold z. Slabs of one round may share a block, so atomic;
+  // nearly always z is inside already and this is two loads.
+  void WidenRange(int32_t c, float z) {
+    const int64_t b = c >> kRangeShift;
+    std::atomic_ref<float> lo(range_lo_[b]), hi(range_hi_[b]);
+    for (float l = lo.load(std::memory_order_relaxed);
+         z < l && !lo.compare_exchange_weak(l, z, std::memory_order_relaxed);) {
+    }
+    for (float h = hi.load(std::memory_order_relaxed);
+         z > h && !hi.compare_exchange_weak(h, z, std::memory_order_relaxed);) {
+    }
+  }
 };
 
 template <typename Fn>
@@ -927,6 +947,7 @@ int64_t FieldEngine::Collapse(int32_t u, int32_t v, const Star& star, Worker& w)
         if (t[k] == u) t[k] = v;
       }
       ++valence_[v];
+      if (slab_axis_ >= 0) WidenRange(c, pos_[3 * int64_t(v) + slab_axis_]);
     }
     for (int k = 0; k < 4; ++k) {
       if (t[k] != u) touched.push_back(t[k]);
@@ -1153,8 +1174,12 @@ int64_t FieldEngine::ParallelRounds(int64_t target, const ProgressFn& progress,
   const int slabs =
       int(std::clamp((double(hi[axis]) - lo[axis]) / slab_width, 1.0, double(kMaxSlabs)));
   if (slabs < 2) return 0;
-  owner_.resize(nv_);
   frontier_.resize(nv_);
+  // No interval known yet: the first round scans every block.
+  const int64_t range_blocks = ((nt_ - 1) >> kRangeShift) + 1;
+  range_lo_.assign(range_blocks, -std::numeric_limits<float>::infinity());
+  range_hi_.assign(range_blocks, std::numeric_limits<float>::infinity());
+  slab_axis_ = axis;
   std::vector<Worker> workers(std::max(1, threads_));
   int64_t removed = 0;
   float last_stop_cost = 0;
@@ -1231,32 +1256,64 @@ int64_t FieldEngine::ParallelRounds(int64_t target, const ProgressFn& progress,
       }
     }
     const int blocks = int(cuts.size()) + 1;
-    ParallelFor(nv_, threads_, 65536, [&](int64_t v0, int64_t v1) {
-      for (int64_t v = v0; v < v1; ++v) {
-        owner_[v] =
-            uint8_t(std::upper_bound(cuts.begin(), cuts.end(), pos_[3 * v + axis]) - cuts.begin());
-      }
-    });
-    // The frontier: every vertex of a cell whose vertices lie in two slabs.
+    // The slab a coordinate of the slab axis falls in.
+    auto owner = [&](float z) {
+      return int(std::upper_bound(cuts.begin(), cuts.end(), z) - cuts.begin());
+    };
+    // The frontier: every vertex of a cell whose vertices lie in two slabs. Only blocks whose
+    // interval a cut crosses can hold such a cell; their intervals are made tight again.
     std::fill(frontier_.begin(), frontier_.end(), 0);
-    ParallelFor(nt_, threads_, 65536, [&](int64_t c0, int64_t c1) {
-      for (int64_t c = c0; c < c1; ++c) {
-        if (dead_.TestShared(c)) continue;
-        int32_t t[4];
-        CellAt(int32_t(c), t);
-        const uint8_t o = owner_[t[0]];
-        if (owner_[t[1]] == o && owner_[t[2]] == o && owner_[t[3]] == o) continue;
-        for (int j = 0; j < 4; ++j) {
-          std::atomic_ref<uint8_t>(frontier_[t[j]]).store(1, std::memory_order_relaxed);
+    ParallelFor(range_blocks, threads_, 16, [&](int64_t b0, int64_t b1) {
+      for (int64_t b = b0; b < b1; ++b) {
+        if (!(range_lo_[b] <= range_hi_[b]) || owner(range_lo_[b]) == owner(range_hi_[b])) {
+          continue;
         }
+        float lo_b = std::numeric_limits<float>::infinity(), hi_b = -lo_b;
+        for (int64_t c = b << kRangeShift; c < std::min(nt_, (b + 1) << kRangeShift); ++c) {
+          if (dead_.TestShared(c)) continue;
+          int32_t t[4];
+          CellAt(int32_t(c), t);
+          float z[4];
+          for (int j = 0; j < 4; ++j) {
+            z[j] = pos_[3 * int64_t(t[j]) + axis];
+            lo_b = std::min(lo_b, z[j]);
+            hi_b = std::max(hi_b, z[j]);
+          }
+          const int o = owner(z[0]);
+          if (owner(z[1]) == o && owner(z[2]) == o && owner(z[3]) == o) continue;
+          for (int j = 0; j < 4; ++j) {
+            std::atomic_ref<uint8_t>(frontier_[t[j]]).store(1, std::memory_order_relaxed);
+          }
+        }
+        range_lo_[b] = lo_b;
+        range_hi_[b] = hi_b;
       }
     });
+    // Each slab's queue: its vertices at or below the cost and off the frontier, in id order
+    // (listed per range of the list in parallel, joined in range order).
     std::vector<std::vector<HeapEntry>> entries(blocks);
     int64_t queued = 0;
-    for (const QueuedVertex& q : queued_list) {
-      if (frontier_[q.v] || q.cost > stop_cost) continue;
-      entries[owner_[q.v]].push_back({q.cost, q.v, ++st_[q.v].version});
-      ++queued;
+    {
+      const int64_t ranges = std::max(1, threads_);
+      std::vector<std::vector<std::vector<HeapEntry>>> parts(
+          ranges, std::vector<std::vector<HeapEntry>>(blocks));
+      const int64_t listed = int64_t(queued_list.size());
+      ParallelFor(ranges, threads_, [&](int64_t r0, int64_t r1) {
+        for (int64_t r = r0; r < r1; ++r) {
+          for (int64_t i = listed * r / ranges; i < listed * (r + 1) / ranges; ++i) {
+            const QueuedVertex& q = queued_list[i];
+            if (frontier_[q.v] || q.cost > stop_cost) continue;
+            parts[r][owner(pos_[3 * int64_t(q.v) + axis])].push_back(
+                {q.cost, q.v, ++st_[q.v].version});
+          }
+        }
+      });
+      for (int b = 0; b < blocks; ++b) {
+        for (const auto& part : parts) {
+          entries[b].insert(entries[b].end(), part[b].begin(), part[b].end());
+        }
+        queued += int64_t(entries[b].size());
+      }
     }
     if (queued == 0) break;
     // Each slab may remove its share of what is left, by its share of the queued vertices.
@@ -1332,6 +1389,7 @@ absl::Status FieldEngine::Run(int64_t target, double tolerance, const ProgressFn
   if (tolerance == 0 && target < nt_) {
     absl::Status status;
     removed = ParallelRounds(target, progress, cancel, &rounds, &status);
+    slab_axis_ = -1;  // the serial loop keeps no intervals
     DECIMA_RETURN_IF_ERROR(status);
   }
   Worker w;
@@ -1395,8 +1453,9 @@ void FieldEngine::ReleaseQueue() {
   release(class_tail_);
   release(cell_ids_);
   release(flags_);
-  release(owner_);
   release(frontier_);
+  release(range_lo_);
+  release(range_hi_);
 }
 
 void FieldEngine::Finish(SimplifyResult* result) {
