@@ -594,29 +594,33 @@ void FieldEngine::Setup() {
 
   // Quadric of every vertex: the planes of its cells' linear interpolants, one unit weight per
   // cell (volume weights, and volume squared, were measured worse on the CT head at 80 %).
-  // A cell's gradient is the same for its four vertices, and computing it (a 3x3 inverse, bound
-  // by its division) was most of this loop, four times per cell. So each thread computes the
-  // gradients of a window of consecutive cell ids once, and the vertices of a block read them
-  // there: with the grid's numbering a block's cells are a window not much longer than the
-  // block's rows, and a mesh numbered otherwise computes them per row as before.
+  // A cell's gradient is the same for its four vertices, and computing it (a 3x3 solve) was most
+  // of this loop, four times per cell. So each thread computes the gradients of a window of
+  // consecutive cell ids once, and the vertices of a block read them there: with the grid's
+  // numbering a block's cells are a window not much longer than the block's rows, and a mesh
+  // numbered otherwise computes them per row as before.
   constexpr int64_t kBlockVertices = 65536;
   // The gradient of cell c's linear interpolant, in its own frame (edge vectors from its first
   // vertex: differences of float positions, exact in double); NaN if the cell is not positive.
   auto gradient = [&](int64_t c) {
     const int32_t* t = &in_.tets[4 * c];
-    const Eigen::Vector3d p0(pos_[3 * t[0]], pos_[3 * t[0] + 1], pos_[3 * t[0] + 2]);
-    Eigen::Matrix3d e;
-    Eigen::Vector3d ds;
-    for (int k = 1; k < 4; ++k) {
-      e.row(k - 1) = Eigen::Vector3d(pos_[3 * t[k]], pos_[3 * t[k] + 1], pos_[3 * t[k] + 2]) - p0;
-      ds[k - 1] = double(in_.scalars[t[k]]) - double(in_.scalars[t[0]]);
-    }
-    if (!(e.determinant() > 0)) return Eigen::Vector3d::Constant(std::nan("")).eval();
-    return (e.inverse() * ds).eval();  // e * g = ds
+    auto at = [&](int k) {
+      return Eigen::Vector3d(pos_[3 * t[k]], pos_[3 * t[k] + 1], pos_[3 * t[k] + 2]);
+    };
+    auto ds = [&](int k) { return double(in_.scalars[t[k]]) - double(in_.scalars[t[0]]); };
+    const Eigen::Vector3d p0 = at(0), e0 = at(1) - p0, e1 = at(2) - p0, e2 = at(3) - p0;
+    // g solves e g = ds, e's rows being e0, e1, e2: the columns of e's inverse are these cross
+    // products over its determinant (less than half the work of Eigen's determinant() and
+    // inverse(), which bound this loop).
+    const Eigen::Vector3d r0 = e1.cross(e2), r1 = e2.cross(e0), r2 = e0.cross(e1);
+    const double det = e0.dot(r0);
+    if (!(det > 0)) return Eigen::Vector3d::Constant(std::nan("")).eval();
+    return ((ds(1) * r0 + ds(2) * r1 + ds(3) * r2) / det).eval();
   };
   quadric_.resize(kQuadricSize * nv_);  // uninitialised: every entry is written below
   ParallelFor(nv_, threads_, 4096, [&](int64_t v0, int64_t v1) {
     std::vector<Eigen::Vector3d> window;
+    int64_t window_lo = 0, window_hi = -1;  // the cells whose gradients window holds
     for (int64_t b0 = v0; b0 < v1; b0 += kBlockVertices) {
       const int64_t b1 = std::min(v1, b0 + kBlockVertices);
       // Rows are sorted by cell id: the block's cells lie in [lo, hi].
@@ -629,8 +633,18 @@ void FieldEngine::Setup() {
       const int64_t pairs = adjacency.offsets[b1] - adjacency.offsets[b0];
       const bool windowed = hi >= lo && hi - lo + 1 <= 2 * pairs;
       if (windowed) {
+        // Consecutive blocks' windows overlap (with the grid's numbering by a slice of cubes,
+        // half of each window): the gradients already there move to the front.
+        int64_t from = lo;
+        if (lo >= window_lo && lo <= window_hi && hi >= window_hi) {
+          std::copy(window.begin() + (lo - window_lo), window.begin() + (window_hi - window_lo + 1),
+                    window.begin());
+          from = window_hi + 1;
+        }
         window.resize(hi - lo + 1);
-        for (int64_t c = lo; c <= hi; ++c) window[c - lo] = gradient(c);
+        for (int64_t c = from; c <= hi; ++c) window[c - lo] = gradient(c);
+        window_lo = lo;
+        window_hi = hi;
       }
       for (int64_t v = b0; v < b1; ++v) {
         double q[kQuadricSize] = {};
