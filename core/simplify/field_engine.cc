@@ -14,6 +14,7 @@
 #include <algorithm>
 #include <array>
 #include <atomic>
+#include <bit>
 #include <cmath>
 #include <limits>
 #include <new>
@@ -56,16 +57,19 @@ constexpr int kRangeShift = 10;
 // Axes at least this share of the longest may carry the slabs (SlabAxis).
 constexpr double kSlabAxisShare = 0.9;
 
-inline double EvaluateQuadric(const double* q, const double p[5]) {
-  double r = 0;
-  int k = 0;
-  for (int i = 0; i < 5; ++i) {
-    r += q[k++] * p[i] * p[i];
-    double cross = 0;
-    for (int j = i + 1; j < 5; ++j) cross += q[k++] * p[j];
-    r += 2 * p[i] * cross;
-  }
-  return r;
+// p^T q p at p = (a, b, c, d, 1): the diagonal term of each row, then twice the row's
+// off-diagonal sum. Written out rather than as loops over an array: GCC vectorised those through
+// the stack, and the loads then waited on failed store forwarding (perf: a third of SetCosts).
+inline double EvaluateQuadric(const double* q, double a, double b, double c, double d) {
+  double r = q[0] * a * a;
+  r += 2 * a * (q[1] * b + q[2] * c + q[3] * d + q[4]);
+  r += q[5] * b * b;
+  r += 2 * b * (q[6] * c + q[7] * d + q[8]);
+  r += q[9] * c * c;
+  r += 2 * c * (q[10] * d + q[11]);
+  r += q[12] * d * d;
+  r += 2 * d * q[13];
+  return r + q[14];
 }
 
 // q' = M^T q M with M the translation p -> p + d of the first four coordinates: the same
@@ -207,22 +211,56 @@ struct StarCell {
 };
 using Star = std::vector<StarCell>;
 
+// The vertices met so far in one call (Targets' candidates, Collapse's touched vertices): open
+// addressing in a table at most half full, emptied by a new generation. Why not a flag per
+// vertex of the mesh: that array (4 bytes per vertex and thread) missed the cache at nearly every
+// insert (perf on phantom:256: the hottest instructions of Targets and Collapse).
+class VertexSet {
+ public:
+  // Empties the set for at most `most` insertions.
+  void Reset(size_t most) {
+    if (slots_.empty() || 2 * most > slots_.size()) {
+      slots_.assign(std::bit_ceil(std::max<size_t>(64, 2 * most)), Slot{0, 0});
+      shift_ = 32 - std::countr_zero(slots_.size());
+      generation_ = 0;
+    }
+    if (++generation_ == 0) {
+      std::fill(slots_.begin(), slots_.end(), Slot{0, 0});
+      generation_ = 1;
+    }
+  }
+  // Adds x; false if it was there already.
+  bool Insert(int32_t x) {
+    const size_t mask = slots_.size() - 1;
+    // Fibonacci hashing, the product's high bits: ids of neighbours differ by multiples of the
+    // grid's row and slice, which the low bits would map to few slots.
+    for (size_t i = (uint32_t(x) * 0x9E3779B1u) >> shift_;; i = (i + 1) & mask) {
+      Slot& slot = slots_[i];
+      if (slot.generation != generation_) {
+        slot = {x, generation_};
+        return true;
+      }
+      if (slot.vertex == x) return false;
+    }
+  }
+
+ private:
+  struct Slot {
+    int32_t vertex;
+    uint32_t generation;
+  };
+  std::vector<Slot> slots_;
+  int shift_ = 32;
+  uint32_t generation_ = 0;
+};
+
 // Per-thread working memory of the scoring functions (the initial scoring runs in parallel).
 struct Scratch {
   Star star;
   std::vector<int32_t> patch;
   std::vector<Face> faces;
   std::vector<Candidate> candidates;
-  std::vector<uint32_t> mark;  // mark[v] == stamp: v already listed in this call
-  uint32_t stamp = 0;
-  uint32_t NextStamp(int64_t nv) {
-    if (mark.empty()) mark.assign(nv, 0);
-    if (++stamp == 0) {
-      std::fill(mark.begin(), mark.end(), 0);
-      stamp = 1;
-    }
-    return stamp;
-  }
+  VertexSet seen;
 };
 
 // What the queue keeps per vertex, in one 32-byte record: the serial loop reads and writes these
@@ -349,10 +387,10 @@ class FieldEngine {
   double Cost(const Source& src, int32_t x) const {
     const int32_t u = src.u;
     // Quadrics are stored around their own vertex's point (x_u, s_u), so floats suffice.
-    const double p[5] = {
-        double(pos_[3 * x]) - pos_[3 * u], double(pos_[3 * x + 1]) - pos_[3 * u + 1],
-        double(pos_[3 * x + 2]) - pos_[3 * u + 2], double(in_.scalars[x]) - in_.scalars[u], 1.0};
-    const double q = std::max(0.0, EvaluateQuadric(src.q, p));
+    const double q = std::max(0.0, EvaluateQuadric(src.q, double(pos_[3 * x]) - pos_[3 * u],
+                                                   double(pos_[3 * x + 1]) - pos_[3 * u + 1],
+                                                   double(pos_[3 * x + 2]) - pos_[3 * u + 2],
+                                                   double(in_.scalars[x]) - in_.scalars[u]));
     return src.factor * q + TieBreak(u, x);
   }
   double Cost(int32_t u, int32_t x) const {
@@ -799,10 +837,9 @@ void FieldEngine::Targets(int32_t u, Scratch& s) {
     for (int32_t x : along) s.candidates.push_back({0, x});
     return;
   }
-  const uint32_t stamp = s.NextStamp(nv_);
+  s.seen.Reset(3 * s.star.size() + s.patch.size());
   auto add = [&](int32_t x) {
-    if (s.mark[x] == stamp) return;
-    s.mark[x] = stamp;
+    if (!s.seen.Insert(x)) return;
     s.candidates.push_back({0, x});
     // The cost reads x's position and value next (SetCosts): ask for both now.
     __builtin_prefetch(&pos_[3 * int64_t(x)]);
@@ -982,13 +1019,10 @@ int64_t FieldEngine::Collapse(int32_t u, int32_t v, const Star& star, Worker& w)
   valence_[u] = 0;
   st_[u].cost = std::numeric_limits<double>::infinity();
   ++st_[u].version;  // its queue entries are stale
-  const uint32_t stamp = w.scratch.NextStamp(nv_);
+  w.scratch.seen.Reset(touched.size());
   size_t n = 0;
   for (int32_t x : touched) {
-    if (w.scratch.mark[x] != stamp) {
-      w.scratch.mark[x] = stamp;
-      touched[n++] = x;
-    }
+    if (w.scratch.seen.Insert(x)) touched[n++] = x;
   }
   touched.resize(n);
   return removed;
