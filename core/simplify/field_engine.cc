@@ -198,10 +198,17 @@ inline bool HoldsTwoLabels(const uint8_t* labels, const int32_t* c) {
   return labels[c[1]] != l || labels[c[2]] != l || labels[c[3]] != l;
 }
 
-struct Face {
-  int32_t a, b;
-  bool mixed;  // its cell holds vertices of two labels
-};
+// A face around a vertex u as its other two vertices a < b and whether its cell holds vertices of
+// two labels, in one integer: (a, b, mixed) from the high bits down, so that sorting the integers
+// (Classify sorts a few dozen per call) groups the faces by (a, b) with one comparison each.
+using FaceKey = uint64_t;
+inline FaceKey MakeFaceKey(int32_t a, int32_t b, bool mixed) {
+  return (uint64_t(uint32_t(a)) << 33) | (uint64_t(uint32_t(b)) << 1) | uint64_t(mixed);
+}
+inline int32_t FaceA(FaceKey f) { return int32_t(f >> 33); }
+inline int32_t FaceB(FaceKey f) { return int32_t((f >> 1) & 0xffffffffu); }
+inline bool FaceMixed(FaceKey f) { return f & 1; }
+inline bool SameFace(FaceKey f, FaceKey g) { return (f >> 1) == (g >> 1); }
 
 // A cell of a vertex's star with its current vertices, resolved once per gather: the rules, the
 // candidates and the collapse all read the star, and each resolution is four root_ loads.
@@ -258,7 +265,7 @@ class VertexSet {
 struct Scratch {
   Star star;
   std::vector<int32_t> patch;
-  std::vector<Face> faces;
+  std::vector<FaceKey> faces;
   std::vector<Candidate> candidates;
   VertexSet seen;
 };
@@ -706,7 +713,7 @@ void FieldEngine::Setup() {
 
 Freedom FieldEngine::Classify(int32_t u, Scratch& s, int32_t along[2]) const {
   const Star& star = s.star;
-  std::vector<Face>& faces_ = s.faces;
+  std::vector<FaceKey>& faces_ = s.faces;
   std::vector<int32_t>& patch_ = s.patch;
   const uint8_t fu = flags_[u];
   if (fu == 0) return Freedom::kFree;
@@ -728,7 +735,7 @@ Freedom FieldEngine::Classify(int32_t u, Scratch& s, int32_t along[2]) const {
     }
     for (int i = 0; i < n; ++i) {
       for (int j = i + 1; j < n; ++j) {
-        faces_.push_back({std::min(o[i], o[j]), std::max(o[i], o[j]), mixed});
+        faces_.push_back(MakeFaceKey(std::min(o[i], o[j]), std::max(o[i], o[j]), mixed));
       }
     }
   }
@@ -736,8 +743,7 @@ Freedom FieldEngine::Classify(int32_t u, Scratch& s, int32_t along[2]) const {
   // band is a distance threshold and can be more than one vertex deep; a vertex whose cells
   // all hold its own label lies inside its region, and collapsing it changes no interface.
   const bool feature = (fu & kFeatureVertex) && touches_mixed;
-  std::sort(faces_.begin(), faces_.end(),
-            [](const Face& x, const Face& y) { return x.a != y.a ? x.a < y.a : x.b < y.b; });
+  std::sort(faces_.begin(), faces_.end());
   // Constraint faces: hull faces (key 0), and faces of three feature vertices of u's label that
   // border a two-label cell (key 1): the voxel-interface layer u belongs to. A face of the band
   // between two cells of one label is inside the region: counted, it made every vertex of a
@@ -753,14 +759,14 @@ Freedom FieldEngine::Classify(int32_t u, Scratch& s, int32_t along[2]) const {
   const Eigen::Vector3d pu(pos_[3 * u], pos_[3 * u + 1], pos_[3 * u + 2]);
   for (size_t i = 0; i < faces_.size();) {
     size_t j = i + 1;
-    while (j < faces_.size() && faces_[j].a == faces_[i].a && faces_[j].b == faces_[i].b) ++j;
-    const int32_t a = faces_[i].a, b = faces_[i].b;
+    while (j < faces_.size() && SameFace(faces_[j], faces_[i])) ++j;
+    const int32_t a = FaceA(faces_[i]), b = FaceB(faces_[i]);
     int key = -1;
     if (j - i == 1) {
       key = 0;
     } else if (j - i > 2) {
       return Freedom::kPinned;  // non-manifold around u: leave it alone
-    } else if (feature && (faces_[i].mixed || faces_[i + 1].mixed) &&
+    } else if (feature && (FaceMixed(faces_[i]) || FaceMixed(faces_[i + 1])) &&
                (flags_[a] & kFeatureVertex) && (flags_[b] & kFeatureVertex) &&
                in_.labels[a] == label && in_.labels[b] == label) {
       key = 1;
