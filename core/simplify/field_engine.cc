@@ -682,8 +682,10 @@ void FieldEngine::Setup() {
         // half of each window): the gradients already there move to the front.
         int64_t from = lo;
         if (lo >= window_lo && lo <= window_hi && hi >= window_hi) {
-          std::copy(window.begin() + (lo - window_lo), window.begin() + (window_hi - window_lo + 1),
-                    window.begin());
+          if (lo > window_lo) {
+            std::copy(window.begin() + (lo - window_lo),
+                      window.begin() + (window_hi - window_lo + 1), window.begin());
+          }
           from = window_hi + 1;
         }
         window.resize(hi - lo + 1);
