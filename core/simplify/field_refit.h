@@ -27,9 +27,9 @@ struct RefitStats {
 // according to `vertex_map`, the simplification's map from input to output vertices, which may
 // be empty; else in a cell that holds it, looked for around the vertex it became first) and the
 // normal equations are solved by Jacobi-preconditioned conjugate gradients (CGLS) from the
-// current values, at most `iterations` steps. Positions, cells and labels are untouched; a linear field stays exact. The location, A x
-// and A^T y run on `threads`; every sum has a fixed order, so the result does not depend on the
-// thread count.
+// current values, at most `iterations` steps. Positions, cells and labels are untouched; a
+// linear field stays exact. The location, A x and A^T y run on `threads`; every sum has a fixed
+// order, so the result does not depend on the thread count.
 absl::Status RefitValues(const TetMesh& original, const std::vector<int32_t>& vertex_map,
                          TetMesh* simplified, int iterations, int threads,
                          const CancelToken* cancel, RefitStats* stats);

@@ -435,10 +435,11 @@ TEST(FieldPolicy, RefitSameResultOnOneAndTwoThreadsWithSplitRanges) {
 }
 
 // The refit locates samples at their own vertex (survivors), in the cells around the vertex they
-// became, or by a walk from there, and searches the whole mesh only for the rest. Without the vertex map every sample
-// goes through the whole-mesh search: the same samples must be located, the fit must come out
-// the same (weights agree to float rounding; a sample on a face shared by two cells may take the
-// other one, with the same weights on that face), and the shortcut must be what the map gives.
+// became, or by a walk from there, and searches the whole mesh only for the rest. Without the
+// vertex map every sample goes through the whole-mesh search: the same samples must be located,
+// the fit must come out the same (weights agree to float rounding; a sample on a face shared by
+// two cells may take the other one, with the same weights on that face), and the shortcut must
+// be what the map gives.
 TEST(FieldPolicy, RefitLocatesAroundTheMappedVertexAsTheWholeMeshSearchDoes) {
   auto pm = MakePhantomMesh(24, 40);
   SimplifyOptions o = Field(0.8);
