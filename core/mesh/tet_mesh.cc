@@ -95,6 +95,18 @@ bool Contains(const int32_t* tet, int32_t v) {
 
 }  // namespace
 
+int64_t TetAcrossFace(const TetMesh& mesh, const VertexTetAdjacency& adj, int64_t t, int32_t a,
+                      int32_t b, int32_t c) {
+  for (int64_t e = adj.offsets[a]; e < adj.offsets[a + 1]; ++e) {
+    const int32_t other = adj.tet_ids[e];
+    if (other != t && Contains(&mesh.tets[4 * int64_t(other)], b) &&
+        Contains(&mesh.tets[4 * int64_t(other)], c)) {
+      return other;
+    }
+  }
+  return -1;
+}
+
 BoundarySurface ExtractBoundary(const TetMesh& mesh) {
   const VertexTetAdjacency adj = BuildVertexTetAdjacency(mesh);
   BoundarySurface out;
@@ -104,14 +116,7 @@ BoundarySurface ExtractBoundary(const TetMesh& mesh) {
     const int32_t* tet = &mesh.tets[4 * t];
     for (const auto& f : kFaces) {
       const int32_t a = tet[f[0]], b = tet[f[1]], c = tet[f[2]];
-      // A face is interior iff another tet around its first vertex holds the other two.
-      bool shared = false;
-      for (int64_t e = adj.offsets[a]; e < adj.offsets[a + 1] && !shared; ++e) {
-        const int32_t other = adj.tet_ids[e];
-        shared =
-            other != t && Contains(&mesh.tets[4 * other], b) && Contains(&mesh.tets[4 * other], c);
-      }
-      if (!shared) {
+      if (TetAcrossFace(mesh, adj, t, a, b, c) < 0) {
         out.faces.insert(out.faces.end(), {a, b, c});
         out.is_boundary_vertex[a] = out.is_boundary_vertex[b] = out.is_boundary_vertex[c] = 1;
       }

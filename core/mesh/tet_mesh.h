@@ -59,6 +59,11 @@ VertexTetAdjacency BuildVertexTetAdjacency(const TetMesh& mesh, int threads = 1)
 // Signed volume of tet t in mm^3 (positive for a valid mesh).
 double TetVolume(const TetMesh& mesh, int64_t t);
 
+// The tet other than t that holds the face (a, b, c), looked for among a's tets in `adj`; -1 if
+// there is none (a face of the boundary).
+int64_t TetAcrossFace(const TetMesh& mesh, const VertexTetAdjacency& adj, int64_t t, int32_t a,
+                      int32_t b, int32_t c);
+
 // Faces that belong to exactly one tet, 3 vertex indices each, ordered so their normal points out
 // of the mesh. Also the set of vertices on them. Works on any conforming mesh (sorts faces).
 struct BoundarySurface {

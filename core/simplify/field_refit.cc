@@ -63,9 +63,8 @@ std::optional<std::array<float, 4>> WeightsIn(const TetMesh& mesh, int64_t t,
 }
 
 // A cell of `mesh` that holds x, found by walking from cell t through the face x lies furthest
-// beyond (across it: the other cell around that face, from the face's first vertex's cells in
-// `star`); -1 if the walk leaves the mesh or takes more than kMaxSteps (it can circle in a mesh
-// that is not Delaunay).
+// beyond into the cell on its other side; -1 if the walk leaves the mesh or takes more than
+// kMaxSteps (it can circle in a mesh that is not Delaunay).
 int32_t Walk(const TetMesh& mesh, const VertexTetAdjacency& star, int32_t t,
              const Eigen::Vector3d& x) {
   constexpr int kMaxSteps = 64;
@@ -76,20 +75,10 @@ int32_t Walk(const TetMesh& mesh, const VertexTetAdjacency& star, int32_t t,
     const int k = int(std::min_element(b, b + 4) - b);
     if (b[k] >= -1e-6 * det) return t;
     const int32_t* c = &mesh.tets[4 * int64_t(t)];
-    const int32_t f0 = c[(k + 1) % 4], f1 = c[(k + 2) % 4], f2 = c[(k + 3) % 4];
-    int32_t next = -1;
-    for (int64_t i = star.offsets[f0]; i < star.offsets[f0 + 1] && next < 0; ++i) {
-      const int32_t n = star.tet_ids[i];
-      const int32_t* d = &mesh.tets[4 * int64_t(n)];
-      bool has1 = false, has2 = false;
-      for (int j = 0; j < 4; ++j) {
-        has1 |= d[j] == f1;
-        has2 |= d[j] == f2;
-      }
-      if (n != t && has1 && has2) next = n;
-    }
+    const int64_t next =
+        TetAcrossFace(mesh, star, t, c[(k + 1) % 4], c[(k + 2) % 4], c[(k + 3) % 4]);
     if (next < 0) return -1;
-    t = next;
+    t = int32_t(next);
   }
   return -1;
 }

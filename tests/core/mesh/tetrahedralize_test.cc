@@ -190,6 +190,39 @@ TEST(MeshTopology, AdjacencyIsTheSameOnOneTwoAndThreeThreads) {
   EXPECT_EQ(one.offsets.back(), 4 * m->tet_count());
 }
 
+// Every face of a tet has exactly one tet across it or none (the box hull), and the tet across
+// holds that face: on a single cube the central tet of the five has a neighbour across each of its
+// faces, and every face of a corner tet with the cube's corner on it lies on the hull.
+TEST(MeshTopology, TetAcrossFaceFindsTheOtherTetOrNone) {
+  Volume v = Ramp({2, 2, 2});
+  auto m = Tetrahedralize(v);
+  ASSERT_TRUE(m.ok());
+  ASSERT_EQ(m->tet_count(), 5);
+  const VertexTetAdjacency adj = BuildVertexTetAdjacency(*m);
+  int64_t interior = 0, hull = 0;
+  for (int64_t t = 0; t < m->tet_count(); ++t) {
+    const int32_t* c = &m->tets[4 * t];
+    for (int k = 0; k < 4; ++k) {
+      const int32_t a = c[(k + 1) % 4], b = c[(k + 2) % 4], d = c[(k + 3) % 4];
+      const int64_t other = TetAcrossFace(*m, adj, t, a, b, d);
+      if (other < 0) {
+        ++hull;
+        continue;
+      }
+      ++interior;
+      EXPECT_NE(other, t);
+      const int32_t* o = &m->tets[4 * other];
+      for (int32_t x : {a, b, d}) {
+        EXPECT_TRUE(o[0] == x || o[1] == x || o[2] == x || o[3] == x) << t << " " << k;
+      }
+      // Across the same face from the other side leads back.
+      EXPECT_EQ(TetAcrossFace(*m, adj, other, b, d, a), t);
+    }
+  }
+  EXPECT_EQ(interior, 8);  // the central tet's four faces, seen from both sides
+  EXPECT_EQ(hull, 12);     // two triangles per face of the cube
+}
+
 TEST(MeshTopology, BoundarySurfaceIsTheBoxHullFacingOutwards) {
   Volume v = Ramp({4, 5, 3}, Eigen::Vector3d(1, 2, 3));
   auto m = Tetrahedralize(v);
