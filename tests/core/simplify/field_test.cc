@@ -297,6 +297,35 @@ TEST(FieldPolicy, CurvedInterfacesKeepEveryFeatureVertexOnItsLayer) {
   ExpectBoxHull(r->mesh, in.mesh);
 }
 
+// Every input vertex maps to an output vertex, and every output vertex is the image of the input
+// vertex at its place. The loop drops merged vertices with no cells left from their class
+// (ForEachCell), so at a high reduction many input vertices reach their output vertex only
+// through the roots of earlier merges.
+TEST(FieldPolicy, VertexMapSendsEveryInputVertexToTheVertexItBecame) {
+  auto pm = MakePhantomMesh(28, 30);
+  SimplifyOptions o = Field(0.85);
+  o.refit_iterations = 0;
+  auto r = Simplify(pm.mesh, o);
+  ASSERT_TRUE(r.ok()) << r.status();
+  EXPECT_GT(r->achieved_reduction, 0.8);
+  const int64_t n_in = pm.mesh.vertex_count(), n_out = r->mesh.vertex_count();
+  ASSERT_EQ(int64_t(r->vertex_map.size()), n_in);
+  std::vector<int64_t> images(n_out, 0), own(n_out, 0);
+  for (int64_t v = 0; v < n_in; ++v) {
+    const int32_t m = r->vertex_map[v];
+    ASSERT_GE(m, 0) << "input vertex " << v;
+    ASSERT_LT(m, n_out) << "input vertex " << v;
+    ++images[m];
+    if (r->mesh.Position(m) == pm.mesh.Position(v)) ++own[m];
+  }
+  int64_t merged_into = 0;
+  for (int64_t m = 0; m < n_out; ++m) {
+    EXPECT_EQ(own[m], 1) << "output vertex " << m;
+    merged_into += images[m] > 1;
+  }
+  EXPECT_GT(merged_into, n_out / 2);
+}
+
 TEST(FieldPolicy, KeepsPaperGuaranteesAndBeatsPaperOnTheField) {
   auto pm = MakePhantomMesh(28, 40);
   FidelityOptions fo;
