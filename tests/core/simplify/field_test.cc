@@ -69,6 +69,13 @@ SimplifyOptions Field(double reduction, int threads = 2) {
   return o;
 }
 
+// The same without the refit: every vertex left keeps its voxel sample.
+SimplifyOptions FieldWithoutRefit(double reduction, int threads = 2) {
+  SimplifyOptions o = Field(reduction, threads);
+  o.refit_iterations = 0;
+  return o;
+}
+
 // The hull of `m` is the box surface of `original` (a grid mesh) as a set: every boundary face
 // lies in one box face, and together they cover its area exactly; the volume is the box's.
 void ExpectBoxHull(const TetMesh& m, const TetMesh& original) {
@@ -282,8 +289,7 @@ TEST(FieldPolicy, EveryVertexOfATwoLabelCellKeepsItsLayerWhateverTheFeatureThres
 TEST(FieldPolicy, CurvedInterfacesKeepEveryFeatureVertexOnItsLayer) {
   auto pm = MakePhantomMesh(28, 30);
   Labeled in{pm.phantom.image, pm.phantom.labels, pm.mesh};
-  SimplifyOptions o = Field(0.7);
-  o.refit_iterations = 0;
+  SimplifyOptions o = FieldWithoutRefit(0.7);
   auto r = Simplify(in.mesh, o);
   ASSERT_TRUE(r.ok()) << r.status();
   EXPECT_GT(r->achieved_reduction, 0.6);
@@ -303,8 +309,7 @@ TEST(FieldPolicy, CurvedInterfacesKeepEveryFeatureVertexOnItsLayer) {
 // through the roots of earlier merges.
 TEST(FieldPolicy, VertexMapSendsEveryInputVertexToTheVertexItBecame) {
   auto pm = MakePhantomMesh(28, 30);
-  SimplifyOptions o = Field(0.85);
-  o.refit_iterations = 0;
+  SimplifyOptions o = FieldWithoutRefit(0.85);
   auto r = Simplify(pm.mesh, o);
   ASSERT_TRUE(r.ok()) << r.status();
   EXPECT_GT(r->achieved_reduction, 0.8);
@@ -351,8 +356,7 @@ TEST(FieldPolicy, KeepsPaperGuaranteesAndBeatsPaperOnTheField) {
 // geometry, and keeps a linear field exact (LinearRamp... above runs with it).
 TEST(FieldPolicy, RefitLowersTheErrorAndKeepsTheMesh) {
   auto pm = MakePhantomMesh(24, 40);
-  SimplifyOptions o = Field(0.8);
-  o.refit_iterations = 0;
+  SimplifyOptions o = FieldWithoutRefit(0.8);
   auto kept = Simplify(pm.mesh, o);
   o.refit_iterations = 30;
   auto refit = Simplify(pm.mesh, o);
@@ -372,8 +376,7 @@ TEST(FieldPolicy, RefitLowersTheErrorAndKeepsTheMesh) {
 // 80 %: 47.73 dB after 10 steps, 48.27 converged), so the check can fail.
 TEST(FieldPolicy, RefitConvergesInItsDefaultSteps) {
   auto pm = MakePhantomMesh(24, 40);
-  SimplifyOptions o = Field(0.8);
-  o.refit_iterations = 0;
+  SimplifyOptions o = FieldWithoutRefit(0.8);
   auto r = Simplify(pm.mesh, o);
   ASSERT_TRUE(r.ok());
   const int steps = SimplifyOptions().refit_iterations;
@@ -430,8 +433,7 @@ TEST(FieldPolicy, ParallelRoundsGiveTheSameResultOnOneTwoAndThreeThreads) {
   auto pm = MakePhantomMesh(40, 40);
   std::vector<SimplifyResult> results;
   for (int threads : {1, 2, 3}) {
-    SimplifyOptions o = Field(0.7, threads);
-    o.refit_iterations = 0;
+    SimplifyOptions o = FieldWithoutRefit(0.7, threads);
     int rounds = 0;
     auto r = Simplify(pm.mesh, o, [&](const Progress& e) {
       rounds += e.message.find("slabs removed") != std::string::npos;
@@ -471,8 +473,7 @@ TEST(FieldPolicy, RefitSameResultOnOneAndTwoThreadsWithSplitRanges) {
 // be what the map gives.
 TEST(FieldPolicy, RefitLocatesAroundTheMappedVertexAsTheWholeMeshSearchDoes) {
   auto pm = MakePhantomMesh(24, 40);
-  SimplifyOptions o = Field(0.8);
-  o.refit_iterations = 0;
+  SimplifyOptions o = FieldWithoutRefit(0.8);
   auto r = Simplify(pm.mesh, o);
   ASSERT_TRUE(r.ok()) << r.status();
   ASSERT_EQ(r->vertex_map.size(), size_t(pm.mesh.vertex_count()));
