@@ -1337,6 +1337,15 @@ int64_t FieldEngine::ParallelRounds(int64_t target, const ProgressFn& progress,
     // The frontier: every vertex of a cell whose vertices lie in two slabs. Only blocks whose
     // interval a cut crosses can hold such a cell; their intervals are made tight again.
     std::fill(frontier_.begin(), frontier_.end(), 0);
+    // Calls fn(t) with the current vertices t of every live cell of block b.
+    auto for_live_cells = [&](int64_t b, auto&& fn) {
+      for (int64_t c = b << kRangeShift; c < std::min(nt_, (b + 1) << kRangeShift); ++c) {
+        if (dead_.TestShared(c)) continue;
+        int32_t t[4];
+        CellAt(int32_t(c), t);
+        fn(t);
+      }
+    };
     std::vector<uint8_t> crossed(range_blocks, 0);
     ParallelFor(range_blocks, threads_, 16, [&](int64_t b0, int64_t b1) {
       for (int64_t b = b0; b < b1; ++b) {
@@ -1345,10 +1354,7 @@ int64_t FieldEngine::ParallelRounds(int64_t target, const ProgressFn& progress,
         }
         crossed[b] = 1;
         float lo_b = std::numeric_limits<float>::infinity(), hi_b = -lo_b;
-        for (int64_t c = b << kRangeShift; c < std::min(nt_, (b + 1) << kRangeShift); ++c) {
-          if (dead_.TestShared(c)) continue;
-          int32_t t[4];
-          CellAt(int32_t(c), t);
+        for_live_cells(b, [&](const int32_t* t) {
           float z[4];
           for (int j = 0; j < 4; ++j) {
             z[j] = pos_[3 * int64_t(t[j]) + axis];
@@ -1356,11 +1362,11 @@ int64_t FieldEngine::ParallelRounds(int64_t target, const ProgressFn& progress,
             hi_b = std::max(hi_b, z[j]);
           }
           const int o = owner(z[0]);
-          if (owner(z[1]) == o && owner(z[2]) == o && owner(z[3]) == o) continue;
+          if (owner(z[1]) == o && owner(z[2]) == o && owner(z[3]) == o) return;
           for (int j = 0; j < 4; ++j) {
             std::atomic_ref<uint8_t>(frontier_[t[j]]).store(kOnFrontier, std::memory_order_relaxed);
           }
-        }
+        });
         range_lo_[b] = lo_b;
         range_hi_[b] = hi_b;
       }
@@ -1376,13 +1382,10 @@ int64_t FieldEngine::ParallelRounds(int64_t target, const ProgressFn& progress,
       };
       for (int64_t b = b0; b < b1; ++b) {
         if (!crossed[b]) continue;
-        for (int64_t c = b << kRangeShift; c < std::min(nt_, (b + 1) << kRangeShift); ++c) {
-          if (dead_.TestShared(c)) continue;
-          int32_t t[4];
-          CellAt(int32_t(c), t);
+        for_live_cells(b, [&](const int32_t* t) {
           if (state(t[0]) != kOnFrontier && state(t[1]) != kOnFrontier &&
               state(t[2]) != kOnFrontier && state(t[3]) != kOnFrontier) {
-            continue;
+            return;
           }
           for (int j = 0; j < 4; ++j) {
             if (state(t[j]) == 0) {
@@ -1390,7 +1393,7 @@ int64_t FieldEngine::ParallelRounds(int64_t target, const ProgressFn& progress,
                   .store(kNearFrontier, std::memory_order_relaxed);
             }
           }
-        }
+        });
       }
     });
     // Each slab's queue: its vertices at or below the cost, neither on nor near the frontier, in
