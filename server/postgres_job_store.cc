@@ -32,6 +32,7 @@
 #include "absl/strings/numbers.h"
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_join.h"
+#include "server/job_lifecycle.h"
 #include "server/job_store.h"
 #include "spdlog/spdlog.h"
 
@@ -107,23 +108,6 @@ const char* const kMigrations[] = {
     )sql",
 };
 static_assert(v1::RUNNING == 2, "migration 1's partial index names RUNNING as 2");
-
-std::string EncodeToken(int64_t ord) { return absl::StrCat("o", ord); }
-
-absl::StatusOr<int64_t> DecodeToken(const std::string& token) {
-  if (token.empty()) return INT64_MAX;
-  int64_t v = 0;
-  if (token.size() < 2 || token[0] != 'o' || !absl::SimpleAtoi(token.substr(1), &v) || v < 0) {
-    return absl::InvalidArgumentError(
-        absl::StrCat("page_token '", token, "' is not a token this server returned"));
-  }
-  return v;
-}
-
-int ClampPageSize(int page_size) {
-  if (page_size <= 0) return 50;
-  return page_size > 1000 ? 1000 : page_size;
-}
 
 pqxx::binarystring Bytes(const google::protobuf::MessageLite& m) {
   return pqxx::binarystring(m.SerializeAsString());
@@ -217,20 +201,8 @@ class ConnectionPool {
 
 // Events written by one transaction: NOTIFY once per job with its newest sequence.
 struct TxEvents {
-  std::vector<std::pair<std::string, v1::JobEvent>> events;
+  PendingEvents events;  // appended by the lifecycle rules (job_lifecycle.h)
 
-  void Add(v1::Job& job, v1::JobEvent ev) {
-    job.set_last_sequence(job.last_sequence() + 1);
-    ev.set_sequence(job.last_sequence());
-    *ev.mutable_time() = NowTimestamp();
-    events.emplace_back(job.name().substr(5), std::move(ev));
-  }
-  void AddState(v1::Job& job, v1::JobState state, const v1::JobError* error) {
-    v1::JobEvent ev;
-    ev.mutable_state_change()->set_state(state);
-    if (error != nullptr) *ev.mutable_state_change()->mutable_error() = *error;
-    Add(job, std::move(ev));
-  }
   // Inserts the rows and queues the notifications (sent by PostgreSQL at commit).
   void Save(pqxx::work& w) {
     std::map<std::string, int64_t> newest;
@@ -322,20 +294,9 @@ class PostgresJobStore : public JobStore {
       const int64_t queued =
           w.exec_params("SELECT COUNT(*) FROM jobs WHERE state=$1", int{v1::QUEUED})[0][0]
               .as<int64_t>();
-      if (max_queued > 0 && queued >= max_queued) {
-        return absl::ResourceExhaustedError(absl::StrCat("the queue is full (", queued,
-                                                         " jobs queued, --max-queued ", max_queued,
-                                                         "); retry later"));
-      }
-      v1::Job job;
-      job.set_name(absl::StrCat("jobs/", id));
-      *job.mutable_spec() = spec;
-      job.set_state(v1::QUEUED);
-      job.set_request_id(request_id);
-      job.set_creator(creator);
-      *job.mutable_create_time() = NowTimestamp();
+      if (auto s = CheckQueueRoom(queued, max_queued); !s.ok()) return s;
       TxEvents tx;
-      tx.AddState(job, v1::QUEUED, nullptr);
+      v1::Job job = NewQueuedJob(id, spec, request_id, creator, &tx.events);
       // Two replicas inserting one request_id at once: the second waits for the first to
       // commit, inserts nothing and returns the first's job below.
       auto ins = w.exec_params(
@@ -362,7 +323,7 @@ class PostgresJobStore : public JobStore {
   absl::StatusOr<JobPage> ListJobs(const std::vector<v1::JobState>& states,
                                    const std::string& creator, int page_size,
                                    const std::string& page_token) override {
-    auto before = DecodeToken(page_token);
+    auto before = DecodePageToken(page_token);
     if (!before.ok()) return before.status();
     const int limit = ClampPageSize(page_size);
     std::vector<std::string> parts;
@@ -377,7 +338,7 @@ class PostgresJobStore : public JobStore {
           int64_t last_ord = 0;
           for (const auto& row : r) {
             if (static_cast<int>(page.jobs.size()) == limit) {
-              page.next_page_token = EncodeToken(last_ord);
+              page.next_page_token = EncodePageToken(last_ord);
               break;
             }
             last_ord = row[0].as<int64_t>();
@@ -410,14 +371,8 @@ class PostgresJobStore : public JobStore {
       if (!job.ok()) return job.status();
       Claim claim;
       claim.lease = {job->name().substr(5), owner, r[0][1].as<int64_t>() + 1};
-      job->set_state(v1::RUNNING);
-      job->set_attempts(job->attempts() + 1);
-      *job->mutable_start_time() = NowTimestamp();
-      job->clear_end_time();
-      job->clear_error();
-      job->clear_progress();
       TxEvents tx;
-      tx.AddState(*job, v1::RUNNING, nullptr);
+      StartAttempt(*job, &tx.events);
       w.exec_params(
           "UPDATE jobs SET state=$1, lease_owner=$2, "
           "lease_expiry=clock_timestamp() + $3 * interval '1 millisecond', lease_epoch=$4, "
@@ -448,11 +403,8 @@ class PostgresJobStore : public JobStore {
     return Run<absl::Status>("storing progress", [&](pqxx::work& w) -> absl::Status {
       auto job = LoadHeld(w, lease);
       if (!job.ok()) return job.status();
-      *job->mutable_progress() = progress;
       TxEvents tx;
-      v1::JobEvent ev;
-      *ev.mutable_progress() = progress;
-      tx.Add(*job, std::move(ev));
+      RecordProgress(*job, progress, &tx.events);
       w.exec_params("UPDATE jobs SET job=$1 WHERE id=$2", Bytes(*job), lease.job_id);
       tx.Save(w);
       return absl::OkStatus();
@@ -461,21 +413,16 @@ class PostgresJobStore : public JobStore {
 
   absl::StatusOr<v1::Job> Finish(const Lease& lease, v1::JobState state,
                                  const v1::Job& outcome) override {
-    return Run<absl::StatusOr<v1::Job>>(
-        "finishing a job", [&](pqxx::work& w) -> absl::StatusOr<v1::Job> {
-          auto job = LoadHeld(w, lease);
-          if (!job.ok()) return job.status();
-          job->set_state(state);
-          *job->mutable_end_time() = NowTimestamp();
-          if (outcome.has_error()) *job->mutable_error() = outcome.error();
-          *job->mutable_artifacts() = outcome.artifacts();
-          job->set_metrics_json(outcome.metrics_json());
-          TxEvents tx;
-          tx.AddState(*job, state, outcome.has_error() ? &outcome.error() : nullptr);
-          SaveJob(w, *job, false);
-          tx.Save(w);
-          return *job;
-        });
+    return Run<absl::StatusOr<v1::Job>>("finishing a job",
+                                        [&](pqxx::work& w) -> absl::StatusOr<v1::Job> {
+                                          auto job = LoadHeld(w, lease);
+                                          if (!job.ok()) return job.status();
+                                          TxEvents tx;
+                                          FinishAttempt(*job, state, outcome, &tx.events);
+                                          SaveJob(w, *job, false);
+                                          tx.Save(w);
+                                          return *job;
+                                        });
   }
 
   absl::StatusOr<v1::Job> Requeue(const Lease& lease, const std::string& reason) override {
@@ -483,11 +430,8 @@ class PostgresJobStore : public JobStore {
                                         [&](pqxx::work& w) -> absl::StatusOr<v1::Job> {
                                           auto job = LoadHeld(w, lease);
                                           if (!job.ok()) return job.status();
-                                          job->set_state(v1::QUEUED);
-                                          job->set_attempts(std::max(0, job->attempts() - 1));
-                                          job->mutable_progress()->set_message(reason);
                                           TxEvents tx;
-                                          tx.AddState(*job, v1::QUEUED, nullptr);
+                                          RequeueAttempt(*job, reason, &tx.events);
                                           SaveJob(w, *job, false);
                                           tx.Save(w);
                                           return *job;
@@ -509,28 +453,9 @@ class PostgresJobStore : public JobStore {
             auto parsed = ParseJob(row[0]);
             if (!parsed.ok()) return parsed.status();
             v1::Job& job = *parsed;
-            const std::string id = job.name().substr(5);
-            if (row[1].as<bool>()) {
-              job.set_state(v1::CANCELLED);
-              job.mutable_error()->set_code(static_cast<int>(absl::StatusCode::kCancelled));
-              job.mutable_error()->set_message("cancelled by request (its worker was lost)");
-              *job.mutable_end_time() = NowTimestamp();
-              tx.AddState(job, v1::CANCELLED, &job.error());
-              out.failed.push_back(id);
-            } else if (job.attempts() >= max_attempts) {
-              job.set_state(v1::FAILED);
-              job.mutable_error()->set_code(static_cast<int>(absl::StatusCode::kUnavailable));
-              job.mutable_error()->set_message(absl::StrCat("the worker was lost ", job.attempts(),
-                                                            " times (lease lapsed); giving up"));
-              *job.mutable_end_time() = NowTimestamp();
-              tx.AddState(job, v1::FAILED, &job.error());
-              out.failed.push_back(id);
-            } else {
-              job.set_state(v1::QUEUED);
-              job.mutable_progress()->set_message("requeued: the lease of its worker lapsed");
-              tx.AddState(job, v1::QUEUED, nullptr);
-              out.requeued.push_back(id);
-            }
+            const bool requeued = ResolveLapsedLease(job, row[1].as<bool>(), max_attempts,
+                                                     &tx.events) == LapsedLease::kRequeued;
+            (requeued ? out.requeued : out.failed).push_back(JobIdOf(job));
             SaveJob(w, job, false);
           }
           tx.Save(w);
@@ -544,12 +469,8 @@ class PostgresJobStore : public JobStore {
           auto job = LoadJob(w, id, true);
           if (!job.ok()) return job.status();
           if (job->state() == v1::QUEUED) {
-            job->set_state(v1::CANCELLED);
-            job->mutable_error()->set_code(static_cast<int>(absl::StatusCode::kCancelled));
-            job->mutable_error()->set_message("cancelled by request while queued");
-            *job->mutable_end_time() = NowTimestamp();
             TxEvents tx;
-            tx.AddState(*job, v1::CANCELLED, &job->error());
+            CancelQueued(*job, &tx.events);
             SaveJob(w, *job, false);
             tx.Save(w);
           } else if (job->state() == v1::RUNNING) {
@@ -573,28 +494,13 @@ class PostgresJobStore : public JobStore {
         "retrying a job", [&](pqxx::work& w) -> absl::StatusOr<v1::Job> {
           auto job = LoadJob(w, id, true);
           if (!job.ok()) return job.status();
-          if (job->state() != v1::FAILED && job->state() != v1::CANCELLED) {
-            return absl::FailedPreconditionError(
-                absl::StrCat("job ", id, " is ", v1::JobState_Name(job->state()),
-                             "; only FAILED or CANCELLED jobs can be retried"));
-          }
+          if (auto s = CheckRetryable(*job); !s.ok()) return s;
           const int64_t queued =
               w.exec_params("SELECT COUNT(*) FROM jobs WHERE state=$1", int{v1::QUEUED})[0][0]
                   .as<int64_t>();
-          if (max_queued > 0 && queued >= max_queued) {
-            return absl::ResourceExhaustedError(
-                absl::StrCat("the queue is full (--max-queued ", max_queued, "); retry later"));
-          }
-          job->set_state(v1::QUEUED);
-          job->set_attempts(0);
-          job->clear_error();
-          job->clear_artifacts();
-          job->clear_metrics_json();
-          job->clear_progress();
-          job->clear_start_time();
-          job->clear_end_time();
+          if (auto s = CheckQueueRoom(queued, max_queued); !s.ok()) return s;
           TxEvents tx;
-          tx.AddState(*job, v1::QUEUED, nullptr);
+          ResetForRetry(*job, &tx.events);
           SaveJob(w, *job, false);
           tx.Save(w);
           return *job;
@@ -605,10 +511,7 @@ class PostgresJobStore : public JobStore {
     return Run<absl::Status>("deleting a job", [&](pqxx::work& w) -> absl::Status {
       auto job = LoadJob(w, id, true);
       if (!job.ok()) return job.status();
-      if (!IsFinal(job->state())) {
-        return absl::FailedPreconditionError(absl::StrCat(
-            "job ", id, " is ", v1::JobState_Name(job->state()), "; cancel it before deleting"));
-      }
+      if (auto s = CheckDeletable(*job); !s.ok()) return s;
       w.exec_params("DELETE FROM events WHERE job_id=$1", id);
       w.exec_params("DELETE FROM jobs WHERE id=$1", id);
       return absl::OkStatus();
@@ -679,7 +582,7 @@ class PostgresJobStore : public JobStore {
 
   absl::StatusOr<VolumePage> ListVolumes(const std::string& creator, int page_size,
                                          const std::string& page_token) override {
-    auto before = DecodeToken(page_token);
+    auto before = DecodePageToken(page_token);
     if (!before.ok()) return before.status();
     const int limit = ClampPageSize(page_size);
     return Run<absl::StatusOr<VolumePage>>(
@@ -692,7 +595,7 @@ class PostgresJobStore : public JobStore {
           int64_t last_ord = 0;
           for (const auto& row : r) {
             if (static_cast<int>(page.volumes.size()) == limit) {
-              page.next_page_token = EncodeToken(last_ord);
+              page.next_page_token = EncodePageToken(last_ord);
               break;
             }
             last_ord = row[0].as<int64_t>();

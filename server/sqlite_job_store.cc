@@ -12,6 +12,7 @@
 #include "absl/strings/numbers.h"
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_join.h"
+#include "server/job_lifecycle.h"
 #include "server/job_store.h"
 
 // Commits `tx` or returns its error.
@@ -78,23 +79,6 @@ class Stmt {
   sqlite3_stmt* stmt_ = nullptr;
   int rc_;
 };
-
-std::string EncodeToken(int64_t ord) { return absl::StrCat("o", ord); }
-
-absl::StatusOr<int64_t> DecodeToken(const std::string& token) {
-  if (token.empty()) return INT64_MAX;
-  int64_t v = 0;
-  if (token.size() < 2 || token[0] != 'o' || !absl::SimpleAtoi(token.substr(1), &v) || v < 0) {
-    return absl::InvalidArgumentError(
-        absl::StrCat("page_token '", token, "' is not a token this server returned"));
-  }
-  return v;
-}
-
-int ClampPageSize(int page_size) {
-  if (page_size <= 0) return 50;
-  return page_size > 1000 ? 1000 : page_size;
-}
 
 class SqliteJobStore : public JobStore {
  public:
@@ -227,20 +211,9 @@ class SqliteJobStore : public JobStore {
       Stmt c(db_, "SELECT COUNT(*) FROM jobs WHERE state=?");
       c.Bind(1, int64_t{v1::QUEUED});
       if (c.Step() != SQLITE_ROW) return c.Error("counting queued jobs");
-      if (max_queued > 0 && c.Int(0) >= max_queued) {
-        return absl::ResourceExhaustedError(absl::StrCat("the queue is full (", c.Int(0),
-                                                         " jobs queued, --max-queued ", max_queued,
-                                                         "); retry later"));
-      }
+      DECIMA_RETURN_IF_ERROR_LOCAL(CheckQueueRoom(c.Int(0), max_queued));
     }
-    v1::Job job;
-    job.set_name(absl::StrCat("jobs/", id));
-    *job.mutable_spec() = spec;
-    job.set_state(v1::QUEUED);
-    job.set_request_id(request_id);
-    job.set_creator(creator);
-    *job.mutable_create_time() = NowTimestamp();
-    AddStateEvent(job, v1::QUEUED, nullptr);
+    v1::Job job = NewQueuedJob(id, spec, request_id, creator, &pending_);
     Stmt ins(db_,
              "INSERT INTO jobs(id, request_id, state, volume, job, creator) VALUES(?,?,?,?,?,?)");
     ins.Bind(1, id);
@@ -266,7 +239,7 @@ class SqliteJobStore : public JobStore {
   absl::StatusOr<JobPage> ListJobs(const std::vector<v1::JobState>& states,
                                    const std::string& creator, int page_size,
                                    const std::string& page_token) override {
-    auto before = DecodeToken(page_token);
+    auto before = DecodePageToken(page_token);
     if (!before.ok()) return before.status();
     int limit = ClampPageSize(page_size);
     std::string sql = "SELECT ord, job FROM jobs WHERE ord < ?";
@@ -288,7 +261,7 @@ class SqliteJobStore : public JobStore {
     int rc;
     while ((rc = q.Step()) == SQLITE_ROW) {
       if (static_cast<int>(page.jobs.size()) == limit) {
-        page.next_page_token = EncodeToken(last_ord);
+        page.next_page_token = EncodePageToken(last_ord);
         break;
       }
       last_ord = q.Int(0);
@@ -322,13 +295,7 @@ class SqliteJobStore : public JobStore {
     if (!job.ok()) return job.status();
     Claim claim;
     claim.lease = {job->name().substr(5), owner, q.Int(1) + 1};
-    job->set_state(v1::RUNNING);
-    job->set_attempts(job->attempts() + 1);
-    *job->mutable_start_time() = NowTimestamp();
-    job->clear_end_time();
-    job->clear_error();
-    job->clear_progress();
-    AddStateEvent(*job, v1::RUNNING, nullptr);
+    StartAttempt(*job, &pending_);
     DECIMA_RETURN_IF_ERROR_LOCAL(SaveJob(*job, owner, NowMs() + lease_ms, /*cancel=*/0));
     Stmt e(db_, "UPDATE jobs SET lease_epoch=? WHERE id=?");
     e.Bind(1, claim.lease.epoch).Bind(2, claim.lease.job_id);
@@ -359,10 +326,7 @@ class SqliteJobStore : public JobStore {
     if (!tx.ok()) return tx.status();
     auto job = LoadHeld(lease);
     if (!job.ok()) return job.status();
-    *job->mutable_progress() = progress;
-    v1::JobEvent ev;
-    *ev.mutable_progress() = progress;
-    AddEvent(*job, std::move(ev));
+    RecordProgress(*job, progress, &pending_);
     DECIMA_RETURN_IF_ERROR_LOCAL(SaveJobKeepLease(*job));
     DECIMA_TX_COMMIT(tx);
     return absl::OkStatus();
@@ -375,12 +339,7 @@ class SqliteJobStore : public JobStore {
     if (!tx.ok()) return tx.status();
     auto job = LoadHeld(lease);
     if (!job.ok()) return job.status();
-    job->set_state(state);
-    *job->mutable_end_time() = NowTimestamp();
-    if (outcome.has_error()) *job->mutable_error() = outcome.error();
-    *job->mutable_artifacts() = outcome.artifacts();
-    job->set_metrics_json(outcome.metrics_json());
-    AddStateEvent(*job, state, outcome.has_error() ? &outcome.error() : nullptr);
+    FinishAttempt(*job, state, outcome, &pending_);
     DECIMA_RETURN_IF_ERROR_LOCAL(SaveJob(*job, "", 0, 0));
     DECIMA_TX_COMMIT(tx);
     return *job;
@@ -392,10 +351,7 @@ class SqliteJobStore : public JobStore {
     if (!tx.ok()) return tx.status();
     auto job = LoadHeld(lease);
     if (!job.ok()) return job.status();
-    job->set_state(v1::QUEUED);
-    job->set_attempts(std::max(0, job->attempts() - 1));
-    job->mutable_progress()->set_message(reason);
-    AddStateEvent(*job, v1::QUEUED, nullptr);
+    RequeueAttempt(*job, reason, &pending_);
     DECIMA_RETURN_IF_ERROR_LOCAL(SaveJob(*job, "", 0, 0));
     DECIMA_TX_COMMIT(tx);
     return *job;
@@ -419,28 +375,9 @@ class SqliteJobStore : public JobStore {
     if (rc != SQLITE_DONE) return q.Error("finding lapsed leases");
     Recovered out;
     for (auto& [job, cancel] : lapsed) {
-      std::string id = job.name().substr(5);
-      if (cancel) {
-        job.set_state(v1::CANCELLED);
-        job.mutable_error()->set_code(static_cast<int>(absl::StatusCode::kCancelled));
-        job.mutable_error()->set_message("cancelled by request (its worker was lost)");
-        *job.mutable_end_time() = NowTimestamp();
-        AddStateEvent(job, v1::CANCELLED, &job.error());
-        out.failed.push_back(id);
-      } else if (job.attempts() >= max_attempts) {
-        job.set_state(v1::FAILED);
-        job.mutable_error()->set_code(static_cast<int>(absl::StatusCode::kUnavailable));
-        job.mutable_error()->set_message(absl::StrCat("the worker was lost ", job.attempts(),
-                                                      " times (lease lapsed); giving up"));
-        *job.mutable_end_time() = NowTimestamp();
-        AddStateEvent(job, v1::FAILED, &job.error());
-        out.failed.push_back(id);
-      } else {
-        job.set_state(v1::QUEUED);
-        job.mutable_progress()->set_message("requeued: the lease of its worker lapsed");
-        AddStateEvent(job, v1::QUEUED, nullptr);
-        out.requeued.push_back(id);
-      }
+      const bool requeued =
+          ResolveLapsedLease(job, cancel, max_attempts, &pending_) == LapsedLease::kRequeued;
+      (requeued ? out.requeued : out.failed).push_back(JobIdOf(job));
       DECIMA_RETURN_IF_ERROR_LOCAL(SaveJob(job, "", 0, 0));
     }
     DECIMA_TX_COMMIT(tx);
@@ -454,11 +391,7 @@ class SqliteJobStore : public JobStore {
     auto job = LoadJob(id);
     if (!job.ok()) return job.status();
     if (job->state() == v1::QUEUED) {
-      job->set_state(v1::CANCELLED);
-      job->mutable_error()->set_code(static_cast<int>(absl::StatusCode::kCancelled));
-      job->mutable_error()->set_message("cancelled by request while queued");
-      *job->mutable_end_time() = NowTimestamp();
-      AddStateEvent(*job, v1::CANCELLED, &job->error());
+      CancelQueued(*job, &pending_);
       DECIMA_RETURN_IF_ERROR_LOCAL(SaveJob(*job, "", 0, 0));
     } else if (job->state() == v1::RUNNING) {
       Stmt u(db_, "UPDATE jobs SET cancel_requested=1 WHERE id=?");
@@ -483,27 +416,12 @@ class SqliteJobStore : public JobStore {
     if (!tx.ok()) return tx.status();
     auto job = LoadJob(id);
     if (!job.ok()) return job.status();
-    if (job->state() != v1::FAILED && job->state() != v1::CANCELLED) {
-      return absl::FailedPreconditionError(
-          absl::StrCat("job ", id, " is ", v1::JobState_Name(job->state()),
-                       "; only FAILED or CANCELLED jobs can be retried"));
-    }
+    DECIMA_RETURN_IF_ERROR_LOCAL(CheckRetryable(*job));
     Stmt c(db_, "SELECT COUNT(*) FROM jobs WHERE state=?");
     c.Bind(1, int64_t{v1::QUEUED});
     if (c.Step() != SQLITE_ROW) return c.Error("counting queued jobs");
-    if (max_queued > 0 && c.Int(0) >= max_queued) {
-      return absl::ResourceExhaustedError(
-          absl::StrCat("the queue is full (--max-queued ", max_queued, "); retry later"));
-    }
-    job->set_state(v1::QUEUED);
-    job->set_attempts(0);
-    job->clear_error();
-    job->clear_artifacts();
-    job->clear_metrics_json();
-    job->clear_progress();
-    job->clear_start_time();
-    job->clear_end_time();
-    AddStateEvent(*job, v1::QUEUED, nullptr);
+    DECIMA_RETURN_IF_ERROR_LOCAL(CheckQueueRoom(c.Int(0), max_queued));
+    ResetForRetry(*job, &pending_);
     DECIMA_RETURN_IF_ERROR_LOCAL(SaveJob(*job, "", 0, 0));
     DECIMA_TX_COMMIT(tx);
     return *job;
@@ -515,10 +433,7 @@ class SqliteJobStore : public JobStore {
     if (!tx.ok()) return tx.status();
     auto job = LoadJob(id);
     if (!job.ok()) return job.status();
-    if (!IsFinal(job->state())) {
-      return absl::FailedPreconditionError(absl::StrCat(
-          "job ", id, " is ", v1::JobState_Name(job->state()), "; cancel it before deleting"));
-    }
+    DECIMA_RETURN_IF_ERROR_LOCAL(CheckDeletable(*job));
     Stmt d1(db_, "DELETE FROM events WHERE job_id=?");
     d1.Bind(1, id);
     if (d1.Step() != SQLITE_DONE) return d1.Error("deleting events");
@@ -588,7 +503,7 @@ class SqliteJobStore : public JobStore {
 
   absl::StatusOr<VolumePage> ListVolumes(const std::string& creator, int page_size,
                                          const std::string& page_token) override {
-    auto before = DecodeToken(page_token);
+    auto before = DecodePageToken(page_token);
     if (!before.ok()) return before.status();
     int limit = ClampPageSize(page_size);
     std::lock_guard<std::mutex> lock(mu_);
@@ -605,7 +520,7 @@ class SqliteJobStore : public JobStore {
     int rc;
     while ((rc = q.Step()) == SQLITE_ROW) {
       if (static_cast<int>(page.volumes.size()) == limit) {
-        page.next_page_token = EncodeToken(last_ord);
+        page.next_page_token = EncodePageToken(last_ord);
         break;
       }
       last_ord = q.Int(0);
@@ -848,20 +763,6 @@ class SqliteJobStore : public JobStore {
     return ParseJob(q.Text(0));
   }
 
-  void AddEvent(v1::Job& job, v1::JobEvent ev) {
-    job.set_last_sequence(job.last_sequence() + 1);
-    ev.set_sequence(job.last_sequence());
-    *ev.mutable_time() = NowTimestamp();
-    pending_.emplace_back(job.name().substr(5), std::move(ev));
-  }
-
-  void AddStateEvent(v1::Job& job, v1::JobState state, const v1::JobError* error) {
-    v1::JobEvent ev;
-    ev.mutable_state_change()->set_state(state);
-    if (error != nullptr) *ev.mutable_state_change()->mutable_error() = *error;
-    AddEvent(job, std::move(ev));
-  }
-
   // Writes the job row and the events added since the transaction began.
   absl::Status SaveJob(const v1::Job& job, const std::string& owner, int64_t expiry, int cancel) {
     Stmt u(db_,
@@ -901,7 +802,7 @@ class SqliteJobStore : public JobStore {
   sqlite3* db_;
   std::mutex mu_;  // guards the connection and everything below
   EventListener listener_;
-  std::vector<std::pair<std::string, v1::JobEvent>> pending_;
+  PendingEvents pending_;  // appended by the lifecycle rules, written by SaveEvents
   size_t saved_ = 0;
 };
 
