@@ -65,6 +65,8 @@ const std::pair<const char*, const char*> kNotRunHere[] = {
     {"build/tests/bench/decima-bench",
      "is a benchmark: it repeats each stage 3 times on the CT head"},
     {"build/tests/bench/decima-compare", "runs VTK's decimation in python: minutes per row"},
+    {"tests/bench/make_clinical_ct.py",
+     "writes a 59 M-voxel CT in about 40 s (make_clinical_ct_test runs it on a tiny volume)"},
     {"decima-server --listen 0.0.0.0:50051 --data-dir /mnt/shared/decima",
      "needs a PostgreSQL database and a shared folder (scale_e2e_test runs three replicas on a "
      "real PostgreSQL)"},
