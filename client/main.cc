@@ -695,6 +695,10 @@ bool MatchesOnly(const std::string& file, const std::vector<std::string>& only) 
     if (o == "vtu" && file == "mesh.vtu") return true;
     if (o == "msh" && file == "mesh.msh") return true;
     if (o == "medit" && file == "mesh.mesh") return true;
+    if (o == "stl" && file.rfind("surface-", 0) == 0 && file.size() > 4 &&
+        file.compare(file.size() - 4, 4, ".stl") == 0) {
+      return true;
+    }
     if (o == "labels" && file == "labels.nii.gz") return true;
     if (o == "segmentation" && file == "segmentation.png") return true;
     if (o == "report" && file == "report.html") return true;
@@ -1022,13 +1026,14 @@ int main(int argc, char** argv) {
   submit->add_option("--transfer-function", tf, "preset name, auto, or JSON");
   submit
       ->add_option("--outputs", outputs,
-                   "artifacts to produce, comma-separated: vtu, msh, medit, labels, images, "
+                   "artifacts to produce, comma-separated: vtu, msh, medit, stl, labels, images, "
                    "segmentation, report, curve (default vtu,labels,images,segmentation,report; "
-                   "metrics.json always; curve = diff1 against cells removed, one more "
+                   "metrics.json always; stl = one closed surface per region, "
+                   "surface-region_<r>.stl; curve = diff1 against cells removed, one more "
                    "simplification per 10 % step)")
       ->delimiter(',')
       ->transform(CLI::IsMember(
-          {"vtu", "msh", "medit", "labels", "images", "segmentation", "report", "curve"},
+          {"vtu", "msh", "medit", "stl", "labels", "images", "segmentation", "report", "curve"},
           CLI::ignore_case));
   submit
       ->add_option("--vtu-level", vtu_level,

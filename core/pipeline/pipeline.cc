@@ -19,6 +19,7 @@
 #include "core/io/png.h"
 #include "core/io/volume_io.h"
 #include "core/mesh/mesh_io.h"
+#include "core/mesh/region_surface.h"
 #include "core/mesh/tetrahedralize.h"
 #include "core/metrics/fidelity.h"
 #include "core/metrics/fidelity_json.h"
@@ -503,6 +504,16 @@ absl::StatusOr<JobResult> RunJob(const JobSpec& spec, const std::filesystem::pat
     }
     add_artifact(mesh_files[i].name);
     if (mesh_bytes == 0) mesh_bytes = static_cast<int64_t>(result.artifacts.back().size_bytes);
+    DECIMA_RETURN_IF_ERROR(CheckCancelled(cancel, "write"));
+  }
+  if (wants("stl")) {
+    Report(progress, {"write", 1, "region surfaces", {}});
+    for (const RegionSurface& s : ExtractRegionSurfaces(simplified.mesh)) {
+      const std::string region = absl::StrCat("region_", int{s.region});
+      const std::string name = absl::StrCat("surface-", region, ".stl");
+      DECIMA_RETURN_IF_ERROR(WriteStl(s, region, out_dir / name));
+      add_artifact(name);
+    }
     DECIMA_RETURN_IF_ERROR(CheckCancelled(cancel, "write"));
   }
   timings["write"] = Seconds(t);
