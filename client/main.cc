@@ -729,7 +729,7 @@ int Fetch(const v1::Job& job, const fs::path& out, const std::vector<std::string
       for (const auto& a : job.artifacts()) names += " " + a.file_name();
       std::fprintf(stderr,
                    "decima: fetch --only %s: no such artifact in %s; it has:%s (or the kinds "
-                   "vtu, msh, medit, labels, images, segmentation, report, curve, metrics)\n",
+                   "vtu, msh, medit, stl, labels, images, segmentation, report, curve, metrics)\n",
                    o.c_str(), job.name().c_str(), names.c_str());
       return kUsage;
     }
