@@ -695,6 +695,7 @@ bool MatchesOnly(const std::string& file, const std::vector<std::string>& only) 
     if (o == "vtu" && file == "mesh.vtu") return true;
     if (o == "msh" && file == "mesh.msh") return true;
     if (o == "medit" && file == "mesh.mesh") return true;
+    if (o == "glb" && file == "surfaces.glb") return true;
     if (o == "stl" && file.rfind("surface-", 0) == 0 && file.size() > 4 &&
         file.compare(file.size() - 4, 4, ".stl") == 0) {
       return true;
@@ -729,7 +730,8 @@ int Fetch(const v1::Job& job, const fs::path& out, const std::vector<std::string
       for (const auto& a : job.artifacts()) names += " " + a.file_name();
       std::fprintf(stderr,
                    "decima: fetch --only %s: no such artifact in %s; it has:%s (or the kinds "
-                   "vtu, msh, medit, stl, labels, images, segmentation, report, curve, metrics)\n",
+                   "vtu, msh, medit, stl, glb, labels, images, segmentation, report, curve, "
+                   "metrics)\n",
                    o.c_str(), job.name().c_str(), names.c_str());
       return kUsage;
     }
@@ -1025,16 +1027,18 @@ int main(int argc, char** argv) {
   submit->add_option("--image-size", image_size, "rendered image size, pixels (default 512)");
   submit->add_option("--transfer-function", tf, "preset name, auto, or JSON");
   submit
-      ->add_option("--outputs", outputs,
-                   "artifacts to produce, comma-separated: vtu, msh, medit, stl, labels, images, "
-                   "segmentation, report, curve (default vtu,labels,images,segmentation,report; "
-                   "metrics.json always; stl = one closed surface per region, "
-                   "surface-region_<r>.stl; curve = diff1 against cells removed, one more "
-                   "simplification per 10 % step)")
+      ->add_option(
+          "--outputs", outputs,
+          "artifacts to produce, comma-separated: vtu, msh, medit, stl, glb, labels, images, "
+          "segmentation, report, curve (default vtu,labels,images,segmentation,report; "
+          "metrics.json always; stl = one closed surface per region, "
+          "surface-region_<r>.stl; glb = all of them, named and coloured, in surfaces.glb; "
+          "curve = diff1 against cells removed, one more "
+          "simplification per 10 % step)")
       ->delimiter(',')
-      ->transform(CLI::IsMember(
-          {"vtu", "msh", "medit", "stl", "labels", "images", "segmentation", "report", "curve"},
-          CLI::ignore_case));
+      ->transform(CLI::IsMember({"vtu", "msh", "medit", "stl", "glb", "labels", "images",
+                                 "segmentation", "report", "curve"},
+                                CLI::ignore_case));
   submit
       ->add_option("--vtu-level", vtu_level,
                    "zlib level of mesh.vtu: 0 uncompressed, 1 fastest (default) .. 9 smallest")

@@ -2,6 +2,7 @@
 
 #include <algorithm>
 #include <array>
+#include <cmath>
 #include <cstdio>
 #include <cstring>
 #include <fstream>
@@ -13,6 +14,64 @@
 
 namespace decima {
 namespace {
+
+// Writes `bytes` to a temporary file beside `path`, then renames it over `path`.
+absl::Status WriteFileAtomically(const std::filesystem::path& path, const std::string& bytes) {
+  std::filesystem::path tmp = path;
+  tmp += ".partial";
+  {
+    std::ofstream out(tmp, std::ios::binary | std::ios::trunc);
+    if (!out) {
+      return absl::UnavailableError(
+          absl::StrCat("cannot write ", tmp.string(), ": ", std::strerror(errno)));
+    }
+    out.write(bytes.data(), static_cast<std::streamsize>(bytes.size()));
+    out.flush();
+    if (!out) {
+      std::error_code ec;
+      std::filesystem::remove(tmp, ec);
+      return absl::UnavailableError(absl::StrCat("writing ", tmp.string(), " failed"));
+    }
+  }
+  std::error_code ec;
+  std::filesystem::rename(tmp, path, ec);
+  if (ec) {
+    std::filesystem::remove(tmp, ec);
+    return absl::UnavailableError(
+        absl::StrCat("cannot rename ", tmp.string(), " to ", path.string(), ": ", ec.message()));
+  }
+  return absl::OkStatus();
+}
+
+// A JSON string literal of `text` (quotes, backslashes and control characters escaped).
+std::string JsonString(const std::string& text) {
+  std::string out = "\"";
+  for (unsigned char c : text) {
+    if (c == '"' || c == '\\') {
+      out += '\\';
+      out += static_cast<char>(c);
+    } else if (c < 0x20) {
+      char buf[8];
+      std::snprintf(buf, sizeof(buf), "\\u%04x", c);
+      out += buf;
+    } else {
+      out += static_cast<char>(c);
+    }
+  }
+  return out + "\"";
+}
+
+void AppendRaw(std::string* out, const void* data, size_t n) {
+  out->append(static_cast<const char*>(data), n);
+}
+
+// A float as JSON with enough digits to read back the same float (glTF's accessor bounds must
+// hold every value exactly).
+std::string JsonNumber(float v) {
+  char buf[32];
+  std::snprintf(buf, sizeof(buf), "%.9g", v);
+  return buf;
+}
 
 // Local vertices of face i of a tet (the face opposite vertex i), ordered so that the normal
 // points out of a positively oriented tet.
@@ -288,51 +347,124 @@ absl::Status WriteStl(const RegionSurface& s, const std::string& name,
     return absl::InvalidArgumentError(
         absl::StrCat(path.string(), ": ", s.triangle_count(), " triangles do not fit in STL"));
   }
-  std::filesystem::path tmp = path;
-  tmp += ".partial";
-  {
-    std::ofstream out(tmp, std::ios::binary | std::ios::trunc);
-    if (!out) {
-      return absl::UnavailableError(
-          absl::StrCat("cannot write ", tmp.string(), ": ", std::strerror(errno)));
+  std::string out;
+  out.reserve(84 + 50 * static_cast<size_t>(s.triangle_count()));
+  // The header must not start with "solid": readers take such a file for ASCII STL.
+  char header[80] = {};
+  const std::string text = absl::StrCat("decima region surface: ", name);
+  std::memcpy(header, text.data(), std::min<size_t>(text.size(), sizeof(header)));
+  AppendRaw(&out, header, sizeof(header));
+  const uint32_t count = static_cast<uint32_t>(s.triangle_count());
+  AppendRaw(&out, &count, 4);  // x86 and ARM are little-endian, as STL is
+  for (int64_t f = 0; f < s.triangle_count(); ++f) {
+    float p[3][3];
+    for (int k = 0; k < 3; ++k) {
+      for (int c = 0; c < 3; ++c) p[k][c] = s.positions[3 * s.triangles[3 * f + k] + c];
     }
-    // The header must not start with "solid": readers take such a file for ASCII STL.
-    char header[80] = {};
-    const std::string text = absl::StrCat("decima region surface: ", name);
-    std::memcpy(header, text.data(), std::min<size_t>(text.size(), sizeof(header)));
-    out.write(header, sizeof(header));
-    const uint32_t count = static_cast<uint32_t>(s.triangle_count());
-    out.write(reinterpret_cast<const char*>(&count), 4);  // x86 and ARM are little-endian
-    std::vector<char> record(50);
-    for (int64_t f = 0; f < s.triangle_count(); ++f) {
-      float p[3][3];
-      for (int k = 0; k < 3; ++k) {
-        for (int c = 0; c < 3; ++c) p[k][c] = s.positions[3 * s.triangles[3 * f + k] + c];
+    const Eigen::Vector3f a(p[0][0], p[0][1], p[0][2]), b(p[1][0], p[1][1], p[1][2]),
+        c(p[2][0], p[2][1], p[2][2]);
+    const Eigen::Vector3f n = (b - a).cross(c - a).normalized();
+    const float normal[3] = {n.x(), n.y(), n.z()};
+    AppendRaw(&out, normal, sizeof(normal));
+    AppendRaw(&out, p, sizeof(p));
+    const uint16_t attribute = 0;
+    AppendRaw(&out, &attribute, sizeof(attribute));
+  }
+  return WriteFileAtomically(path, out);
+}
+
+}  // namespace decima
+
+namespace decima {
+
+RegionStyle DefaultRegionStyle(uint8_t region) {
+  // Okabe & Ito (2008), "Color universal design": sky blue, orange, bluish green, yellow, blue,
+  // vermillion, reddish purple, black; as sRGB bytes.
+  static constexpr uint8_t kPalette[8][3] = {{86, 180, 233},  {230, 159, 0}, {0, 158, 115},
+                                             {240, 228, 66},  {0, 114, 178}, {213, 94, 0},
+                                             {204, 121, 167}, {0, 0, 0}};
+  RegionStyle s;
+  s.name = absl::StrCat("region_", int{region});
+  for (int c = 0; c < 3; ++c) {
+    // glTF's baseColorFactor is linear; convert from sRGB.
+    const float v = kPalette[region % 8][c] / 255.0f;
+    s.rgb[c] = v <= 0.04045f ? v / 12.92f : std::pow((v + 0.055f) / 1.055f, 2.4f);
+  }
+  return s;
+}
+
+absl::Status WriteGlb(const std::vector<RegionSurface>& surfaces,
+                      const std::vector<RegionStyle>& styles, const std::filesystem::path& path) {
+  if (!styles.empty() && styles.size() != surfaces.size()) {
+    return absl::InvalidArgumentError(absl::StrCat(
+        path.string(), ": ", styles.size(), " region styles for ", surfaces.size(), " surfaces"));
+  }
+  std::string bin;
+  std::string nodes, meshes, materials, accessors, views;
+  for (size_t i = 0; i < surfaces.size(); ++i) {
+    const RegionSurface& s = surfaces[i];
+    const RegionStyle style = styles.empty() ? DefaultRegionStyle(s.region) : styles[i];
+    float lo[3] = {INFINITY, INFINITY, INFINITY}, hi[3] = {-INFINITY, -INFINITY, -INFINITY};
+    if (s.vertex_count() == 0) lo[0] = lo[1] = lo[2] = hi[0] = hi[1] = hi[2] = 0;
+    const size_t positions_at = bin.size();
+    for (int64_t v = 0; v < s.vertex_count(); ++v) {
+      const float p[3] = {s.positions[3 * v] / 1000.0f, s.positions[3 * v + 2] / 1000.0f,
+                          -s.positions[3 * v + 1] / 1000.0f};
+      for (int c = 0; c < 3; ++c) {
+        lo[c] = std::min(lo[c], p[c]);
+        hi[c] = std::max(hi[c], p[c]);
       }
-      const Eigen::Vector3f a(p[0][0], p[0][1], p[0][2]), b(p[1][0], p[1][1], p[1][2]),
-          c(p[2][0], p[2][1], p[2][2]);
-      const Eigen::Vector3f n = (b - a).cross(c - a).normalized();
-      const float normal[3] = {n.x(), n.y(), n.z()};
-      std::memcpy(record.data(), normal, 12);
-      std::memcpy(record.data() + 12, p, 36);
-      std::memset(record.data() + 48, 0, 2);
-      out.write(record.data(), 50);
+      AppendRaw(&bin, p, sizeof(p));  // x86 and ARM are little-endian, as glTF is
     }
-    out.flush();
-    if (!out) {
-      std::error_code ec;
-      std::filesystem::remove(tmp, ec);
-      return absl::UnavailableError(absl::StrCat("writing ", tmp.string(), " failed"));
-    }
+    const size_t indices_at = bin.size();
+    AppendRaw(&bin, s.triangles.data(), s.triangles.size() * sizeof(int32_t));
+    const size_t a = 2 * i;  // this surface's accessors and buffer views: a (positions), a + 1
+    const char* sep = i == 0 ? "" : ",";
+    absl::StrAppend(&views, sep, "{\"buffer\":0,\"byteOffset\":", positions_at,
+                    ",\"byteLength\":", indices_at - positions_at, ",\"target\":34962},",
+                    "{\"buffer\":0,\"byteOffset\":", indices_at,
+                    ",\"byteLength\":", bin.size() - indices_at, ",\"target\":34963}");
+    absl::StrAppend(&accessors, sep, "{\"bufferView\":", a,
+                    ",\"componentType\":5126,\"type\":\"VEC3\",\"count\":", s.vertex_count(),
+                    ",\"min\":[", JsonNumber(lo[0]), ",", JsonNumber(lo[1]), ",", JsonNumber(lo[2]),
+                    "],\"max\":[", JsonNumber(hi[0]), ",", JsonNumber(hi[1]), ",",
+                    JsonNumber(hi[2]), "]},", "{\"bufferView\":", a + 1,
+                    ",\"componentType\":5125,\"type\":\"SCALAR\",\"count\":", s.triangles.size(),
+                    "}");
+    absl::StrAppend(&materials, sep, "{\"name\":", JsonString(style.name),
+                    ",\"pbrMetallicRoughness\":{\"baseColorFactor\":[", JsonNumber(style.rgb[0]),
+                    ",", JsonNumber(style.rgb[1]), ",", JsonNumber(style.rgb[2]),
+                    ",1],\"metallicFactor\":0,", "\"roughnessFactor\":0.8}}");
+    absl::StrAppend(&meshes, sep, "{\"name\":", JsonString(style.name),
+                    ",\"primitives\":[{\"attributes\":{\"POSITION\":", a, "},\"indices\":", a + 1,
+                    ",\"material\":", i, ",\"mode\":4}]}");
+    absl::StrAppend(&nodes, sep, "{\"name\":", JsonString(style.name), ",\"mesh\":", i, "}");
   }
-  std::error_code ec;
-  std::filesystem::rename(tmp, path, ec);
-  if (ec) {
-    std::filesystem::remove(tmp, ec);
-    return absl::UnavailableError(
-        absl::StrCat("cannot rename ", tmp.string(), " to ", path.string(), ": ", ec.message()));
+  std::string scene_nodes;
+  for (size_t i = 0; i < surfaces.size(); ++i) absl::StrAppend(&scene_nodes, i ? "," : "", i);
+  std::string json = absl::StrCat(
+      "{\"asset\":{\"version\":\"2.0\",\"generator\":\"decima\"},\"scene\":0,",
+      "\"scenes\":[{\"nodes\":[", scene_nodes, "]}],\"nodes\":[", nodes, "],\"meshes\":[", meshes,
+      "],\"materials\":[", materials, "],\"accessors\":[", accessors, "],\"bufferViews\":[", views,
+      "],\"buffers\":[{\"byteLength\":", bin.size(), "}]}");
+  while (json.size() % 4 != 0) json += ' ';
+  while (bin.size() % 4 != 0) bin += '\0';
+  const uint64_t total = 12 + 8 + json.size() + 8 + bin.size();
+  if (total > UINT32_MAX) {
+    return absl::InvalidArgumentError(
+        absl::StrCat(path.string(), ": ", total, " bytes do not fit in one .glb (4 GiB)"));
   }
-  return absl::OkStatus();
+  std::string out;
+  out.reserve(total);
+  const uint32_t header[3] = {0x46546C67u, 2u, static_cast<uint32_t>(total)};  // "glTF", v2
+  AppendRaw(&out, header, sizeof(header));
+  const uint32_t json_chunk[2] = {static_cast<uint32_t>(json.size()), 0x4E4F534Au};  // "JSON"
+  AppendRaw(&out, json_chunk, sizeof(json_chunk));
+  out += json;
+  const uint32_t bin_chunk[2] = {static_cast<uint32_t>(bin.size()), 0x004E4942u};  // "BIN\0"
+  AppendRaw(&out, bin_chunk, sizeof(bin_chunk));
+  out += bin;
+  return WriteFileAtomically(path, out);
 }
 
 }  // namespace decima

@@ -51,4 +51,21 @@ SurfaceTopology MeasureTopology(const RegionSurface& surface);
 absl::Status WriteStl(const RegionSurface& surface, const std::string& name,
                       const std::filesystem::path& path);
 
+// A region's name and display colour (linear RGB in [0, 1]) for the formats that carry them.
+struct RegionStyle {
+  std::string name;
+  float rgb[3] = {0.5f, 0.5f, 0.5f};
+};
+// The default style of region r: name "region_<r>" (as the .msh physical groups), colour from
+// the Okabe-Ito palette, which stays distinct under the common colour-vision deficiencies.
+RegionStyle DefaultRegionStyle(uint8_t region);
+
+// Binary glTF 2.0 (.glb) holding every surface as its own named mesh and node with its colour,
+// for web viewers and three.js. glTF's frame is +Y up, +Z toward the viewer, metres: a vertex at
+// LPS (x, y, z) mm is written at (x, z, -y) / 1000, a rotation (facing is unchanged), so the
+// head stands up and faces the viewer. `styles` has one entry per surface (or is empty: defaults).
+// Written to a temporary file and renamed; errors name the path.
+absl::Status WriteGlb(const std::vector<RegionSurface>& surfaces,
+                      const std::vector<RegionStyle>& styles, const std::filesystem::path& path);
+
 }  // namespace decima

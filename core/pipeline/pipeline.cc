@@ -506,13 +506,19 @@ absl::StatusOr<JobResult> RunJob(const JobSpec& spec, const std::filesystem::pat
     if (mesh_bytes == 0) mesh_bytes = static_cast<int64_t>(result.artifacts.back().size_bytes);
     DECIMA_RETURN_IF_ERROR(CheckCancelled(cancel, "write"));
   }
-  if (wants("stl")) {
+  if (wants("stl") || wants("glb")) {
     Report(progress, {"write", 1, "region surfaces", {}});
-    for (const RegionSurface& s : ExtractRegionSurfaces(simplified.mesh)) {
-      const std::string region = absl::StrCat("region_", int{s.region});
-      const std::string name = absl::StrCat("surface-", region, ".stl");
-      DECIMA_RETURN_IF_ERROR(WriteStl(s, region, out_dir / name));
+    const std::vector<RegionSurface> surfaces = ExtractRegionSurfaces(simplified.mesh);
+    std::vector<RegionStyle> styles;
+    for (const RegionSurface& s : surfaces) styles.push_back(DefaultRegionStyle(s.region));
+    for (size_t i = 0; i < surfaces.size() && wants("stl"); ++i) {
+      const std::string name = absl::StrCat("surface-", styles[i].name, ".stl");
+      DECIMA_RETURN_IF_ERROR(WriteStl(surfaces[i], styles[i].name, out_dir / name));
       add_artifact(name);
+    }
+    if (wants("glb")) {
+      DECIMA_RETURN_IF_ERROR(WriteGlb(surfaces, styles, out_dir / "surfaces.glb"));
+      add_artifact("surfaces.glb");
     }
     DECIMA_RETURN_IF_ERROR(CheckCancelled(cancel, "write"));
   }

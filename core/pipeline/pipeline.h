@@ -47,10 +47,11 @@ struct JobSpec {
 // Every artifact kind a JobSpec may ask for, in the order RunJob writes them.
 // "curve" (curve.png, the paper's Fig. 5 for this job) costs one more simplification and render
 // per 10 % step below the job's reduction, so it is never a default.
-// "stl" writes surface-region_<r>.stl per region: the closed surface of the simplified mesh's
-// cells of region r (core/mesh/region_surface.h), so it agrees with the tets.
-inline constexpr const char* kOutputKinds[] = {"vtu",    "msh",          "medit",  "stl",  "labels",
-                                               "images", "segmentation", "report", "curve"};
+// "stl" writes surface-region_<r>.stl per region and "glb" one surfaces.glb with every region
+// named and coloured: the closed surfaces of the simplified mesh's cells of each region
+// (core/mesh/region_surface.h), so they agree with the tets.
+inline constexpr const char* kOutputKinds[] = {
+    "vtu", "msh", "medit", "stl", "glb", "labels", "images", "segmentation", "report", "curve"};
 
 // OK, or InvalidArgument for the first parameter out of range; `*field` (when given) receives
 // its JobSpec member name ("target_reduction", "weights.shape", ...). Checks the parameters

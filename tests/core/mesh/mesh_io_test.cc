@@ -476,7 +476,7 @@ TEST(MeshIo, VtkFindsTheRegionSurfacesClosedAndManifold) {
   for (const RegionSurface& s : surfaces) {
     const fs::path p = dir / ("surface-" + std::to_string(s.region) + ".stl");
     ASSERT_TRUE(WriteStl(s, "region " + std::to_string(s.region), p).ok());
-    auto [rc, log] = RunCommand(python + " " + Quote(Script("check_stl.py")) + " " + Quote(p));
+    auto [rc, log] = RunCommand(python + " " + Quote(Script("check_surfaces.py")) + " " + Quote(p));
     ASSERT_EQ(rc, 0) << log;
     std::istringstream in(log);
     std::string path, k1, k2, k3;
@@ -485,6 +485,26 @@ TEST(MeshIo, VtkFindsTheRegionSurfacesClosedAndManifold) {
     EXPECT_EQ(triangles, s.triangle_count()) << log;
     EXPECT_EQ(boundary, 0) << log;
     EXPECT_EQ(non_manifold, 0) << log;
+  }
+}
+
+// The same surfaces in one .glb: VTK's glTF reader finds each region's mesh with its counts.
+TEST(MeshIo, VtkReadsTheRegionSurfacesFromOneGlb) {
+  const std::string python = PythonWithVtk();
+  if (python.empty()) GTEST_SKIP() << "no python3 with the vtk module (Debian python3-vtk9)";
+  const fs::path dir = testing::MakeScratchDir("glb");
+  const auto surfaces = ExtractRegionSurfaces(PhantomMesh());
+  const fs::path p = dir / "surfaces.glb";
+  ASSERT_TRUE(WriteGlb(surfaces, {}, p).ok());
+  auto [rc, log] = RunCommand(python + " " + Quote(Script("check_surfaces.py")) + " " + Quote(p));
+  ASSERT_EQ(rc, 0) << log;
+  EXPECT_NE(log.find("meshes " + std::to_string(surfaces.size())), std::string::npos) << log;
+  for (size_t i = 0; i < surfaces.size(); ++i) {
+    EXPECT_NE(log.find("mesh " + std::to_string(i) + " points " +
+                       std::to_string(surfaces[i].vertex_count()) + " triangles " +
+                       std::to_string(surfaces[i].triangle_count())),
+              std::string::npos)
+        << log;
   }
 }
 

@@ -5,6 +5,8 @@
 
 #include <gtest/gtest.h>
 
+#include <nlohmann/json.hpp>
+
 #include <cmath>
 #include <cstring>
 #include <fstream>
@@ -169,6 +171,63 @@ TEST(RegionSurface, StlHoldsEveryTriangleWithItsNameAndOutwardNormals) {
   const auto bad = WriteStl(surfaces[0], "bone", "/nonexistent-dir/x.stl");
   EXPECT_FALSE(bad.ok());
   EXPECT_NE(bad.message().find("/nonexistent-dir/x.stl"), std::string::npos);
+}
+
+TEST(RegionSurface, GlbHoldsEveryRegionNamedAndColouredInGltfsFrame) {
+  TetMesh m = MeshWithRegions({6, 6, 6}, [](const Eigen::Vector3d& c) {
+    return static_cast<uint8_t>(c.x() < 2.5 ? 0 : 4);
+  });
+  const auto surfaces = ExtractRegionSurfaces(m);
+  ASSERT_EQ(surfaces.size(), 2u);
+  std::vector<RegionStyle> styles = {DefaultRegionStyle(0), DefaultRegionStyle(4)};
+  styles[1].name = "bone \"cortical\"";  // quotes must be escaped in the JSON
+  const auto path = std::filesystem::path(::testing::TempDir()) / "surfaces.glb";
+  ASSERT_TRUE(WriteGlb(surfaces, styles, path).ok());
+  std::ifstream in(path, std::ios::binary);
+  const std::string bytes((std::istreambuf_iterator<char>(in)), std::istreambuf_iterator<char>());
+  ASSERT_GE(bytes.size(), 28u);
+  uint32_t header[5];
+  std::memcpy(header, bytes.data(), sizeof(header));
+  EXPECT_EQ(header[0], 0x46546C67u);  // "glTF"
+  EXPECT_EQ(header[1], 2u);
+  EXPECT_EQ(header[2], bytes.size());
+  EXPECT_EQ(header[4], 0x4E4F534Au);  // "JSON"
+  const auto json = nlohmann::json::parse(bytes.substr(20, header[3]));
+  ASSERT_EQ(json["meshes"].size(), 2u);
+  EXPECT_EQ(json["meshes"][0]["name"], "region_0");
+  EXPECT_EQ(json["meshes"][1]["name"], "bone \"cortical\"");
+  EXPECT_EQ(json["nodes"].size(), 2u);
+  EXPECT_EQ(json["scenes"][0]["nodes"].size(), 2u);
+  for (int c = 0; c < 3; ++c) {
+    EXPECT_FLOAT_EQ(json["materials"][1]["pbrMetallicRoughness"]["baseColorFactor"][c].get<float>(),
+                    styles[1].rgb[c]);
+  }
+  // Okabe-Ito's first two colours differ.
+  EXPECT_NE(json["materials"][0]["pbrMetallicRoughness"]["baseColorFactor"],
+            json["materials"][1]["pbrMetallicRoughness"]["baseColorFactor"]);
+  const size_t bin_at = 20 + header[3];
+  uint32_t bin_chunk[2];
+  std::memcpy(bin_chunk, bytes.data() + bin_at, 8);
+  EXPECT_EQ(bin_chunk[1], 0x004E4942u);  // "BIN"
+  EXPECT_EQ(json["buffers"][0]["byteLength"].get<size_t>() + 3 >= bin_chunk[0], true);
+  for (int i = 0; i < 2; ++i) {
+    const auto& pos = json["accessors"][2 * i];
+    const auto& idx = json["accessors"][2 * i + 1];
+    EXPECT_EQ(pos["count"].get<int64_t>(), surfaces[i].vertex_count());
+    EXPECT_EQ(idx["count"].get<int64_t>(), 3 * surfaces[i].triangle_count());
+    // The first vertex, at LPS (x, y, z) mm, is stored at (x, z, -y) m, within the bounds.
+    const auto& view = json["bufferViews"][pos["bufferView"].get<int>()];
+    float p[3];
+    std::memcpy(p, bytes.data() + bin_at + 8 + view["byteOffset"].get<size_t>(), sizeof(p));
+    EXPECT_FLOAT_EQ(p[0], surfaces[i].positions[0] / 1000.0f);
+    EXPECT_FLOAT_EQ(p[1], surfaces[i].positions[2] / 1000.0f);
+    EXPECT_FLOAT_EQ(p[2], -surfaces[i].positions[1] / 1000.0f);
+    for (int c = 0; c < 3; ++c) {
+      EXPECT_GE(p[c], pos["min"][c].get<float>());
+      EXPECT_LE(p[c], pos["max"][c].get<float>());
+    }
+  }
+  EXPECT_FALSE(WriteGlb(surfaces, {DefaultRegionStyle(0)}, path).ok());  // one style short
 }
 
 }  // namespace
