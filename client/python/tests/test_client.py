@@ -1,0 +1,256 @@
+"""decima_client against a real decima-server on loopback: submit, watch (also across a server
+restart), wait, fetch (also resumed), list, cancel, delete, series; and the bad inputs of issue
+33 (a bad spec, a wrong token, a missing file, an unreachable server), each raising a typed
+error whose text is the line the real `decima` CLI prints for the same failure."""
+import hashlib
+import json
+import os
+import signal
+import time
+
+import pytest
+
+import decima_client
+from decima_client import errors
+from decima_client.proto import jobs_pb2, volumes_pb2
+
+from conftest import TOKEN, Server, free_port, run_cli, write_tiny_nifti
+
+# Small and quick: a 12x10x8 volume, 64 px pictures.
+QUICK = {"regions": 2, "image_size": 64}
+
+
+def sha256(path):
+    with open(path, "rb") as f:
+        return hashlib.sha256(f.read()).hexdigest()
+
+
+def first_line(text):
+    return text.strip().splitlines()[0] if text.strip() else ""
+
+
+def volume_names(client):
+    resp = client._volumes.ListVolumes(volumes_pb2.ListVolumesRequest(page_size=1000),
+                                       timeout=10, metadata=client._metadata())
+    return {v.name for v in resp.volumes}
+
+
+def test_submit_watch_wait_and_fetch_a_tiny_volume(client, tmp_path):
+    nii = write_tiny_nifti(tmp_path / "tiny.nii", seed=1)
+    job = client.submit(nii, **QUICK)
+    assert job.name.startswith("jobs/")
+
+    events = list(job.watch())
+    assert events[0].WhichOneof("kind") == "snapshot"
+    sequences = [e.sequence for e in events[1:]]
+    # Every stored and live event once, in order, no gap: 1, 2, 3, ...
+    assert sequences == list(range(1, len(sequences) + 1)), sequences
+    assert sum(e.WhichOneof("kind") == "progress" for e in events) >= 1
+    assert events[-1].state_change.state == jobs_pb2.SUCCEEDED
+    assert job.state == "SUCCEEDED"
+
+    assert job.wait(timeout=30) is job  # a final job: wait returns at once
+
+    out = tmp_path / "out"
+    paths = job.fetch(out)
+    names = sorted(os.path.basename(p) for p in paths)
+    expected = sorted({a.file_name for a in job.proto.artifacts} | {"metrics.json"})
+    assert names == expected
+    for a in job.proto.artifacts:
+        assert sha256(out / a.file_name) == a.sha256
+        assert os.path.getsize(out / a.file_name) == a.size_bytes
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert metrics == job.metrics
+    assert metrics["simplification"]["achieved_reduction"] > 0
+    assert not list(out.glob("*.part"))
+
+    # Only some outputs, by kind and by name.
+    only = job.fetch(tmp_path / "only", outputs=["vtu", "metrics.json"])
+    assert sorted(os.path.basename(p) for p in only) == ["mesh.vtu", "metrics.json"]
+
+
+def test_an_interrupted_fetch_resumes_from_the_part_file(client, tmp_path):
+    job = client.submit(write_tiny_nifti(tmp_path / "r.nii", seed=2), **QUICK).wait(timeout=120)
+    mesh = next(a for a in job.proto.artifacts if a.file_name == "mesh.vtu")
+    full = job.fetch(tmp_path / "full", outputs="vtu")[0]
+    out = tmp_path / "resumed"
+    out.mkdir()
+    with open(full, "rb") as f:
+        head = f.read(mesh.size_bytes // 2)
+    (out / "mesh.vtu.part").write_bytes(head)
+    [path] = job.fetch(out, outputs="vtu")
+    assert sha256(path) == mesh.sha256
+    assert not (out / "mesh.vtu.part").exists()
+
+    # A .part that does not match the server's bytes is caught by the sha256, not kept.
+    (out / "mesh.vtu").unlink()
+    (out / "mesh.vtu.part").write_bytes(b"x" * len(head))
+    with pytest.raises(errors.DataLoss, match="do not match the server's size/sha256"):
+        job.fetch(out, outputs="vtu")
+    assert not (out / "mesh.vtu.part").exists()
+
+
+def test_watch_reconnects_across_a_server_restart_and_misses_no_event(server_bin, tmp_path):
+    port = free_port()
+    srv = Server(server_bin, str(tmp_path), port=port)
+    try:
+        client = decima_client.Client(srv.address, token=TOKEN, timeout=10, reconnect=60)
+        # The fault seam: a cancellable 3 s "prepare" stage with progress every 50 ms.
+        client._create_job_metadata = (("decima-test-fault", "sleep:3"),)
+        job = client.submit(write_tiny_nifti(tmp_path / "w.nii", seed=3), **QUICK)
+        events, restarted = [], False
+        for ev in job.watch():
+            events.append(ev)
+            if not restarted and sum(e.WhichOneof("kind") == "progress" for e in events) >= 3:
+                # SIGTERM with --drain-seconds 0: the running job is requeued, the stream ends.
+                srv.stop(signal.SIGTERM)
+                srv.start()  # the same port and data dir
+                restarted = True
+        assert restarted
+        assert job.state == "SUCCEEDED", job.proto
+        # It really ran again after the restart: RUNNING twice, the stages started over.
+        running = [e for e in events if e.WhichOneof("kind") == "state_change"
+                   and e.state_change.state == jobs_pb2.RUNNING]
+        assert len(running) == 2, [e.WhichOneof("kind") for e in events]
+        sequences = [e.sequence for e in events[1:]]
+        assert sequences == list(range(1, len(sequences) + 1)), sequences
+        client.close()
+    finally:
+        srv.stop(signal.SIGKILL)
+
+
+def test_cancel_stops_a_running_job_and_wait_raises_job_cancelled(client, tmp_path):
+    client._create_job_metadata = (("decima-test-fault", "sleep:60"),)
+    job = client.submit(write_tiny_nifti(tmp_path / "c.nii", seed=4), **QUICK)
+    for ev in job.watch():
+        if ev.WhichOneof("kind") == "progress":
+            break  # running
+    cancelled = client.cancel(job)
+    assert cancelled.state == "CANCELLED"
+    with pytest.raises(errors.JobCancelled) as e:
+        job.wait(timeout=30)
+    assert str(e.value).startswith(f"decima: {job.name} CANCELLED")
+    assert e.value.exit_code == 4
+    with pytest.raises(errors.JobCancelled, match=f"fetch {job.name}: the job is CANCELLED"):
+        job.fetch(tmp_path / "nothing")
+
+    job.delete()
+    with pytest.raises(errors.NotFound) as nf:
+        client.job(job.name)
+    assert nf.value.exit_code == 6
+
+
+def test_list_shows_the_jobs_as_the_cli_does(client, cli_bin, server, tmp_path):
+    job = client.submit(write_tiny_nifti(tmp_path / "l.nii", seed=5), **QUICK).wait(timeout=120)
+    listed = client.list()
+    assert job.name in [j.name for j in listed]
+    rc, out, err = run_cli(cli_bin, server.address, ["list", "-o", "json"])
+    assert rc == 0, err
+    assert [j.name for j in listed] == [json.loads(l)["name"] for l in out.splitlines()]
+    assert all(j.state == "SUCCEEDED" for j in client.list(states=["succeeded"]))
+    assert job.name in [j.name for j in client.list(states=["succeeded"])]
+    assert job.name not in [j.name for j in client.list(states=[jobs_pb2.FAILED])]
+    # A unique prefix of the id names the job, as in the CLI.
+    assert client.job(job.name[len("jobs/"):][:8]).name == job.name
+
+
+def test_series_lists_what_the_receiver_got(client, cli_bin, server):
+    # This server has no DICOM receiver: nothing received, and the CLI agrees.
+    assert client.series() == []
+    rc, _, err = run_cli(cli_bin, server.address, ["series"])
+    assert rc == 0 and "no series received" in err
+
+
+def test_a_bad_spec_raises_invalid_argument_with_the_field_as_the_cli(client, cli_bin, server,
+                                                                      tmp_path):
+    nii = write_tiny_nifti(tmp_path / "bad.nii", seed=6)
+    before = volume_names(client)
+    with pytest.raises(errors.InvalidArgument) as e:
+        client.submit(nii, regions=99)
+    assert e.value.detail.field == "spec.regions"
+    assert e.value.code.name == "INVALID_ARGUMENT"
+    rc, _, err = run_cli(cli_bin, server.address, ["submit", nii, "--regions", "99"])
+    assert str(e.value) in err.splitlines(), err
+    assert e.value.exit_code == rc == 1
+    # The volume made for the refused job is deleted again, as the CLI does.
+    assert volume_names(client) == before
+
+
+def test_spec_mistakes_are_refused_before_anything_is_sent(client, tmp_path):
+    nii = write_tiny_nifti(tmp_path / "s.nii", seed=7)
+    before = volume_names(client)
+    with pytest.raises(errors.InputError, match="unknown job parameter 'regoins'"):
+        client.submit(nii, regoins=3)
+    with pytest.raises(errors.InputError, match="policy='fast': not one of paper"):
+        client.submit(nii, policy="fast")
+    with pytest.raises(errors.InputError, match="regions='three'"):
+        client.submit(nii, regions="three")
+    with pytest.raises(errors.InputError, match="unknown weight 'w_x'"):
+        client.submit(nii, weights={"w_x": 1})
+    assert volume_names(client) == before
+
+
+def test_a_wrong_token_raises_unauthenticated_as_the_cli(server, cli_bin, tmp_path):
+    nii = write_tiny_nifti(tmp_path / "t.nii", seed=8)
+    wrong = decima_client.Client(server.address, token="not-the-token", timeout=10)
+    with pytest.raises(errors.Unauthenticated) as e:
+        wrong.submit(nii)
+    rc, _, err = run_cli(cli_bin, server.address, ["submit", nii], token="not-the-token")
+    assert str(e.value) in err.splitlines(), err
+    assert e.value.exit_code == rc == 7
+    with pytest.raises(errors.Unauthenticated):
+        wrong.list()
+    with pytest.raises(errors.Unauthenticated):  # no token at all
+        decima_client.Client(server.address, token="", timeout=10).list()
+
+
+def test_a_missing_file_raises_missing_input_error_as_the_cli(client, cli_bin, server, tmp_path):
+    missing = str(tmp_path / "no-such-scan.nii.gz")
+    with pytest.raises(errors.MissingInputError) as e:
+        client.submit(missing, regions=3)
+    assert isinstance(e.value, FileNotFoundError)
+    rc, _, err = run_cli(cli_bin, server.address, ["submit", missing, "--regions", "3"])
+    assert str(e.value) == first_line(err) == f"decima: {missing}: no such file or folder"
+    assert e.value.exit_code == rc == 2
+
+
+def test_an_unreachable_server_fails_fast_as_the_cli(cli_bin, tmp_path):
+    port = free_port()
+    address = f"127.0.0.1:{port}"
+    client = decima_client.Client(address, timeout=30)
+    start = time.monotonic()
+    with pytest.raises(errors.ServerUnreachable) as e:
+        client.list()
+    took = time.monotonic() - start
+    assert took < 6, took  # at most min(5 s, timeout) for the connection, never the 30 s
+    ours = first_line(str(e.value))
+    rc, _, err = run_cli(cli_bin, address, ["list"], token="")
+    theirs = first_line(err)
+    # The same words; only where the address came from differs (--server vs Client(address)).
+    prefix = f"decima: list: cannot reach decima-server at {address} ("
+    suffix = "): connection refused or failed"
+    assert ours.startswith(prefix) and ours.endswith(suffix), ours
+    assert theirs.startswith(prefix) and theirs.endswith(suffix), theirs
+    assert e.value.exit_code == rc == 8
+    # submit and watch fail the same way (a submit checks its input first).
+    nii = write_tiny_nifti(tmp_path / "u.nii")
+    with pytest.raises(errors.ServerUnreachable, match="decima: submit: cannot reach"):
+        client.submit(nii)
+
+
+def test_fetch_with_a_reduction_says_the_server_offers_no_levels(client, tmp_path):
+    job = client.submit(write_tiny_nifti(tmp_path / "f.nii", seed=9), **QUICK).wait(timeout=120)
+    with pytest.raises(errors.LevelsNotOffered, match="does not offer levels of detail yet"):
+        job.fetch(tmp_path / "lod", reduction=0.8)
+    assert not (tmp_path / "lod").exists()
+    assert job.fetch(tmp_path / "lod", reduction=None)
+
+
+def test_a_failed_job_raises_job_failed_with_the_server_reason(client, tmp_path):
+    client._create_job_metadata = (("decima-test-fault", "crash"),)
+    job = client.submit(write_tiny_nifti(tmp_path / "x.nii", seed=10), **QUICK)
+    with pytest.raises(errors.JobFailed) as e:
+        job.wait(timeout=120)
+    assert e.value.job.state == jobs_pb2.FAILED
+    assert e.value.job.error.message and e.value.job.error.message in str(e.value)
+    assert e.value.exit_code == 3
