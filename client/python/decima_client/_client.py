@@ -54,6 +54,12 @@ _KIND_FILES = {"vtu": "mesh.vtu", "msh": "mesh.msh", "medit": "mesh.mesh",
 _FINAL = (jobs_pb2.SUCCEEDED, jobs_pb2.FAILED, jobs_pb2.CANCELLED)
 
 
+def _duration(seconds):
+    """"0:05", "1:02:03", as the CLI's FormatDuration."""
+    s = int(seconds + 0.5)
+    return f"{s // 3600}:{s // 60 % 60:02d}:{s % 60:02d}" if s >= 3600 else f"{s // 60}:{s % 60:02d}"
+
+
 def _matches(file_name, only):
     """Whether an artifact file is selected by `only` (file names or kinds; empty: all)."""
     if not only:
@@ -211,7 +217,7 @@ class Client:
                         raise queue.Empty
                     state = states.get(timeout=remaining)
                 except queue.Empty:
-                    raise self._unreachable(what, f"no answer within {limit:g} s") from None
+                    raise self._unreachable(what, f"no answer within {_duration(limit)}") from None
                 if state == grpc.ChannelConnectivity.READY:
                     break
                 if state in (grpc.ChannelConnectivity.TRANSIENT_FAILURE,

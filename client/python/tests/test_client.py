@@ -6,6 +6,7 @@ import hashlib
 import json
 import os
 import signal
+import socket
 import time
 
 import pytest
@@ -254,3 +255,69 @@ def test_a_failed_job_raises_job_failed_with_the_server_reason(client, tmp_path)
     assert e.value.job.state == jobs_pb2.FAILED
     assert e.value.job.error.message and e.value.job.error.message in str(e.value)
     assert e.value.exit_code == 3
+
+
+def test_a_server_that_never_answers_fails_within_the_deadline_as_the_cli(cli_bin):
+    # A socket that listens (the kernel completes the TCP handshake) but never speaks HTTP/2.
+    with socket.socket() as silent:
+        silent.bind(("127.0.0.1", 0))
+        silent.listen(8)
+        address = "127.0.0.1:%d" % silent.getsockname()[1]
+        client = decima_client.Client(address, timeout=2)
+        start = time.monotonic()
+        with pytest.raises(errors.ServerUnreachable) as e:
+            client.list()
+        assert time.monotonic() - start < 5
+        rc, _, err = run_cli(cli_bin, address, ["--timeout", "2", "list"], token="")
+    ours, theirs = first_line(str(e.value)), first_line(err)
+    assert ours.endswith("): no answer within 0:02"), ours
+    assert theirs.endswith("): no answer within 0:02"), theirs
+    assert ours.split(" (")[0] == theirs.split(" (")[0]
+    assert e.value.exit_code == rc == 8
+
+
+def test_a_server_that_stops_answering_mid_watch_raises_deadline_exceeded(server_bin, tmp_path):
+    srv = Server(server_bin, str(tmp_path))
+    try:
+        client = decima_client.Client(srv.address, token=TOKEN, timeout=2, reconnect=5)
+        client._create_job_metadata = (("decima-test-fault", "sleep:60"),)
+        job = client.submit(write_tiny_nifti(tmp_path / "h.nii", seed=11), **QUICK)
+        events = job.watch()
+        next(events)  # the snapshot: the stream is up
+        os.kill(srv.proc.pid, signal.SIGSTOP)  # the connection stays open, nothing answers
+        start = time.monotonic()
+        try:
+            with pytest.raises(errors.DeadlineExceeded, match=f"watch {job.name}: DEADLINE"):
+                for _ in events:
+                    pass
+            took = time.monotonic() - start
+            # One stream's deadline, then a new stream that gets not even the snapshot.
+            assert took < 3 * 2 + 2, took
+            with pytest.raises(errors.DeadlineExceeded):
+                client.list()
+        finally:
+            os.kill(srv.proc.pid, signal.SIGCONT)
+        client.cancel(job)
+        client.close()
+    finally:
+        srv.stop(signal.SIGKILL)
+
+
+def test_a_metaimage_header_goes_up_with_its_data_file(client, tmp_path):
+    nii = write_tiny_nifti(tmp_path / "m.nii", seed=12)
+    with open(nii, "rb") as f:
+        raw = f.read()[352:]
+    (tmp_path / "m.raw").write_bytes(raw)
+    (tmp_path / "m.mhd").write_text(
+        "ObjectType = Image\nNDims = 3\nDimSize = 12 10 8\nElementType = MET_SHORT\n"
+        "ElementSpacing = 2 2 2\nElementDataFile = m.raw\n")
+    job = client.submit(str(tmp_path / "m.mhd"), **QUICK)
+    vol = client._volumes.GetVolume(volumes_pb2.GetVolumeRequest(name=job.proto.spec.volume),
+                                    timeout=10, metadata=client._metadata())
+    assert sorted(f.path for f in vol.files) == ["m.mhd", "m.raw"]
+    assert list(vol.dims) == [12, 10, 8]
+    assert job.wait(timeout=120).state == "SUCCEEDED"
+    (tmp_path / "m2.mhd").write_text("ObjectType = Image\nElementDataFile = ../elsewhere.raw\n")
+    with pytest.raises(errors.InputError, match="outside the header's folder"):
+        client.submit(str(tmp_path / "m2.mhd"))
+
