@@ -15,9 +15,9 @@ decima_client.proto (jobs_pb2, volumes_pb2, ...).
 from . import errors
 from ._client import DEFAULT_SERVER, Client, Job
 from .errors import (DecimaError, InputError, JobCancelled, JobFailed, LevelsNotOffered,
-                     MissingInputError, ServerUnreachable)
+                     MissingDependencyError, MissingInputError, ServerUnreachable)
 
 __version__ = "0.1.0"
 __all__ = ["Client", "Job", "DEFAULT_SERVER", "errors", "DecimaError", "InputError",
            "MissingInputError", "ServerUnreachable", "JobFailed", "JobCancelled",
-           "LevelsNotOffered"]
+           "LevelsNotOffered", "MissingDependencyError"]

@@ -725,6 +725,21 @@ class Job:
             paths.append(metrics)
         return paths
 
+    def label_map(self, out_dir=None):
+        """labels.nii.gz as a numpy array indexed [x, y, z] (needs numpy and python3-vtk9;
+        MissingDependencyError without). Fetched into out_dir, or a temporary folder."""
+        from . import _arrays
+
+        return _arrays.label_map(self, out_dir)
+
+    def mesh(self, out_dir=None):
+        """mesh.vtu as numpy arrays: {"points": (N, 3) mm, "tets": (M, 4) vertex indices,
+        "scalar", "label", ... (the file's point and cell arrays)} (needs numpy and
+        python3-vtk9; MissingDependencyError without)."""
+        from . import _arrays
+
+        return _arrays.mesh(self, out_dir)
+
     def _download(self, artifact, out_dir):
         """One artifact via FILE.part, resumed from its size, checked, renamed; its path.
         Raises grpc.RpcError for the call, DecimaError for the rest."""

@@ -49,6 +49,10 @@ class MissingInputError(InputError, FileNotFoundError):
     """The file or folder to submit does not exist."""
 
 
+class MissingDependencyError(DecimaError):
+    """An optional module (numpy, VTK) that the call needs is not installed."""
+
+
 class RpcError(DecimaError):
     """A call the server (or gRPC) answered with an error status."""
 

@@ -321,3 +321,47 @@ def test_a_metaimage_header_goes_up_with_its_data_file(client, tmp_path):
     with pytest.raises(errors.InputError, match="outside the header's folder"):
         client.submit(str(tmp_path / "m2.mhd"))
 
+
+def test_the_label_map_and_the_mesh_come_as_numpy_arrays(client, tmp_path):
+    numpy = pytest.importorskip("numpy")
+    pytest.importorskip("vtkmodules")
+    job = client.submit(write_tiny_nifti(tmp_path / "a.nii", seed=13), **QUICK).wait(timeout=120)
+    labels = job.label_map()
+    assert labels.shape == (12, 10, 8)
+    # Against the file's own bytes, read without VTK: the same voxels in the same order.
+    import gzip
+    import struct
+    [path] = job.fetch(tmp_path / "raw", outputs="labels")
+    with open(path, "rb") as f:
+        raw = gzip.decompress(f.read())
+    dims = struct.unpack_from("<4h", raw, 40)
+    datatype, bitpix = struct.unpack_from("<hh", raw, 70)
+    offset = int(struct.unpack_from("<f", raw, 108)[0])
+    assert dims[:4] == (3, 12, 10, 8) and (datatype, bitpix) == (2, 8)  # uint8
+    expected = numpy.frombuffer(raw, numpy.uint8, 12 * 10 * 8, offset).reshape(8, 10, 12)
+    assert (labels == expected.transpose(2, 1, 0)).all()
+    assert list(numpy.bincount(labels.ravel())) == job.metrics["segmentation"]["region_voxels"]
+
+    mesh = job.mesh(tmp_path / "mesh")
+    assert (tmp_path / "mesh" / "mesh.vtu").exists()
+    assert mesh["tets"].shape == (job.metrics["simplification"]["cells_after"], 4)
+    assert mesh["points"].shape[1] == 3
+    assert 0 <= mesh["tets"].min() and mesh["tets"].max() < len(mesh["points"])
+    assert len(mesh["region"]) == len(mesh["tets"])
+    assert set(numpy.unique(mesh["label"])) <= {0, 1}
+    # Patient coordinates in mm: the grid of voxel centres spans 11 x 9 x 7 voxels of 2 mm.
+    span = mesh["points"].max(axis=0) - mesh["points"].min(axis=0)
+    assert numpy.allclose(span, [22, 18, 14]), span
+
+    # Without VTK (or numpy) the arrays are a typed error that says what to install.
+    import sys
+    saved = sys.modules.get("vtkmodules.util")
+    sys.modules["vtkmodules.util"] = None
+    try:
+        with pytest.raises(errors.MissingDependencyError, match="python3-vtk9"):
+            job.mesh()
+    finally:
+        if saved is None:
+            del sys.modules["vtkmodules.util"]
+        else:
+            sys.modules["vtkmodules.util"] = saved
