@@ -5,8 +5,10 @@ error whose text is the line the real `decima` CLI prints for the same failure."
 import hashlib
 import json
 import os
+import shutil
 import signal
 import socket
+import subprocess
 import time
 
 import pytest
@@ -365,3 +367,61 @@ def test_the_label_map_and_the_mesh_come_as_numpy_arrays(client, tmp_path):
             del sys.modules["vtkmodules.util"]
         else:
             sys.modules["vtkmodules.util"] = saved
+
+
+def test_an_upload_over_the_servers_limit_carries_the_limit_in_the_error_detail(server_bin,
+                                                                               cli_bin,
+                                                                               tmp_path):
+    srv = Server(server_bin, str(tmp_path), extra=["--max-upload-mb", "1"])
+    try:
+        big = tmp_path / "big.nii"
+        big.write_bytes(os.urandom(3 << 19))  # 1.5 MiB: refused on its declared size
+        client = decima_client.Client(srv.address, token=TOKEN, timeout=10)
+        with pytest.raises(errors.InvalidArgument) as e:
+            client.submit(str(big))
+        assert e.value.detail.field == "size_bytes"
+        assert (e.value.detail.limit, e.value.detail.limit_value) == ("max_upload_mb", 1)
+        rc, _, err = run_cli(cli_bin, srv.address, ["submit", str(big)])
+        assert str(e.value) in err.splitlines(), err
+        assert e.value.exit_code == rc == 1
+        client.close()
+    finally:
+        srv.stop()
+
+
+def _make_pki(folder):
+    """A throwaway CA and a server certificate for 127.0.0.1, made with the openssl command."""
+    def openssl(*args):
+        subprocess.run(["openssl"] + list(args), cwd=folder, check=True, capture_output=True,
+                       timeout=60)
+
+    ec = ["-newkey", "ec", "-pkeyopt", "ec_paramgen_curve:prime256v1", "-nodes"]
+    openssl("req", "-x509", *ec, "-keyout", "ca.key", "-out", "ca.pem", "-days", "1", "-subj",
+            "/CN=decima-test-ca")
+    openssl("req", *ec, "-keyout", "server.key", "-out", "server.csr", "-subj", "/CN=127.0.0.1")
+    (folder / "ext").write_text("subjectAltName=IP:127.0.0.1,DNS:localhost\n")
+    openssl("x509", "-req", "-in", "server.csr", "-CA", "ca.pem", "-CAkey", "ca.key",
+            "-CAcreateserial", "-out", "server.pem", "-days", "1", "-extfile", "ext")
+
+
+def test_tls_with_the_servers_ca_and_refused_handshakes(server_bin, tmp_path):
+    if shutil.which("openssl") is None:
+        pytest.skip("the openssl command is not installed")
+    pki = tmp_path / "pki"
+    pki.mkdir()
+    _make_pki(pki)
+    srv = Server(server_bin, str(tmp_path),
+                 extra=["--tls-cert", str(pki / "server.pem"), "--tls-key", str(pki / "server.key")])
+    try:
+        with decima_client.Client(srv.address, token=TOKEN, ca_cert=str(pki / "ca.pem"),
+                                  timeout=10) as tls:
+            assert isinstance(tls.list(), list)
+        # The system's roots do not know the test CA: a refused handshake, said so.
+        with pytest.raises(errors.ServerUnreachable, match="refused handshake"):
+            decima_client.Client(srv.address, token=TOKEN, tls=True, timeout=5).list()
+        with pytest.raises(errors.ServerUnreachable):  # plaintext to a TLS server
+            decima_client.Client(srv.address, token=TOKEN, timeout=5).list()
+        with pytest.raises(errors.InputError, match="ca_cert .*no-such-ca.pem: cannot read"):
+            decima_client.Client(srv.address, ca_cert=str(tmp_path / "no-such-ca.pem"))
+    finally:
+        srv.stop()
