@@ -57,7 +57,9 @@ _FINAL = (jobs_pb2.SUCCEEDED, jobs_pb2.FAILED, jobs_pb2.CANCELLED)
 def _duration(seconds):
     """"0:05", "1:02:03", as the CLI's FormatDuration."""
     s = int(seconds + 0.5)
-    return f"{s // 3600}:{s // 60 % 60:02d}:{s % 60:02d}" if s >= 3600 else f"{s // 60}:{s % 60:02d}"
+    if s >= 3600:
+        return f"{s // 3600}:{s // 60 % 60:02d}:{s % 60:02d}"
+    return f"{s // 60}:{s % 60:02d}"
 
 
 def _matches(file_name, only):
@@ -315,7 +317,8 @@ class Client:
                         first, pos = False, pos + n
 
             try:
-                self._uploads.Upload(requests(), timeout=self.timeout + (f.size - offset) / _MIN_RATE,
+                self._uploads.Upload(requests(),
+                                     timeout=self.timeout + (f.size - offset) / _MIN_RATE,
                                      metadata=self._metadata())
                 if offset:
                     log.info("resumed upload of %s at byte %d of %d", f.name, offset, f.size)

@@ -8,8 +8,8 @@ pytest (Debian's python3-pytest) in that venv against the real decima-server.
 usage: run_tests.py SERVER_BIN CLI_BIN WORK_DIR SHARED_DATA [--require FILE] [pytest args...]
 Exit 77 (ctest: skipped) when python3-grpcio, python3-protobuf, python3-pytest or venv is
 missing, when --require names a file that is not in SHARED_DATA (checked before the venv is
-made), or when every test skipped; else pytest's exit code. Prints the install time and, when the CT head ran, its
-figures as one JSON line.
+made), or when every test skipped; else pytest's exit code. Prints the venv and install times
+and, when the CT head ran, its figures as one JSON line.
 """
 import importlib.util
 import json

@@ -411,7 +411,8 @@ def test_tls_with_the_servers_ca_and_refused_handshakes(server_bin, tmp_path):
     pki.mkdir()
     _make_pki(pki)
     srv = Server(server_bin, str(tmp_path),
-                 extra=["--tls-cert", str(pki / "server.pem"), "--tls-key", str(pki / "server.key")])
+                 extra=["--tls-cert", str(pki / "server.pem"),
+                        "--tls-key", str(pki / "server.key")])
     try:
         with decima_client.Client(srv.address, token=TOKEN, ca_cert=str(pki / "ca.pem"),
                                   timeout=10) as tls:
