@@ -9,6 +9,7 @@ import shutil
 import signal
 import socket
 import subprocess
+import threading
 import time
 
 import pytest
@@ -426,3 +427,59 @@ def test_tls_with_the_servers_ca_and_refused_handshakes(server_bin, tmp_path):
             decima_client.Client(srv.address, ca_cert=str(tmp_path / "no-such-ca.pem"))
     finally:
         srv.stop()
+
+
+def test_a_retried_submit_with_a_request_id_returns_the_same_job(client, tmp_path):
+    nii = write_tiny_nifti(tmp_path / "i.nii", seed=14)
+    first = client.submit(nii, request_id="pytest-request-1", **QUICK)
+    again = client.submit(nii, request_id="pytest-request-1", **QUICK)
+    assert again.name == first.name
+    assert again.proto.spec.volume == first.proto.spec.volume  # the volume's id is derived too
+    with pytest.raises(errors.AlreadyExists, match=first.name):  # same id, another spec
+        client.submit(nii, request_id="pytest-request-1", regions=3)
+    first.wait(timeout=120)
+
+
+def test_unary_calls_ride_out_a_server_restart(server_bin, tmp_path):
+    srv = Server(server_bin, str(tmp_path), port=free_port())
+    try:
+        client = decima_client.Client(srv.address, token=TOKEN, timeout=10, reconnect=30)
+        assert client.list() == []  # connected once: from now on UNAVAILABLE is a restart
+        srv.stop()
+        restart = threading.Timer(1.0, srv.start)
+        restart.start()
+        start = time.monotonic()
+        try:
+            assert client.list() == []  # retried until the server is back
+        finally:
+            restart.join(timeout=40)
+        assert time.monotonic() - start >= 0.5
+        client.close()
+    finally:
+        srv.stop(signal.SIGKILL)
+
+
+def test_a_dicom_folder_goes_up_as_the_cli_sends_it(client, cli_bin, server, tmp_path):
+    series = os.path.join(os.environ.get("DECIMA_SHARED_DATA", ""), "ct-head-256x256x113-dicom")
+    if not os.path.isdir(series):
+        pytest.skip(f"the shared DICOM series is absent ({series})")
+    folder = tmp_path / "series"
+    shutil.copytree(series, folder)
+    (folder / "notes.txt").write_text("scanned on the old CT\n")  # no DICM marker: skipped
+    (folder / "DICOMDIR").write_bytes(b"a directory record, not an image")
+    job = client.submit(str(folder), **QUICK)
+    ours = client._volumes.GetVolume(volumes_pb2.GetVolumeRequest(name=job.proto.spec.volume),
+                                     timeout=10, metadata=client._metadata())
+    client.cancel(job)
+    rc, out, err = run_cli(cli_bin, server.address, ["submit", str(folder)])
+    assert rc == 0, err
+    theirs_job = client.job(first_line(out))
+    theirs = client._volumes.GetVolume(
+        volumes_pb2.GetVolumeRequest(name=theirs_job.proto.spec.volume), timeout=10,
+        metadata=client._metadata())
+    client.cancel(theirs_job)
+    assert ours.format == volumes_pb2.VOLUME_FORMAT_DICOM
+    assert [(f.path, f.blob) for f in ours.files] == [(f.path, f.blob) for f in theirs.files]
+    # Every slice, and neither the note, the DICOMDIR nor the folder's SHA256SUMS.
+    assert sorted(f.path for f in ours.files) == sorted(
+        n for n in os.listdir(series) if n.endswith(".dcm"))
