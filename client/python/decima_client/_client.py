@@ -52,6 +52,29 @@ _KIND_FILES = {"vtu": "mesh.vtu", "msh": "mesh.msh", "medit": "mesh.mesh",
                "labels": "labels.nii.gz", "segmentation": "segmentation.png",
                "report": "report.html", "curve": "curve.png", "metrics": "metrics.json"}
 _FINAL = (jobs_pb2.SUCCEEDED, jobs_pb2.FAILED, jobs_pb2.CANCELLED)
+# Each stage's share of a job, in seconds of the CT head job (field policy, 50 %, one 512 px
+# view): the CLI's weights (client/client_lib.cc kStageWeights, client/README.md), kept equal so
+# that a notebook's bar and `decima watch` agree. "curve" counts only for jobs that asked for it.
+_STAGE_WEIGHTS = (("load", 0.03), ("segment", 2.24), ("tetra", 1.74), ("simplify", 14.8),
+                  ("write", 0.85), ("render", 7.16), ("curve", 41.4), ("diff", 0.05))
+
+
+def overall_fraction(progress, with_curve=False):
+    """A job's overall progress, 0..1, from a decima.v1.Progress (its stage and the fraction
+    within it), weighting the stages as the CLI's bar does; 0 for an unknown stage."""
+    total = before = own = 0.0
+    found = False
+    for stage, seconds in _STAGE_WEIGHTS:
+        if stage == "curve" and not with_curve:
+            continue
+        if stage == progress.stage:
+            found, own = True, seconds
+        elif not found:
+            before += seconds
+        total += seconds
+    if not found:
+        return 0.0
+    return min(max((before + own * min(max(progress.fraction, 0.0), 1.0)) / total, 0.0), 1.0)
 
 
 def _duration(seconds):
@@ -565,6 +588,13 @@ class Job:
     @property
     def progress(self):
         return self.proto.progress
+
+    @property
+    def overall(self):
+        """Overall progress 0..1 across the stages (1 once SUCCEEDED), as `decima watch`."""
+        if self.proto.state == jobs_pb2.SUCCEEDED:
+            return 1.0
+        return overall_fraction(self.proto.progress, "curve" in self.proto.spec.outputs)
 
     @property
     def metrics(self):

@@ -52,6 +52,11 @@ def test_submit_watch_wait_and_fetch_a_tiny_volume(client, tmp_path):
     assert sum(e.WhichOneof("kind") == "progress" for e in events) >= 1
     assert events[-1].state_change.state == jobs_pb2.SUCCEEDED
     assert job.state == "SUCCEEDED"
+    # The overall fraction (the CLI's bar) never goes back and ends at 1.
+    overall = [decima_client.overall_fraction(e.progress) for e in events
+               if e.WhichOneof("kind") == "progress"]
+    assert overall == sorted(overall) and overall[-1] == pytest.approx(1.0), overall
+    assert job.overall == 1.0
 
     assert job.wait(timeout=30) is job  # a final job: wait returns at once
 
