@@ -2,6 +2,7 @@
 restart), wait, fetch (also resumed), list, cancel, delete, series; and the bad inputs of issue
 33 (a bad spec, a wrong token, a missing file, an unreachable server), each raising a typed
 error whose text is the line the real `decima` CLI prints for the same failure."""
+import gzip
 import hashlib
 import json
 import os
@@ -337,7 +338,6 @@ def test_the_label_map_and_the_mesh_come_as_numpy_arrays(client, tmp_path):
     labels = job.label_map()
     assert labels.shape == (12, 10, 8)
     # Against the file's own bytes, read without VTK: the same voxels in the same order.
-    import gzip
     import struct
     [path] = job.fetch(tmp_path / "raw", outputs="labels")
     with open(path, "rb") as f:
@@ -488,3 +488,26 @@ def test_a_dicom_folder_goes_up_as_the_cli_sends_it(client, cli_bin, server, tmp
     # Every slice, and neither the note, the DICOMDIR nor the folder's SHA256SUMS.
     assert sorted(f.path for f in ours.files) == sorted(
         n for n in os.listdir(series) if n.endswith(".dcm"))
+
+
+def test_the_readme_notebook_example_runs_as_written(server, tmp_path, monkeypatch, capsys):
+    readme = os.path.join(os.environ.get("DECIMA_PYCLIENT_SRC", ""), "README.md")
+    if not os.path.isfile(readme):
+        pytest.skip("DECIMA_PYCLIENT_SRC does not hold README.md (run through ctest)")
+    with open(readme, encoding="utf-8") as f:
+        text = f.read()
+    code = text.split("## In a notebook", 1)[1].split("```python\n", 1)[1].split("```", 1)[0]
+    assert len(code.strip().splitlines()) <= 10
+    # Only the address differs (a free port here); the token comes from DECIMA_TOKEN.
+    assert code.count('"127.0.0.1:50051"') == 1
+    code = code.replace('"127.0.0.1:50051"', f'"{server.address}"')
+    monkeypatch.setenv("DECIMA_TOKEN", TOKEN)
+    monkeypatch.chdir(tmp_path)
+    nii = write_tiny_nifti(tmp_path / "tiny.nii", seed=15)
+    with open(nii, "rb") as f, gzip.open(tmp_path / "ct-head.nii.gz", "wb") as out:
+        out.write(f.read())
+    exec(compile(code, "README.md", "exec"), {})
+    printed = capsys.readouterr().out
+    assert "100%" in printed and "mesh.vtu" in printed
+    assert (tmp_path / "result" / "mesh.vtu").exists()
+    assert (tmp_path / "result" / "labels.nii.gz").exists()
