@@ -18,6 +18,6 @@ from .errors import (DecimaError, InputError, JobCancelled, JobFailed, LevelsNot
                      MissingDependencyError, MissingInputError, ServerUnreachable)
 
 __version__ = "0.1.0"
-__all__ = ["Client", "Job", "DEFAULT_SERVER", "overall_fraction", "errors", "DecimaError", "InputError",
-           "MissingInputError", "ServerUnreachable", "JobFailed", "JobCancelled",
+__all__ = ["Client", "Job", "DEFAULT_SERVER", "overall_fraction", "errors", "DecimaError",
+           "InputError", "MissingInputError", "ServerUnreachable", "JobFailed", "JobCancelled",
            "LevelsNotOffered", "MissingDependencyError"]
