@@ -5,6 +5,7 @@ with. Every process is started here and stopped by its PID; every wait is bounde
 Environment (set by run_tests.py from CMake): DECIMA_SERVER_BIN, DECIMA_CLI_BIN, and
 DECIMA_SHARED_DATA (the folder of the real volumes; tests that need them skip without it).
 """
+import hashlib
 import os
 import signal
 import socket
@@ -112,6 +113,28 @@ def client(server):
 
     with decima_client.Client(server.address, token=TOKEN, timeout=30, reconnect=30) as c:
         yield c
+
+
+# Small and quick: a 12x10x8 volume, 64 px pictures.
+QUICK = {"regions": 2, "image_size": 64}
+
+
+def sha256(path):
+    with open(path, "rb") as f:
+        return hashlib.sha256(f.read()).hexdigest()
+
+
+def first_line(text):
+    return text.strip().splitlines()[0] if text.strip() else ""
+
+
+def volume_names(client):
+    """The names of every volume on the client's server."""
+    from decima_client.proto import volumes_pb2
+
+    resp = client._volumes.ListVolumes(volumes_pb2.ListVolumesRequest(page_size=1000),
+                                       timeout=10, metadata=client._metadata())
+    return {v.name for v in resp.volumes}
 
 
 def run_cli(cli_bin, address, args, token=TOKEN, timeout=60):

@@ -1,15 +1,12 @@
-"""decima_client against a real decima-server on loopback: submit, watch (also across a server
-restart), wait, fetch (also resumed), list, cancel, delete, series; and the bad inputs of issue
-33 (a bad spec, a wrong token, a missing file, an unreachable server), each raising a typed
-error whose text is the line the real `decima` CLI prints for the same failure."""
+"""decima_client against a real decima-server on loopback, the paths of a job: submit (a file,
+a MetaImage header, a DICOM folder, a retried request id), watch (also across a server
+restart), wait, fetch (also resumed), the numpy arrays, list, cancel, delete, series, and the
+README's notebook example. The bad inputs are in test_errors.py."""
 import gzip
-import hashlib
 import json
 import os
 import shutil
 import signal
-import socket
-import subprocess
 import threading
 import time
 
@@ -19,25 +16,8 @@ import decima_client
 from decima_client import errors
 from decima_client.proto import jobs_pb2, volumes_pb2
 
-from conftest import TOKEN, Server, free_port, run_cli, write_tiny_nifti
-
-# Small and quick: a 12x10x8 volume, 64 px pictures.
-QUICK = {"regions": 2, "image_size": 64}
-
-
-def sha256(path):
-    with open(path, "rb") as f:
-        return hashlib.sha256(f.read()).hexdigest()
-
-
-def first_line(text):
-    return text.strip().splitlines()[0] if text.strip() else ""
-
-
-def volume_names(client):
-    resp = client._volumes.ListVolumes(volumes_pb2.ListVolumesRequest(page_size=1000),
-                                       timeout=10, metadata=client._metadata())
-    return {v.name for v in resp.volumes}
+from conftest import (QUICK, TOKEN, Server, first_line, free_port, run_cli, sha256,
+                      write_tiny_nifti)
 
 
 def test_submit_watch_wait_and_fetch_a_tiny_volume(client, tmp_path):
@@ -126,7 +106,7 @@ def test_watch_reconnects_across_a_server_restart_and_misses_no_event(server_bin
         assert sequences == list(range(1, len(sequences) + 1)), sequences
         client.close()
     finally:
-        srv.stop(signal.SIGKILL)
+        srv.stop()  # SIGTERM: the server stops its job processes too
 
 
 def test_cancel_stops_a_running_job_and_wait_raises_job_cancelled(client, tmp_path):
@@ -171,83 +151,6 @@ def test_series_lists_what_the_receiver_got(client, cli_bin, server):
     assert rc == 0 and "no series received" in err
 
 
-def test_a_bad_spec_raises_invalid_argument_with_the_field_as_the_cli(client, cli_bin, server,
-                                                                      tmp_path):
-    nii = write_tiny_nifti(tmp_path / "bad.nii", seed=6)
-    before = volume_names(client)
-    with pytest.raises(errors.InvalidArgument) as e:
-        client.submit(nii, regions=99)
-    assert e.value.detail.field == "spec.regions"
-    assert e.value.code.name == "INVALID_ARGUMENT"
-    rc, _, err = run_cli(cli_bin, server.address, ["submit", nii, "--regions", "99"])
-    assert str(e.value) in err.splitlines(), err
-    assert e.value.exit_code == rc == 1
-    # The volume made for the refused job is deleted again, as the CLI does.
-    assert volume_names(client) == before
-
-
-def test_spec_mistakes_are_refused_before_anything_is_sent(client, tmp_path):
-    nii = write_tiny_nifti(tmp_path / "s.nii", seed=7)
-    before = volume_names(client)
-    with pytest.raises(errors.InputError, match="unknown job parameter 'regoins'"):
-        client.submit(nii, regoins=3)
-    with pytest.raises(errors.InputError, match="policy='fast': not one of paper"):
-        client.submit(nii, policy="fast")
-    with pytest.raises(errors.InputError, match="regions='three'"):
-        client.submit(nii, regions="three")
-    with pytest.raises(errors.InputError, match="unknown weight 'w_x'"):
-        client.submit(nii, weights={"w_x": 1})
-    assert volume_names(client) == before
-
-
-def test_a_wrong_token_raises_unauthenticated_as_the_cli(server, cli_bin, tmp_path):
-    nii = write_tiny_nifti(tmp_path / "t.nii", seed=8)
-    wrong = decima_client.Client(server.address, token="not-the-token", timeout=10)
-    with pytest.raises(errors.Unauthenticated) as e:
-        wrong.submit(nii)
-    rc, _, err = run_cli(cli_bin, server.address, ["submit", nii], token="not-the-token")
-    assert str(e.value) in err.splitlines(), err
-    assert e.value.exit_code == rc == 7
-    with pytest.raises(errors.Unauthenticated):
-        wrong.list()
-    with pytest.raises(errors.Unauthenticated):  # no token at all
-        decima_client.Client(server.address, token="", timeout=10).list()
-
-
-def test_a_missing_file_raises_missing_input_error_as_the_cli(client, cli_bin, server, tmp_path):
-    missing = str(tmp_path / "no-such-scan.nii.gz")
-    with pytest.raises(errors.MissingInputError) as e:
-        client.submit(missing, regions=3)
-    assert isinstance(e.value, FileNotFoundError)
-    rc, _, err = run_cli(cli_bin, server.address, ["submit", missing, "--regions", "3"])
-    assert str(e.value) == first_line(err) == f"decima: {missing}: no such file or folder"
-    assert e.value.exit_code == rc == 2
-
-
-def test_an_unreachable_server_fails_fast_as_the_cli(cli_bin, tmp_path):
-    port = free_port()
-    address = f"127.0.0.1:{port}"
-    client = decima_client.Client(address, timeout=30)
-    start = time.monotonic()
-    with pytest.raises(errors.ServerUnreachable) as e:
-        client.list()
-    took = time.monotonic() - start
-    assert took < 6, took  # at most min(5 s, timeout) for the connection, never the 30 s
-    ours = first_line(str(e.value))
-    rc, _, err = run_cli(cli_bin, address, ["list"], token="")
-    theirs = first_line(err)
-    # The same words; only where the address came from differs (--server vs Client(address)).
-    prefix = f"decima: list: cannot reach decima-server at {address} ("
-    suffix = "): connection refused or failed"
-    assert ours.startswith(prefix) and ours.endswith(suffix), ours
-    assert theirs.startswith(prefix) and theirs.endswith(suffix), theirs
-    assert e.value.exit_code == rc == 8
-    # submit and watch fail the same way (a submit checks its input first).
-    nii = write_tiny_nifti(tmp_path / "u.nii")
-    with pytest.raises(errors.ServerUnreachable, match="decima: submit: cannot reach"):
-        client.submit(nii)
-
-
 def test_fetch_with_a_reduction_says_the_server_offers_no_levels(client, tmp_path):
     job = client.submit(write_tiny_nifti(tmp_path / "f.nii", seed=9), **QUICK).wait(timeout=120)
     with pytest.raises(errors.LevelsNotOffered, match="does not offer levels of detail yet"):
@@ -264,52 +167,6 @@ def test_a_failed_job_raises_job_failed_with_the_server_reason(client, tmp_path)
     assert e.value.job.state == jobs_pb2.FAILED
     assert e.value.job.error.message and e.value.job.error.message in str(e.value)
     assert e.value.exit_code == 3
-
-
-def test_a_server_that_never_answers_fails_within_the_deadline_as_the_cli(cli_bin):
-    # A socket that listens (the kernel completes the TCP handshake) but never speaks HTTP/2.
-    with socket.socket() as silent:
-        silent.bind(("127.0.0.1", 0))
-        silent.listen(8)
-        address = "127.0.0.1:%d" % silent.getsockname()[1]
-        client = decima_client.Client(address, timeout=2)
-        start = time.monotonic()
-        with pytest.raises(errors.ServerUnreachable) as e:
-            client.list()
-        assert time.monotonic() - start < 5
-        rc, _, err = run_cli(cli_bin, address, ["--timeout", "2", "list"], token="")
-    ours, theirs = first_line(str(e.value)), first_line(err)
-    assert ours.endswith("): no answer within 0:02"), ours
-    assert theirs.endswith("): no answer within 0:02"), theirs
-    assert ours.split(" (")[0] == theirs.split(" (")[0]
-    assert e.value.exit_code == rc == 8
-
-
-def test_a_server_that_stops_answering_mid_watch_raises_deadline_exceeded(server_bin, tmp_path):
-    srv = Server(server_bin, str(tmp_path))
-    try:
-        client = decima_client.Client(srv.address, token=TOKEN, timeout=2, reconnect=5)
-        client._create_job_metadata = (("decima-test-fault", "sleep:60"),)
-        job = client.submit(write_tiny_nifti(tmp_path / "h.nii", seed=11), **QUICK)
-        events = job.watch()
-        next(events)  # the snapshot: the stream is up
-        os.kill(srv.proc.pid, signal.SIGSTOP)  # the connection stays open, nothing answers
-        start = time.monotonic()
-        try:
-            with pytest.raises(errors.DeadlineExceeded, match=f"watch {job.name}: DEADLINE"):
-                for _ in events:
-                    pass
-            took = time.monotonic() - start
-            # One stream's deadline, then a new stream that gets not even the snapshot.
-            assert took < 3 * 2 + 2, took
-            with pytest.raises(errors.DeadlineExceeded):
-                client.list()
-        finally:
-            os.kill(srv.proc.pid, signal.SIGCONT)
-        client.cancel(job)
-        client.close()
-    finally:
-        srv.stop(signal.SIGKILL)
 
 
 def test_a_metaimage_header_goes_up_with_its_data_file(client, tmp_path):
@@ -375,65 +232,6 @@ def test_the_label_map_and_the_mesh_come_as_numpy_arrays(client, tmp_path):
             sys.modules["vtkmodules.util"] = saved
 
 
-def test_an_upload_over_the_servers_limit_carries_the_limit_in_the_error_detail(server_bin,
-                                                                               cli_bin,
-                                                                               tmp_path):
-    srv = Server(server_bin, str(tmp_path), extra=["--max-upload-mb", "1"])
-    try:
-        big = tmp_path / "big.nii"
-        big.write_bytes(os.urandom(3 << 19))  # 1.5 MiB: refused on its declared size
-        client = decima_client.Client(srv.address, token=TOKEN, timeout=10)
-        with pytest.raises(errors.InvalidArgument) as e:
-            client.submit(str(big))
-        assert e.value.detail.field == "size_bytes"
-        assert (e.value.detail.limit, e.value.detail.limit_value) == ("max_upload_mb", 1)
-        rc, _, err = run_cli(cli_bin, srv.address, ["submit", str(big)])
-        assert str(e.value) in err.splitlines(), err
-        assert e.value.exit_code == rc == 1
-        client.close()
-    finally:
-        srv.stop()
-
-
-def _make_pki(folder):
-    """A throwaway CA and a server certificate for 127.0.0.1, made with the openssl command."""
-    def openssl(*args):
-        subprocess.run(["openssl"] + list(args), cwd=folder, check=True, capture_output=True,
-                       timeout=60)
-
-    ec = ["-newkey", "ec", "-pkeyopt", "ec_paramgen_curve:prime256v1", "-nodes"]
-    openssl("req", "-x509", *ec, "-keyout", "ca.key", "-out", "ca.pem", "-days", "1", "-subj",
-            "/CN=decima-test-ca")
-    openssl("req", *ec, "-keyout", "server.key", "-out", "server.csr", "-subj", "/CN=127.0.0.1")
-    (folder / "ext").write_text("subjectAltName=IP:127.0.0.1,DNS:localhost\n")
-    openssl("x509", "-req", "-in", "server.csr", "-CA", "ca.pem", "-CAkey", "ca.key",
-            "-CAcreateserial", "-out", "server.pem", "-days", "1", "-extfile", "ext")
-
-
-def test_tls_with_the_servers_ca_and_refused_handshakes(server_bin, tmp_path):
-    if shutil.which("openssl") is None:
-        pytest.skip("the openssl command is not installed")
-    pki = tmp_path / "pki"
-    pki.mkdir()
-    _make_pki(pki)
-    srv = Server(server_bin, str(tmp_path),
-                 extra=["--tls-cert", str(pki / "server.pem"),
-                        "--tls-key", str(pki / "server.key")])
-    try:
-        with decima_client.Client(srv.address, token=TOKEN, ca_cert=str(pki / "ca.pem"),
-                                  timeout=10) as tls:
-            assert isinstance(tls.list(), list)
-        # The system's roots do not know the test CA: a refused handshake, said so.
-        with pytest.raises(errors.ServerUnreachable, match="refused handshake"):
-            decima_client.Client(srv.address, token=TOKEN, tls=True, timeout=5).list()
-        with pytest.raises(errors.ServerUnreachable):  # plaintext to a TLS server
-            decima_client.Client(srv.address, token=TOKEN, timeout=5).list()
-        with pytest.raises(errors.InputError, match="ca_cert .*no-such-ca.pem: cannot read"):
-            decima_client.Client(srv.address, ca_cert=str(tmp_path / "no-such-ca.pem"))
-    finally:
-        srv.stop()
-
-
 def test_a_retried_submit_with_a_request_id_returns_the_same_job(client, tmp_path):
     nii = write_tiny_nifti(tmp_path / "i.nii", seed=14)
     first = client.submit(nii, request_id="pytest-request-1", **QUICK)
@@ -451,17 +249,20 @@ def test_unary_calls_ride_out_a_server_restart(server_bin, tmp_path):
         client = decima_client.Client(srv.address, token=TOKEN, timeout=10, reconnect=30)
         assert client.list() == []  # connected once: from now on UNAVAILABLE is a restart
         srv.stop()
-        restart = threading.Timer(1.0, srv.start)
+        back = []
+        restart = threading.Timer(1.0, lambda: (srv.start(), back.append(time.monotonic())))
         restart.start()
-        start = time.monotonic()
         try:
             assert client.list() == []  # retried until the server is back
+            answered = time.monotonic()
         finally:
             restart.join(timeout=40)
-        assert time.monotonic() - start >= 0.5
+        assert back and answered > back[0]
+        # Found again within the retry pause (at most 2 s), not after gRPC's own backoff.
+        assert answered - back[0] < 4, answered - back[0]
         client.close()
     finally:
-        srv.stop(signal.SIGKILL)
+        srv.stop()  # SIGTERM: the server stops its job processes too
 
 
 def test_a_dicom_folder_goes_up_as_the_cli_sends_it(client, cli_bin, server, tmp_path):
