@@ -16,8 +16,9 @@ import shutil
 import subprocess
 import sys
 
-# The public API's files (proto/decima/v1); the server reflection proto is the server's own.
-PROTOS = ("errors.proto", "uploads.proto", "volumes.proto", "jobs.proto", "artifacts.proto")
+# The public API is every file of proto/decima/v1, found anew at each build so that a proto
+# added there is never missing from the package (the server reflection proto is the server's).
+API_DIR = ("decima", "v1")
 PACKAGE_PATH = "decima_client/proto"
 
 HERE = os.path.dirname(os.path.abspath(__file__))
@@ -33,10 +34,16 @@ def proto_dir():
     return os.environ.get("DECIMA_PROTO_DIR", DEFAULT_PROTO_DIR)
 
 
+def protos(root):
+    """The names of the .proto files of ROOT/decima/v1, sorted."""
+    v1 = os.path.join(root, *API_DIR)
+    return sorted(n for n in os.listdir(v1) if n.endswith(".proto")) if os.path.isdir(v1) else []
+
+
 def proto_digests(root):
     """{"jobs.proto": sha256 hex, ...} of the protos the stubs are made from."""
     out = {}
-    for name in PROTOS:
+    for name in protos(root):
         path = os.path.join(root, "decima", "v1", name)
         with open(path, "rb") as f:
             out[name] = hashlib.sha256(f.read()).hexdigest()
@@ -49,8 +56,11 @@ def generate(out_dir, root=None):
     Raises StubError naming the missing tool or proto file, or protoc's own message.
     """
     root = root or proto_dir()
-    v1 = os.path.join(root, "decima", "v1")
-    missing = [n for n in PROTOS if not os.path.isfile(os.path.join(v1, n))]
+    v1 = os.path.join(root, *API_DIR)
+    names = protos(root)
+    # The package's own modules import these; without them the protos are not Decima's.
+    missing = [n for n in ("errors.proto", "jobs.proto", "uploads.proto", "volumes.proto",
+                           "artifacts.proto") if n not in names]
     if missing:
         raise StubError(
             f"{v1}: missing {', '.join(missing)}; build from a Decima checkout "
@@ -64,7 +74,7 @@ def generate(out_dir, root=None):
     os.makedirs(target, exist_ok=True)
     cmd = [protoc, f"-I{PACKAGE_PATH}={v1}", f"--python_out={out_dir}",
            f"--grpc_python_out={out_dir}", f"--plugin=protoc-gen-grpc_python={plugin}"]
-    cmd += [os.path.join(v1, n) for n in PROTOS]
+    cmd += [os.path.join(v1, n) for n in names]
     run = subprocess.run(cmd, capture_output=True, text=True, check=False)
     if run.returncode != 0:
         raise StubError(f"{' '.join(cmd)} failed ({run.returncode}): {run.stderr.strip()}")

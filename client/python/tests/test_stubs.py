@@ -41,7 +41,8 @@ def test_installed_stubs_are_what_the_protos_generate(tmp_path):
     installed_dir = os.path.dirname(installed.__file__)
     assert differences(generated, installed_dir) == []
     assert installed.PROTO_SHA256 == gen.proto_digests(gen.proto_dir())
-    assert sorted(installed.PROTO_SHA256) == sorted(gen.PROTOS)
+    assert sorted(installed.PROTO_SHA256) == gen.protos(gen.proto_dir())
+    assert "jobs.proto" in installed.PROTO_SHA256
 
 
 def test_a_changed_proto_is_caught(tmp_path):
@@ -57,6 +58,17 @@ def test_a_changed_proto_is_caught(tmp_path):
     assert differences(generated, os.path.dirname(installed.__file__)) == ["__init__.py",
                                                                           "jobs_pb2.py"]
     assert gen.proto_digests(str(protos))["jobs.proto"] != installed.PROTO_SHA256["jobs.proto"]
+
+
+def test_a_new_proto_file_is_generated_too(tmp_path):
+    gen = _gen_stubs()
+    protos = tmp_path / "proto"
+    shutil.copytree(gen.proto_dir(), protos)
+    (protos / "decima" / "v1" / "later.proto").write_text(
+        'syntax = "proto3";\npackage decima.v1;\nmessage Later { int32 x = 1; }\n')
+    generated = gen.generate(str(tmp_path / "out"), str(protos))
+    assert os.path.isfile(os.path.join(generated, "later_pb2.py"))
+    assert "later_pb2.py" in differences(generated, os.path.dirname(installed.__file__))
 
 
 def test_every_rpc_of_the_protos_has_a_stub():
