@@ -13,6 +13,7 @@ import pytest
 
 import decima_client
 from decima_client import errors
+from decima_client.proto import jobs_pb2
 
 from conftest import (QUICK, TOKEN, Server, first_line, free_port, run_cli, volume_names,
                       write_tiny_nifti)
@@ -198,3 +199,25 @@ def test_tls_with_the_servers_ca_and_refused_handshakes(server_bin, tmp_path):
             decima_client.Client(srv.address, ca_cert=str(tmp_path / "no-such-ca.pem"))
     finally:
         srv.stop()
+
+
+def test_watching_an_unknown_job_raises_not_found_as_the_cli(client, cli_bin, server):
+    name = "jobs/00000000deadbeef"
+    job = decima_client.Job(client, jobs_pb2.Job(name=name))
+    with pytest.raises(errors.NotFound) as e:
+        list(job.watch())
+    rc, _, err = run_cli(cli_bin, server.address, ["watch", name])
+    assert str(e.value) in err.splitlines(), err
+    assert e.value.exit_code == rc == 6
+
+
+def test_wait_with_a_timeout_raises_deadline_exceeded_and_the_job_goes_on(client, tmp_path):
+    client._create_job_metadata = (("decima-test-fault", "sleep:60"),)
+    job = client.submit(write_tiny_nifti(tmp_path / "d.nii", seed=16), **QUICK)
+    start = time.monotonic()
+    with pytest.raises(errors.DeadlineExceeded, match="the job goes on on the server"):
+        job.wait(timeout=1)
+    # Checked at every event, heartbeats included (the server sends one a second here).
+    assert time.monotonic() - start < 1 + 3
+    assert job.refresh().state in ("QUEUED", "RUNNING")
+    assert client.cancel(job).state == "CANCELLED"
