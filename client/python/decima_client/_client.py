@@ -266,10 +266,10 @@ class Client:
 
     def _pause(self, seconds):
         """Waits `seconds`, or less when the channel is READY again, asking it to connect
-        meanwhile: left alone, gRPC retries a lost connection only when its backoff (1 s,
-        growing 1.6x to 120 s) expires, and found a server restarted 1.5 s after it went away
-        only ~10 s later. (The CLI resets the backoff; Python's gRPC has no call for that.)
-        A channel that is READY at once gets the whole pause."""
+        meanwhile: left alone, gRPC retries a lost connection only when its own backoff
+        (growing to minutes) expires, long after a restarted server is back (client/python
+        README). The CLI resets the backoff; Python's gRPC has no call for that. A channel that
+        is READY at once gets the whole pause."""
         start = time.monotonic()
         ready = grpc.channel_ready_future(self._channel)
         try:
