@@ -140,7 +140,8 @@ class Client:
     address: "host:port" (default $DECIMA_SERVER, else 127.0.0.1:50051).
     token: the bearer token (default $DECIMA_TOKEN).
     tls: False for plaintext, True for TLS with the system's roots; ca_cert (PEM roots, default
-      $DECIMA_CA_CERT), and cert + key (a client certificate for mutual TLS) imply TLS.
+      $DECIMA_CA_CERT), and cert + key (a client certificate for mutual TLS, default
+      $DECIMA_TLS_CERT and $DECIMA_TLS_KEY) imply TLS.
     timeout: deadline of each call, seconds (default $DECIMA_TIMEOUT, else 30).
     reconnect: how long a call or a watch keeps retrying a server that went away, seconds.
     """
@@ -166,7 +167,10 @@ class Client:
             raise errors.InputError(f"timeout={timeout!r}: expected seconds > 0")
         self.timeout = float(timeout)
         self.reconnect = float(reconnect)
+        # The CLI's environment defaults of --ca-cert, --tls-cert and --tls-key.
         ca_cert = ca_cert or os.environ.get("DECIMA_CA_CERT") or None
+        cert = cert or os.environ.get("DECIMA_TLS_CERT") or None
+        key = key or os.environ.get("DECIMA_TLS_KEY") or None
         self._tls = bool(tls or ca_cert or cert or key)
         options = [("grpc.max_receive_message_length", 8 << 20)]
         if self._tls:

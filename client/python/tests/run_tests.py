@@ -85,7 +85,8 @@ def test(work, server_bin, cli_bin, shared, args):
     env = dict(os.environ, DECIMA_SERVER_BIN=server_bin, DECIMA_CLI_BIN=cli_bin,
                DECIMA_SHARED_DATA=shared, DECIMA_PYCLIENT_SRC=PACKAGE,
                DECIMA_PROTO_DIR=os.path.join(SOURCE, "proto"), DECIMA_PYCLIENT_FIGURES=figures)
-    for k in ("DECIMA_SERVER", "DECIMA_TOKEN", "DECIMA_TIMEOUT", "DECIMA_CA_CERT"):
+    for k in ("DECIMA_SERVER", "DECIMA_TOKEN", "DECIMA_TIMEOUT", "DECIMA_CA_CERT",
+              "DECIMA_TLS_CERT", "DECIMA_TLS_KEY"):
         env.pop(k, None)
     # The tests import the installed package, never the source folder: run from the temp dir.
     run = subprocess.run([python, "-m", "pytest", "-p", "no:cacheprovider", "-q", "-rs",

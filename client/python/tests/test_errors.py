@@ -177,7 +177,7 @@ def _make_pki(folder):
             "-CAcreateserial", "-out", "server.pem", "-days", "1", "-extfile", "ext")
 
 
-def test_tls_with_the_servers_ca_and_refused_handshakes(server_bin, tmp_path):
+def test_tls_with_the_servers_ca_and_refused_handshakes(server_bin, tmp_path, monkeypatch):
     if shutil.which("openssl") is None:
         pytest.skip("the openssl command is not installed")
     pki = tmp_path / "pki"
@@ -190,6 +190,11 @@ def test_tls_with_the_servers_ca_and_refused_handshakes(server_bin, tmp_path):
         with decima_client.Client(srv.address, token=TOKEN, ca_cert=str(pki / "ca.pem"),
                                   timeout=10) as tls:
             assert isinstance(tls.list(), list)
+        # DECIMA_CA_CERT is the default of ca_cert, as of the CLI's --ca-cert.
+        monkeypatch.setenv("DECIMA_CA_CERT", str(pki / "ca.pem"))
+        with decima_client.Client(srv.address, token=TOKEN, timeout=10) as from_env:
+            assert isinstance(from_env.list(), list)
+        monkeypatch.delenv("DECIMA_CA_CERT")
         # The system's roots do not know the test CA: a refused handshake, said so.
         with pytest.raises(errors.ServerUnreachable, match="refused handshake"):
             decima_client.Client(srv.address, token=TOKEN, tls=True, timeout=5).list()
