@@ -37,6 +37,11 @@ packages=(
   # ... and the real PACS and checkers of the PACS end-to-end test: Orthanc with its DICOMweb
   # plugin, dciodvfy (dicom3tools) to validate the SEG, pydicom to read it back, dcmtk tools
   orthanc orthanc-dicomweb dicom3tools python3-pydicom dcmtk
+  # the Python client (client/python): Debian's gRPC and Protobuf runtimes (a venv made with
+  # --system-site-packages uses them, so `pip install ./client/python` downloads nothing), venv
+  # and setuptools/wheel to build the package offline, pytest for its tests; its stubs are made
+  # by protoc and grpc_python_plugin (protobuf-compiler, protobuf-compiler-grpc above)
+  python3-grpcio python3-protobuf python3-venv python3-setuptools python3-wheel python3-pytest
 )
 
 missing=()
