@@ -7,17 +7,20 @@
 #include <google/protobuf/util/time_util.h>
 #include <CLI/CLI.hpp>
 #include <algorithm>
+#include <atomic>
 #include <cstdio>
 #include <cstring>
 #include <ctime>
 #include <fstream>
 #include <iostream>
 #include <map>
+#include <mutex>
 #include <optional>
 #include <random>
 #include <set>
 #include <thread>
 
+#include "client/batch.h"
 #include "client/client_lib.h"
 #include "client/dicomweb.h"
 #include "grpc/health/v1/health.grpc.pb.h"
@@ -39,6 +42,10 @@ Exit codes:
   6 not found          7 not authenticated, or permission denied
   8 server unavailable (also: TLS handshake refused)
   10 job succeeded but the reduction target was not reached (see the warning)
+Several studies (submit DIR1 DIR2 ..., submit --each FOLDER, watch JOB1 JOB2 ...): 0 only
+when every study succeeded; else 3 if any failed (its job FAILED, or its input was refused
+before a job was made), else 4 if any was cancelled, else 10 if any stopped short of its
+target. A folder with no volume in it is reported and skipped; it does not change the code.
 
 Environment: DECIMA_SERVER (default 127.0.0.1:50051), DECIMA_TOKEN, DECIMA_TIMEOUT,
 DECIMA_CA_CERT, DECIMA_TLS_CERT, DECIMA_TLS_KEY.)";
@@ -61,8 +68,11 @@ Globals g;
 Connection conn;
 bool stderr_tty = false;
 // Set after the first answer from the server: from then on UNAVAILABLE means "restarting" and
-// is retried; before it, the address is probably wrong and the command fails at once.
-bool ever_connected = false;
+// is retried; before it, the address is probably wrong and the command fails at once. Atomic:
+// the watchers of several jobs run on threads of their own.
+std::atomic<bool> ever_connected{false};
+// The last error Report printed ("INVALID_ARGUMENT: ..."), for the table of a batch.
+std::string g_last_error;
 
 bool JsonOut() { return g.json || g.output == "json"; }
 bool Quiet() { return g.quiet || JsonOut(); }
@@ -126,6 +136,7 @@ int Report(const grpc::Status& s, const std::string& what) {
   }
   std::fprintf(stderr, "decima: %s: %s: %s\n", what.c_str(), StatusCodeName(code).c_str(),
                s.error_message().c_str());
+  g_last_error = StatusCodeName(code) + ": " + s.error_message();
   if (code == grpc::StatusCode::FAILED_PRECONDITION &&
       s.error_message().find("active") != std::string::npos) {
     std::fprintf(stderr, "  hint: cancel it first (decima cancel JOB)\n");
@@ -686,6 +697,227 @@ int Watch(const std::string& name, v1::Job* final) {
   }
 }
 
+// Ctrl-C while watching several jobs: they go on; say how to come back to all of them.
+void ArmInterruptMany(const std::vector<std::string>& names) {
+  std::string ids;
+  for (const auto& n : names) ids += " " + ShortId(n);
+  std::string again = "decima ";
+  if (g.server != kDefaultServer) again += "--server " + g.server + " ";
+  again += "watch" + ids;
+  std::snprintf(g_interrupt_message, sizeof g_interrupt_message,
+                "\ndecima: stopped watching %zu jobs; they go on on the server.\n"
+                "  re-attach: %s\n",
+                names.size(), again.c_str());
+  struct sigaction sa {};
+  sa.sa_handler = OnInterrupt;
+  sigemptyset(&sa.sa_mask);
+  sigaction(SIGINT, &sa, nullptr);
+}
+
+// How one of several watched jobs ended.
+struct WatchOutcome {
+  v1::Job final;
+  int rc = kError;    // 0, kJobFailed, kJobCancelled, kTargetNotReached, or the watch's error
+  std::string error;  // the watch's own failure ("UNAVAILABLE: ..."), else ""
+};
+
+// Follows several jobs at once: one thread per job, each with its own WatchJob stream
+// (reconnecting with its last sequence while the server restarts, as Watch does), all printing
+// plain lines prefixed with the job id — the first contact, each stage, every 10 points of
+// overall progress, each state change — one line at a time. With --json the events go to
+// stdout as JSON lines (each names its job). Returns when every job is final (or its watch
+// failed); outcomes in the order of `names`.
+std::vector<WatchOutcome> WatchMany(const std::vector<std::string>& names) {
+  std::mutex mu;  // one whole line at a time on stdout and stderr
+  auto say = [&](const std::string& text) {
+    if (Quiet()) return;
+    std::lock_guard<std::mutex> lock(mu);
+    std::fprintf(stderr, "%s\n", text.c_str());
+  };
+  std::vector<WatchOutcome> out(names.size());
+  auto follow = [&](size_t i) {
+    const std::string& name = names[i];
+    const std::string id = ShortId(name);
+    auto stub = v1::Jobs::NewStub(conn.channel);
+    int64_t last = 0, replay_until = 0;
+    bool with_curve = false;
+    std::string stage;
+    int decile = -1;
+    int attempts = 0;
+    int wait_ms = 100;
+    auto give_up = std::chrono::steady_clock::now() +
+                   std::chrono::milliseconds(static_cast<int64_t>(g.reconnect_s * 1000));
+    for (;;) {
+      v1::WatchJobRequest req;
+      req.set_name(name);
+      req.set_after_sequence(last);
+      auto ctx = conn.Context(false);
+      auto reader = stub->WatchJob(ctx.get(), req);
+      v1::JobEvent ev;
+      while (reader->Read(&ev)) {
+        ever_connected = true;
+        if (attempts > 0)
+          say(id + " reconnected after " + std::to_string(attempts) + " attempt(s)");
+        attempts = 0;
+        wait_ms = 100;
+        give_up = std::chrono::steady_clock::now() +
+                  std::chrono::milliseconds(static_cast<int64_t>(g.reconnect_s * 1000));
+        if (JsonOut()) {
+          std::lock_guard<std::mutex> lock(mu);
+          std::printf("%s\n", ToJson(ev).c_str());
+          std::fflush(stdout);
+        }
+        if (ev.has_snapshot()) {
+          const v1::Job& j = ev.snapshot();
+          with_curve = JobWithCurve(j);
+          if (last == 0) {
+            replay_until = j.last_sequence();
+            std::string text = id + " " + v1::JobState_Name(j.state());
+            if (j.state() == v1::RUNNING && !j.progress().stage().empty()) {
+              stage = j.progress().stage();
+              text += ", " + stage + " " + Percent(j.progress().fraction());
+            }
+            say(text);
+          }
+          continue;
+        }
+        if (ev.has_heartbeat()) continue;
+        last = ev.sequence();
+        if (ev.has_progress()) {
+          const v1::Progress& p = ev.progress();
+          const double f = OverallFraction(p.stage(), p.fraction(), with_curve);
+          const int d = static_cast<int>(f * 10);
+          // Replayed events (older than the snapshot) only bring the counters up to date.
+          if ((p.stage() != stage || d != decile) && ev.sequence() > replay_until) {
+            say(id + " " + Percent(f) + " " + p.stage() + " " + p.message());
+          }
+          stage = p.stage();
+          decile = d;
+        } else if (ev.has_state_change() && ev.sequence() > replay_until) {
+          const auto& sc = ev.state_change();
+          say(id + " " + v1::JobState_Name(sc.state()) +
+              (sc.error().message().empty() ? "" : ": " + sc.error().message()));
+        }
+      }
+      const grpc::Status s = reader->Finish();
+      if (s.ok()) {
+        // The stream ends after the final state (at once for a job already final).
+        v1::GetJobRequest greq;
+        greq.set_name(name);
+        const grpc::Status gs =
+            WithRetry([&] { return stub->GetJob(conn.Context().get(), greq, &out[i].final); });
+        if (!gs.ok()) {
+          out[i].rc = ExitCodeFor(gs.error_code());
+          out[i].error = StatusCodeName(gs.error_code()) + ": " + gs.error_message();
+          return;
+        }
+        const v1::Job& f = out[i].final;
+        out[i].rc = f.state() == v1::SUCCEEDED
+                        ? (SummarizeJob(f, 0).reached_target ? kOk : kTargetNotReached)
+                        : ExitCodeFor(f.state());
+        return;
+      }
+      const bool server_went_away = s.error_code() == grpc::StatusCode::UNAVAILABLE ||
+                                    s.error_code() == grpc::StatusCode::CANCELLED;
+      if (server_went_away && ever_connected && std::chrono::steady_clock::now() < give_up) {
+        if (++attempts == 1) {
+          say(id + " server unavailable (" + s.error_message() + "); reconnecting for up to " +
+              FormatDuration(g.reconnect_s));
+        }
+        std::this_thread::sleep_for(std::chrono::milliseconds(wait_ms));
+        wait_ms = std::min(wait_ms * 2, 1000);
+        continue;
+      }
+      out[i].rc = ExitCodeFor(s.error_code());
+      out[i].error = StatusCodeName(s.error_code()) + ": " + s.error_message();
+      {
+        std::lock_guard<std::mutex> lock(mu);
+        std::fprintf(stderr, "decima: watch %s: %s\n", name.c_str(), out[i].error.c_str());
+      }
+      return;
+    }
+  };
+  ArmInterruptMany(names);
+  std::vector<std::thread> threads;
+  threads.reserve(names.size());
+  for (size_t i = 0; i < names.size(); ++i) threads.emplace_back(follow, i);
+  for (auto& t : threads) t.join();
+  signal(SIGINT, SIG_DFL);
+  return out;
+}
+
+// One row of the table of several studies or jobs.
+struct StudyRow {
+  std::string job = "-";  // "jobs/..." once made
+  std::string input;
+  std::string state;  // a JobState name, or REFUSED (no job was made) or SKIPPED (no volume)
+  std::string detail;
+  int rc = kOk;  // this study's part of the exit code (BatchExitCode); SKIPPED rows have none
+};
+
+// A finished job's row: the state, and what a user wants next to it (the achieved reduction,
+// or why it failed).
+void SetOutcome(const WatchOutcome& o, StudyRow* row) {
+  row->rc = o.rc;
+  if (!o.error.empty()) {
+    row->state = "UNKNOWN";
+    row->detail = "watch: " + o.error;
+    return;
+  }
+  row->state = v1::JobState_Name(o.final.state());
+  if (o.final.state() == v1::SUCCEEDED) {
+    const JobSummary s = SummarizeJob(o.final, 0);
+    row->detail = "reduction " + Percent(s.achieved_reduction, 1) + " (target " +
+                  Percent(s.target_reduction, 1) + ")" +
+                  (s.reached_target ? "" : ", short: " + s.stop_message);
+  } else {
+    row->detail = o.final.error().message();
+  }
+}
+
+// The table of a batch (stdout): JOB, INPUT, STATE, DETAIL; with --json one object per row.
+void PrintStudyTable(const std::vector<StudyRow>& rows) {
+  if (JsonOut()) {
+    for (const auto& r : rows) {
+      std::printf("{\"job\":%s,\"input\":%s,\"state\":%s,\"detail\":%s}\n",
+                  JsonString(r.job == "-" ? "" : r.job).c_str(), JsonString(r.input).c_str(),
+                  JsonString(r.state).c_str(), JsonString(r.detail).c_str());
+    }
+    std::fflush(stdout);
+    return;
+  }
+  std::vector<std::vector<std::string>> table = {{"JOB", "INPUT", "STATE", "DETAIL"}};
+  for (const auto& r : rows) {
+    table.push_back({ShortId(r.job), r.input, r.state, r.detail.empty() ? "-" : r.detail});
+  }
+  PrintTable(table);
+  std::fflush(stdout);
+}
+
+// "10 studies: 9 SUCCEEDED, 1 FAILED; 1 skipped" on stderr (`jobs`: "10 jobs: ...").
+void PrintStudyCounts(const std::vector<StudyRow>& rows, bool jobs = false) {
+  if (g.quiet) return;
+  std::map<std::string, int> by_state;
+  int studies = 0;
+  for (const auto& r : rows) {
+    ++by_state[r.state];
+    if (r.state != "SKIPPED") ++studies;
+  }
+  std::string text =
+      "decima: " + std::to_string(studies) +
+      (jobs ? (studies == 1 ? " job" : " jobs") : (studies == 1 ? " study" : " studies"));
+  std::string sep = ": ";
+  for (const auto& [state, n] : by_state) {
+    if (state == "SKIPPED") continue;
+    text += sep + std::to_string(n) + " " + state;
+    sep = ", ";
+  }
+  if (by_state.count("SKIPPED") != 0) {
+    text += "; " + std::to_string(by_state["SKIPPED"]) + " skipped";
+  }
+  std::fprintf(stderr, "%s\n", text.c_str());
+}
+
 // Artifact kinds (as in --outputs) to the file names they produce, for fetch --only.
 bool MatchesOnly(const std::string& file, const std::vector<std::string>& only) {
   if (only.empty()) return true;
@@ -784,6 +1016,17 @@ std::string Sha256Hex(const std::string& text) {
   return one[0].sha256;
 }
 
+// An error of the client's own (no call failed): printed, and kept for a batch's table.
+int InputError(const std::string& message) {
+  std::fprintf(stderr, "decima: %s\n", message.c_str());
+  g_last_error = message;
+  return kUsage;
+}
+
+int UploadVolume(const fs::path& input, std::vector<InputFile> files,
+                 const std::string& display_name, const std::string& series,
+                 const std::string& request_id, std::string* name);
+
 // Uploads the files of INPUT and creates a volume; returns its name in *name. With a job
 // request id, the volume's request id is derived from it and the files, so a retried submit
 // finds the same volume (and the server can tell a retry from a different request).
@@ -792,8 +1035,7 @@ int MakeVolume(const fs::path& input, const std::string& series, const std::stri
   std::vector<InputFile> files;
   std::string err;
   if (!CollectInputs(input, &files, &err) || !AddHeaderDataFiles(&files, &err)) {
-    std::fprintf(stderr, "decima: %s\n", err.c_str());
-    return kUsage;
+    return InputError(err);
   }
   std::error_code ec;
   if (fs::is_directory(input, ec)) {
@@ -806,17 +1048,21 @@ int MakeVolume(const fs::path& input, const std::string& series, const std::stri
                    dropped.size(), input.c_str(), list.c_str(), dropped.size() > 5 ? " ..." : "");
     }
     if (files.empty()) {
-      std::fprintf(stderr,
-                   "decima: %s: no DICOM file in the folder (none has the DICM marker); give a "
-                   "volume file or a folder of DICOM images\n",
-                   input.c_str());
-      return kUsage;
+      return InputError(input.string() +
+                        ": no DICOM file in the folder (none has the DICM marker); give a "
+                        "volume file or a folder of DICOM images");
     }
   }
-  if (!HashInputs(&files, &err)) {
-    std::fprintf(stderr, "decima: %s\n", err.c_str());
-    return kUsage;
-  }
+  return UploadVolume(input, std::move(files), input.filename().string(), series, request_id, name);
+}
+
+// The upload and CreateVolume half of MakeVolume, for files already chosen (a batch's DICOM
+// series). `input` names the volume in progress lines.
+int UploadVolume(const fs::path& input, std::vector<InputFile> files,
+                 const std::string& display_name, const std::string& series,
+                 const std::string& request_id, std::string* name) {
+  std::string err;
+  if (!HashInputs(&files, &err)) return InputError(err);
   int64_t total = 0, sent = 0, present = 0;
   for (const auto& f : files) total += f.size;
   v1::CreateVolumeRequest req;
@@ -856,7 +1102,7 @@ int MakeVolume(const fs::path& input, const std::string& series, const std::stri
                    FormatBytes(total - present).c_str());
     }
   }
-  req.mutable_volume()->set_display_name(input.filename().string());
+  req.mutable_volume()->set_display_name(display_name);
   req.mutable_volume()->set_series_instance_uid(series);
   req.set_request_id(
       request_id.empty()
@@ -964,8 +1210,12 @@ int main(int argc, char** argv) {
   app.add_flag("-q,--quiet", g.quiet, "no progress on stderr");
 
   // submit
-  auto* submit =
-      app.add_subcommand("submit", "upload a volume (file or DICOM folder) and queue a job");
+  auto* submit = app.add_subcommand(
+      "submit",
+      "upload a volume (file or DICOM folder) and queue a job; several INPUTs or --each: one "
+      "job per study found in them");
+  std::vector<std::string> inputs;
+  fs::path each;
   std::string input, label_map, policy = "field", tf, fault, request_id, series;
   fs::path out;
   // Unset options stay unset in the request: the server owns the defaults.
@@ -974,9 +1224,13 @@ int main(int argc, char** argv) {
   std::vector<double> means;
   std::vector<std::string> weights, views, view_list, outputs, only;
   bool watch_flag = false;
-  submit->add_option("INPUT", input,
+  submit->add_option("INPUT", inputs,
                      "volume file (.nii, .nii.gz, .mha, .mhd + data, .nrrd, .nhdr + data) or "
-                     "DICOM folder (or --dicomweb)");
+                     "DICOM folder (or --dicomweb); several: a batch, one job per study found "
+                     "in each (a volume file, or a DICOM series by SeriesInstanceUID)");
+  submit->add_option("--each", each,
+                     "a batch of every entry of FOLDER (its subfolders and volume files), one "
+                     "job per study found; a subfolder with no volume is reported and skipped");
   // DICOMweb pull (client/dicomweb.h): shared by `submit --dicomweb` and `pull`.
   DicomWebPull web;
   std::string web_token_file;
@@ -1057,10 +1311,11 @@ int main(int argc, char** argv) {
   submit->add_option("--only", only, "with --out: download only these artifacts");
   AddOutputFlags(submit);
 
-  auto* watch = app.add_subcommand("watch", "stream a job's progress until it ends");
+  auto* watch = app.add_subcommand(
+      "watch", "stream a job's progress until it ends (several jobs: all at once, one table)");
   std::string job_arg;
-  std::vector<std::string> job_args;
-  watch->add_option("JOB", job_arg, "job id, unique id prefix, or jobs/{id}")->required();
+  std::vector<std::string> job_args, watch_args;
+  watch->add_option("JOB", watch_args, "job ids, unique id prefixes, or jobs/{id}")->required();
   AddOutputFlags(watch);
   auto* status =
       app.add_subcommand("status", "describe a job: spec, input, times, result, artifacts");
@@ -1144,8 +1399,8 @@ int main(int argc, char** argv) {
   // DICOMweb: pull into a folder first; `submit` then uploads it like any DICOM folder.
   std::optional<fs::path> pulled_dir;
   if ((*pull || *submit) && !web.base_url.empty()) {
-    if (*submit && !input.empty()) {
-      std::fprintf(stderr, "decima: submit: give INPUT or --dicomweb, not both\n");
+    if (*submit && (!inputs.empty() || !each.empty())) {
+      std::fprintf(stderr, "decima: submit: give INPUT (or --each) or --dicomweb, not both\n");
       return kUsage;
     }
     if (!web_token_file.empty()) {
@@ -1186,7 +1441,10 @@ int main(int argc, char** argv) {
     if (*pull) return kOk;
     input = dir.string();
   }
-  if (*submit && input.empty()) {
+  // Several inputs, or --each: a batch, one job per study (client/batch.h).
+  const bool batch = *submit && (inputs.size() > 1 || !each.empty());
+  if (*submit && inputs.size() == 1 && !batch) input = inputs[0];
+  if (*submit && input.empty() && !batch) {
     std::fprintf(stderr, "decima: submit: INPUT or --dicomweb URL --study UID is required\n");
     return kUsage;
   }
@@ -1268,6 +1526,170 @@ int main(int argc, char** argv) {
       }
     }
     all_views.insert(all_views.end(), views.begin(), views.end());
+    // Everything of the spec but its volume, from the flags (the same for every study of a
+    // batch).
+    auto fill_spec = [&](v1::JobSpec* spec) -> int {
+      if (regions) spec->set_regions(*regions);
+      for (double m : means) spec->add_class_means(m);
+      if (reduction) spec->set_target_reduction(*reduction);
+      spec->set_policy(policy == "paper"       ? v1::PAPER
+                       : policy == "tetfusion" ? v1::TETFUSION
+                                               : v1::FIELD);
+      if (tolerance) spec->set_error_tolerance(*tolerance);
+      for (const auto& w : weights) {
+        auto eq = w.find('=');
+        if (eq == std::string::npos) {
+          std::fprintf(stderr, "decima: --weight %s: expected NAME=VALUE\n", w.c_str());
+          return kUsage;
+        }
+        std::string name = w.substr(0, eq);
+        for (char& c : name) c = static_cast<char>(std::tolower(static_cast<unsigned char>(c)));
+        double value = 0;
+        try {
+          value = std::stod(w.substr(eq + 1));
+        } catch (...) {
+          std::fprintf(stderr, "decima: --weight %s: VALUE is not a number\n", w.c_str());
+          return kUsage;
+        }
+        v1::ErrorWeights* ew = spec->mutable_weights();
+        if (name == "w_r" || name == "regional") {
+          ew->set_regional(value);
+        } else if (name == "w_g" || name == "gradient") {
+          ew->set_gradient(value);
+        } else if (name == "w_s" || name == "shape") {
+          ew->set_shape(value);
+        } else if (name == "w_v" || name == "volume") {
+          ew->set_volume(value);
+        } else if (name == "w_n" || name == "neighbour") {
+          ew->set_neighbour(value);
+        } else {
+          std::fprintf(stderr, "decima: --weight %s: unknown weight (w_r, w_g, w_s, w_v, w_n)\n",
+                       w.c_str());
+          return kUsage;
+        }
+      }
+      for (const auto& v : all_views) spec->add_views(v);
+      if (image_size) spec->set_image_size(*image_size);
+      spec->set_transfer_function(tf);
+      for (const auto& o : outputs) spec->add_outputs(o);
+      if (vtu_level) spec->set_vtu_compression_level(*vtu_level);
+      return kOk;
+    };
+    if (batch) {
+      // One label map is on one volume's grid, one series UID picks within one folder: neither
+      // means anything for several studies.
+      if (!label_map.empty() || !series.empty()) {
+        std::fprintf(stderr,
+                     "decima: submit: --label-map and --series take one INPUT, not a batch\n");
+        return kUsage;
+      }
+      v1::JobSpec common;
+      if (int frc = fill_spec(&common); frc != kOk) return frc;
+      std::vector<fs::path> sources;
+      std::string err;
+      if (!each.empty() && !EachEntry(each, &sources, &err)) {
+        std::fprintf(stderr, "decima: %s\n", err.c_str());
+        return kUsage;
+      }
+      for (const auto& i : inputs) sources.emplace_back(i);
+      std::vector<StudyRow> rows;
+      std::vector<std::string> names;   // the jobs made, in table order
+      std::vector<size_t> job_rows;     // their rows
+      std::vector<std::string> labels;  // the study labels of the jobs, for --out folders
+      int fatal = kOk;                  // the server went away or refused the caller: stop
+      int number = 0;
+      for (const auto& source : sources) {
+        std::vector<Study> studies;
+        if (!FindStudies(source, &studies, &err) || studies.empty()) {
+          const std::string why =
+              err.empty() ? "no volume in it (no DICOM file, no .nii, .nii.gz, .mha, .mhd, "
+                            ".nrrd or .nhdr)"
+                          : err;
+          std::fprintf(stderr, "decima: skipped %s: %s\n", source.c_str(), why.c_str());
+          rows.push_back({"-", source.string(), "SKIPPED", why, kOk});
+          err.clear();
+          continue;
+        }
+        for (const Study& study : studies) {
+          if (!Quiet())
+            std::fprintf(stderr, "decima: study %d: %s\n", ++number, study.label.c_str());
+          // A batch's request id gives each study its own, stable across retries of the batch.
+          const std::string rid =
+              request_id.empty() ? "" : request_id + "/" + Sha256Hex(study.label).substr(0, 16);
+          g_last_error.clear();
+          v1::CreateJobRequest jreq;
+          *jreq.mutable_spec() = common;
+          int vrc = study.dicom()
+                        ? UploadVolume(study.input, study.files, study.display_name,
+                                       study.series_uid, rid, jreq.mutable_spec()->mutable_volume())
+                        : MakeVolume(study.input, "", rid, jreq.mutable_spec()->mutable_volume());
+          if (vrc == kOk) {
+            jreq.set_request_id(rid.empty() ? NewRequestId() : rid);
+            v1::Job job;
+            grpc::Status s = WithRetry([&] {
+              auto ctx = conn.Context();
+              if (!fault.empty()) ctx->AddMetadata("decima-test-fault", fault);
+              return jobs->CreateJob(ctx.get(), jreq, &job);
+            });
+            if (s.ok()) {
+              rows.push_back({job.name(), study.label, v1::JobState_Name(job.state()), "", kOk});
+              names.push_back(job.name());
+              job_rows.push_back(rows.size() - 1);
+              labels.push_back(study.label);
+              continue;
+            }
+            vrc = Report(s, "submit " + study.label);
+            if (request_id.empty()) {  // as for one INPUT: no volume left behind by a refusal
+              auto vstub = v1::Volumes::NewStub(conn.channel);
+              v1::DeleteVolumeRequest dreq;
+              dreq.set_name(jreq.spec().volume());
+              v1::DeleteVolumeResponse dresp;
+              (void)vstub->DeleteVolume(conn.Context().get(), dreq, &dresp);
+            }
+          }
+          rows.push_back({"-", study.label, "REFUSED", g_last_error, kJobFailed});
+          if (vrc == kUnavailable || vrc == kUnauthenticated) {
+            fatal = vrc;
+            break;
+          }
+        }
+        if (fatal != kOk) break;
+      }
+      if (fatal != kOk) {
+        PrintStudyTable(rows);
+        std::fprintf(stderr, "decima: submit: stopped the batch after %zu stud%s: %s\n",
+                     rows.size(), rows.size() == 1 ? "y" : "ies", g_last_error.c_str());
+        return fatal;
+      }
+      if (names.empty() && std::none_of(rows.begin(), rows.end(),
+                                        [](const StudyRow& r) { return r.state == "REFUSED"; })) {
+        std::fprintf(stderr, "decima: submit: no volume found in any INPUT or --each entry\n");
+        return kUsage;
+      }
+      if ((watch_flag || !out.empty()) && !names.empty()) {
+        const std::vector<WatchOutcome> outcomes = WatchMany(names);
+        std::vector<std::string> taken;
+        for (size_t k = 0; k < names.size(); ++k) {
+          StudyRow& row = rows[job_rows[k]];
+          SetOutcome(outcomes[k], &row);
+          if (out.empty() || outcomes[k].final.state() != v1::SUCCEEDED) continue;
+          // Each study's artifacts in a folder of its own, named after the study.
+          const int frc =
+              Fetch(outcomes[k].final, out / ArtifactFolderName(labels[k], &taken), only);
+          if (frc != kOk) {
+            row.rc = frc;
+            row.detail += "; fetch failed";
+          }
+        }
+      }
+      PrintStudyTable(rows);
+      PrintStudyCounts(rows);
+      std::vector<int> codes;
+      for (const auto& r : rows) {
+        if (r.state != "SKIPPED") codes.push_back(r.rc);
+      }
+      return BatchExitCode(codes);
+    }
     int rc = MakeVolume(input, series, request_id, spec->mutable_volume());
     if (rc != kOk) return rc;
     if (!label_map.empty()) {
@@ -1275,50 +1697,7 @@ int main(int argc, char** argv) {
                       spec->mutable_label_map());
       if (rc != kOk) return rc;
     }
-    if (regions) spec->set_regions(*regions);
-    for (double m : means) spec->add_class_means(m);
-    if (reduction) spec->set_target_reduction(*reduction);
-    spec->set_policy(policy == "paper"       ? v1::PAPER
-                     : policy == "tetfusion" ? v1::TETFUSION
-                                             : v1::FIELD);
-    if (tolerance) spec->set_error_tolerance(*tolerance);
-    for (const auto& w : weights) {
-      auto eq = w.find('=');
-      if (eq == std::string::npos) {
-        std::fprintf(stderr, "decima: --weight %s: expected NAME=VALUE\n", w.c_str());
-        return kUsage;
-      }
-      std::string name = w.substr(0, eq);
-      for (char& c : name) c = static_cast<char>(std::tolower(static_cast<unsigned char>(c)));
-      double value = 0;
-      try {
-        value = std::stod(w.substr(eq + 1));
-      } catch (...) {
-        std::fprintf(stderr, "decima: --weight %s: VALUE is not a number\n", w.c_str());
-        return kUsage;
-      }
-      v1::ErrorWeights* ew = spec->mutable_weights();
-      if (name == "w_r" || name == "regional") {
-        ew->set_regional(value);
-      } else if (name == "w_g" || name == "gradient") {
-        ew->set_gradient(value);
-      } else if (name == "w_s" || name == "shape") {
-        ew->set_shape(value);
-      } else if (name == "w_v" || name == "volume") {
-        ew->set_volume(value);
-      } else if (name == "w_n" || name == "neighbour") {
-        ew->set_neighbour(value);
-      } else {
-        std::fprintf(stderr, "decima: --weight %s: unknown weight (w_r, w_g, w_s, w_v, w_n)\n",
-                     w.c_str());
-        return kUsage;
-      }
-    }
-    for (const auto& v : all_views) spec->add_views(v);
-    if (image_size) spec->set_image_size(*image_size);
-    spec->set_transfer_function(tf);
-    for (const auto& o : outputs) spec->add_outputs(o);
-    if (vtu_level) spec->set_vtu_compression_level(*vtu_level);
+    if (int frc = fill_spec(spec); frc != kOk) return frc;
     req.set_request_id(request_id.empty() ? NewRequestId() : request_id);
     v1::Job job;
     grpc::Status s = WithRetry([&] {
@@ -1356,10 +1735,31 @@ int main(int argc, char** argv) {
   }
 
   if (*watch) {
-    std::string name;
-    if (int rc = ResolveJob(job_arg, &name); rc != kOk) return rc;
-    v1::Job final;
-    return Watch(name, &final);
+    if (watch_args.size() == 1) {
+      std::string name;
+      if (int rc = ResolveJob(watch_args[0], &name); rc != kOk) return rc;
+      v1::Job final;
+      return Watch(name, &final);
+    }
+    std::vector<std::string> names(watch_args.size());
+    for (size_t i = 0; i < watch_args.size(); ++i) {
+      if (int rc = ResolveJob(watch_args[i], &names[i]); rc != kOk) return rc;
+    }
+    const std::vector<WatchOutcome> outcomes = WatchMany(names);
+    std::vector<StudyRow> rows;
+    std::vector<int> codes;
+    for (size_t i = 0; i < names.size(); ++i) {
+      StudyRow row;
+      row.job = names[i];
+      const v1::Volume* vol = GetVolume(outcomes[i].final.spec().volume());
+      row.input = vol != nullptr ? vol->display_name() : outcomes[i].final.spec().volume();
+      SetOutcome(outcomes[i], &row);
+      codes.push_back(row.rc);
+      rows.push_back(std::move(row));
+    }
+    PrintStudyTable(rows);
+    PrintStudyCounts(rows, /*jobs=*/true);
+    return BatchExitCode(codes);
   }
 
   if (*status) {

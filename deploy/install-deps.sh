@@ -5,8 +5,9 @@
 set -euo pipefail
 
 packages=(
-  # toolchain
-  build-essential cmake ninja-build pkg-config git ca-certificates
+  # toolchain; ccache lets deploy/build-and-test.sh's second build (the default generator,
+  # Unix Makefiles) and repeated CI runs reuse compiled objects instead of compiling again
+  build-essential cmake ninja-build pkg-config git ca-certificates ccache
   # service: gRPC + Protobuf (Debian ships CMake configs), abseil for Status/StatusOr
   libgrpc++-dev protobuf-compiler-grpc libprotobuf-dev protobuf-compiler libabsl-dev
   # core numerics and logging

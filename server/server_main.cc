@@ -66,6 +66,18 @@ absl::StatusOr<std::string> ReadFileText(const std::string& path, const char* wh
 
 int RunJobMode(const char* request_file) { return RunJobProcess(request_file, kWorkerFd); }
 
+// What main() below returns; kept next to it so the two stay in step.
+const char* kExitCodes = R"(
+Exit codes:
+  0  stopped by SIGTERM or SIGINT after draining (also --help, --version)
+  1  could not start: a flag's value or a file it names is invalid (--store, --dicom-listen,
+     --tokens-file, TLS files, --dicom-routes, ...), --data-dir is locked by another
+     decima-server, the job store cannot be opened, --listen or --dicom-listen cannot be bound;
+     the log line names the flag or file
+  2  usage: unknown flag, missing value, value out of range, a named file does not exist
+The job child process (`decima-server --run-job`, started by the server) has its own codes
+(worker_process.h).)";
+
 }  // namespace
 
 int main(int argc, char** argv) {
@@ -76,6 +88,7 @@ int main(int argc, char** argv) {
       "decima-server: turns uploaded medical volumes into simplified tetrahedral "
       "meshes, as queued jobs (gRPC API decima.v1)"};
   app.set_version_flag("--version", std::string("decima-server ") + DECIMA_VERSION);
+  app.footer(kExitCodes);
   std::string listen = "127.0.0.1:50051", data_dir = DefaultDataDir(), token_file, tokens_file,
               tls_cert, tls_key, tls_client_ca, audit_log, port_file;
   std::string store_spec = "sqlite", store_file;
@@ -233,7 +246,13 @@ int main(int argc, char** argv) {
       ->envname("DECIMA_DICOM_MIN_FREE_MB")
       ->check(CLI::Range(int64_t{0}, int64_t{1} << 40))
       ->capture_default_str();
-  CLI11_PARSE(app, argc, argv);
+  try {
+    app.parse(argc, argv);
+  } catch (const CLI::ParseError& e) {
+    // CLI11's own codes (100-127, one per kind of mistake) would be one more table to learn;
+    // every usage error is 2, as in the CLI.
+    return app.exit(e) == 0 ? 0 : 2;
+  }
 
   DicomReceiverOptions dicom;
   if (!dicom_listen.empty()) {

@@ -55,6 +55,12 @@ int CreateVolumeEntry(const uint8_t* data, size_t size);
 // blob kept; an instance from a calling AE that is no AE title is refused.
 int DicomReceiveEntry(const uint8_t* data, size_t size);
 
+// Each part is one file of a folder given to `decima submit --each` (parts alternate between
+// the folder and a subfolder): FindStudies (client/batch.h, DCMTK up to group 0020) returns
+// studies or says why not; every study is a DICOM series whose files are the folder's, each in
+// one study, each carrying the study's SeriesInstanceUID. Accepted: at least one study.
+int BatchStudiesEntry(const uint8_t* data, size_t size);
+
 // Whether the last input of the volume, DICOM, DICOM receive, Upload or CreateVolume entries
 // was accepted (a volume read, an instance stored, an upload stored, a volume created): the
 // replay test checks that the seeds named ok-* are, so the corpora keep inputs that reach past
