@@ -3,6 +3,7 @@
 // audit log of a scripted session. Real decima-server and decima processes on loopback.
 #include <grpcpp/grpcpp.h>
 #include <signal.h>
+#include <unistd.h>
 
 #include <fstream>
 #include <nlohmann/json.hpp>
@@ -580,8 +581,8 @@ TEST_F(OwnershipE2E, AuditLogHoldsExactlyOneLinePerStateChangingCallOfAScriptedS
           R"(","result":"OK"})",
       R"({"principal":"bob","role":"submitter","rpc":"CancelJob","resource":")" + job +
           R"(","result":"PERMISSION_DENIED"})",
-      R"({"principal":"","role":"","rpc":"CancelJob","resource":")" + job +
-          R"(","result":"UNAUTHENTICATED"})",
+      // Refused before anyone was identified: nothing the caller sent is written.
+      R"({"principal":"","role":"","rpc":"CancelJob","resource":"","result":"UNAUTHENTICATED"})",
       R"({"principal":"alice","role":"submitter","rpc":"CancelJob","resource":")" + job +
           R"(","result":"OK"})",
       R"({"principal":"rita","role":"reader","rpc":"DeleteJob","resource":")" + job +
@@ -603,6 +604,157 @@ TEST_F(OwnershipE2E, AuditLogHoldsExactlyOneLinePerStateChangingCallOfAScriptedS
     lines.push_back(line.substr(space + 1));
   }
   EXPECT_EQ(lines, expected);
+}
+
+// The lines of the audit file `path` and its rotated siblings (audit.1.log, ...), each checked
+// to be "<time>Z {json}" with a JSON object; the objects are returned.
+std::vector<nlohmann::json> AuditRecords(const fs::path& path, uintmax_t* bytes = nullptr) {
+  std::vector<nlohmann::json> out;
+  if (bytes) *bytes = 0;
+  const std::string stem = path.stem().string(), ext = path.extension().string();
+  for (const auto& e : fs::directory_iterator(path.parent_path())) {
+    const std::string name = e.path().filename().string();
+    if (name.rfind(stem, 0) != 0 || name.size() < ext.size() ||
+        name.compare(name.size() - ext.size(), ext.size(), ext) != 0) {
+      continue;
+    }
+    if (bytes) *bytes += fs::file_size(e.path());
+    std::istringstream in(ReadFile(e.path()));
+    for (std::string line; std::getline(in, line);) {
+      auto space = line.find(' ');
+      EXPECT_NE(space, std::string::npos) << line.substr(0, 200);
+      if (space == std::string::npos) continue;
+      auto obj = nlohmann::json::parse(line.substr(space + 1), nullptr, false);
+      EXPECT_TRUE(obj.is_object()) << line.substr(0, 200);
+      if (obj.is_object()) out.push_back(obj);
+    }
+  }
+  return out;
+}
+
+// Issue 35 part 3: oversized requests (near gRPC's 4 MB limit) without credentials rotated every
+// real record out of the files. Now an unidentified caller's lines hold nothing it sent and are
+// rate-limited, and an identified caller's oversized, escape-laden name is cut and escaped: the
+// authenticated records survive any number of such calls, in a 1 MiB x 2 file budget.
+TEST_F(AuthE2E, OversizedCallsWithoutCredentialsKeepEveryAuthenticatedAuditRecord) {
+  fs::path tokens = scratch_ / "tokens";
+  std::ofstream(tokens) << "token " << Sha256Hex("alice-token") << " alice submitter\n";
+  const fs::path audit = scratch_ / "audit" / "audit.log";
+  fs::create_directories(audit.parent_path());
+  ServerProcess server(scratch_ / "data",
+                       {"--tokens-file", tokens.string(), "--audit-log", audit.string(),
+                        "--audit-max-mb", "1", "--audit-files", "1"});
+  auto ch = grpc::CreateChannel(server.address(), grpc::InsecureChannelCredentials());
+  auto jobs = v1::Jobs::NewStub(ch);
+  auto call = [&](const std::string& token, const std::string& name) {
+    grpc::ClientContext ctx;
+    ctx.set_deadline(std::chrono::system_clock::now() + 30s);
+    if (!token.empty()) ctx.AddMetadata("authorization", "Bearer " + token);
+    v1::DeleteJobRequest d;
+    d.set_name(name);
+    v1::DeleteJobResponse r;
+    return jobs->DeleteJob(&ctx, d, &r).error_code();
+  };
+  // Authenticated records before and after the flood.
+  ASSERT_EQ(call("alice-token", "jobs/first-real-record"), grpc::StatusCode::NOT_FOUND);
+  // 1 MB names with a terminal escape, a line break and a character that is not ASCII.
+  std::string huge = "jobs/\x1b[2J\n\xc3\xa9";
+  huge.resize(1'000'000, 'x');
+  constexpr int kFlood = 12;  // 12 MB of names: 6x the files' budget if written verbatim
+  for (int i = 0; i < kFlood; ++i) ASSERT_EQ(call("", huge), grpc::StatusCode::UNAUTHENTICATED);
+  // An identified caller's long name (short enough for the status message quoting it to fit
+  // the client's 8 KiB metadata limit).
+  const std::string long_name = huge.substr(0, 4000);
+  ASSERT_EQ(call("alice-token", long_name), grpc::StatusCode::INVALID_ARGUMENT);
+  ASSERT_EQ(call("alice-token", "jobs/last-real-record"), grpc::StatusCode::NOT_FOUND);
+
+  uintmax_t bytes = 0;
+  auto records = AuditRecords(audit, &bytes);
+  EXPECT_LT(bytes, 16u << 10) << "the files grew with the callers' names";
+  int unidentified = 0;
+  std::vector<std::string> alice;
+  for (const auto& r : records) {
+    if (r["principal"] == "") {
+      ++unidentified;
+      EXPECT_EQ(r["resource"], "") << r.dump();
+      EXPECT_EQ(r["result"], "UNAUTHENTICATED") << r.dump();
+    } else {
+      alice.push_back(r["resource"].get<std::string>());
+    }
+  }
+  // At most kUnidentifiedPerSecond (10) a second.
+  EXPECT_GE(unidentified, 1);
+  EXPECT_LE(unidentified, kFlood);
+  ASSERT_EQ(alice.size(), 3u);
+  EXPECT_EQ(alice[0], "jobs/first-real-record");
+  // Cut to 256 bytes of the name, escaped, and saying how much was left out.
+  EXPECT_EQ(alice[1].substr(0, 9), "jobs/\x1b[2J");
+  EXPECT_NE(alice[1].find("...(+" + std::to_string(long_name.size() - 256) + " bytes)"),
+            std::string::npos);
+  EXPECT_EQ(alice[2], "jobs/last-real-record");
+  // Raw: every byte that is not printable ASCII as \u00XX; no control character but the line
+  // ends.
+  EXPECT_THAT(ReadFile(audit), HasSubstr(R"("jobs/\u001b[2J\u000a\u00c3\u00a9xxx)"));
+  for (const auto& e : fs::directory_iterator(audit.parent_path())) {
+    if (e.path().extension() != ".log") continue;
+    for (unsigned char c : ReadFile(e.path())) {
+      EXPECT_TRUE(c == '\n' || (c >= 0x20 && c < 0x7f)) << "byte " << int(c) << " in " << e.path();
+      if (!(c == '\n' || (c >= 0x20 && c < 0x7f))) break;
+    }
+  }
+}
+
+// One writer per audit file: spdlog rotates by renaming, so two processes on one file lose each
+// other's records. A second server pointed at a file another one writes refuses to start, and
+// a server on the default name writes a file named for its host (replicas sharing a data dir
+// each write their own).
+TEST_F(AuthE2E, ASecondServerOnTheSameAuditFileRefusesToStartAndTheDefaultIsPerHost) {
+  const fs::path audit = scratch_ / "shared-audit.log";
+  ServerProcess first(scratch_ / "data1", {"--audit-log", audit.string()});
+  CliResult second =
+      RunProgram({ServerBinary().string(), "--data-dir", (scratch_ / "data2").string(), "--listen",
+                  "127.0.0.1:0", "--audit-log", audit.string()},
+                 20s);
+  EXPECT_EQ(second.rc, 1) << second.err;
+  EXPECT_THAT(second.out + second.err, HasSubstr("written by another process"));
+  EXPECT_THAT(second.out + second.err, HasSubstr(audit.string()));
+
+  ServerProcess third(scratch_ / "data3");
+  char host[256] = {};
+  ASSERT_EQ(gethostname(host, sizeof host - 1), 0);
+  EXPECT_TRUE(fs::exists(scratch_ / "data3" / ("audit-" + std::string(host) + ".log")))
+      << third.Log();
+  EXPECT_FALSE(fs::exists(scratch_ / "data3" / "audit.log"));
+}
+
+// A record that cannot be written (here every write fails: the file is /dev/full) stops
+// mutations with UNAVAILABLE instead of letting them go unaudited, and the server says so.
+TEST_F(AuthE2E, MutationsAreRefusedWhileTheAuditLogCannotBeWritten) {
+  if (!fs::exists("/dev/full")) GTEST_SKIP() << "no /dev/full";
+  const fs::path audit = scratch_ / "audit.log";
+  fs::create_symlink("/dev/full", audit);
+  ServerProcess server(scratch_ / "data", {"--audit-log", audit.string()});
+  auto ch = grpc::CreateChannel(server.address(), grpc::InsecureChannelCredentials());
+  auto jobs = v1::Jobs::NewStub(ch);
+  auto del = [&] {
+    grpc::ClientContext ctx;
+    ctx.set_deadline(std::chrono::system_clock::now() + 30s);
+    v1::DeleteJobRequest d;
+    d.set_name("jobs/nonexistent");
+    v1::DeleteJobResponse r;
+    return jobs->DeleteJob(&ctx, d, &r);
+  };
+  // The first call is made (the log could not know), its record fails, auditing stops.
+  EXPECT_EQ(del().error_code(), grpc::StatusCode::NOT_FOUND);
+  for (int i = 0; i < 3; ++i) {
+    grpc::Status st = del();
+    EXPECT_EQ(st.error_code(), grpc::StatusCode::UNAVAILABLE);
+    EXPECT_THAT(st.error_message(), HasSubstr("audit log cannot be written"));
+  }
+  // Reads go on.
+  CliResult h = RunCli(server.address(), {"list"});
+  EXPECT_EQ(h.rc, 0) << h.err;
+  EXPECT_THAT(server.Log(), HasSubstr("AUDIT LOG STOPPED"));
 }
 
 }  // namespace
