@@ -335,11 +335,16 @@ int main(int argc, char** argv) {
     identities = std::move(*ids);
   }
   if (!tls_client_ca.empty()) identities.RequireClientCertificates();
+  // gRPC watches checked copies of the TLS files, never the files themselves (tls_files.h).
+  std::unique_ptr<TlsFileGuard> tls_guard;
   if (!tls_cert.empty()) {
-    if (auto st = CheckTlsFiles(tls_cert, tls_key, tls_client_ca); !st.ok()) {
-      spdlog::error("{}", std::string(st.message()));
+    auto g = TlsFileGuard::Start(tls_cert, tls_key, tls_client_ca,
+                                 std::chrono::seconds(tls_reload_seconds));
+    if (!g.ok()) {
+      spdlog::error("{}", std::string(g.status().message()));
       return 1;
     }
+    tls_guard = std::move(*g);
   }
   // One writer per audit file: by default a file per host (replicas sharing the data dir), and
   // a further server on the same host takes the next free number.
@@ -445,9 +450,11 @@ int main(int argc, char** argv) {
   if (!tls_cert.empty()) {
     // The files are re-read every --tls-reload-seconds and swapped in when they changed (a
     // renewed certificate, a new client CA): new handshakes use them, established connections
-    // and their streams are not touched. Checked above, so a bad file cannot start a server.
+    // and their streams are not touched. gRPC reads the guard's checked copies, so a broken or
+    // empty file renamed into place keeps the last good set serving.
     auto provider = std::make_shared<grpc::experimental::FileWatcherCertificateProvider>(
-        tls_key, tls_cert, tls_client_ca, static_cast<unsigned>(tls_reload_seconds));
+        tls_guard->served_key(), tls_guard->served_cert(), tls_guard->served_client_ca(),
+        static_cast<unsigned>(tls_reload_seconds));
     grpc::experimental::TlsServerCredentialsOptions tls(provider);
     tls.watch_identity_key_cert_pairs();
     if (!tls_client_ca.empty()) {
