@@ -381,6 +381,19 @@ bool EndsWith(const std::string& s, const std::string& suffix) {
 
 }  // namespace
 
+std::string Sha256HexOf(std::string_view bytes) {
+  unsigned char md[EVP_MAX_MD_SIZE];
+  unsigned int len = 0;
+  EVP_Digest(bytes.data(), bytes.size(), md, &len, EVP_sha256(), nullptr);
+  static constexpr char kHex[] = "0123456789abcdef";
+  std::string out;
+  for (unsigned i = 0; i < len; ++i) {
+    out.push_back(kHex[md[i] >> 4]);
+    out.push_back(kHex[md[i] & 15]);
+  }
+  return out;
+}
+
 bool AddHeaderDataFiles(std::vector<InputFile>* files, std::string* error) {
   if (files->size() != 1) return true;
   const InputFile header = (*files)[0];
@@ -453,6 +466,18 @@ bool AddHeaderDataFiles(std::vector<InputFile>* files, std::string* error) {
     f.name = rel.generic_string();
     f.path = dir / rel;
     std::error_code ec;
+    // Every component below the header's folder, not only the last: a linked folder leads
+    // anywhere (issue 35 part 5).
+    fs::path prefix = dir;
+    for (const auto& part : rel.parent_path()) {
+      prefix /= part;
+      if (fs::is_symlink(fs::symlink_status(prefix, ec))) {
+        *error = header.path.string() + ": the path of its data file " + f.path.string() +
+                 " goes through the symbolic link " + prefix.string() +
+                 " (copy the data beside the header instead)";
+        return false;
+      }
+    }
     const fs::file_status st = fs::symlink_status(f.path, ec);
     if (ec || !fs::is_regular_file(st)) {
       *error = header.path.string() + ": its data file " + f.path.string() +

@@ -11,6 +11,7 @@
 #include <functional>
 #include <memory>
 #include <string>
+#include <string_view>
 #include <vector>
 
 #include "decima/v1/artifacts.grpc.pb.h"
@@ -57,12 +58,17 @@ struct InputFile {
 bool CollectInputs(const std::filesystem::path& input, std::vector<InputFile>* out,
                    std::string* error);
 bool HashInputs(std::vector<InputFile>* files, std::string* error);
+// The sha256 of `bytes` as 64 lower-case hex digits, in memory (no temporary file: a predictable
+// name in the temp folder let another user plant a symlink or a FIFO there).
+std::string Sha256HexOf(std::string_view bytes);
 
 // For a single .mhd or .nhdr header in `*files`: adds the data file(s) it names
 // (MetaImage ElementDataFile, NRRD "data file:", single names or LIST) with manifest names
 // relative to the header's folder. A header with LOCAL data or an attached NRRD adds nothing.
 // False with a message naming the header and the line when a data file is missing, outside
-// the header's folder, or given as a pattern.
+// the header's folder, or given as a pattern, and when any component of its path below the
+// header's folder is a symbolic link (a linked folder such as `sub -> /etc` would otherwise
+// upload `sub/passwd`; every link is refused, also one pointing inside the folder).
 bool AddHeaderDataFiles(std::vector<InputFile>* files, std::string* error);
 
 // Keeps the DICOM files of a folder: drops DICOMDIR and files without the "DICM" marker at

@@ -767,16 +767,7 @@ void PrintJobLine(const v1::Job& j) {
   PrintTable({JobHeader(false), JobRow(j, false)});
 }
 
-std::string Sha256Hex(const std::string& text) {
-  fs::path tmp = fs::temp_directory_path() / ("decima-id-" + std::to_string(::getpid()));
-  std::ofstream(tmp, std::ios::binary) << text;
-  std::vector<InputFile> one{InputFile{"id", tmp, 0, ""}};
-  std::string err;
-  HashInputs(&one, &err);
-  std::error_code ec;
-  fs::remove(tmp, ec);
-  return one[0].sha256;
-}
+std::string Sha256Hex(const std::string& text) { return Sha256HexOf(text); }
 
 // Uploads the files of INPUT and creates a volume; returns its name in *name. With a job
 // request id, the volume's request id is derived from it and the files, so a retried submit

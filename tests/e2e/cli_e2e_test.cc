@@ -6,6 +6,8 @@
 #include <grpcpp/grpcpp.h>
 #include <png.h>
 #include <signal.h>
+#include <sys/inotify.h>
+#include <unistd.h>
 
 #include <fstream>
 #include <nlohmann/json.hpp>
@@ -94,6 +96,41 @@ class CliE2E : public ::testing::Test {
   fs::path scratch_;
   fs::path volume_;
 };
+
+// Issue 35 part 5: `--request-id` hashed its text through a file at a predictable path in the
+// temp folder (decima-id-<pid>, std::ofstream): a symlink planted there made root's CLI
+// overwrite its target, a FIFO made it hang. The CLI now makes no file there at all: watched
+// with inotify, its TMPDIR sees no file created during a submit with --request-id.
+TEST_F(CliE2E, SubmitWithARequestIdCreatesNoFileInTheTempFolder) {
+  ServerProcess server(scratch_ / "data");
+  const fs::path tmp = scratch_ / "tmp";
+  fs::create_directories(tmp);
+  int in = inotify_init1(IN_NONBLOCK | IN_CLOEXEC);
+  ASSERT_GE(in, 0);
+  ASSERT_GE(inotify_add_watch(in, tmp.c_str(), IN_CREATE | IN_MOVED_TO), 0);
+  CliResult r = RunCli(server.address(),
+                       {"submit", volume_.string(), "--request-id", "nightly-42", "--image-size",
+                        "32", "--reduction", "0.3"},
+                       std::chrono::seconds(60), {{"TMPDIR", tmp.string()}});
+  ASSERT_EQ(r.rc, 0) << r.err << server.Log();
+  std::vector<std::string> created;
+  alignas(inotify_event) char buf[4096];
+  for (ssize_t n; (n = read(in, buf, sizeof buf)) > 0;) {
+    for (char* p = buf; p < buf + n;) {
+      auto* ev = reinterpret_cast<inotify_event*>(p);
+      if (ev->len > 0) created.push_back(ev->name);
+      p += sizeof(inotify_event) + ev->len;
+    }
+  }
+  close(in);
+  EXPECT_THAT(created, ::testing::IsEmpty());
+  // The same request id finds the same volume and job (the id's hash is as before).
+  CliResult again =
+      RunCli(server.address(), {"submit", volume_.string(), "--request-id", "nightly-42",
+                                "--image-size", "32", "--reduction", "0.3"});
+  ASSERT_EQ(again.rc, 0) << again.err;
+  EXPECT_EQ(FirstLine(again.out), FirstLine(r.out));
+}
 
 TEST_F(CliE2E, DefaultArtifactsAreSmallOutputsAreChosenAndFetchOnlyPicks) {
   ServerProcess server(scratch_ / "data");
