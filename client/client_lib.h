@@ -58,6 +58,12 @@ struct InputFile {
 bool CollectInputs(const std::filesystem::path& input, std::vector<InputFile>* out,
                    std::string* error);
 bool HashInputs(std::vector<InputFile>* files, std::string* error);
+// `text` from the server made safe to print on a terminal: C0 controls (ESC included), DEL and
+// C1 controls (U+0080..U+009F) become `\xNN` / `\u00NN`, and so does every byte that is not
+// part of valid UTF-8; printable text, UTF-8 letters included, is kept. A display name such as
+// "\x1b]0;owned\x07" can then not retitle, clear or rewrite an admin's terminal.
+std::string TerminalSafe(std::string_view text);
+
 // The sha256 of `bytes` as 64 lower-case hex digits, in memory (no temporary file: a predictable
 // name in the temp folder let another user plant a symlink or a FIFO there).
 std::string Sha256HexOf(std::string_view bytes);

@@ -125,7 +125,7 @@ int Report(const grpc::Status& s, const std::string& what) {
     return kUnavailable;
   }
   std::fprintf(stderr, "decima: %s: %s: %s\n", what.c_str(), StatusCodeName(code).c_str(),
-               s.error_message().c_str());
+               TerminalSafe(s.error_message()).c_str());
   if (code == grpc::StatusCode::FAILED_PRECONDITION &&
       s.error_message().find("active") != std::string::npos) {
     std::fprintf(stderr, "  hint: cancel it first (decima cancel JOB)\n");
@@ -212,7 +212,7 @@ grpc::Status WithRetry(F call) {
     if (!ever_connected || std::chrono::steady_clock::now() > until) return s;
     if (!said && !Quiet()) {
       std::fprintf(stderr, "decima: server unavailable (%s); retrying for up to %s\n",
-                   s.error_message().c_str(), FormatDuration(g.reconnect_s).c_str());
+                   TerminalSafe(s.error_message()).c_str(), FormatDuration(g.reconnect_s).c_str());
       said = true;
     }
     std::this_thread::sleep_for(std::chrono::milliseconds(wait_ms));
@@ -354,7 +354,13 @@ double JobSeconds(const v1::Job& j) {
 }
 
 // A table printed with columns as wide as their widest cell (kubectl's plain output).
-void PrintTable(const std::vector<std::vector<std::string>>& rows) {
+// Every cell is passed through TerminalSafe: names and messages come from the server (issue 35
+// part 7: a display name with escape sequences reached an admin's terminal).
+void PrintTable(const std::vector<std::vector<std::string>>& raw_rows) {
+  std::vector<std::vector<std::string>> rows = raw_rows;
+  for (auto& r : rows) {
+    for (auto& cell : r) cell = TerminalSafe(cell);
+  }
   std::vector<size_t> width;
   for (const auto& r : rows) {
     if (width.size() < r.size()) width.resize(r.size(), 0);
@@ -428,7 +434,7 @@ bool ContinueListing(const std::string& next_page_token, bool all) {
 // `decima status`: kubectl describe for one job.
 void DescribeJob(const v1::Job& j) {
   auto line = [](const char* key, const std::string& value) {
-    std::printf("%-14s %s\n", key, value.c_str());
+    std::printf("%-14s %s\n", key, TerminalSafe(value).c_str());
   };
   line("Name:", j.name());
   line("State:", v1::JobState_Name(j.state()));
@@ -562,7 +568,7 @@ int Watch(const std::string& name, v1::Job* final) {
     plain_at = std::chrono::steady_clock::now();
     std::fprintf(stderr, "%s %s %s\n", ShortId(name).c_str(),
                  OverallBar(current, elapsed(), 0, with_curve).substr(3).c_str(),
-                 current.message().c_str());
+                 TerminalSafe(current.message()).c_str());
   };
   auto say = [&](const std::string& text) {
     if (Quiet()) return;
@@ -653,9 +659,10 @@ int Watch(const std::string& name, v1::Job* final) {
       signal(SIGINT, SIG_DFL);
       // -q hides progress, never why a job did not succeed.
       if (g.quiet && !JsonOut() && final->state() != v1::SUCCEEDED) {
-        std::fprintf(
-            stderr, "decima: %s %s%s%s\n", name.c_str(), v1::JobState_Name(final->state()).c_str(),
-            final->error().message().empty() ? "" : ": ", final->error().message().c_str());
+        std::fprintf(stderr, "decima: %s %s%s%s\n", name.c_str(),
+                     v1::JobState_Name(final->state()).c_str(),
+                     final->error().message().empty() ? "" : ": ",
+                     TerminalSafe(final->error().message()).c_str());
       }
       if (final->state() == v1::SUCCEEDED) return PrintSummary(*final);
       return ExitCodeFor(final->state());
@@ -712,7 +719,7 @@ int Fetch(const v1::Job& job, const fs::path& out, const std::vector<std::string
   if (job.state() != v1::SUCCEEDED) {
     std::fprintf(stderr, "decima: fetch %s: the job is %s%s%s\n", job.name().c_str(),
                  v1::JobState_Name(job.state()).c_str(), job.error().message().empty() ? "" : ": ",
-                 job.error().message().c_str());
+                 TerminalSafe(job.error().message()).c_str());
     int code = ExitCodeFor(job.state());
     return code == kOk ? kError : code;
   }
@@ -852,7 +859,8 @@ int MakeVolume(const fs::path& input, const std::string& series, const std::stri
   grpc::Status s = WithRetry([&] { return stub->CreateVolume(conn.Context().get(), req, &vol); });
   if (!s.ok()) return Report(s, "create volume from " + input.string());
   if (!Quiet()) {
-    std::fprintf(stderr, "decima: %s = %s %s", vol.name().c_str(), vol.display_name().c_str(),
+    std::fprintf(stderr, "decima: %s = %s %s", vol.name().c_str(),
+                 TerminalSafe(vol.display_name()).c_str(),
                  v1::VolumeFormat_Name(vol.format()).c_str());
     if (vol.dims_size() == 3) {
       std::fprintf(stderr, " %lldx%lldx%lld voxels, %.3gx%.3gx%.3g mm",
@@ -1517,7 +1525,8 @@ int main(int argc, char** argv) {
                     dry_run ? "true" : "false", static_cast<long long>(vol->size_bytes()));
       } else {
         std::printf("%s%s (%s, %s)\n", dry_run ? "would delete " : "deleted ", v.c_str(),
-                    vol->display_name().c_str(), FormatBytes(vol->size_bytes()).c_str());
+                    TerminalSafe(vol->display_name()).c_str(),
+                    FormatBytes(vol->size_bytes()).c_str());
       }
     }
     return kOk;
@@ -1640,7 +1649,8 @@ int main(int argc, char** argv) {
           std::printf("{\"deleted\":%s,\"dry_run\":true,\"bytes\":%lld}\n", JsonString(v).c_str(),
                       static_cast<long long>(vol.size_bytes()));
         } else {
-          std::printf("would delete %s (%s, %s)\n", v.c_str(), vol.display_name().c_str(),
+          std::printf("would delete %s (%s, %s)\n", v.c_str(),
+                      TerminalSafe(vol.display_name()).c_str(),
                       FormatBytes(vol.size_bytes()).c_str());
         }
       }

@@ -162,6 +162,21 @@ TEST(HeaderDataFilesTest, ASymbolicLinkedFolderOnTheDataFilesPathIsRefused) {
   EXPECT_EQ(files[1].name, "real/v.raw");
 }
 
+TEST(TerminalSafeTest, ControlCharactersAndBrokenUtf8AreEscapedPrintableTextIsKept) {
+  EXPECT_EQ(TerminalSafe("scan.nii"), "scan.nii");
+  EXPECT_EQ(TerminalSafe("t\xc3\xaate \xe2\x9c\x93"), "t\xc3\xaate \xe2\x9c\x93");  // UTF-8 kept
+  EXPECT_EQ(TerminalSafe("\x1b]0;owned\x07"), "\\x1b]0;owned\\x07");
+  EXPECT_EQ(TerminalSafe("a\nb\rc\td\x7f"), "a\\x0ab\\x0dc\\x09d\\x7f");
+  EXPECT_EQ(TerminalSafe("\xc2\x9b"
+                         "2J"),
+            "\\u009b2J");  // C1 CSI as UTF-8
+  EXPECT_EQ(TerminalSafe("\x9b"
+                         "2J"),
+            "\\x9b2J");                               // a raw 8-bit CSI byte
+  EXPECT_EQ(TerminalSafe("\xe2\x82"), "\\xe2\\x82");  // cut sequence
+  EXPECT_EQ(TerminalSafe("\xc0\xaf"), "\\xc0\\xaf");  // overlong '/'
+}
+
 TEST(Sha256HexOfTest, HashesInMemory) {
   EXPECT_EQ(Sha256HexOf(""), "e3b0c44298fc1c149afbf4c8996fb92427ae41e4649b934ca495991b7852b855");
   EXPECT_EQ(Sha256HexOf("abc"), "ba7816bf8f01cfea414140de5dae2223b00361a396177a9cb410ff61f20015ad");
