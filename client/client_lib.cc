@@ -2,12 +2,19 @@
 
 #include <string_view>
 
+#include <fcntl.h>
+#include <netdb.h>
 #include <openssl/evp.h>
+#include <poll.h>
+#include <sys/socket.h>
+#include <unistd.h>
 
 #include <algorithm>
 #include <cctype>
+#include <cerrno>
 #include <cstdio>
 #include <cstdlib>
+#include <cstring>
 #include <fstream>
 #include <sstream>
 #include <thread>
@@ -380,6 +387,40 @@ bool EndsWith(const std::string& s, const std::string& suffix) {
 }
 
 }  // namespace
+
+bool TcpPortAnswers(const std::string& address, std::chrono::milliseconds timeout) {
+  std::string a = address;
+  for (const char* prefix : {"dns:///", "ipv4:", "ipv6:"}) {
+    if (a.rfind(prefix, 0) == 0) a = a.substr(std::strlen(prefix));
+  }
+  const size_t colon = a.rfind(':');
+  if (colon == std::string::npos || a.rfind("unix:", 0) == 0) return false;
+  std::string host = a.substr(0, colon), port = a.substr(colon + 1);
+  if (host.size() >= 2 && host.front() == '[' && host.back() == ']') {
+    host = host.substr(1, host.size() - 2);
+  }
+  addrinfo hints{};
+  hints.ai_socktype = SOCK_STREAM;
+  addrinfo* res = nullptr;
+  if (getaddrinfo(host.c_str(), port.c_str(), &hints, &res) != 0) return false;
+  bool answered = false;
+  for (addrinfo* ai = res; ai != nullptr && !answered; ai = ai->ai_next) {
+    const int fd = ::socket(ai->ai_family, ai->ai_socktype | SOCK_NONBLOCK | SOCK_CLOEXEC, 0);
+    if (fd < 0) continue;
+    if (::connect(fd, ai->ai_addr, ai->ai_addrlen) == 0) {
+      answered = true;
+    } else if (errno == EINPROGRESS) {
+      pollfd p{fd, POLLOUT, 0};
+      int err = 0;
+      socklen_t len = sizeof err;
+      answered = ::poll(&p, 1, static_cast<int>(timeout.count())) == 1 &&
+                 ::getsockopt(fd, SOL_SOCKET, SO_ERROR, &err, &len) == 0 && err == 0;
+    }
+    ::close(fd);
+  }
+  freeaddrinfo(res);
+  return answered;
+}
 
 std::string TerminalSafe(std::string_view text) {
   std::string out;

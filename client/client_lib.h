@@ -64,6 +64,11 @@ bool HashInputs(std::vector<InputFile>* files, std::string* error);
 // "\x1b]0;owned\x07" can then not retitle, clear or rewrite an admin's terminal.
 std::string TerminalSafe(std::string_view text);
 
+// Whether a TCP connection to `address` ("host:port", "[v6]:port", with an optional "dns:///"
+// or "ipv4:" / "ipv6:" prefix) is accepted within `timeout`: tells "nothing listens there" from
+// "something listens but the gRPC call failed" (a plaintext client against a TLS server).
+bool TcpPortAnswers(const std::string& address, std::chrono::milliseconds timeout);
+
 // The sha256 of `bytes` as 64 lower-case hex digits, in memory (no temporary file: a predictable
 // name in the temp folder let another user plant a symlink or a FIFO there).
 std::string Sha256HexOf(std::string_view bytes);

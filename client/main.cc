@@ -101,6 +101,18 @@ std::string ServerSource() {
 }
 
 void PrintUnreachable(const std::string& what, const std::string& detail) {
+  const bool tls_options = g.tls || !g.ca_file.empty() || !g.cert_file.empty();
+  // Something accepts TCP there, so the server may well run: a plaintext call to a TLS server
+  // fails exactly like this (issue 35 part 7: the hint used to ask only whether it runs).
+  if (!tls_options && TcpPortAnswers(g.server, std::chrono::seconds(1))) {
+    std::fprintf(stderr,
+                 "decima: %s: cannot talk to decima-server at %s (%s): %s\n"
+                 "  hint: something accepts connections there, so the server may serve TLS "
+                 "(decima-server --tls-cert): add --tls, with --ca-cert CA.pem for a private CA "
+                 "(or DECIMA_CA_CERT)\n",
+                 what.c_str(), g.server.c_str(), ServerSource().c_str(), detail.c_str());
+    return;
+  }
   std::fprintf(stderr,
                "decima: %s: cannot reach decima-server at %s (%s): %s\n"
                "  hint: is the server running there? Start it with `decima-server --listen %s`, "
@@ -108,7 +120,7 @@ void PrintUnreachable(const std::string& what, const std::string& detail) {
                what.c_str(), g.server.c_str(), ServerSource().c_str(), detail.c_str(),
                g.server.c_str());
   // A refused TLS handshake looks exactly like an unreachable server to gRPC.
-  if (g.tls || !g.ca_file.empty() || !g.cert_file.empty()) {
+  if (tls_options) {
     std::fprintf(stderr,
                  "  over TLS this is also what a refused handshake looks like: check --ca-cert "
                  "(the server's CA), and under mutual TLS --tls-cert/--tls-key (a client "

@@ -21,6 +21,7 @@
 #include "gtest/gtest.h"
 #include "server/sha256.h"
 #include "tests/e2e/e2e_util.h"
+#include "tests/testing/process.h"
 #include "tests/testing/test_data.h"
 
 namespace decima::e2e {
@@ -293,6 +294,28 @@ TEST_F(AuthE2E, BrokenOrEmptyTlsFilesRenamedIntoPlaceKeepTheLastGoodPairServing)
   EXPECT_THAT(log, HasSubstr("TLS reload refused"));
   EXPECT_THAT(log, HasSubstr("does not belong to the certificate"));
   std::printf("handshakes during the broken swaps: %d ok, %d failed\n", ok.load(), failed.load());
+}
+
+// Issue 35 part 7: a plaintext client against a TLS server was told "is the server running
+// there?" with no hint of TLS. Now, when something accepts TCP at the address, the hint says
+// the server may serve TLS and names --tls / --ca-cert; a closed port keeps the old hint.
+TEST_F(AuthE2E, APlaintextClientAgainstATlsServerIsToldAboutTls) {
+  if (!MakePki()) GTEST_SKIP() << "openssl not installed";
+  ServerProcess server(scratch_ / "data", {"--tls-cert", pki_.server_cert().string(), "--tls-key",
+                                           pki_.server_key().string()});
+  CliResult r = RunCli(server.address(), {"--timeout", "3", "list"});
+  EXPECT_EQ(r.rc, 8) << r.err;
+  EXPECT_THAT(r.err, HasSubstr("may serve TLS"));
+  EXPECT_THAT(r.err, HasSubstr("--ca-cert"));
+  EXPECT_THAT(r.err, ::testing::Not(HasSubstr("is the server running")));
+  CliResult ok = RunCli(server.address(), {"--ca-cert", pki_.ca().string(), "list"});
+  EXPECT_EQ(ok.rc, 0) << ok.err;
+  // Nothing listens on a fresh free port: the old hint.
+  const std::string closed = "127.0.0.1:" + std::to_string(testing::FreePort());
+  CliResult none = RunCli(closed, {"--timeout", "3", "list"});
+  EXPECT_EQ(none.rc, 8) << none.err;
+  EXPECT_THAT(none.err, HasSubstr("is the server running"));
+  EXPECT_THAT(none.err, ::testing::Not(HasSubstr("may serve TLS")));
 }
 
 // --- Who may do what -------------------------------------------------------------------------
