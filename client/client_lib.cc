@@ -2,12 +2,19 @@
 
 #include <string_view>
 
+#include <fcntl.h>
+#include <netdb.h>
 #include <openssl/evp.h>
+#include <poll.h>
+#include <sys/socket.h>
+#include <unistd.h>
 
 #include <algorithm>
 #include <cctype>
+#include <cerrno>
 #include <cstdio>
 #include <cstdlib>
+#include <cstring>
 #include <fstream>
 #include <sstream>
 #include <thread>
@@ -381,6 +388,103 @@ bool EndsWith(const std::string& s, const std::string& suffix) {
 
 }  // namespace
 
+bool TcpPortAnswers(const std::string& address, std::chrono::milliseconds timeout) {
+  std::string a = address;
+  for (const char* prefix : {"dns:///", "ipv4:", "ipv6:"}) {
+    if (a.rfind(prefix, 0) == 0) a = a.substr(std::strlen(prefix));
+  }
+  const size_t colon = a.rfind(':');
+  if (colon == std::string::npos || a.rfind("unix:", 0) == 0) return false;
+  std::string host = a.substr(0, colon), port = a.substr(colon + 1);
+  if (host.size() >= 2 && host.front() == '[' && host.back() == ']') {
+    host = host.substr(1, host.size() - 2);
+  }
+  addrinfo hints{};
+  hints.ai_socktype = SOCK_STREAM;
+  addrinfo* res = nullptr;
+  if (getaddrinfo(host.c_str(), port.c_str(), &hints, &res) != 0) return false;
+  bool answered = false;
+  for (addrinfo* ai = res; ai != nullptr && !answered; ai = ai->ai_next) {
+    const int fd = ::socket(ai->ai_family, ai->ai_socktype | SOCK_NONBLOCK | SOCK_CLOEXEC, 0);
+    if (fd < 0) continue;
+    if (::connect(fd, ai->ai_addr, ai->ai_addrlen) == 0) {
+      answered = true;
+    } else if (errno == EINPROGRESS) {
+      pollfd p{fd, POLLOUT, 0};
+      int err = 0;
+      socklen_t len = sizeof err;
+      answered = ::poll(&p, 1, static_cast<int>(timeout.count())) == 1 &&
+                 ::getsockopt(fd, SOL_SOCKET, SO_ERROR, &err, &len) == 0 && err == 0;
+    }
+    ::close(fd);
+  }
+  freeaddrinfo(res);
+  return answered;
+}
+
+std::string TerminalSafe(std::string_view text) {
+  std::string out;
+  out.reserve(text.size());
+  auto escape = [&out](const char* fmt, unsigned v) {
+    char buf[8];
+    std::snprintf(buf, sizeof buf, fmt, v);
+    out += buf;
+  };
+  for (size_t i = 0; i < text.size();) {
+    const unsigned char c = static_cast<unsigned char>(text[i]);
+    if (c < 0x20 || c == 0x7f) {
+      escape("\\x%02x", c);
+      ++i;
+      continue;
+    }
+    if (c < 0x80) {
+      out += static_cast<char>(c);
+      ++i;
+      continue;
+    }
+    // A UTF-8 sequence: its length from the lead byte, then continuation bytes, shortest form.
+    const size_t n = c >= 0xc2 && c <= 0xdf   ? 2
+                     : c >= 0xe0 && c <= 0xef ? 3
+                     : c >= 0xf0 && c <= 0xf4 ? 4
+                                              : 0;
+    unsigned cp = n == 2 ? c & 0x1f : n == 3 ? c & 0x0f : c & 0x07;
+    bool valid = n > 0 && i + n <= text.size();
+    for (size_t k = 1; valid && k < n; ++k) {
+      const unsigned char cc = static_cast<unsigned char>(text[i + k]);
+      valid = (cc & 0xc0) == 0x80;
+      cp = (cp << 6) | (cc & 0x3f);
+    }
+    if (valid && ((n == 3 && cp < 0x800) || (n == 4 && (cp < 0x10000 || cp > 0x10ffff)) ||
+                  (cp >= 0xd800 && cp <= 0xdfff))) {
+      valid = false;
+    }
+    if (!valid) {
+      escape("\\x%02x", c);
+      ++i;
+    } else if (cp >= 0x80 && cp <= 0x9f) {
+      escape("\\u%04x", cp);
+      i += n;
+    } else {
+      out.append(text.substr(i, n));
+      i += n;
+    }
+  }
+  return out;
+}
+
+std::string Sha256HexOf(std::string_view bytes) {
+  unsigned char md[EVP_MAX_MD_SIZE];
+  unsigned int len = 0;
+  EVP_Digest(bytes.data(), bytes.size(), md, &len, EVP_sha256(), nullptr);
+  static constexpr char kHex[] = "0123456789abcdef";
+  std::string out;
+  for (unsigned i = 0; i < len; ++i) {
+    out.push_back(kHex[md[i] >> 4]);
+    out.push_back(kHex[md[i] & 15]);
+  }
+  return out;
+}
+
 bool AddHeaderDataFiles(std::vector<InputFile>* files, std::string* error) {
   if (files->size() != 1) return true;
   const InputFile header = (*files)[0];
@@ -453,6 +557,18 @@ bool AddHeaderDataFiles(std::vector<InputFile>* files, std::string* error) {
     f.name = rel.generic_string();
     f.path = dir / rel;
     std::error_code ec;
+    // Every component below the header's folder, not only the last: a linked folder leads
+    // anywhere (issue 35 part 5).
+    fs::path prefix = dir;
+    for (const auto& part : rel.parent_path()) {
+      prefix /= part;
+      if (fs::is_symlink(fs::symlink_status(prefix, ec))) {
+        *error = header.path.string() + ": the path of its data file " + f.path.string() +
+                 " goes through the symbolic link " + prefix.string() +
+                 " (copy the data beside the header instead)";
+        return false;
+      }
+    }
     const fs::file_status st = fs::symlink_status(f.path, ec);
     if (ec || !fs::is_regular_file(st)) {
       *error = header.path.string() + ": its data file " + f.path.string() +

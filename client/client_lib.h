@@ -11,6 +11,7 @@
 #include <functional>
 #include <memory>
 #include <string>
+#include <string_view>
 #include <vector>
 
 #include "decima/v1/artifacts.grpc.pb.h"
@@ -57,12 +58,28 @@ struct InputFile {
 bool CollectInputs(const std::filesystem::path& input, std::vector<InputFile>* out,
                    std::string* error);
 bool HashInputs(std::vector<InputFile>* files, std::string* error);
+// `text` from the server made safe to print on a terminal: C0 controls (ESC included), DEL and
+// C1 controls (U+0080..U+009F) become `\xNN` / `\u00NN`, and so does every byte that is not
+// part of valid UTF-8; printable text, UTF-8 letters included, is kept. A display name such as
+// "\x1b]0;owned\x07" can then not retitle, clear or rewrite an admin's terminal.
+std::string TerminalSafe(std::string_view text);
+
+// Whether a TCP connection to `address` ("host:port", "[v6]:port", with an optional "dns:///"
+// or "ipv4:" / "ipv6:" prefix) is accepted within `timeout`: tells "nothing listens there" from
+// "something listens but the gRPC call failed" (a plaintext client against a TLS server).
+bool TcpPortAnswers(const std::string& address, std::chrono::milliseconds timeout);
+
+// The sha256 of `bytes` as 64 lower-case hex digits, in memory (no temporary file: a predictable
+// name in the temp folder let another user plant a symlink or a FIFO there).
+std::string Sha256HexOf(std::string_view bytes);
 
 // For a single .mhd or .nhdr header in `*files`: adds the data file(s) it names
 // (MetaImage ElementDataFile, NRRD "data file:", single names or LIST) with manifest names
 // relative to the header's folder. A header with LOCAL data or an attached NRRD adds nothing.
 // False with a message naming the header and the line when a data file is missing, outside
-// the header's folder, or given as a pattern.
+// the header's folder, or given as a pattern, and when any component of its path below the
+// header's folder is a symbolic link (a linked folder such as `sub -> /etc` would otherwise
+// upload `sub/passwd`; every link is refused, also one pointing inside the folder).
 bool AddHeaderDataFiles(std::vector<InputFile>* files, std::string* error);
 
 // Keeps the DICOM files of a folder: drops DICOMDIR and files without the "DICM" marker at

@@ -111,6 +111,18 @@ std::string ServerSource() {
 }
 
 void PrintUnreachable(const std::string& what, const std::string& detail) {
+  const bool tls_options = g.tls || !g.ca_file.empty() || !g.cert_file.empty();
+  // Something accepts TCP there, so the server may well run: a plaintext call to a TLS server
+  // fails exactly like this (issue 35 part 7: the hint used to ask only whether it runs).
+  if (!tls_options && TcpPortAnswers(g.server, std::chrono::seconds(1))) {
+    std::fprintf(stderr,
+                 "decima: %s: cannot talk to decima-server at %s (%s): %s\n"
+                 "  hint: something accepts connections there, so the server may serve TLS "
+                 "(decima-server --tls-cert): add --tls, with --ca-cert CA.pem for a private CA "
+                 "(or DECIMA_CA_CERT)\n",
+                 what.c_str(), g.server.c_str(), ServerSource().c_str(), detail.c_str());
+    return;
+  }
   std::fprintf(stderr,
                "decima: %s: cannot reach decima-server at %s (%s): %s\n"
                "  hint: is the server running there? Start it with `decima-server --listen %s`, "
@@ -118,7 +130,7 @@ void PrintUnreachable(const std::string& what, const std::string& detail) {
                what.c_str(), g.server.c_str(), ServerSource().c_str(), detail.c_str(),
                g.server.c_str());
   // A refused TLS handshake looks exactly like an unreachable server to gRPC.
-  if (g.tls || !g.ca_file.empty() || !g.cert_file.empty()) {
+  if (tls_options) {
     std::fprintf(stderr,
                  "  over TLS this is also what a refused handshake looks like: check --ca-cert "
                  "(the server's CA), and under mutual TLS --tls-cert/--tls-key (a client "
@@ -135,7 +147,7 @@ int Report(const grpc::Status& s, const std::string& what) {
     return kUnavailable;
   }
   std::fprintf(stderr, "decima: %s: %s: %s\n", what.c_str(), StatusCodeName(code).c_str(),
-               s.error_message().c_str());
+               TerminalSafe(s.error_message()).c_str());
   g_last_error = StatusCodeName(code) + ": " + s.error_message();
   if (code == grpc::StatusCode::FAILED_PRECONDITION &&
       s.error_message().find("active") != std::string::npos) {
@@ -223,7 +235,7 @@ grpc::Status WithRetry(F call) {
     if (!ever_connected || std::chrono::steady_clock::now() > until) return s;
     if (!said && !Quiet()) {
       std::fprintf(stderr, "decima: server unavailable (%s); retrying for up to %s\n",
-                   s.error_message().c_str(), FormatDuration(g.reconnect_s).c_str());
+                   TerminalSafe(s.error_message()).c_str(), FormatDuration(g.reconnect_s).c_str());
       said = true;
     }
     std::this_thread::sleep_for(std::chrono::milliseconds(wait_ms));
@@ -365,7 +377,13 @@ double JobSeconds(const v1::Job& j) {
 }
 
 // A table printed with columns as wide as their widest cell (kubectl's plain output).
-void PrintTable(const std::vector<std::vector<std::string>>& rows) {
+// Every cell is passed through TerminalSafe: names and messages come from the server (issue 35
+// part 7: a display name with escape sequences reached an admin's terminal).
+void PrintTable(const std::vector<std::vector<std::string>>& raw_rows) {
+  std::vector<std::vector<std::string>> rows = raw_rows;
+  for (auto& r : rows) {
+    for (auto& cell : r) cell = TerminalSafe(cell);
+  }
   std::vector<size_t> width;
   for (const auto& r : rows) {
     if (width.size() < r.size()) width.resize(r.size(), 0);
@@ -439,7 +457,7 @@ bool ContinueListing(const std::string& next_page_token, bool all) {
 // `decima status`: kubectl describe for one job.
 void DescribeJob(const v1::Job& j) {
   auto line = [](const char* key, const std::string& value) {
-    std::printf("%-14s %s\n", key, value.c_str());
+    std::printf("%-14s %s\n", key, TerminalSafe(value).c_str());
   };
   line("Name:", j.name());
   line("State:", v1::JobState_Name(j.state()));
@@ -573,7 +591,7 @@ int Watch(const std::string& name, v1::Job* final) {
     plain_at = std::chrono::steady_clock::now();
     std::fprintf(stderr, "%s %s %s\n", ShortId(name).c_str(),
                  OverallBar(current, elapsed(), 0, with_curve).substr(3).c_str(),
-                 current.message().c_str());
+                 TerminalSafe(current.message()).c_str());
   };
   auto say = [&](const std::string& text) {
     if (Quiet()) return;
@@ -664,9 +682,10 @@ int Watch(const std::string& name, v1::Job* final) {
       signal(SIGINT, SIG_DFL);
       // -q hides progress, never why a job did not succeed.
       if (g.quiet && !JsonOut() && final->state() != v1::SUCCEEDED) {
-        std::fprintf(
-            stderr, "decima: %s %s%s%s\n", name.c_str(), v1::JobState_Name(final->state()).c_str(),
-            final->error().message().empty() ? "" : ": ", final->error().message().c_str());
+        std::fprintf(stderr, "decima: %s %s%s%s\n", name.c_str(),
+                     v1::JobState_Name(final->state()).c_str(),
+                     final->error().message().empty() ? "" : ": ",
+                     TerminalSafe(final->error().message()).c_str());
       }
       if (final->state() == v1::SUCCEEDED) return PrintSummary(*final);
       return ExitCodeFor(final->state());
@@ -949,7 +968,7 @@ int Fetch(const v1::Job& job, const fs::path& out, const std::vector<std::string
   if (job.state() != v1::SUCCEEDED) {
     std::fprintf(stderr, "decima: fetch %s: the job is %s%s%s\n", job.name().c_str(),
                  v1::JobState_Name(job.state()).c_str(), job.error().message().empty() ? "" : ": ",
-                 job.error().message().c_str());
+                 TerminalSafe(job.error().message()).c_str());
     int code = ExitCodeFor(job.state());
     return code == kOk ? kError : code;
   }
@@ -1005,16 +1024,7 @@ void PrintJobLine(const v1::Job& j) {
   PrintTable({JobHeader(false), JobRow(j, false)});
 }
 
-std::string Sha256Hex(const std::string& text) {
-  fs::path tmp = fs::temp_directory_path() / ("decima-id-" + std::to_string(::getpid()));
-  std::ofstream(tmp, std::ios::binary) << text;
-  std::vector<InputFile> one{InputFile{"id", tmp, 0, ""}};
-  std::string err;
-  HashInputs(&one, &err);
-  std::error_code ec;
-  fs::remove(tmp, ec);
-  return one[0].sha256;
-}
+std::string Sha256Hex(const std::string& text) { return Sha256HexOf(text); }
 
 // An error of the client's own (no call failed): printed, and kept for a batch's table.
 int InputError(const std::string& message) {
@@ -1113,7 +1123,8 @@ int UploadVolume(const fs::path& input, std::vector<InputFile> files,
   grpc::Status s = WithRetry([&] { return stub->CreateVolume(conn.Context().get(), req, &vol); });
   if (!s.ok()) return Report(s, "create volume from " + input.string());
   if (!Quiet()) {
-    std::fprintf(stderr, "decima: %s = %s %s", vol.name().c_str(), vol.display_name().c_str(),
+    std::fprintf(stderr, "decima: %s = %s %s", vol.name().c_str(),
+                 TerminalSafe(vol.display_name()).c_str(),
                  v1::VolumeFormat_Name(vol.format()).c_str());
     if (vol.dims_size() == 3) {
       std::fprintf(stderr, " %lldx%lldx%lld voxels, %.3gx%.3gx%.3g mm",
@@ -1935,7 +1946,8 @@ int main(int argc, char** argv) {
                     dry_run ? "true" : "false", static_cast<long long>(vol->size_bytes()));
       } else {
         std::printf("%s%s (%s, %s)\n", dry_run ? "would delete " : "deleted ", v.c_str(),
-                    vol->display_name().c_str(), FormatBytes(vol->size_bytes()).c_str());
+                    TerminalSafe(vol->display_name()).c_str(),
+                    FormatBytes(vol->size_bytes()).c_str());
       }
     }
     return kOk;
@@ -2058,7 +2070,8 @@ int main(int argc, char** argv) {
           std::printf("{\"deleted\":%s,\"dry_run\":true,\"bytes\":%lld}\n", JsonString(v).c_str(),
                       static_cast<long long>(vol.size_bytes()));
         } else {
-          std::printf("would delete %s (%s, %s)\n", v.c_str(), vol.display_name().c_str(),
+          std::printf("would delete %s (%s, %s)\n", v.c_str(),
+                      TerminalSafe(vol.display_name()).c_str(),
                       FormatBytes(vol.size_bytes()).c_str());
         }
       }

@@ -587,6 +587,9 @@ void DicomReceiver::SettleSeries(const std::string& series_uid,
   const std::string id = NewId();
   auto job = store_->CreateJob(id, *normalized, request_id, options_.max_queued, owner, &created);
   if (!created) data_dir_->RemoveJob(id);
+  if (options_.audit)
+    options_.audit->RecordSystem(owner, "DicomCreateJob", job.ok() ? job->name() : "",
+                                 job.status());
   if (!job.ok()) return not_queued(kNotQueued, absl::StrCat("job: ", job.status().ToString()));
   rec.state = v1::ReceivedSeries::QUEUED;
   rec.job = job->name();
@@ -648,6 +651,8 @@ void DicomReceiver::SendPendingResults() {
         dest.calling_aet = options_.aet;
         const auto t0 = std::chrono::steady_clock::now();
         auto sent = SendDicomFiles(dest, files);
+        if (options_.audit)
+          options_.audit->RecordSystem(job->creator(), "DicomSendResults", rec.job, sent.status());
         const double secs =
             std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
         if (sent.ok()) {

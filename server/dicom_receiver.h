@@ -46,6 +46,7 @@
 
 #include "absl/base/thread_annotations.h"
 #include "absl/status/statusor.h"
+#include "server/audit_log.h"
 #include "server/blob_store.h"
 #include "server/data_dir.h"
 #include "server/dicom_routes.h"
@@ -68,6 +69,8 @@ struct DicomReceiverOptions {
   int max_queued = 1000;       // as --max-queued
   double poll_seconds = 0.2;   // settle loop period
   DicomRoutes routes;
+  // Jobs queued from received series and the sending of their results (null: not audited).
+  std::shared_ptr<const AuditLog> audit;
 };
 
 // Checks that `files` (one series) form a volume: each a single-frame image with

@@ -98,6 +98,8 @@ class JobsService final : public v1::Jobs::Service {
     if (auto g = d_.guard->Check(ctx, &caller); !g.ok()) {
       return d_.audit->Record(nullptr, "CreateJob", "", g);
     }
+    // A change that cannot be audited is not made.
+    if (auto a = d_.audit->Ready(); !a.ok()) return a;
     grpc::Status st = DoCreateJob(ctx, caller, *req, resp);
     return d_.audit->Record(&caller, "CreateJob", st.ok() ? resp->name() : "", st);
   }
@@ -156,8 +158,10 @@ class JobsService final : public v1::Jobs::Service {
                          v1::Job* resp) override {
     Principal caller;
     if (auto g = d_.guard->Check(ctx, &caller); !g.ok()) {
-      return d_.audit->Record(nullptr, "CancelJob", req->name(), g);
+      return d_.audit->Record(nullptr, "CancelJob", "", g);
     }
+    // A change that cannot be audited is not made.
+    if (auto a = d_.audit->Ready(); !a.ok()) return a;
     return d_.audit->Record(&caller, "CancelJob", req->name(), DoCancelJob(caller, *req, resp));
   }
 
@@ -179,8 +183,10 @@ class JobsService final : public v1::Jobs::Service {
                         v1::Job* resp) override {
     Principal caller;
     if (auto g = d_.guard->Check(ctx, &caller); !g.ok()) {
-      return d_.audit->Record(nullptr, "RetryJob", req->name(), g);
+      return d_.audit->Record(nullptr, "RetryJob", "", g);
     }
+    // A change that cannot be audited is not made.
+    if (auto a = d_.audit->Ready(); !a.ok()) return a;
     return d_.audit->Record(&caller, "RetryJob", req->name(), DoRetryJob(caller, *req, resp));
   }
 
@@ -202,8 +208,10 @@ class JobsService final : public v1::Jobs::Service {
                          v1::DeleteJobResponse*) override {
     Principal caller;
     if (auto g = d_.guard->Check(ctx, &caller); !g.ok()) {
-      return d_.audit->Record(nullptr, "DeleteJob", req->name(), g);
+      return d_.audit->Record(nullptr, "DeleteJob", "", g);
     }
+    // A change that cannot be audited is not made.
+    if (auto a = d_.audit->Ready(); !a.ok()) return a;
     return d_.audit->Record(&caller, "DeleteJob", req->name(), DoDeleteJob(caller, *req));
   }
 

@@ -10,7 +10,7 @@
 //   --tokens-file F       DECIMA_TOKENS_FILE     principals and roles (call_guard.h)
 //   --tls-cert F --tls-key F  DECIMA_TLS_CERT / DECIMA_TLS_KEY
 //   --tls-client-ca F     DECIMA_TLS_CLIENT_CA   require client certificates signed by F
-//   --audit-log F         DECIMA_AUDIT_LOG       default <data-dir>/audit.log
+//   --audit-log F         DECIMA_AUDIT_LOG       default <data-dir>/audit-<hostname>.log
 // `decima-server --run-job REQUEST` is the job child process (worker_process.h).
 #include <fcntl.h>
 #include <signal.h>
@@ -166,8 +166,9 @@ int main(int argc, char** argv) {
       ->check(CLI::Range(1, 86400))
       ->capture_default_str();
   app.add_option("--audit-log", audit_log,
-                 "audit log file: one JSON line per state-changing call (default "
-                 "<data-dir>/audit.log)")
+                 "audit log file: one JSON line per state-changing call; one server per file "
+                 "(default <data-dir>/audit-<hostname>.log, -2, -3, ... for a further server on "
+                 "the host)")
       ->envname("DECIMA_AUDIT_LOG");
   app.add_option("--audit-max-mb", audit_max_mb, "audit log size before it is rotated, MiB")
       ->envname("DECIMA_AUDIT_MAX_MB")
@@ -353,15 +354,26 @@ int main(int argc, char** argv) {
     identities = std::move(*ids);
   }
   if (!tls_client_ca.empty()) identities.RequireClientCertificates();
+  // gRPC watches checked copies of the TLS files, never the files themselves (tls_files.h).
+  std::unique_ptr<TlsFileGuard> tls_guard;
   if (!tls_cert.empty()) {
-    if (auto st = CheckTlsFiles(tls_cert, tls_key, tls_client_ca); !st.ok()) {
-      spdlog::error("{}", std::string(st.message()));
+    auto g = TlsFileGuard::Start(tls_cert, tls_key, tls_client_ca,
+                                 std::chrono::seconds(tls_reload_seconds));
+    if (!g.ok()) {
+      spdlog::error("{}", std::string(g.status().message()));
       return 1;
     }
+    tls_guard = std::move(*g);
   }
-  if (audit_log.empty()) audit_log = (data / "audit.log").string();
-  auto audit = AuditLog::Open(audit_log, static_cast<size_t>(audit_max_mb) << 20,
-                              static_cast<size_t>(audit_files));
+  // One writer per audit file: by default a file per host (replicas sharing the data dir), and
+  // a further server on the same host takes the next free number.
+  absl::StatusOr<std::shared_ptr<AuditLog>> audit;
+  for (int n = 1; n <= 16; ++n) {
+    audit =
+        AuditLog::Open(audit_log.empty() ? DefaultAuditPath(data.string(), n) : audit_log,
+                       static_cast<size_t>(audit_max_mb) << 20, static_cast<size_t>(audit_files));
+    if (!audit_log.empty() || !absl::IsFailedPrecondition(audit.status())) break;
+  }
   if (!audit.ok()) {
     spdlog::error("{}", std::string(audit.status().message()));
     return 1;
@@ -457,9 +469,11 @@ int main(int argc, char** argv) {
   if (!tls_cert.empty()) {
     // The files are re-read every --tls-reload-seconds and swapped in when they changed (a
     // renewed certificate, a new client CA): new handshakes use them, established connections
-    // and their streams are not touched. Checked above, so a bad file cannot start a server.
+    // and their streams are not touched. gRPC reads the guard's checked copies, so a broken or
+    // empty file renamed into place keeps the last good set serving.
     auto provider = std::make_shared<grpc::experimental::FileWatcherCertificateProvider>(
-        tls_key, tls_cert, tls_client_ca, static_cast<unsigned>(tls_reload_seconds));
+        tls_guard->served_key(), tls_guard->served_cert(), tls_guard->served_client_ca(),
+        static_cast<unsigned>(tls_reload_seconds));
     grpc::experimental::TlsServerCredentialsOptions tls(provider);
     tls.watch_identity_key_cert_pairs();
     if (!tls_client_ca.empty()) {
@@ -493,6 +507,7 @@ int main(int argc, char** argv) {
   pool.Start();
   std::unique_ptr<DicomReceiver> receiver;
   if (!dicom_listen.empty()) {
+    dicom.audit = *audit;
     receiver = std::make_unique<DicomReceiver>(dicom, &so.data_dir, store->get(), blobs->get(),
                                                services.catalog(), &pool);
     if (auto st = receiver->Start(); !st.ok()) {
@@ -500,10 +515,11 @@ int main(int argc, char** argv) {
       return 1;
     }
   }
-  spdlog::info("decima-server {} listening on {} (port {}), data {}, store {}, {} worker(s){}{}",
-               owner, listen, port, data.string(), postgres ? "postgresql" : "sqlite", workers,
-               auth ? ", callers identified" : ", no authentication",
-               tls_cert.empty() ? "" : (tls_client_ca.empty() ? ", TLS" : ", mutual TLS"));
+  spdlog::info(
+      "decima-server {} listening on {} (port {}), data {}, store {}, audit {}, {} worker(s){}{}",
+      owner, listen, port, data.string(), postgres ? "postgresql" : "sqlite", (*audit)->path(),
+      workers, auth ? ", callers identified" : ", no authentication",
+      tls_cert.empty() ? "" : (tls_client_ca.empty() ? ", TLS" : ", mutual TLS"));
   if (!port_file.empty()) {
     std::string tmp = port_file + ".tmp";
     std::ofstream(tmp) << port << "\n";

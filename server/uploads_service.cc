@@ -98,6 +98,8 @@ class UploadsService final : public v1::Uploads::Service {
     if (auto g = d_.guard->Check(ctx, &caller); !g.ok()) {
       return d_.audit->Record(nullptr, "Upload", "", g);
     }
+    // A change that cannot be audited is not made.
+    if (auto a = d_.audit->Ready(); !a.ok()) return a;
     v1::UploadRequest first;
     if (!reader->Read(&first)) {
       return d_.audit->Record(

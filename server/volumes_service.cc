@@ -18,6 +18,8 @@ class VolumesService final : public v1::Volumes::Service {
     if (auto g = d_.guard->Check(ctx, &caller); !g.ok()) {
       return d_.audit->Record(nullptr, "CreateVolume", "", g);
     }
+    // A change that cannot be audited is not made.
+    if (auto a = d_.audit->Ready(); !a.ok()) return a;
     grpc::Status st = DoCreateVolume(ctx, caller, *req, resp);
     return d_.audit->Record(&caller, "CreateVolume", st.ok() ? resp->name() : "", st);
   }
@@ -84,8 +86,10 @@ class VolumesService final : public v1::Volumes::Service {
                             v1::DeleteVolumeResponse*) override {
     Principal caller;
     if (auto g = d_.guard->Check(ctx, &caller); !g.ok()) {
-      return d_.audit->Record(nullptr, "DeleteVolume", req->name(), g);
+      return d_.audit->Record(nullptr, "DeleteVolume", "", g);
     }
+    // A change that cannot be audited is not made.
+    if (auto a = d_.audit->Ready(); !a.ok()) return a;
     return d_.audit->Record(&caller, "DeleteVolume", req->name(), DoDeleteVolume(caller, *req));
   }
 

@@ -133,6 +133,55 @@ TEST(HeaderDataFilesTest, MetaImageAndNrrdHeadersBringTheirDataFiles) {
   EXPECT_THAT(err, HasSubstr("pattern"));
 }
 
+// Issue 35 part 5: the earlier check looked at the data file only, so a linked folder on its path
+// (`sub -> /etc`, then `sub/passwd`) uploaded the target. Every component below the header's
+// folder is checked now.
+TEST(HeaderDataFilesTest, ASymbolicLinkedFolderOnTheDataFilesPathIsRefused) {
+  fs::path d = testing::MakeScratchDir("header_link");
+  fs::create_directories(d / "outside");
+  std::ofstream(d / "outside" / "passwd") << "root:x:0:0";
+  fs::create_directories(d / "scan" / "real");
+  fs::create_directory_symlink(d / "outside", d / "scan" / "sub");
+  fs::create_directory_symlink(d / "outside", d / "scan" / "real" / "deeper");
+  std::string err;
+  for (const char* data : {"sub/passwd", "real/deeper/passwd", "real/../sub/passwd"}) {
+    std::vector<InputFile> files;
+    std::ofstream(d / "scan" / "h.mhd") << "NDims = 3\nElementDataFile = " << data << "\n";
+    ASSERT_TRUE(CollectInputs(d / "scan" / "h.mhd", &files, &err)) << err;
+    EXPECT_FALSE(AddHeaderDataFiles(&files, &err)) << data;
+    EXPECT_THAT(err, HasSubstr("symbolic link")) << data;
+    EXPECT_EQ(files.size(), 1u) << data;
+  }
+  // A real folder on the path is fine.
+  std::ofstream(d / "scan" / "real" / "v.raw") << "ab";
+  std::vector<InputFile> files;
+  std::ofstream(d / "scan" / "h.mhd") << "NDims = 3\nElementDataFile = real/v.raw\n";
+  ASSERT_TRUE(CollectInputs(d / "scan" / "h.mhd", &files, &err)) << err;
+  ASSERT_TRUE(AddHeaderDataFiles(&files, &err)) << err;
+  ASSERT_EQ(files.size(), 2u);
+  EXPECT_EQ(files[1].name, "real/v.raw");
+}
+
+TEST(TerminalSafeTest, ControlCharactersAndBrokenUtf8AreEscapedPrintableTextIsKept) {
+  EXPECT_EQ(TerminalSafe("scan.nii"), "scan.nii");
+  EXPECT_EQ(TerminalSafe("t\xc3\xaate \xe2\x9c\x93"), "t\xc3\xaate \xe2\x9c\x93");  // UTF-8 kept
+  EXPECT_EQ(TerminalSafe("\x1b]0;owned\x07"), "\\x1b]0;owned\\x07");
+  EXPECT_EQ(TerminalSafe("a\nb\rc\td\x7f"), "a\\x0ab\\x0dc\\x09d\\x7f");
+  EXPECT_EQ(TerminalSafe("\xc2\x9b"
+                         "2J"),
+            "\\u009b2J");  // C1 CSI as UTF-8
+  EXPECT_EQ(TerminalSafe("\x9b"
+                         "2J"),
+            "\\x9b2J");                               // a raw 8-bit CSI byte
+  EXPECT_EQ(TerminalSafe("\xe2\x82"), "\\xe2\\x82");  // cut sequence
+  EXPECT_EQ(TerminalSafe("\xc0\xaf"), "\\xc0\\xaf");  // overlong '/'
+}
+
+TEST(Sha256HexOfTest, HashesInMemory) {
+  EXPECT_EQ(Sha256HexOf(""), "e3b0c44298fc1c149afbf4c8996fb92427ae41e4649b934ca495991b7852b855");
+  EXPECT_EQ(Sha256HexOf("abc"), "ba7816bf8f01cfea414140de5dae2223b00361a396177a9cb410ff61f20015ad");
+}
+
 TEST(KeepDicomFilesTest, DropsDicomdirAndFilesWithoutTheMarker) {
   fs::path d = testing::MakeScratchDir("dicomfilter");
   std::string dicm(128, '\0');

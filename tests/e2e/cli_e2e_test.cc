@@ -6,6 +6,8 @@
 #include <grpcpp/grpcpp.h>
 #include <png.h>
 #include <signal.h>
+#include <sys/inotify.h>
+#include <unistd.h>
 
 #include <fstream>
 #include <nlohmann/json.hpp>
@@ -94,6 +96,87 @@ class CliE2E : public ::testing::Test {
   fs::path scratch_;
   fs::path volume_;
 };
+
+// Issue 35 part 5: `--request-id` hashed its text through a file at a predictable path in the
+// temp folder (decima-id-<pid>, std::ofstream): a symlink planted there made root's CLI
+// overwrite its target, a FIFO made it hang. The CLI now makes no file there at all: watched
+// with inotify, its TMPDIR sees no file created during a submit with --request-id.
+TEST_F(CliE2E, SubmitWithARequestIdCreatesNoFileInTheTempFolder) {
+  ServerProcess server(scratch_ / "data");
+  const fs::path tmp = scratch_ / "tmp";
+  fs::create_directories(tmp);
+  int in = inotify_init1(IN_NONBLOCK | IN_CLOEXEC);
+  ASSERT_GE(in, 0);
+  ASSERT_GE(inotify_add_watch(in, tmp.c_str(), IN_CREATE | IN_MOVED_TO), 0);
+  CliResult r = RunCli(server.address(),
+                       {"submit", volume_.string(), "--request-id", "nightly-42", "--image-size",
+                        "32", "--reduction", "0.3"},
+                       std::chrono::seconds(60), {{"TMPDIR", tmp.string()}});
+  ASSERT_EQ(r.rc, 0) << r.err << server.Log();
+  std::vector<std::string> created;
+  alignas(inotify_event) char buf[4096];
+  for (ssize_t n; (n = read(in, buf, sizeof buf)) > 0;) {
+    for (char* p = buf; p < buf + n;) {
+      auto* ev = reinterpret_cast<inotify_event*>(p);
+      if (ev->len > 0) created.push_back(ev->name);
+      p += sizeof(inotify_event) + ev->len;
+    }
+  }
+  close(in);
+  EXPECT_THAT(created, ::testing::IsEmpty());
+  // The same request id finds the same volume and job (the id's hash is as before).
+  CliResult again =
+      RunCli(server.address(), {"submit", volume_.string(), "--request-id", "nightly-42",
+                                "--image-size", "32", "--reduction", "0.3"});
+  ASSERT_EQ(again.rc, 0) << again.err;
+  EXPECT_EQ(FirstLine(again.out), FirstLine(r.out));
+}
+
+// Issue 35 part 7: a display name (here the name of the submitted file) with escape sequences
+// reached an admin's terminal through `decima list`; every server-provided string is escaped.
+TEST_F(CliE2E, EscapeSequencesInADisplayNameDoNotReachTheTerminal) {
+  ServerProcess server(scratch_ / "data");
+  CliResult r = RunCli(server.address(), {"submit", volume_.string(), "--image-size", "32"});
+  ASSERT_EQ(r.rc, 0) << r.err << server.Log();
+  // Another caller's volume of the same blob whose display name is an attack on terminals
+  // (set OSC title, clear screen, an 8-bit CSI as UTF-8), and a job on it.
+  auto volumes = v1::Volumes::NewStub(SharedChannel(server.address()));
+  auto jobs = v1::Jobs::NewStub(SharedChannel(server.address()));
+  const v1::Job first = GetJob(server.address(), FirstLine(r.out));
+  v1::Volume vol;
+  {
+    grpc::ClientContext ctx;
+    v1::GetVolumeRequest g;
+    g.set_name(first.spec().volume());
+    ASSERT_TRUE(volumes->GetVolume(&ctx, g, &vol).ok());
+  }
+  v1::CreateVolumeRequest cv;
+  *cv.mutable_volume()->mutable_files() = vol.files();
+  cv.mutable_volume()->set_display_name("\x1b]0;owned\x07\x1b[2Jscan\xc2\x9b.nii");
+  v1::Volume evil;
+  {
+    grpc::ClientContext ctx;
+    grpc::Status st = volumes->CreateVolume(&ctx, cv, &evil);
+    ASSERT_TRUE(st.ok()) << st.error_message();
+  }
+  v1::CreateJobRequest cj;
+  *cj.mutable_spec() = first.spec();
+  cj.mutable_spec()->set_volume(evil.name());
+  v1::Job job;
+  {
+    grpc::ClientContext ctx;
+    grpc::Status st = jobs->CreateJob(&ctx, cj, &job);
+    ASSERT_TRUE(st.ok()) << st.error_message();
+  }
+  for (const std::vector<std::string>& cmd :
+       {std::vector<std::string>{"list"}, {"list", "-o", "wide"}, {"status", job.name()}}) {
+    CliResult l = RunCli(server.address(), cmd);
+    ASSERT_EQ(l.rc, 0) << l.err;
+    EXPECT_THAT(l.out, HasSubstr("\\x1b]0;owned\\x07\\x1b[2Jscan\\u009b.nii")) << cmd[0];
+    EXPECT_EQ(l.out.find('\x1b'), std::string::npos) << cmd[0];
+    EXPECT_EQ(l.out.find("\xc2\x9b"), std::string::npos) << cmd[0];
+  }
+}
 
 TEST_F(CliE2E, DefaultArtifactsAreSmallOutputsAreChosenAndFetchOnlyPicks) {
   ServerProcess server(scratch_ / "data");
