@@ -1,5 +1,5 @@
 #!/usr/bin/env python3
-"""Writes the seed corpora of the volume, DICOM, Upload and CreateVolume fuzz targets
+"""Writes the seed corpora of the volume, DICOM, Upload, CreateVolume and checkpoint fuzz targets
 (corpus/<target>/): small valid files (named ok-*) and edge cases (bad-*). Run from anywhere;
 the output is deterministic, so a re-run changes nothing. Inputs of several files are joined
 with SEP (kFileSeparator in fuzz_entries.h)."""
