@@ -85,6 +85,11 @@ void DataDir::RemoveJobOut(const std::string& id, int64_t epoch) const {
   fs::remove_all(job_out(id, epoch), ec);
 }
 
+void DataDir::RemoveJobCheckpoints(const std::string& id) const {
+  std::error_code ec;
+  fs::remove_all(job_checkpoints(id), ec);
+}
+
 void DataDir::RemoveJob(const std::string& id) const {
   std::error_code ec;
   fs::remove_all(job_dir(id), ec);

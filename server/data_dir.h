@@ -14,6 +14,8 @@
 //   jobs/<id>/attempts/<epoch>/request.pb  what the child of that claim runs (worker.proto)
 //   jobs/<id>/attempts/<epoch>/worker.log  the child's stdout and stderr
 //   jobs/<id>/attempts/<epoch>/out/        the artifacts of that claim
+//   jobs/<id>/checkpoints/   stage checkpoints (core/pipeline/checkpoint.h), kept across claims
+//                            and replicas so a requeued job resumes; removed when it ends
 // One folder per claim (the lease epoch): a replica that lost its lease while its child still
 // writes cannot touch the files of the claim that replaced it. A SUCCEEDED job's artifacts are
 // in its highest-numbered attempt: after the claim that succeeded no other claim is possible
@@ -58,6 +60,9 @@ class DataDir {
     return job_attempt(id, epoch) / "request.pb";
   }
   std::filesystem::path job_fault(const std::string& id) const { return job_dir(id) / "fault"; }
+  std::filesystem::path job_checkpoints(const std::string& id) const {
+    return job_dir(id) / "checkpoints";
+  }
 
   // An empty out/ for the claim `epoch`; the folders of earlier claims are removed.
   absl::Status ResetJobOut(const std::string& id, int64_t epoch) const;
@@ -71,6 +76,9 @@ class DataDir {
   // Removes the out/ of claim `epoch`: a job that did not succeed serves no artifact, and its
   // partial output would only hold disk space (its worker.log stays for the record).
   void RemoveJobOut(const std::string& id, int64_t epoch) const;
+  // Removes the stage checkpoints of a job that ended (succeeded, failed or cancelled): a Retry
+  // starts from the beginning, and the simplified mesh of a large scan is hundreds of MB.
+  void RemoveJobCheckpoints(const std::string& id) const;
   // Writes `bytes` to `path` through a temporary file and a rename.
   absl::Status WriteFileAtomically(const std::filesystem::path& path,
                                    const std::string& bytes) const;

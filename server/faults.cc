@@ -10,12 +10,19 @@
 namespace decima::server {
 namespace {
 
-absl::Status Parse(const std::string& faults, bool* crash, double* sleep_s) {
+absl::Status Parse(const std::string& faults, bool* crash, double* sleep_s,
+                   std::string* pause_after = nullptr) {
   *crash = false;
   *sleep_s = 0;
   for (absl::string_view f : absl::StrSplit(faults, ',', absl::SkipEmpty())) {
     if (f == "crash") {
       *crash = true;
+    } else if (absl::ConsumePrefix(&f, "pause-after:")) {
+      if (f != "segment" && f != "simplify") {
+        return absl::InvalidArgumentError(absl::StrCat(kFaultMetadataKey, ": pause-after:'", f,
+                                                       "', expected segment or simplify"));
+      }
+      if (pause_after) *pause_after = std::string(f);
     } else if (absl::ConsumePrefix(&f, "sleep:")) {
       double s = 0;
       if (!absl::SimpleAtod(f, &s) || !(s >= 0 && s <= 3600)) {
@@ -24,8 +31,8 @@ absl::Status Parse(const std::string& faults, bool* crash, double* sleep_s) {
       }
       *sleep_s += s;
     } else {
-      return absl::InvalidArgumentError(
-          absl::StrCat(kFaultMetadataKey, ": unknown fault '", f, "' (crash, sleep:S)"));
+      return absl::InvalidArgumentError(absl::StrCat(kFaultMetadataKey, ": unknown fault '", f,
+                                                     "' (crash, sleep:S, pause-after:STAGE)"));
     }
   }
   return absl::OkStatus();
@@ -49,6 +56,31 @@ absl::Status ApplyFaults(const std::string& faults, const ProgressFn& progress,
     if (t >= seconds) break;
     if (cancel.cancelled()) return absl::CancelledError("prepare: cancelled");
     Report(progress, {"prepare", t / seconds, "test fault: sleeping", {{"elapsed_s", t}}});
+    std::this_thread::sleep_for(std::chrono::milliseconds(50));
+  }
+  return absl::OkStatus();
+}
+
+absl::Status PauseAfterCheckpoint(const std::string& faults, const std::string& stage,
+                                  const ProgressFn& progress, const CancelToken& cancel) {
+  bool crash;
+  double sleep_s;
+  std::string pause_after;
+  if (auto st = Parse(faults, &crash, &sleep_s, &pause_after); !st.ok()) return st;
+  if (pause_after != stage) return absl::OkStatus();
+  const auto start = std::chrono::steady_clock::now();
+  for (int64_t tick = 0;; ++tick) {
+    const double t =
+        std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
+    if (t >= kMaxPauseSeconds) break;
+    if (cancel.cancelled()) return absl::CancelledError(absl::StrCat(stage, ": cancelled"));
+    // Once a second: enough for a test to see it, few enough not to flood the event log.
+    if (tick % 20 == 0) {
+      Report(progress, {stage,
+                        1,
+                        absl::StrCat("test fault: paused after the ", stage, " checkpoint"),
+                        {{"elapsed_s", t}}});
+    }
     std::this_thread::sleep_for(std::chrono::milliseconds(50));
   }
   return absl::OkStatus();

@@ -5,7 +5,9 @@
 // which applies it. A production server never looks at the key.
 //
 // Faults, comma separated: "crash" aborts the job process once it started; "sleep:S" spends S
-// seconds (0..3600) in a cancellable "prepare" stage reporting progress every 50 ms.
+// seconds (0..3600) in a cancellable "prepare" stage reporting progress every 50 ms;
+// "pause-after:STAGE" (segment or simplify) pauses the job right after that stage's checkpoint
+// was saved (not when it was resumed), so a test can stop the server exactly at a stage boundary.
 #pragma once
 
 #include <filesystem>
@@ -25,5 +27,14 @@ absl::Status ValidateFaults(const std::string& faults);
 // then sets *crash for the caller to abort at the right moment. Cancelled if cancelled.
 absl::Status ApplyFaults(const std::string& faults, const ProgressFn& progress,
                          const CancelToken& cancel, bool* crash);
+
+// Longest pause of "pause-after:STAGE": a forgotten test job ends on its own.
+inline constexpr double kMaxPauseSeconds = 600;
+
+// Applies "pause-after:STAGE" in the job child when `stage`'s checkpoint was saved: reports
+// under `stage` ("test fault: paused after the STAGE checkpoint", once a second) until `cancel`
+// fires (Cancelled) or kMaxPauseSeconds passed (OK). OK at once for any other stage.
+absl::Status PauseAfterCheckpoint(const std::string& faults, const std::string& stage,
+                                  const ProgressFn& progress, const CancelToken& cancel);
 
 }  // namespace decima::server

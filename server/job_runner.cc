@@ -6,6 +6,7 @@
 #include <unistd.h>
 
 #include <cerrno>
+#include <cmath>
 #include <fstream>
 #include <optional>
 #include <thread>
@@ -50,6 +51,31 @@ v1::Job Outcome(absl::StatusCode code, const std::string& message) {
   outcome.mutable_error()->set_code(static_cast<int>(code));
   outcome.mutable_error()->set_message(message);
   return outcome;
+}
+
+// The input part of a job's checkpoint key: the blob (sha256) of every file of its volume and
+// label map, so a checkpoint never outlives a change of what the job reads.
+std::string CheckpointKey(const v1::Job& job, JobStore* store) {
+  std::string key;
+  for (const std::string& name : {job.spec().volume(), job.spec().label_map()}) {
+    if (name.empty()) continue;
+    absl::StrAppend(&key, name, ":");
+    auto id = ParseName(name, "volumes", "spec.volume");
+    if (!id.ok()) continue;
+    auto vol = store->GetVolume(*id);
+    if (!vol.ok()) continue;
+    for (const auto& f : vol->files()) absl::StrAppend(&key, f.path(), "=", f.blob(), ";");
+    absl::StrAppend(&key, "series=", vol->series_instance_uid(), "|");
+  }
+  return key;
+}
+
+// Which stage a requeued job will resume after, for the requeue's message.
+std::string ResumePoint(const fs::path& checkpoints) {
+  std::error_code ec;
+  if (fs::exists(checkpoints / "simplify.ckpt", ec)) return "simplify";
+  if (fs::exists(checkpoints / "segment.ckpt", ec)) return "segment";
+  return "";
 }
 
 }  // namespace
@@ -109,6 +135,11 @@ absl::StatusOr<JobRunner::Prepared> JobRunner::Prepare(const v1::Job& job, int64
     request.set_label_map(label_map->string());
   }
   request.set_out_dir(dd.job_out(id, epoch).string());
+  // Checkpoints outlive the attempt (and, in a shared data dir, the replica): a requeued or
+  // reclaimed job resumes after its last finished stage. The key is what the input is (the
+  // blobs of its files, by sha256); the pipeline adds the spec's parameters each stage uses.
+  request.set_checkpoint_dir(dd.job_checkpoints(id).string());
+  request.set_checkpoint_key(CheckpointKey(job, store_));
   if (options_.allow_faults) request.set_fault(dd.ReadJobFault(id));
   if (auto st = dd.WriteFileAtomically(dd.job_request(id, epoch), request.SerializeAsString());
       !st.ok()) {
@@ -122,12 +153,16 @@ JobRunner::ChildEnd JobRunner::Relay(ChildProcess& child, const Lease& lease, St
   ChildEnd end;
   FrameReader reader;
   std::string last_stored_stage;
-  Clock::time_point last_renew = Clock::now(), last_poll = Clock::now(), last_progress{};
+  v1::Progress last_seen;  // the child's latest progress, the base of the drain's events
+  last_seen.set_stage("start");
+  Clock::time_point last_renew = Clock::now(), last_poll = Clock::now(), last_progress{},
+                    last_drain_report{};
   const auto grace = std::chrono::milliseconds(options_.cancel_grace_ms);
   auto handle = [&](const worker::WorkerMessage& m) {
     if (m.has_progress()) {
       const v1::Progress& p = m.progress();
       end.stage = p.stage();
+      last_seen = p;
       // Stage changes and stage ends are always stored; within a stage, at most one event per
       // progress_interval_ms, so a chatty stage cannot flood the event log.
       const bool due = p.stage() != last_stored_stage || p.fraction() >= 1.0 ||
@@ -181,6 +216,24 @@ JobRunner::ChildEnd JobRunner::Relay(ChildProcess& child, const Lease& lease, St
       auto c = store_->CancelRequested(lease.job_id);
       if (c.ok() && *c) stop.cancel = true;
     }
+    // While the server drains, watchers learn every second how long the job has left before
+    // it is stopped and requeued: the job's own stage and fraction, with the time left.
+    if (const int64_t until = stop.drain_deadline_ms.load();
+        until > 0 && !stop.requeue && !eof && MsSince(last_drain_report) >= 1000) {
+      last_drain_report = Clock::now();
+      const int64_t now_ms =
+          std::chrono::duration_cast<std::chrono::milliseconds>(Clock::now().time_since_epoch())
+              .count();
+      const double left = std::max<int64_t>(0, until - now_ms) / 1000.0;
+      v1::Progress p = last_seen;
+      p.set_message(absl::StrCat("server draining: ", static_cast<int64_t>(std::ceil(left)),
+                                 " s left to finish, then requeued to resume from its last "
+                                 "finished stage"));
+      p.mutable_metrics()->clear();
+      (*p.mutable_metrics())["drain_remaining_s"] = left;
+      absl::Status s = store_->AppendProgress(lease, p);
+      if (!s.ok()) spdlog::warn("job {}: storing drain progress: {}", lease.job_id, s.ToString());
+    }
     if (stop.cancel || stop.requeue || end.lost_lease) child.Terminate(grace);
     if (!eof) child.TryWait();  // escalates a due SIGKILL while the pipe is still open
   }
@@ -202,7 +255,10 @@ void JobRunner::Fail(const Lease& lease, absl::StatusCode code, const std::strin
   }
   auto r = store_->Finish(lease, v1::FAILED, Outcome(code, shown));
   if (!r.ok()) spdlog::error("job {}: recording failure: {}", lease.job_id, r.status().ToString());
-  if (r.ok()) options_.data_dir.RemoveJobOut(lease.job_id, lease.epoch);
+  if (r.ok()) {
+    options_.data_dir.RemoveJobOut(lease.job_id, lease.epoch);
+    options_.data_dir.RemoveJobCheckpoints(lease.job_id);
+  }
   spdlog::info("job {} FAILED after {:.3f} s: {}", lease.job_id, seconds, message);
 }
 
@@ -218,14 +274,22 @@ void JobRunner::RecordOutcome(const v1::Job& job, const Lease& lease, const Chil
                             Outcome(absl::StatusCode::kCancelled,
                                     absl::StrCat("cancelled by request during ", end.stage)));
     if (!r.ok()) spdlog::error("job {}: recording cancel: {}", id, r.status().ToString());
-    if (r.ok()) options_.data_dir.RemoveJobOut(id, lease.epoch);
+    if (r.ok()) {
+      options_.data_dir.RemoveJobOut(id, lease.epoch);
+      options_.data_dir.RemoveJobCheckpoints(id);
+    }
     spdlog::info("job {} CANCELLED after {:.3f} s in stage {}", id, secs, end.stage);
     return;
   }
   if (stop.requeue) {
-    auto r = store_->Requeue(lease, "requeued: the server shut down while it ran");
+    const std::string resume = ResumePoint(options_.data_dir.job_checkpoints(id));
+    const std::string why =
+        absl::StrCat("requeued: the server shut down while it ran; the next attempt ",
+                     resume.empty() ? "starts from the beginning (no stage had finished)"
+                                    : absl::StrCat("resumes after ", resume));
+    auto r = store_->Requeue(lease, why);
     if (!r.ok()) spdlog::error("job {}: requeue: {}", id, r.status().ToString());
-    spdlog::info("job {} QUEUED again after {:.3f} s (server shutting down)", id, secs);
+    spdlog::info("job {} QUEUED again after {:.3f} s (server shutting down; {})", id, secs, why);
     return;
   }
   const bool exited = WIFEXITED(end.wait_status);
@@ -257,6 +321,7 @@ void JobRunner::RecordOutcome(const v1::Job& job, const Lease& lease, const Chil
     outcome.set_metrics_json(end.final->result().metrics_json());
     auto r = store_->Finish(lease, v1::SUCCEEDED, outcome);
     if (!r.ok()) spdlog::error("job {}: recording success: {}", id, r.status().ToString());
+    if (r.ok()) options_.data_dir.RemoveJobCheckpoints(id);  // the artifacts are the result now
     spdlog::info("job {} SUCCEEDED in {:.3f} s ({} artifacts)", id, secs, outcome.artifacts_size());
     return;
   }

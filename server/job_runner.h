@@ -40,6 +40,9 @@ struct JobRunnerOptions {
 struct StopFlags {
   std::atomic<bool> cancel{false};   // the user cancelled: record CANCELLED
   std::atomic<bool> requeue{false};  // the server drains: give the job back to the queue
+  // While the server drains: when (steady clock, ms since its epoch) the job will be stopped and
+  // requeued unless it finished; 0 when not draining. The runner reports the time left.
+  std::atomic<int64_t> drain_deadline_ms{0};
 };
 
 class JobRunner {

@@ -188,7 +188,9 @@ int main(int argc, char** argv) {
       ->check(CLI::Range(1.0, 3600.0))
       ->capture_default_str();
   app.add_option("--drain-seconds", drain_seconds,
-                 "on SIGTERM, how long running jobs may finish before they are requeued")
+                 "on SIGTERM, how long running jobs may finish (their watchers see the time "
+                 "left) before they are requeued; a requeued job resumes after its last "
+                 "finished stage")
       ->envname("DECIMA_DRAIN_SECONDS")
       ->check(CLI::Range(0.0, 86400.0))
       ->capture_default_str();
@@ -542,9 +544,11 @@ int main(int argc, char** argv) {
   services.StartDraining();
   if (receiver) receiver->Stop();  // no new series while draining
   server->GetHealthCheckService()->SetServingStatus(false);
-  bus.Close();
   wake_pool = nullptr;
+  // The bus stays open through the drain: watchers of running jobs see the drain's progress and
+  // the requeue; it closes (ending every watch) once no job runs here.
   pool.Drain(std::chrono::milliseconds(static_cast<int64_t>(drain_seconds * 1000)));
+  bus.Close();
   reaper.Stop();
   collector.Stop();
   server->Shutdown(std::chrono::system_clock::now() + std::chrono::seconds(2));

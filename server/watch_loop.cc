@@ -21,6 +21,9 @@ absl::Status WatchLoop::Run(const std::string& job_id, int64_t after_sequence,
   auto job = store_->GetJob(job_id);
   if (!job.ok()) return job.status();
   int64_t last = after_sequence;
+  // The job's state as of the last event sent: while the server drains, a watch of a RUNNING job
+  // goes on (the drain's progress and the job's end or requeue are what its watcher waits for).
+  v1::JobState state = job->state();
   {
     v1::JobEvent snap;
     snap.set_sequence(job->last_sequence());
@@ -31,7 +34,7 @@ absl::Status WatchLoop::Run(const std::string& job_id, int64_t after_sequence,
   // A job already final with nothing newer to send: the snapshot was the whole answer.
   if (IsFinal(job->state()) && last >= job->last_sequence()) return absl::OkStatus();
 
-  bool ended = false, gone = false;
+  bool ended = false, gone = false, closed = false, flushed = false;
   // Sends `events` in order, skipping what was sent; false on a gap (reread the store).
   auto send = [&](const std::vector<v1::JobEvent>& events) -> bool {
     for (const auto& ev : events) {
@@ -42,6 +45,7 @@ absl::Status WatchLoop::Run(const std::string& job_id, int64_t after_sequence,
         return true;
       }
       last = ev.sequence();
+      if (ev.has_state_change()) state = ev.state_change().state();
       if (ev.has_state_change() && IsFinal(ev.state_change().state())) {
         auto now = store_->GetJob(job_id);
         if (now.ok() && now->last_sequence() == last) ended = true;
@@ -54,7 +58,9 @@ absl::Status WatchLoop::Run(const std::string& job_id, int64_t after_sequence,
   bool need_store = true;
   for (;;) {
     if (gone || c.cancelled()) return absl::CancelledError("the watcher went away");
-    if (c.draining()) {
+    // After the bus closed, the store is read once more: the requeue may have been committed
+    // but not yet published when the drain ended.
+    if (c.draining() && (state != v1::RUNNING || (closed && flushed))) {
       return absl::UnavailableError(
           absl::StrCat("the server is shutting down; watch again with after_sequence=", last));
     }
@@ -82,6 +88,10 @@ absl::Status WatchLoop::Run(const std::string& job_id, int64_t after_sequence,
         need_store = true;
         break;
       case EventBus::Channel::Wait::kClosed:  // the draining check above ends the stream
+        flushed = closed;
+        closed = true;
+        need_store = true;
+        break;
       case EventBus::Channel::Wait::kTimeout:
         break;
     }

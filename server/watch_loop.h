@@ -28,7 +28,9 @@ struct WatchControls {
   std::function<bool(const v1::JobEvent&)> send;
   // The watcher cancelled (checked between waits).
   std::function<bool()> cancelled = [] { return false; };
-  // The server drains: end with UNAVAILABLE telling where to resume.
+  // The server drains: end with UNAVAILABLE telling where to resume. A watch of a RUNNING job
+  // goes on while the job gets its drain time (its drain progress and its requeue or end are
+  // sent) and ends once the job is no longer running or the event bus closed.
   std::function<bool()> draining = [] { return false; };
 };
 

@@ -37,6 +37,12 @@ void WorkerPool::Drain(std::chrono::milliseconds grace) {
   }
   cv_.notify_all();
   const auto deadline = std::chrono::steady_clock::now() + grace;
+  {
+    std::lock_guard<std::mutex> lock(mu_);
+    const int64_t ms =
+        std::chrono::duration_cast<std::chrono::milliseconds>(deadline.time_since_epoch()).count();
+    for (auto& s : slots_) s->stop.drain_deadline_ms = ms;
+  }
   while (running_.load() > 0 && std::chrono::steady_clock::now() < deadline) {
     std::this_thread::sleep_for(std::chrono::milliseconds(20));
   }

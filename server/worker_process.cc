@@ -90,9 +90,16 @@ int RunJobProcess(const std::filesystem::path& request_file, int fd) {
     stage = p.stage;
     progress(p);
   };
+  pipeline::CheckpointOptions checkpoints;
+  checkpoints.dir = request.checkpoint_dir();
+  checkpoints.key = request.checkpoint_key();
+  // A failed pause (only a cancel) shows at the pipeline's next cancellation check.
+  checkpoints.on_saved = [&](const std::string& saved) {
+    (void)PauseAfterCheckpoint(request.fault(), saved, progress, g_cancel);
+  };
   absl::StatusOr<pipeline::JobResult> result;
   try {
-    result = pipeline::RunJob(*spec, request.out_dir(), tracked, &g_cancel);
+    result = pipeline::RunJob(*spec, request.out_dir(), tracked, &g_cancel, checkpoints);
   } catch (const std::bad_alloc&) {
     // RLIMIT_AS reached: the estimate was low for this volume. Say so rather than dying.
     result = absl::ResourceExhaustedError(absl::StrCat(

@@ -1,12 +1,16 @@
 #include "core/pipeline/pipeline.h"
 
+#include <sys/resource.h>
+
 #include <algorithm>
 #include <chrono>
 #include <cmath>
 #include <cstdio>
+#include <cstdlib>
 #include <fstream>
 #include <iterator>
 #include <limits>
+#include <optional>
 #include <sstream>
 #include <utility>
 
@@ -23,6 +27,7 @@
 #include "core/mesh/tetrahedralize.h"
 #include "core/metrics/fidelity.h"
 #include "core/metrics/fidelity_json.h"
+#include "core/pipeline/checkpoint.h"
 #include "core/render/annotate.h"
 #include "core/render/camera.h"
 #include "core/render/canvas.h"
@@ -305,6 +310,100 @@ absl::Status WriteText(const std::filesystem::path& path, const std::string& tex
   return absl::OkStatus();
 }
 
+// Peak resident memory of the process, in MiB: overall (getrusage, never reset) and per stage
+// (the kernel's VmHWM, which writing "5" to /proc/self/clear_refs resets to the current RSS, so
+// each stage's figure is the highest RSS reached during that stage). Where the reset is refused
+// (not Linux, a restricted /proc), a stage's figure is the peak so far and `resettable` says so.
+class PeakRss {
+ public:
+  PeakRss() { resettable_ = Reset(); }
+  void EndStage(const std::string& stage) {
+    const double mb = HighWaterMb();
+    if (mb > 0) stages_[stage] = std::max(stages_.value(stage, 0.0), mb);
+    if (resettable_) resettable_ = Reset();
+  }
+  Json ToJson() const { return stages_; }
+  // The kernel keeps ru_maxrss and VmHWM slightly apart (they are sampled at different
+  // moments): the larger of the process's figure and every stage's is the peak.
+  double PeakMb() const {
+    double peak = ProcessPeakMb();
+    for (const auto& [stage, mb] : stages_.items()) peak = std::max(peak, mb.get<double>());
+    return peak;
+  }
+  bool resettable() const { return resettable_; }
+  static double ProcessPeakMb() {
+    rusage ru{};
+    if (getrusage(RUSAGE_SELF, &ru) != 0) return 0;
+    return static_cast<double>(ru.ru_maxrss) / 1024.0;  // ru_maxrss is in KiB on Linux
+  }
+
+ private:
+  static bool Reset() {
+    std::ofstream out("/proc/self/clear_refs");
+    out << "5";
+    out.flush();
+    return out.good();
+  }
+  static double HighWaterMb() {
+    std::ifstream in("/proc/self/status");
+    std::string line;
+    while (std::getline(in, line)) {
+      if (line.rfind("VmHWM:", 0) == 0) return std::atof(line.c_str() + 6) / 1024.0;
+    }
+    return ProcessPeakMb();
+  }
+  Json stages_ = Json::object();
+  bool resettable_ = false;
+};
+
+// The key of a stage's checkpoint: the caller's (the input) plus every spec parameter the
+// stage's output depends on, so a checkpoint made for other parameters is never resumed.
+std::string SegmentKey(const JobSpec& spec, const std::string& input_key) {
+  return absl::StrCat(input_key, "|segment regions=", spec.regions,
+                      " means=", absl::StrJoin(spec.class_means, ","),
+                      " label_map=", spec.label_map ? spec.label_map->string() : "",
+                      " series=", spec.series_instance_uid);
+}
+
+std::string SimplifyKey(const JobSpec& spec, const std::string& segment_key) {
+  char buf[256];
+  std::snprintf(buf, sizeof buf,
+                "|simplify policy=%s target=%.17g tolerance=%.17g w=%.17g,%.17g,%.17g",
+                SimplifyPolicyName(spec.policy), spec.target_reduction, spec.error_tolerance,
+                spec.weights.shape, spec.weights.volume, spec.weights.neighbour);
+  return segment_key + buf;
+}
+
+// The stage's output from its checkpoint, or nothing (no checkpoints, none saved yet, or one
+// that is damaged or of other inputs: reported, and the stage runs again).
+template <typename T>
+std::optional<T> Resume(const CheckpointOptions& c, const std::string& stage,
+                        const std::string& key, absl::StatusOr<T> (*parse)(const std::string&),
+                        const ProgressFn& progress) {
+  if (c.dir.empty()) return std::nullopt;
+  auto payload = ReadCheckpoint(c.dir / (stage + ".ckpt"), key);
+  absl::StatusOr<T> value = payload.ok() ? parse(*payload) : absl::StatusOr<T>(payload.status());
+  if (!value.ok()) {
+    if (!absl::IsNotFound(value.status())) {
+      Report(progress,
+             {stage, 0, absl::StrCat("checkpoint ignored: ", value.status().message()), {}});
+    }
+    return std::nullopt;
+  }
+  Report(progress, {stage, 1, "resumed from checkpoint", {}});
+  return std::move(*value);
+}
+
+void SaveCheckpoint(const CheckpointOptions& c, const std::string& stage, const std::string& key,
+                    const std::string& payload, const ProgressFn& progress) {
+  if (c.dir.empty()) return;
+  if (absl::Status st = WriteCheckpoint(c.dir / (stage + ".ckpt"), key, payload); !st.ok()) {
+    Report(progress, {stage, 1, absl::StrCat("checkpoint not saved: ", st.message()), {}});
+    return;
+  }
+  if (c.on_saved) c.on_saved(stage);
+}
+
 }  // namespace
 
 absl::Status ValidateJobSpec(const JobSpec& spec, std::string* field) {
@@ -392,8 +491,11 @@ absl::Status ValidateJobSpec(const JobSpec& spec, std::string* field) {
 }
 
 absl::StatusOr<JobResult> RunJob(const JobSpec& spec, const std::filesystem::path& out_dir,
-                                 const ProgressFn& progress, const CancelToken* cancel) {
+                                 const ProgressFn& progress, const CancelToken* cancel,
+                                 const CheckpointOptions& checkpoints) {
   const auto job_start = Clock::now();
+  PeakRss rss;
+  Json resumed = Json::array();
   DECIMA_RETURN_IF_ERROR(ValidateJobSpec(spec));
   std::error_code ec;
   std::filesystem::create_directories(out_dir, ec);
@@ -413,6 +515,7 @@ absl::StatusOr<JobResult> RunJob(const JobSpec& spec, const std::filesystem::pat
   Report(progress, {"load", 0, spec.input.string(), {}});
   DECIMA_ASSIGN_OR_RETURN(const Volume image, LoadInput(spec));
   timings["load"] = Seconds(t);
+  rss.EndStage("load");
   metrics["input"] = {{"dims", image.dims},
                       {"spacing_mm", {image.spacing[0], image.spacing[1], image.spacing[2]}},
                       {"type", std::string(VoxelTypeName(image.type))},
@@ -424,17 +527,25 @@ absl::StatusOr<JobResult> RunJob(const JobSpec& spec, const std::filesystem::pat
   // segment
   t = Clock::now();
   SegmentResult seg;
-  if (spec.label_map) {
-    Report(progress, {"segment", 0, absl::StrCat("label map ", spec.label_map->string()), {}});
-    DECIMA_ASSIGN_OR_RETURN(const Volume label_map, io::ReadVolume(*spec.label_map));
-    DECIMA_ASSIGN_OR_RETURN(seg, SegmentationFromLabelMap(image, label_map));
+  const std::string segment_key = SegmentKey(spec, checkpoints.key);
+  if (auto saved = Resume(checkpoints, "segment", segment_key, &ParseSegmentResult, progress)) {
+    seg = std::move(*saved);
+    resumed.push_back("segment");
   } else {
-    SegmentOptions so;
-    so.regions = spec.regions;
-    so.class_means = spec.class_means;
-    DECIMA_ASSIGN_OR_RETURN(seg, Segment(image, so, Forward(progress, "segment"), cancel));
+    if (spec.label_map) {
+      Report(progress, {"segment", 0, absl::StrCat("label map ", spec.label_map->string()), {}});
+      DECIMA_ASSIGN_OR_RETURN(const Volume label_map, io::ReadVolume(*spec.label_map));
+      DECIMA_ASSIGN_OR_RETURN(seg, SegmentationFromLabelMap(image, label_map));
+    } else {
+      SegmentOptions so;
+      so.regions = spec.regions;
+      so.class_means = spec.class_means;
+      DECIMA_ASSIGN_OR_RETURN(seg, Segment(image, so, Forward(progress, "segment"), cancel));
+    }
+    SaveCheckpoint(checkpoints, "segment", segment_key, SerializeSegmentResult(seg), progress);
   }
   timings["segment"] = Seconds(t);
+  rss.EndStage("segment");
   metrics["segmentation"] = SegmentJson(seg, spec.label_map.has_value());
   if (std::find(spec.outputs.begin(), spec.outputs.end(), "labels") != spec.outputs.end()) {
     DECIMA_RETURN_IF_ERROR(io::WriteNifti(seg.labels, out_dir / "labels.nii.gz"));
@@ -450,6 +561,7 @@ absl::StatusOr<JobResult> RunJob(const JobSpec& spec, const std::filesystem::pat
   DECIMA_ASSIGN_OR_RETURN(const TetMesh original,
                           Tetrahedralize(image, to, Forward(progress, "tetra"), cancel));
   timings["tetra"] = Seconds(t);
+  rss.EndStage("tetra");
 
   // simplify
   t = Clock::now();
@@ -458,10 +570,19 @@ absl::StatusOr<JobResult> RunJob(const JobSpec& spec, const std::filesystem::pat
   simplify_options.target_reduction = spec.target_reduction;
   simplify_options.error_tolerance = spec.error_tolerance;
   simplify_options.weights = spec.weights;
-  DECIMA_ASSIGN_OR_RETURN(
-      SimplifyResult simplified,
-      Simplify(original, simplify_options, Forward(progress, "simplify"), cancel));
+  const std::string simplify_key = SimplifyKey(spec, segment_key);
+  SimplifyResult simplified;
+  if (auto saved = Resume(checkpoints, "simplify", simplify_key, &ParseSimplifyResult, progress)) {
+    simplified = std::move(*saved);
+    resumed.push_back("simplify");
+  } else {
+    DECIMA_ASSIGN_OR_RETURN(
+        simplified, Simplify(original, simplify_options, Forward(progress, "simplify"), cancel));
+    SaveCheckpoint(checkpoints, "simplify", simplify_key, SerializeSimplifyResult(simplified),
+                   progress);
+  }
   timings["simplify"] = Seconds(t);
+  rss.EndStage("simplify");
   metrics["simplification"] = {{"policy", SimplifyPolicyName(spec.policy)},
                                {"target_reduction", spec.target_reduction},
                                {"achieved_reduction", simplified.achieved_reduction},
@@ -523,6 +644,7 @@ absl::StatusOr<JobResult> RunJob(const JobSpec& spec, const std::filesystem::pat
     DECIMA_RETURN_IF_ERROR(CheckCancelled(cancel, "write"));
   }
   timings["write"] = Seconds(t);
+  rss.EndStage("write");
   Report(progress,
          {"write", 1, mesh_files.empty() ? "no mesh file asked for" : "mesh written", {}});
 
@@ -643,6 +765,7 @@ absl::StatusOr<JobResult> RunJob(const JobSpec& spec, const std::filesystem::pat
         {absl::StrCat("View ", v.name, ": original, simplified, difference"), out_dir / names[3]});
   }
   timings["render"] = Seconds(t);
+  rss.EndStage("render");
   metrics["render"] = {{"size", spec.image_size},
                        {"transfer_function", spec.transfer_function},
                        {"preset", preset},
@@ -680,6 +803,7 @@ absl::StatusOr<JobResult> RunJob(const JobSpec& spec, const std::filesystem::pat
     pictures.push_back(
         {"diff1 against cells removed (the paper's Fig. 5 for this job)", out_dir / "curve.png"});
     timings["curve"] = Seconds(t);
+    rss.EndStage("curve");
     Report(progress, {"curve", 1, absl::StrCat(curve.size(), " points"), {}});
   }
 
@@ -707,6 +831,12 @@ absl::StatusOr<JobResult> RunJob(const JobSpec& spec, const std::filesystem::pat
   result.seconds = Seconds(job_start);
   timings["total"] = result.seconds;
   metrics["seconds"] = timings;
+  // The pictures and metrics.json so far count as the "diff" stage; report.html adds little.
+  rss.EndStage("diff");
+  metrics["peak_rss_mb"] = rss.PeakMb();
+  metrics["stage_peak_rss_mb"] = rss.ToJson();
+  metrics["stage_peak_rss_per_stage"] = rss.resettable();
+  metrics["resumed_stages"] = resumed;
   result.metrics_json = metrics.dump(2);
   DECIMA_RETURN_IF_ERROR(WriteText(out_dir / "metrics.json", result.metrics_json));
   add_artifact("metrics.json");

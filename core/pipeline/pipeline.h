@@ -5,6 +5,7 @@
 
 #include <cstdint>
 #include <filesystem>
+#include <functional>
 #include <map>
 #include <optional>
 #include <string>
@@ -71,12 +72,28 @@ struct JobResult {
   double seconds = 0;
 };
 
+// Where RunJob keeps its stage checkpoints (checkpoint.h): after "segment" the segmentation,
+// after "simplify" the simplified mesh. A later RunJob with the same folder and key resumes after
+// the last stage whose checkpoint is intact, with outputs identical to an uninterrupted run.
+struct CheckpointOptions {
+  std::filesystem::path dir;  // empty: no checkpoints are read or written
+  // What the input is, e.g. the volume's sha256 (and the label map's). RunJob adds the spec's
+  // parameters each stage depends on, so a checkpoint of another volume or spec is ignored.
+  std::string key;
+  // Called after a checkpoint was saved (not after one was resumed), with the stage name; the
+  // server's test fault seam uses it to stop a job exactly at a stage boundary.
+  std::function<void(const std::string& stage)> on_saved;
+};
+
 // Runs the job, writing every artifact into `out_dir` (created if missing). Progress stages, in
 // order: "load", "segment", "tetra", "simplify", "write", "render", "curve" (only with the
-// "curve" output), "diff". Returns
+// "curve" output), "diff"; a stage resumed from a checkpoint reports once, at 1, "resumed from
+// checkpoint". Returns
 // InvalidArgument for bad input (the message names the file and the problem), Cancelled if
-// `cancel` fired (checked at least once per iteration of every stage).
+// `cancel` fired (checked at least once per iteration of every stage). A checkpoint that cannot
+// be written is reported in a progress message and the job goes on (it only costs a resume).
 absl::StatusOr<JobResult> RunJob(const JobSpec& spec, const std::filesystem::path& out_dir,
-                                 const ProgressFn& progress, const CancelToken* cancel);
+                                 const ProgressFn& progress, const CancelToken* cancel,
+                                 const CheckpointOptions& checkpoints = {});
 
 }  // namespace decima::pipeline

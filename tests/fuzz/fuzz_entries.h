@@ -61,7 +61,13 @@ int DicomReceiveEntry(const uint8_t* data, size_t size);
 // one study, each carrying the study's SeriesInstanceUID. Accepted: at least one study.
 int BatchStudiesEntry(const uint8_t* data, size_t size);
 
-// Whether the last input of the volume, DICOM, DICOM receive, Upload or CreateVolume entries
+// A job's stage checkpoint (core/pipeline/checkpoint.h), data on a shared disk that may be torn
+// or damaged. First byte: bit 0 chooses the simplify payload (else segment), bit 1 the whole file
+// through ReadCheckpoint under the key "k" (else the payload parser alone). A payload the parser
+// accepts has consistent sizes and in-range indices and serializes back to the same bytes.
+int CheckpointEntry(const uint8_t* data, size_t size);
+
+// Whether the last input of the volume, checkpoint, DICOM, DICOM receive, Upload or CreateVolume entries
 // was accepted (a volume read, an instance stored, an upload stored, a volume created): the
 // replay test checks that the seeds named ok-* are, so the corpora keep inputs that reach past
 // the header checks.

@@ -29,6 +29,9 @@ TEST(FuzzReplay, EveryMetaImageSeedRunsThroughItsEntry) {
 }
 TEST(FuzzReplay, EveryNrrdSeedRunsThroughItsEntry) { ReplayCorpus("nrrd", NrrdEntry); }
 TEST(FuzzReplay, EveryDicomSeedRunsThroughItsEntry) { ReplayCorpus("dicom", DicomEntry); }
+TEST(FuzzReplay, EveryCheckpointSeedRunsThroughItsEntry) {
+  ReplayCorpus("checkpoint", CheckpointEntry);
+}
 
 // The corpus must keep files the readers accept (named ok-*), so the fuzzer starts past the
 // header checks and the entries' invariant checks run on real meshes and functions.
@@ -54,6 +57,7 @@ TEST(FuzzReplay, VolumeSeedsNamedOkAreAccepted) {
   ExpectOkSeedsAccepted("metaimage", MetaImageEntry);
   ExpectOkSeedsAccepted("nrrd", NrrdEntry);
   ExpectOkSeedsAccepted("dicom", DicomEntry);
+  ExpectOkSeedsAccepted("checkpoint", CheckpointEntry);
 }
 
 }  // namespace

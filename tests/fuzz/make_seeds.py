@@ -1,5 +1,5 @@
 #!/usr/bin/env python3
-"""Writes the seed corpora of the volume, DICOM, Upload and CreateVolume fuzz targets
+"""Writes the seed corpora of the volume, DICOM, Upload, CreateVolume and checkpoint fuzz targets
 (corpus/<target>/): small valid files (named ok-*) and edge cases (bad-*). Run from anywhere;
 the output is deterministic, so a re-run changes nothing. Inputs of several files are joined
 with SEP (kFileSeparator in fuzz_entries.h)."""
@@ -281,3 +281,49 @@ write("create_volume", "bad-mhd-without-data", manifest([(0, "v.mhd", mhd)]))
 write("create_volume", "bad-unknown-format", manifest([(0, "x.txt", b"hello")], fmt=5))
 write("create_volume", "bad-gzip-bomb",
       manifest([(0, "v.nii.gz", gz(nifti_single((1024, 1024, 64), 2, 8, b"\0" * 65536)))]))
+
+
+# ---- stage checkpoints (core/pipeline/checkpoint.h) -----------------------------------------
+# First byte of a seed: bit 0 simplify (else segment) payload, bit 1 the whole file.
+def vec(fmt, values):
+    return struct.pack("<Q", len(values)) + b"".join(struct.pack("<" + fmt, v) for v in values)
+
+
+def seg_payload(dims=(2, 2, 1), labels=(0, 1, 1, 2)):
+    n = dims[0] * dims[1] * dims[2]
+    out = struct.pack("<3q", *dims) + struct.pack("<3d", 1, 1, 2) + struct.pack("<3d", 0, 0, 0)
+    out += struct.pack("<9d", 1, 0, 0, 0, 1, 0, 0, 0, 1) + bytes([0])  # direction, uint8
+    out += struct.pack("<Q", len(labels)) + bytes(labels) + struct.pack("<Q", 2) + b"MR"
+    out += vec("f", [0.5] * n) + vec("f", [0.5] * n) + vec("d", [10, 20, 30])
+    out += vec("q", [1, 2, 1]) + vec("d", [2, 4, 2])
+    return out + struct.pack("<i", 7) + bytes([1]) + struct.pack("<dd", 0.25, 3.5)
+
+
+def simplify_payload(tets=(0, 1, 2, 3), vertex_map=(0, 1, 2, 3, -1)):
+    out = vec("f", [0, 0, 0, 1, 0, 0, 0, 1, 0, 0, 0, 1]) + vec("f", [1, 2, 3, 4])
+    out += vec("B", [0, 0, 1, 1]) + vec("f", [0.5] * 4) + vec("B", [1, 0, 0, 2])
+    out += vec("i", tets) + vec("B", [3] * (len(tets) // 4)) + vec("i", vertex_map)
+    out += struct.pack("<qqd", 20, 1, 0.95) + bytes([1, 0]) + struct.pack("<Q", 4) + b"done"
+    out += struct.pack("<iqd", 2, 3, 0.125)
+    return out + struct.pack("<Q", 1) + struct.pack("<7qd", 5, 3, 19, 1, 0, 2, 0, 0.125)
+
+
+def ckpt_file(payload, key=b"k", sha=None):
+    sha = sha or hashlib.sha256(payload).hexdigest().encode()
+    return (b"DECIMA-CHECKPOINT 1\n" + struct.pack("<Q", len(key)) + key +
+            struct.pack("<Q", len(payload)) + sha + payload)
+
+
+write("checkpoint", "ok-segment-payload", b"\x00" + seg_payload())
+write("checkpoint", "ok-simplify-payload", b"\x01" + simplify_payload())
+write("checkpoint", "ok-segment-file", b"\x02" + ckpt_file(seg_payload()))
+write("checkpoint", "ok-simplify-file", b"\x03" + ckpt_file(simplify_payload()))
+write("checkpoint", "bad-truncated-segment-payload", b"\x00" + seg_payload()[:-3])
+write("checkpoint", "bad-labels-do-not-match-dims", b"\x00" + seg_payload(labels=(0, 1, 1)))
+write("checkpoint", "bad-tet-names-missing-vertex", b"\x01" + simplify_payload(tets=(0, 1, 2, 9)))
+write("checkpoint", "bad-vertex-map-out-of-range",
+      b"\x01" + simplify_payload(vertex_map=(0, 1, 2, 3, 7)))
+write("checkpoint", "bad-checksum-file", b"\x03" + ckpt_file(simplify_payload(), sha=b"0" * 64))
+write("checkpoint", "bad-other-key-file", b"\x02" + ckpt_file(seg_payload(), key=b"other"))
+write("checkpoint", "bad-torn-file", b"\x02" + ckpt_file(seg_payload())[:-10])
+write("checkpoint", "bad-huge-count", b"\x01" + struct.pack("<Q", 1 << 62) + b"\0" * 32)

@@ -123,6 +123,59 @@ TEST_F(WatchLoopTest, DrainingEndsWithUnavailableNamingWhereToResume) {
   EXPECT_THAT(std::string(st.message()), HasSubstr("after_sequence=1"));
 }
 
+TEST_F(WatchLoopTest, WhileDrainingAWatchOfARunningJobGoesOnUntilTheJobIsRequeued) {
+  auto claim = store_->ClaimNext("w", 60000);
+  ASSERT_TRUE(claim.ok() && claim->has_value());
+  std::vector<v1::JobEvent> got;
+  WatchControls c = Collect(&got);
+  c.draining = [] { return true; };  // draining from the start: the job runs, so the watch stays
+  WatchLoop loop(store_.get(), &bus_, WatchOptions{.heartbeat = 10s, .wait = 10ms});
+  std::thread t([&] {
+    std::this_thread::sleep_for(50ms);
+    v1::Progress p;
+    p.set_stage("simplify");
+    p.set_message("server draining: 2 s left to finish");
+    (*p.mutable_metrics())["drain_remaining_s"] = 2;
+    ASSERT_TRUE(store_->AppendProgress((*claim)->lease, p).ok());
+    std::this_thread::sleep_for(50ms);
+    ASSERT_TRUE(store_->Requeue((*claim)->lease, "requeued").ok());
+  });
+  const absl::Status st = loop.Run("a", 0, c);
+  t.join();
+  EXPECT_EQ(st.code(), absl::StatusCode::kUnavailable) << st;
+  bool drain = false, queued = false;
+  for (const auto& ev : got) {
+    drain = drain || (ev.has_progress() && ev.progress().metrics().count("drain_remaining_s"));
+    queued = queued || (ev.has_state_change() && ev.state_change().state() == v1::QUEUED &&
+                        ev.sequence() > 2);
+  }
+  EXPECT_TRUE(drain) << "the drain's progress reached the watcher";
+  EXPECT_TRUE(queued) << "the requeue reached the watcher";
+}
+
+TEST_F(WatchLoopTest, WhenTheBusClosesTheStoreIsReadOnceMoreBeforeTheWatchEnds) {
+  auto claim = store_->ClaimNext("w", 60000);
+  ASSERT_TRUE(claim.ok() && claim->has_value());
+  std::vector<v1::JobEvent> got;
+  WatchControls c = Collect(&got);
+  c.draining = [] { return true; };
+  WatchLoop loop(store_.get(), &bus_, WatchOptions{.heartbeat = 10s, .wait = 10ms});
+  std::thread t([&] {
+    std::this_thread::sleep_for(50ms);
+    // Committed to the store, never published (the store's listener is not told): the watch
+    // finds it in the store after the bus closes.
+    store_->SetListener(nullptr);
+    ASSERT_TRUE(store_->Requeue((*claim)->lease, "requeued").ok());
+    bus_.Close();
+  });
+  const absl::Status st = loop.Run("a", 0, c);
+  t.join();
+  EXPECT_EQ(st.code(), absl::StatusCode::kUnavailable) << st;
+  ASSERT_FALSE(got.empty());
+  EXPECT_TRUE(got.back().has_state_change()) << got.back().DebugString();
+  EXPECT_EQ(got.back().state_change().state(), v1::QUEUED);
+}
+
 TEST_F(WatchLoopTest, AWatcherThatStopsReadingEndsTheLoopAndAnUnknownJobIsNotFound) {
   WatchControls c;
   c.send = [](const v1::JobEvent&) { return false; };

@@ -1,0 +1,346 @@
+#include "core/pipeline/checkpoint.h"
+
+#include <fcntl.h>
+#include <openssl/evp.h>
+#include <unistd.h>
+
+#include <cerrno>
+#include <cstring>
+#include <fstream>
+#include <sstream>
+#include <type_traits>
+
+#include "absl/strings/str_cat.h"
+
+namespace decima::pipeline {
+namespace {
+
+constexpr char kMagic[] = "DECIMA-CHECKPOINT 1\n";
+// No checkpoint field comes near this; a larger count is a damaged file, refused before any
+// allocation.
+constexpr uint64_t kMaxElements = uint64_t{1} << 40;
+
+class Writer {
+ public:
+  template <typename T>
+  void Put(T v) {
+    static_assert(std::is_trivially_copyable_v<T>);
+    out_.append(reinterpret_cast<const char*>(&v), sizeof v);
+  }
+  template <typename T>
+  void PutVector(const std::vector<T>& v) {
+    static_assert(std::is_trivially_copyable_v<T>);
+    Put<uint64_t>(v.size());
+    out_.append(reinterpret_cast<const char*>(v.data()), v.size() * sizeof(T));
+  }
+  void PutString(const std::string& s) {
+    Put<uint64_t>(s.size());
+    out_.append(s);
+  }
+  std::string Take() { return std::move(out_); }
+
+ private:
+  std::string out_;
+};
+
+class Reader {
+ public:
+  explicit Reader(const std::string& in) : in_(in) {}
+
+  template <typename T>
+  absl::Status Get(const char* field, T* v) {
+    static_assert(std::is_trivially_copyable_v<T>);
+    if (in_.size() - at_ < sizeof(T)) return Truncated(field);
+    std::memcpy(v, in_.data() + at_, sizeof(T));
+    at_ += sizeof(T);
+    return absl::OkStatus();
+  }
+  template <typename T>
+  absl::Status GetVector(const char* field, std::vector<T>* v) {
+    uint64_t n = 0;
+    if (auto st = Get(field, &n); !st.ok()) return st;
+    if (n > kMaxElements || n * sizeof(T) > in_.size() - at_) return Truncated(field);
+    v->resize(n);
+    std::memcpy(v->data(), in_.data() + at_, n * sizeof(T));
+    at_ += n * sizeof(T);
+    return absl::OkStatus();
+  }
+  absl::Status GetString(const char* field, std::string* s) {
+    uint64_t n = 0;
+    if (auto st = Get(field, &n); !st.ok()) return st;
+    if (n > in_.size() - at_) return Truncated(field);
+    s->assign(in_, at_, n);
+    at_ += n;
+    return absl::OkStatus();
+  }
+  absl::Status Done() const {
+    if (at_ != in_.size()) {
+      return absl::InvalidArgumentError(
+          absl::StrCat("checkpoint: ", in_.size() - at_, " bytes after the last field"));
+    }
+    return absl::OkStatus();
+  }
+
+ private:
+  static absl::Status Truncated(const char* field) {
+    return absl::InvalidArgumentError(absl::StrCat("checkpoint: field ", field, " is truncated"));
+  }
+  const std::string& in_;
+  size_t at_ = 0;
+};
+
+#define DECIMA_CK(expr)                           \
+  do {                                            \
+    if (auto _st = (expr); !_st.ok()) return _st; \
+  } while (0)
+
+void PutMesh(Writer& w, const TetMesh& m) {
+  w.PutVector(m.positions);
+  w.PutVector(m.scalars);
+  w.PutVector(m.labels);
+  w.PutVector(m.interface_distance);
+  w.PutVector(m.vertex_flags);
+  w.PutVector(m.tets);
+  w.PutVector(m.cell_regions);
+}
+
+absl::Status GetMesh(Reader& r, TetMesh* m) {
+  DECIMA_CK(r.GetVector("mesh.positions", &m->positions));
+  DECIMA_CK(r.GetVector("mesh.scalars", &m->scalars));
+  DECIMA_CK(r.GetVector("mesh.labels", &m->labels));
+  DECIMA_CK(r.GetVector("mesh.interface_distance", &m->interface_distance));
+  DECIMA_CK(r.GetVector("mesh.vertex_flags", &m->vertex_flags));
+  DECIMA_CK(r.GetVector("mesh.tets", &m->tets));
+  DECIMA_CK(r.GetVector("mesh.cell_regions", &m->cell_regions));
+  const size_t n = m->scalars.size();
+  if (m->positions.size() != 3 * n || m->labels.size() != n || m->interface_distance.size() != n ||
+      m->vertex_flags.size() != n || m->tets.size() % 4 != 0 ||
+      m->cell_regions.size() != m->tets.size() / 4) {
+    return absl::InvalidArgumentError("checkpoint: mesh arrays disagree in length");
+  }
+  for (int32_t v : m->tets) {
+    if (v < 0 || static_cast<size_t>(v) >= n) {
+      return absl::InvalidArgumentError(
+          absl::StrCat("checkpoint: mesh.tets names vertex ", v, " of ", n));
+    }
+  }
+  return absl::OkStatus();
+}
+
+absl::Status Errno(const char* what, const std::filesystem::path& path) {
+  return absl::InternalError(
+      absl::StrCat("checkpoint: ", what, " ", path.string(), ": ", std::strerror(errno)));
+}
+
+}  // namespace
+
+std::string Sha256Hex(const std::string& bytes) {
+  unsigned char md[EVP_MAX_MD_SIZE];
+  unsigned int len = 0;
+  EVP_Digest(bytes.data(), bytes.size(), md, &len, EVP_sha256(), nullptr);
+  static const char kHex[] = "0123456789abcdef";
+  std::string out;
+  for (unsigned int i = 0; i < len; ++i) {
+    out.push_back(kHex[md[i] >> 4]);
+    out.push_back(kHex[md[i] & 15]);
+  }
+  return out;
+}
+
+std::string SerializeSegmentResult(const SegmentResult& seg) {
+  Writer w;
+  const Volume& l = seg.labels;
+  for (int64_t d : l.dims) w.Put(d);
+  for (int i = 0; i < 3; ++i) w.Put(l.spacing[i]);
+  for (int i = 0; i < 3; ++i) w.Put(l.origin[i]);
+  for (int i = 0; i < 9; ++i) w.Put(l.direction.data()[i]);
+  w.Put(static_cast<uint8_t>(l.type));
+  w.PutVector(l.bytes);
+  w.PutString(l.modality);
+  w.PutVector(seg.interface_distance_voxels);
+  w.PutVector(seg.interface_distance_mm);
+  w.PutVector(seg.class_means);
+  w.PutVector(seg.region_voxels);
+  w.PutVector(seg.region_volumes_mm3);
+  w.Put<int32_t>(seg.iterations);
+  w.Put<uint8_t>(seg.converged);
+  w.Put(seg.energy);
+  w.Put(seg.within_class_sigma);
+  return w.Take();
+}
+
+absl::StatusOr<SegmentResult> ParseSegmentResult(const std::string& bytes) {
+  Reader r(bytes);
+  SegmentResult seg;
+  Volume& l = seg.labels;
+  for (int64_t& d : l.dims) DECIMA_CK(r.Get("labels.dims", &d));
+  for (int i = 0; i < 3; ++i) DECIMA_CK(r.Get("labels.spacing", &l.spacing[i]));
+  for (int i = 0; i < 3; ++i) DECIMA_CK(r.Get("labels.origin", &l.origin[i]));
+  for (int i = 0; i < 9; ++i) DECIMA_CK(r.Get("labels.direction", &l.direction.data()[i]));
+  uint8_t type = 0;
+  DECIMA_CK(r.Get("labels.type", &type));
+  if (type != static_cast<uint8_t>(VoxelType::kUInt8)) {
+    return absl::InvalidArgumentError(
+        absl::StrCat("checkpoint: labels.type ", int(type), ", expected uint8"));
+  }
+  l.type = VoxelType::kUInt8;
+  DECIMA_CK(r.GetVector("labels.bytes", &l.bytes));
+  DECIMA_CK(r.GetString("labels.modality", &l.modality));
+  DECIMA_CK(r.GetVector("interface_distance_voxels", &seg.interface_distance_voxels));
+  DECIMA_CK(r.GetVector("interface_distance_mm", &seg.interface_distance_mm));
+  DECIMA_CK(r.GetVector("class_means", &seg.class_means));
+  DECIMA_CK(r.GetVector("region_voxels", &seg.region_voxels));
+  DECIMA_CK(r.GetVector("region_volumes_mm3", &seg.region_volumes_mm3));
+  int32_t iterations = 0;
+  uint8_t converged = 0;
+  DECIMA_CK(r.Get("iterations", &iterations));
+  DECIMA_CK(r.Get("converged", &converged));
+  DECIMA_CK(r.Get("energy", &seg.energy));
+  DECIMA_CK(r.Get("within_class_sigma", &seg.within_class_sigma));
+  DECIMA_CK(r.Done());
+  seg.iterations = iterations;
+  seg.converged = converged != 0;
+  for (int64_t d : l.dims) {
+    if (d <= 0 || d > (int64_t{1} << 20)) {
+      return absl::InvalidArgumentError(absl::StrCat("checkpoint: labels.dims has ", d));
+    }
+  }
+  const uint64_t voxels = static_cast<uint64_t>(l.voxel_count());
+  if (l.bytes.size() != voxels || seg.interface_distance_voxels.size() != voxels ||
+      seg.interface_distance_mm.size() != voxels) {
+    return absl::InvalidArgumentError(
+        absl::StrCat("checkpoint: label and distance arrays do not match ", voxels, " voxels"));
+  }
+  return seg;
+}
+
+std::string SerializeSimplifyResult(const SimplifyResult& s) {
+  Writer w;
+  PutMesh(w, s.mesh);
+  w.PutVector(s.vertex_map);
+  w.Put(s.input_cells);
+  w.Put(s.output_cells);
+  w.Put(s.achieved_reduction);
+  w.Put<uint8_t>(s.reached_target);
+  w.Put(static_cast<uint8_t>(s.stop_reason));
+  w.PutString(s.stop_message);
+  w.Put<int32_t>(s.passes);
+  w.Put(s.collapses);
+  w.Put(s.max_error);
+  w.PutVector(s.pass_stats);
+  return w.Take();
+}
+
+absl::StatusOr<SimplifyResult> ParseSimplifyResult(const std::string& bytes) {
+  Reader r(bytes);
+  SimplifyResult s;
+  DECIMA_CK(GetMesh(r, &s.mesh));
+  DECIMA_CK(r.GetVector("vertex_map", &s.vertex_map));
+  DECIMA_CK(r.Get("input_cells", &s.input_cells));
+  DECIMA_CK(r.Get("output_cells", &s.output_cells));
+  DECIMA_CK(r.Get("achieved_reduction", &s.achieved_reduction));
+  uint8_t reached = 0, reason = 0;
+  int32_t passes = 0;
+  DECIMA_CK(r.Get("reached_target", &reached));
+  DECIMA_CK(r.Get("stop_reason", &reason));
+  DECIMA_CK(r.GetString("stop_message", &s.stop_message));
+  DECIMA_CK(r.Get("passes", &passes));
+  DECIMA_CK(r.Get("collapses", &s.collapses));
+  DECIMA_CK(r.Get("max_error", &s.max_error));
+  DECIMA_CK(r.GetVector("pass_stats", &s.pass_stats));
+  DECIMA_CK(r.Done());
+  if (reason > static_cast<uint8_t>(StopReason::kStalled)) {
+    return absl::InvalidArgumentError(absl::StrCat("checkpoint: stop_reason ", int(reason)));
+  }
+  const int64_t n = s.mesh.vertex_count();
+  for (int32_t v : s.vertex_map) {
+    if (v < -1 || v >= n) {
+      return absl::InvalidArgumentError(
+          absl::StrCat("checkpoint: vertex_map names vertex ", v, " of ", n));
+    }
+  }
+  s.reached_target = reached != 0;
+  s.stop_reason = static_cast<StopReason>(reason);
+  s.passes = passes;
+  return s;
+}
+
+absl::Status WriteCheckpoint(const std::filesystem::path& path, const std::string& key,
+                             const std::string& payload) {
+  std::error_code ec;
+  std::filesystem::create_directories(path.parent_path(), ec);
+  if (ec) {
+    return absl::InternalError(
+        absl::StrCat("checkpoint: creating ", path.parent_path().string(), ": ", ec.message()));
+  }
+  Writer header;
+  header.PutString(key);
+  header.Put<uint64_t>(payload.size());
+  const std::string head = std::string(kMagic) + header.Take() + Sha256Hex(payload);
+  const std::filesystem::path tmp = path.string() + ".tmp";
+  const int fd = ::open(tmp.c_str(), O_WRONLY | O_CREAT | O_TRUNC | O_CLOEXEC, 0644);
+  if (fd < 0) return Errno("creating", tmp);
+  for (const std::string* part : {&head, &payload}) {
+    size_t done = 0;
+    while (done < part->size()) {
+      const ssize_t n = ::write(fd, part->data() + done, part->size() - done);
+      if (n < 0 && errno == EINTR) continue;
+      if (n <= 0) {
+        absl::Status st = Errno("writing", tmp);
+        ::close(fd);
+        std::filesystem::remove(tmp, ec);
+        return st;
+      }
+      done += static_cast<size_t>(n);
+    }
+  }
+  // The data must be on disk before the rename makes it the checkpoint: otherwise a power loss
+  // could leave the new name with old or no blocks.
+  if (::fsync(fd) != 0) {
+    absl::Status st = Errno("syncing", tmp);
+    ::close(fd);
+    return st;
+  }
+  ::close(fd);
+  if (::rename(tmp.c_str(), path.c_str()) != 0) return Errno("renaming to", path);
+  const int dir = ::open(path.parent_path().c_str(), O_RDONLY | O_DIRECTORY | O_CLOEXEC);
+  if (dir >= 0) {
+    ::fsync(dir);  // the rename itself; best effort (some file systems refuse)
+    ::close(dir);
+  }
+  return absl::OkStatus();
+}
+
+absl::StatusOr<std::string> ReadCheckpoint(const std::filesystem::path& path,
+                                           const std::string& key) {
+  std::ifstream in(path, std::ios::binary);
+  if (!in) return absl::NotFoundError(absl::StrCat("no checkpoint ", path.string()));
+  std::stringstream ss;
+  ss << in.rdbuf();
+  const std::string file = ss.str();
+  const auto refuse = [&](const std::string& why) {
+    return absl::FailedPreconditionError(absl::StrCat(path.string(), ": ", why));
+  };
+  const size_t magic = sizeof kMagic - 1;
+  if (file.compare(0, magic, kMagic) != 0) return refuse("not a checkpoint (bad magic)");
+  const std::string rest = file.substr(magic);
+  Reader r(rest);
+  std::string stored_key;
+  uint64_t size = 0;
+  if (!r.GetString("key", &stored_key).ok() || !r.Get("size", &size).ok()) {
+    return refuse("truncated header");
+  }
+  if (stored_key != key) return refuse("made from other inputs (key differs)");
+  const size_t header = sizeof(uint64_t) + stored_key.size() + sizeof(uint64_t);
+  if (rest.size() < header + 64 || rest.size() - header - 64 != size) {
+    return refuse(absl::StrCat("payload of ",
+                               rest.size() < header + 64 ? 0 : rest.size() - header - 64,
+                               " bytes, the header says ", size));
+  }
+  const std::string sha = rest.substr(header, 64);
+  std::string payload = rest.substr(header + 64);
+  if (Sha256Hex(payload) != sha) return refuse("checksum mismatch (damaged file)");
+  return payload;
+}
+
+}  // namespace decima::pipeline
