@@ -94,14 +94,90 @@ bool IsDicomUid(const std::string& uid) {
          uid.find_first_not_of("0123456789.") == std::string::npos;
 }
 
-// What the receiver reads of an instance lies before (0028,0031): the UIDs in groups 0008 and
-// 0020, the geometry in 0020 and 0028. Only the file's first kHeaderBytes are parsed (real
+// What the receiver reads of an instance lies before the pixel data: the UIDs in groups 0008
+// and 0020, the geometry in 0020 and 0028. Only the file's first kHeaderBytes are parsed (real
 // headers keep these attributes within a few KiB; vendors' large private blocks come after, in
 // groups 0029 and up), and no value longer than kMaxValueBytes is read, so neither a long run of
-// tiny elements nor a declared length of 4 GiB costs more than a bounded tree.
+// tiny elements nor a declared length of 4 GiB costs more than a bounded tree. A header that
+// fits in kHeaderBytes must parse whole up to the pixel data, as before.
 constexpr size_t kHeaderBytes = 64 << 10;
 constexpr Uint32 kMaxValueBytes = 1024;
-const DcmTagKey kAfterLastAttributeRead(0x0028, 0x0031);
+
+// Sequences and items nested deeper than this are refused before DCMTK reads them: DCMTK
+// parses nesting recursively, about 1.5 KiB of stack a level, so the 3,000 levels that fit in
+// kHeaderBytes overflowed a thread's stack. Real headers nest a handful of levels.
+constexpr size_t kMaxNesting = 32;  // sequences + items, so 16 levels of sequences
+
+uint32_t ReadU32(absl::string_view b, size_t pos, bool big_endian) {
+  const auto* u = reinterpret_cast<const unsigned char*>(b.data() + pos);
+  return big_endian
+             ? (uint32_t{u[0]} << 24) | (uint32_t{u[1]} << 16) | (uint32_t{u[2]} << 8) | u[3]
+             : (uint32_t{u[3]} << 24) | (uint32_t{u[2]} << 16) | (uint32_t{u[1]} << 8) | u[0];
+}
+uint16_t ReadU16(absl::string_view b, size_t pos, bool big_endian) {
+  const auto* u = reinterpret_cast<const unsigned char*>(b.data() + pos);
+  return static_cast<uint16_t>(big_endian ? (u[0] << 8) | u[1] : (u[1] << 8) | u[0]);
+}
+
+// Walks the element headers of a data set (PS3.5 7.1, 7.5) from `pos` to the end of `b` or the
+// top-level pixel data, skipping values, and answers whether sequences and items nest deeper
+// than kMaxNesting. Undefined-length UN holds implicit VR (PS3.5 6.2.2). Stops quietly where
+// the bytes stop making sense: DCMTK then reports the parse error.
+bool NestsTooDeep(absl::string_view b, size_t pos, bool explicit_vr, bool big_endian) {
+  constexpr uint32_t kUndefined = 0xFFFFFFFF;
+  constexpr size_t kOpen = SIZE_MAX;
+  struct Container {
+    size_t end;  // kOpen: ends at its delimitation item
+    bool explicit_vr;
+  };
+  std::vector<Container> open;
+  for (size_t steps = 0; pos + 8 <= b.size() && steps < b.size(); ++steps) {
+    while (!open.empty() && open.back().end != kOpen && pos >= open.back().end) open.pop_back();
+    const bool ex = open.empty() ? explicit_vr : open.back().explicit_vr;
+    const uint16_t group = ReadU16(b, pos, big_endian), element = ReadU16(b, pos + 2, big_endian);
+    if (group == 0xFFFE) {
+      const uint32_t length = ReadU32(b, pos + 4, big_endian);
+      pos += 8;
+      if (element == 0xE000) {
+        open.push_back({length == kUndefined ? kOpen : pos + length, ex});
+      } else if ((element == 0xE00D || element == 0xE0DD) && !open.empty()) {
+        open.pop_back();
+      }
+      if (open.size() > kMaxNesting) return true;
+      continue;
+    }
+    if (open.empty() && group == 0x7FE0 && element == 0x0010) return false;
+    uint32_t length;
+    bool sequence, un = false;
+    if (ex) {
+      const std::string vr = std::string(b.substr(pos + 4, 2));
+      static const std::set<std::string> kLong = {"OB", "OD", "OF", "OL", "OV", "OW", "SQ",
+                                                  "SV", "UC", "UN", "UR", "UT", "UV"};
+      if (kLong.count(vr) > 0) {
+        if (pos + 12 > b.size()) return false;
+        length = ReadU32(b, pos + 8, big_endian);
+        pos += 12;
+      } else {
+        length = ReadU16(b, pos + 6, big_endian);
+        pos += 8;
+      }
+      un = vr == "UN";
+      sequence = vr == "SQ" || (un && length == kUndefined);
+    } else {
+      length = ReadU32(b, pos + 4, big_endian);
+      pos += 8;
+      sequence = length == kUndefined;
+    }
+    if (sequence) {
+      open.push_back({length == kUndefined ? kOpen : pos + length, ex && !un});
+      if (open.size() > kMaxNesting) return true;
+      continue;
+    }
+    if (length == kUndefined) return false;  // encapsulated data outside the pixel data
+    pos += length;
+  }
+  return false;
+}
 
 // The header of `file` parsed by DCMTK from a copy of its first kHeaderBytes (a memfd, so DCMTK
 // can never seek past them). INVALID_ARGUMENT naming the file for a deflated transfer syntax
@@ -113,6 +189,12 @@ absl::Status LoadBoundedHeader(const fs::path& file, DcmFileFormat* ff) {
   in.read(head.data(), static_cast<std::streamsize>(head.size()));
   head.resize(static_cast<size_t>(in.gcount()));
   const bool truncated = head.size() == kHeaderBytes && in.peek() != EOF;
+  // Files the receiver writes always have the Part 10 header; without it DCMTK would guess the
+  // transfer syntax, and so would the nesting walk.
+  if (head.size() < 132 || head.compare(128, 4, "DICM") != 0) {
+    return absl::InvalidArgumentError(
+        absl::StrCat(file.string(), ": not a DICOM Part 10 file (no DICM marker at byte 128)"));
+  }
   const int fd = ::memfd_create("decima-dicom-header", MFD_CLOEXEC);
   if (fd < 0) return absl::InternalError(absl::StrCat("memfd_create: ", std::strerror(errno)));
   size_t written = 0;
@@ -132,8 +214,22 @@ absl::Status LoadBoundedHeader(const fs::path& file, DcmFileFormat* ff) {
         file.string(), ": transfer syntax Deflated Explicit VR Little Endian is not accepted"));
   }
   if (c.good()) {
+    // The data set starts after the meta group, whose group length (0002,0000) comes first.
+    if (head.size() < 144 || head.compare(132, 4, std::string("\x02\0\0\0", 4)) != 0) {
+      ::close(fd);
+      return absl::InvalidArgumentError(absl::StrCat(
+          file.string(), ": the meta header does not start with its group length (0002,0000)"));
+    }
+    const size_t meta_end = 144 + ReadU32(head, 140, false);
+    const bool big_endian = ts == UID_BigEndianExplicitTransferSyntax;
+    const bool explicit_vr = ts != UID_LittleEndianImplicitTransferSyntax;
+    if (meta_end < head.size() && NestsTooDeep(head, meta_end, explicit_vr, big_endian)) {
+      ::close(fd);
+      return absl::InvalidArgumentError(absl::StrCat(
+          file.string(), ": sequences nested deeper than ", kMaxNesting / 2, " levels"));
+    }
     c = ff->loadFileUntilTag(name.c_str(), EXS_Unknown, EGL_noChange, kMaxValueBytes,
-                             ERM_autoDetect, kAfterLastAttributeRead);
+                             ERM_autoDetect, DCM_PixelData);
   }
   ::close(fd);
   // A header cut at kHeaderBytes ends in a parse error; the elements before the cut are read.

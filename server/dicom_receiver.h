@@ -13,8 +13,8 @@
 //               else it is stored as a blob (blob_store.h) and recorded in the job store
 //               (JobStore::PutDicomInstance) before the C-STORE response says success, so an
 //               acknowledged instance survives a restart. Its UIDs (and later the series check's
-//               attributes) are read from its first kHeaderBytes only, by DCMTK up to
-//               (0028,0030), so a header costs bounded memory whatever lengths it declares.
+//               attributes) are read from its first 64 KiB only, by DCMTK up to the pixel
+//               data, so a header costs bounded memory whatever lengths it declares.
 //   group       instances are grouped by SeriesInstanceUID. A series whose newest instance is
 //               older than the quiet time is checked once per set of SOP Instance UIDs
 //               and newest arrival (CheckSeriesComplete): quiet alone does not mean complete
