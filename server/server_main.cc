@@ -117,7 +117,8 @@ int main(int argc, char** argv) {
       ->envname("DECIMA_MAX_QUEUED")
       ->check(CLI::Range(1, 10000000))
       ->capture_default_str();
-  app.add_option("--max-upload-mb", max_upload_mb, "largest blob accepted, MiB")
+  app.add_option("--max-upload-mb", max_upload_mb,
+                 "largest blob accepted (an upload, or an instance received by C-STORE), MiB")
       ->envname("DECIMA_MAX_UPLOAD_MB")
       ->check(CLI::Range(int64_t{1}, int64_t{1} << 30))
       ->capture_default_str();
