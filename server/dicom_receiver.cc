@@ -671,7 +671,14 @@ absl::Status DicomReceiver::Start() {
     return absl::UnavailableError(absl::StrCat(where, ": ", gai_strerror(e)));
   }
   std::string why = "no address";
-  for (addrinfo* ai = found; ai != nullptr && listen_fd_ < 0; ai = ai->ai_next) {
+  // IPv4 addresses first: "localhost" may resolve to ::1 first, and DICOM senders are
+  // configured with IPv4 addresses.
+  std::vector<addrinfo*> candidates;
+  for (addrinfo* ai = found; ai != nullptr; ai = ai->ai_next) candidates.push_back(ai);
+  std::stable_partition(candidates.begin(), candidates.end(),
+                        [](const addrinfo* ai) { return ai->ai_family == AF_INET; });
+  for (addrinfo* ai : candidates) {
+    if (listen_fd_ >= 0) break;
     const int fd = ::socket(ai->ai_family, ai->ai_socktype | SOCK_CLOEXEC, ai->ai_protocol);
     if (fd < 0) continue;
     const int one = 1;
