@@ -5,16 +5,29 @@
 // clang-format on
 #include "dcmtk/dcmdata/dcdeftag.h"
 #include "dcmtk/dcmdata/dcfilefo.h"
+#include "dcmtk/dcmdata/dcmetinf.h"
 #include "dcmtk/dcmdata/dcuid.h"
 #include "dcmtk/dcmnet/diutil.h"
-#include "dcmtk/dcmnet/scp.h"
+#include "dcmtk/dcmnet/dul.h"
+#include "dcmtk/dcmnet/scpthrd.h"
 #include "dcmtk/oflog/oflog.h"
 
+#include <arpa/inet.h>
+#include <netdb.h>
+#include <netinet/in.h>
+#include <netinet/tcp.h>
+#include <poll.h>
+#include <sys/ioctl.h>
+#include <sys/mman.h>
+#include <sys/socket.h>
 #include <sys/statvfs.h>
+#include <unistd.h>
 
 #include <algorithm>
+#include <cerrno>
 #include <chrono>
 #include <cmath>
+#include <cstring>
 #include <fstream>
 
 #include <Eigen/Core>
@@ -52,15 +65,23 @@ bool IsLoopbackHost(const std::string& host) {
 }
 
 // Transfer syntaxes accepted for every storage SOP class: uncompressed, then the compressed
-// ones GDCM (the job's reader) decodes.
-const char* const kTransferSyntaxes[] = {
-    UID_LittleEndianExplicitTransferSyntax, UID_LittleEndianImplicitTransferSyntax,
-    UID_BigEndianExplicitTransferSyntax,    UID_DeflatedExplicitVRLittleEndianTransferSyntax,
-    UID_JPEGProcess1TransferSyntax,         UID_JPEGProcess2_4TransferSyntax,
-    UID_JPEGProcess14SV1TransferSyntax,     UID_JPEGProcess14TransferSyntax,
-    UID_JPEGLSLosslessTransferSyntax,       UID_JPEGLSLossyTransferSyntax,
-    UID_JPEG2000LosslessOnlyTransferSyntax, UID_JPEG2000TransferSyntax,
-    UID_RLELosslessTransferSyntax};
+// ones GDCM (the job's reader) decodes. Not the deflated one: the job's reader refuses it
+// (core/io/dicom_preflight.h), so its instances were acknowledged and then never processed, and
+// reading their headers in the server inflated every element before the pixel data (a 0.5 MB
+// instance grew the server by 512 MiB). A sender offered only explicit and implicit VR sends
+// the same data set uncompressed.
+const char* kTransferSyntaxes[] = {UID_LittleEndianExplicitTransferSyntax,
+                                   UID_LittleEndianImplicitTransferSyntax,
+                                   UID_BigEndianExplicitTransferSyntax,
+                                   UID_JPEGProcess1TransferSyntax,
+                                   UID_JPEGProcess2_4TransferSyntax,
+                                   UID_JPEGProcess14SV1TransferSyntax,
+                                   UID_JPEGProcess14TransferSyntax,
+                                   UID_JPEGLSLosslessTransferSyntax,
+                                   UID_JPEGLSLossyTransferSyntax,
+                                   UID_JPEG2000LosslessOnlyTransferSyntax,
+                                   UID_JPEG2000TransferSyntax,
+                                   UID_RLELosslessTransferSyntax};
 
 struct Header {
   std::string series_uid, sop_uid;
@@ -73,18 +94,182 @@ bool IsDicomUid(const std::string& uid) {
          uid.find_first_not_of("0123456789.") == std::string::npos;
 }
 
+// What the receiver reads of an instance lies before the pixel data: the UIDs in groups 0008
+// and 0020, the geometry in 0020 and 0028. Only the file's first kHeaderBytes are parsed (real
+// headers keep these attributes within a few KiB; vendors' large private blocks come after, in
+// groups 0029 and up), and no value longer than kMaxValueBytes is read, so neither a long run of
+// tiny elements nor a declared length of 4 GiB costs more than a bounded tree. A header that
+// fits in kHeaderBytes must parse whole up to the pixel data, as before.
+constexpr size_t kHeaderBytes = 64 << 10;
+constexpr Uint32 kMaxValueBytes = 1024;
+
+// Sequences and items nested deeper than this are refused before DCMTK reads them: DCMTK
+// parses nesting recursively, about 1.5 KiB of stack a level, so the 3,000 levels that fit in
+// kHeaderBytes overflowed a thread's stack. Real headers nest a handful of levels.
+constexpr size_t kMaxNesting = 32;  // sequences + items, so 16 levels of sequences
+
+uint32_t ReadU32(absl::string_view b, size_t pos, bool big_endian) {
+  const auto* u = reinterpret_cast<const unsigned char*>(b.data() + pos);
+  return big_endian
+             ? (uint32_t{u[0]} << 24) | (uint32_t{u[1]} << 16) | (uint32_t{u[2]} << 8) | u[3]
+             : (uint32_t{u[3]} << 24) | (uint32_t{u[2]} << 16) | (uint32_t{u[1]} << 8) | u[0];
+}
+uint16_t ReadU16(absl::string_view b, size_t pos, bool big_endian) {
+  const auto* u = reinterpret_cast<const unsigned char*>(b.data() + pos);
+  return static_cast<uint16_t>(big_endian ? (u[0] << 8) | u[1] : (u[1] << 8) | u[0]);
+}
+
+// Walks the element headers of a data set (PS3.5 7.1, 7.5) from `pos` to the end of `b` or the
+// top-level pixel data, skipping values, and answers whether sequences and items nest deeper
+// than kMaxNesting. Undefined-length UN holds implicit VR (PS3.5 6.2.2). Stops quietly where
+// the bytes stop making sense: DCMTK then reports the parse error.
+bool NestsTooDeep(absl::string_view b, size_t pos, bool explicit_vr, bool big_endian) {
+  constexpr uint32_t kUndefined = 0xFFFFFFFF;
+  constexpr size_t kOpen = SIZE_MAX;
+  struct Container {
+    size_t end;  // kOpen: ends at its delimitation item
+    bool explicit_vr;
+  };
+  std::vector<Container> open;
+  for (size_t steps = 0; pos + 8 <= b.size() && steps < b.size(); ++steps) {
+    while (!open.empty() && open.back().end != kOpen && pos >= open.back().end) open.pop_back();
+    const bool ex = open.empty() ? explicit_vr : open.back().explicit_vr;
+    const uint16_t group = ReadU16(b, pos, big_endian), element = ReadU16(b, pos + 2, big_endian);
+    if (group == 0xFFFE) {
+      const uint32_t length = ReadU32(b, pos + 4, big_endian);
+      pos += 8;
+      if (element == 0xE000) {
+        open.push_back({length == kUndefined ? kOpen : pos + length, ex});
+      } else if ((element == 0xE00D || element == 0xE0DD) && !open.empty()) {
+        open.pop_back();
+      }
+      if (open.size() > kMaxNesting) return true;
+      continue;
+    }
+    if (open.empty() && group == 0x7FE0 && element == 0x0010) return false;
+    uint32_t length;
+    bool sequence, un = false;
+    if (ex) {
+      const std::string vr = std::string(b.substr(pos + 4, 2));
+      static const std::set<std::string> kLong = {"OB", "OD", "OF", "OL", "OV", "OW", "SQ",
+                                                  "SV", "UC", "UN", "UR", "UT", "UV"};
+      if (kLong.count(vr) > 0) {
+        if (pos + 12 > b.size()) return false;
+        length = ReadU32(b, pos + 8, big_endian);
+        pos += 12;
+      } else {
+        length = ReadU16(b, pos + 6, big_endian);
+        pos += 8;
+      }
+      un = vr == "UN";
+      sequence = vr == "SQ" || (un && length == kUndefined);
+    } else {
+      length = ReadU32(b, pos + 4, big_endian);
+      pos += 8;
+      sequence = length == kUndefined;
+    }
+    if (sequence) {
+      open.push_back({length == kUndefined ? kOpen : pos + length, ex && !un});
+      if (open.size() > kMaxNesting) return true;
+      continue;
+    }
+    if (length == kUndefined) return false;  // encapsulated data outside the pixel data
+    pos += length;
+  }
+  return false;
+}
+
+// The header of `file` parsed by DCMTK from a copy of its first kHeaderBytes (a memfd, so DCMTK
+// can never seek past them). INVALID_ARGUMENT naming the file for a deflated transfer syntax
+// (never accepted, see kTransferSyntaxes) or a header DCMTK cannot parse.
+absl::Status LoadBoundedHeader(const fs::path& file, DcmFileFormat* ff) {
+  std::ifstream in(file, std::ios::binary);
+  if (!in) return absl::InvalidArgumentError(absl::StrCat(file.string(), ": cannot open"));
+  std::string head(kHeaderBytes, '\0');
+  in.read(head.data(), static_cast<std::streamsize>(head.size()));
+  head.resize(static_cast<size_t>(in.gcount()));
+  const bool truncated = head.size() == kHeaderBytes && in.peek() != EOF;
+  // Files the receiver writes always have the Part 10 header; without it DCMTK would guess the
+  // transfer syntax, and so would the nesting walk.
+  if (head.size() < 132 || head.compare(128, 4, "DICM") != 0) {
+    return absl::InvalidArgumentError(
+        absl::StrCat(file.string(), ": not a DICOM Part 10 file (no DICM marker at byte 128)"));
+  }
+  const int fd = ::memfd_create("decima-dicom-header", MFD_CLOEXEC);
+  if (fd < 0) return absl::InternalError(absl::StrCat("memfd_create: ", std::strerror(errno)));
+  size_t written = 0;
+  while (written < head.size()) {
+    const ssize_t n = ::write(fd, head.data() + written, head.size() - written);
+    if (n <= 0) break;
+    written += static_cast<size_t>(n);
+  }
+  const std::string name = absl::StrCat("/proc/self/fd/", fd);
+  DcmMetaInfo meta;
+  OFCondition c = written == head.size() ? meta.loadFile(name.c_str()) : EC_InvalidStream;
+  OFString ts;
+  meta.findAndGetOFString(DCM_TransferSyntaxUID, ts);
+  if (c.good() && ts == UID_DeflatedExplicitVRLittleEndianTransferSyntax) {
+    ::close(fd);
+    return absl::InvalidArgumentError(absl::StrCat(
+        file.string(), ": transfer syntax Deflated Explicit VR Little Endian is not accepted"));
+  }
+  if (c.good()) {
+    // The data set starts after the meta group, whose group length (0002,0000) comes first.
+    if (head.size() < 144 || head.compare(132, 4, std::string("\x02\0\0\0", 4)) != 0) {
+      ::close(fd);
+      return absl::InvalidArgumentError(absl::StrCat(
+          file.string(), ": the meta header does not start with its group length (0002,0000)"));
+    }
+    const size_t meta_end = 144 + ReadU32(head, 140, false);
+    const bool big_endian = ts == UID_BigEndianExplicitTransferSyntax;
+    const bool explicit_vr = ts != UID_LittleEndianImplicitTransferSyntax;
+    if (meta_end < head.size() && NestsTooDeep(head, meta_end, explicit_vr, big_endian)) {
+      ::close(fd);
+      return absl::InvalidArgumentError(absl::StrCat(
+          file.string(), ": sequences nested deeper than ", kMaxNesting / 2, " levels"));
+    }
+    c = ff->loadFileUntilTag(name.c_str(), EXS_Unknown, EGL_noChange, kMaxValueBytes,
+                             ERM_autoDetect, DCM_PixelData);
+  }
+  ::close(fd);
+  // A header cut at kHeaderBytes ends in a parse error; the elements before the cut are read.
+  if (c.bad() && !truncated) {
+    return absl::InvalidArgumentError(absl::StrCat(file.string(), ": ", c.text()));
+  }
+  return absl::OkStatus();
+}
+
+// `tag`'s value as a string, empty when absent or longer than kMaxValueBytes (such a value was
+// not read and is no UID, position or size anyway).
+std::string SmallString(DcmItem& d, const DcmTagKey& tag, bool all_values = false) {
+  DcmElement* e = nullptr;
+  if (d.findAndGetElement(tag, e).bad() || e == nullptr || e->getLengthField() > kMaxValueBytes) {
+    return "";
+  }
+  OFString v;
+  if ((all_values ? e->getOFStringArray(v) : e->getOFString(v, 0)).bad()) return "";
+  return v.c_str();
+}
+
+Uint16 SmallUint16(DcmItem& d, const DcmTagKey& tag) {
+  DcmElement* e = nullptr;
+  Uint16 v = 0;
+  if (d.findAndGetElement(tag, e).bad() || e == nullptr || e->getLengthField() > kMaxValueBytes ||
+      e->getUint16(v).bad()) {
+    return 0;
+  }
+  return v;
+}
+
 absl::StatusOr<Header> ReadUids(const fs::path& file) {
   DcmFileFormat ff;
-  OFCondition c = ff.loadFileUntilTag(file.c_str(), EXS_Unknown, EGL_noChange, DCM_MaxReadLength,
-                                      ERM_autoDetect, DCM_PixelData);
-  if (c.bad()) return absl::InvalidArgumentError(absl::StrCat(file.string(), ": ", c.text()));
-  OFString series, sop;
-  ff.getDataset()->findAndGetOFString(DCM_SeriesInstanceUID, series);
-  ff.getDataset()->findAndGetOFString(DCM_SOPInstanceUID, sop);
-  if (series.empty() || sop.empty()) {
-    return absl::InvalidArgumentError("no SeriesInstanceUID or SOPInstanceUID");
+  if (auto st = LoadBoundedHeader(file, &ff); !st.ok()) return st;
+  Header h{SmallString(*ff.getDataset(), DCM_SeriesInstanceUID),
+           SmallString(*ff.getDataset(), DCM_SOPInstanceUID)};
+  if (h.series_uid.empty() || h.sop_uid.empty()) {
+    return absl::InvalidArgumentError(absl::StrCat(
+        "no SeriesInstanceUID or SOPInstanceUID within the first ", kHeaderBytes >> 10, " KiB"));
   }
-  Header h{series.c_str(), sop.c_str()};
   if (!IsDicomUid(h.series_uid) || !IsDicomUid(h.sop_uid)) {
     return absl::InvalidArgumentError("SeriesInstanceUID or SOPInstanceUID is not a DICOM UID");
   }
@@ -130,15 +315,108 @@ std::string InstanceSetKey(std::vector<std::string> sop_uids) {
 
 }  // namespace
 
-// The DCMTK storage SCP. Runs on the receiver's SCP thread only.
-class StorageScp : public DcmSCP {
+// DCMTK's network: the DUL state the associations share. Its listening socket is ours
+// (DicomReceiver::listen_fd_): DCMTK 3.6.7 binds every interface and reads a connection's
+// association request in the same call that accepts it, so one silent connection held the port.
+class ScpNetwork {
  public:
-  explicit StorageScp(DicomReceiver* r) : r_(r) {}
+  T_ASC_Network* net = nullptr;
+  DcmSharedSCPConfig config;
+  ~ScpNetwork() {
+    if (net != nullptr) ASC_dropNetwork(&net);
+  }
+};
 
-  OFBool stopAfterConnectionTimeout() override { return r_->stopping(); }
-  OFBool stopAfterCurrentAssociation() override { return r_->stopping(); }
+namespace {
+
+// dcmExternalSocketHandle is DCMTK's one process-wide way to hand it an accepted socket; every
+// use (set, ASC_receiveAssociation, reset) holds this.
+std::mutex& ExternalSocketMutex() {
+  static std::mutex mu;
+  return mu;
+}
+
+// Waits until `fd` holds a whole A-ASSOCIATE-RQ PDU (PS3.8 9.3.2: type 01, a 4-byte big-endian
+// length), so DCMTK's read of it does not block. A connection that sends anything else, a PDU
+// over 1 MiB, or not all of it within the deadline is answered with an error.
+absl::Status WaitForAssociateRequest(int fd, std::chrono::steady_clock::time_point deadline) {
+  constexpr uint32_t kMaxRequestBytes = 1 << 20;
+  unsigned char head[6];
+  size_t want = sizeof(head);
+  for (int round = 0; round < 100000; ++round) {
+    const auto left = std::chrono::duration_cast<std::chrono::milliseconds>(
+        deadline - std::chrono::steady_clock::now());
+    if (left.count() <= 0) break;
+    pollfd p{fd, POLLIN, 0};
+    const int n = ::poll(&p, 1, static_cast<int>(std::min<int64_t>(left.count(), 1000)));
+    if (n < 0 && errno != EINTR) return absl::UnavailableError(std::strerror(errno));
+    if (n <= 0) continue;
+    const ssize_t got = ::recv(fd, head, sizeof(head), MSG_PEEK);
+    if (got <= 0) return absl::UnavailableError("closed before its association request");
+    if (got < static_cast<ssize_t>(sizeof(head))) {
+      // Part of the header: wait for more without spinning.
+      std::this_thread::sleep_for(std::chrono::milliseconds(5));
+      continue;
+    }
+    if (head[0] != 0x01) {
+      return absl::InvalidArgumentError(
+          absl::StrFormat("first PDU has type %02X, expected an A-ASSOCIATE-RQ (01)", head[0]));
+    }
+    const uint32_t length = (uint32_t{head[2]} << 24) | (uint32_t{head[3]} << 16) |
+                            (uint32_t{head[4]} << 8) | uint32_t{head[5]};
+    if (length > kMaxRequestBytes) {
+      return absl::InvalidArgumentError(
+          absl::StrCat("A-ASSOCIATE-RQ of ", length, " bytes; at most ", kMaxRequestBytes));
+    }
+    want = sizeof(head) + length;
+    int avail = 0;
+    if (::ioctl(fd, FIONREAD, &avail) == 0 && static_cast<size_t>(avail) >= want) {
+      return absl::OkStatus();
+    }
+    std::this_thread::sleep_for(std::chrono::milliseconds(5));
+  }
+  return absl::DeadlineExceededError(want == sizeof(head) ? "no association request"
+                                                          : "association request incomplete");
+}
+
+std::string PeerAddress(const sockaddr_storage& a) {
+  char buf[INET6_ADDRSTRLEN] = {0};
+  if (a.ss_family == AF_INET) {
+    ::inet_ntop(AF_INET, &reinterpret_cast<const sockaddr_in&>(a).sin_addr, buf, sizeof(buf));
+  } else if (a.ss_family == AF_INET6) {
+    ::inet_ntop(AF_INET6, &reinterpret_cast<const sockaddr_in6&>(a).sin6_addr, buf, sizeof(buf));
+  }
+  return buf;
+}
+
+}  // namespace
+
+// One association, on its connection's thread (DcmThreadSCP: the configuration is shared,
+// read-only).
+class StorageScp : public DcmThreadSCP {
+ public:
+  StorageScp(DicomReceiver* r, T_ASC_Association* assoc, int fd, std::string peer)
+      : r_(r), assoc_(assoc), fd_(fd), peer_(std::move(peer)) {}
 
  protected:
+  // Verification, then every storage SOP class in kTransferSyntaxes. Done here rather than by
+  // DcmSCPConfig's profile, which holds at most 128 presentation contexts: DCMTK 3.6.7 knows
+  // more storage SOP classes than that, so Verification, added last, was silently dropped and
+  // echoscu was refused.
+  OFCondition negotiateAssociation() override {
+    const char* verification[] = {UID_VerificationSOPClass};
+    const char* echo_syntaxes[] = {UID_LittleEndianExplicitTransferSyntax,
+                                   UID_LittleEndianImplicitTransferSyntax};
+    OFCondition c = ASC_acceptContextsWithPreferredTransferSyntaxes(assoc_->params, verification, 1,
+                                                                    echo_syntaxes, 2);
+    if (c.good()) {
+      c = ASC_acceptContextsWithPreferredTransferSyntaxes(
+          assoc_->params, dcmAllStorageSOPClassUIDs, numberOfDcmAllStorageSOPClassUIDs,
+          kTransferSyntaxes, static_cast<int>(std::size(kTransferSyntaxes)));
+    }
+    if (c.bad()) spdlog::error("dicom: negotiating with {}: {}", peer_, c.text());
+    return c;
+  }
   // The peer's AE titles are text from the network: escaped in every log line, so that a line
   // break cannot forge log lines.
   OFBool checkCalledAETitleAccepted(const OFString& called) override {
@@ -162,12 +440,12 @@ class StorageScp : public DcmSCP {
                  absl::CHexEscape(calling.c_str()));
     return OFFalse;
   }
-  OFBool checkCallingHostAccepted(const OFString& host_or_ip) override {
+  OFBool checkCallingHostAccepted(const OFString& /*host_or_ip*/) override {
     if (!IsLoopbackHost(r_->options().host)) return OFTrue;
-    // With host lookup off DCMTK passes an empty name: the peer's address decides.
-    const std::string host = host_or_ip.empty() ? getPeerIP().c_str() : host_or_ip.c_str();
-    const bool ok = host == "127.0.0.1" || host == "::1" || host == "::ffff:127.0.0.1";
-    if (!ok) spdlog::warn("dicom: association from '{}' refused: listening on loopback", host);
+    // The port is bound to the loopback host already; the peer's address is checked again.
+    const bool ok = peer_ == "127.0.0.1" || peer_ == "::1" || peer_ == "::ffff:127.0.0.1" ||
+                    peer_.rfind("127.", 0) == 0;
+    if (!ok) spdlog::warn("dicom: association from '{}' refused: listening on loopback", peer_);
     return ok ? OFTrue : OFFalse;
   }
   void notifyAssociationRequest(const T_ASC_Parameters& params, DcmSCPActionType& action) override {
@@ -188,20 +466,36 @@ class StorageScp : public DcmSCP {
     if (!released_ && !series_.empty()) r_->MarkAborted(series_);
     series_.clear();
   }
+  // Called as a dataset arrives, with the bytes received so far. Past the limit the connection
+  // stops reading: DCMTK's next read fails and it aborts the association, so neither the spool
+  // nor the sender's time is spent on the rest.
+  void notifyRECEIVEProgress(const unsigned long bytes) override {
+    if (too_big_ || static_cast<int64_t>(bytes) <= r_->options().max_instance_bytes) return;
+    too_big_ = true;
+    spdlog::warn(
+        "dicom: instance from {} refused: more than {} MiB (--max-upload-mb); aborting the "
+        "association",
+        absl::CHexEscape(getPeerAETitle().c_str()), r_->options().max_instance_bytes >> 20);
+    ::shutdown(fd_, SHUT_RD);
+  }
   OFCondition handleIncomingCommand(T_DIMSE_Message* msg,
                                     const DcmPresentationContextInfo& info) override {
     if (msg->CommandField != DIMSE_C_STORE_RQ) return DcmSCP::handleIncomingCommand(msg, info);
     T_DIMSE_C_StoreRQ& req = msg->msg.CStoreRQ;
     const fs::path tmp = r_->spool() / absl::StrCat(NewId(), ".dcm");
     OFCondition c = receiveSTORERequest(req, info.presentationContextID, OFString(tmp.c_str()));
-    if (c.bad()) {
+    if (c.bad() || too_big_) {
       std::error_code ec;
       fs::remove(tmp, ec);
-      return c;
+      return c.bad() ? c : DIMSE_READPDVFAILED;
     }
     std::string series;
-    const Uint16 status =
-        r_->StoreInstance(tmp, getPeerAETitle().c_str(), getCalledAETitle().c_str(), &series);
+    Uint16 status;
+    {
+      std::lock_guard<std::mutex> lock(r_->store_mu_);
+      status =
+          r_->StoreInstance(tmp, getPeerAETitle().c_str(), getCalledAETitle().c_str(), &series);
+    }
     if (!series.empty()) series_.insert(series);
     std::error_code ec;
     fs::remove(tmp, ec);
@@ -210,7 +504,11 @@ class StorageScp : public DcmSCP {
 
  private:
   DicomReceiver* r_;
+  T_ASC_Association* assoc_;
+  int fd_;
+  std::string peer_;
   bool released_ = false;
+  bool too_big_ = false;
   std::set<std::string> series_;  // series of the current association
 };
 
@@ -226,19 +524,14 @@ absl::Status CheckSeriesComplete(const std::vector<fs::path>& files) {
   Eigen::Vector3d normal(0, 0, 1);
   for (const auto& f : files) {
     DcmFileFormat ff;
-    OFCondition c = ff.loadFileUntilTag(f.c_str(), EXS_Unknown, EGL_noChange, DCM_MaxReadLength,
-                                        ERM_autoDetect, DCM_PixelData);
-    if (c.bad()) return absl::InvalidArgumentError(absl::StrCat(f.string(), ": ", c.text()));
+    if (auto st = LoadBoundedHeader(f, &ff); !st.ok()) return st;
     DcmDataset& d = *ff.getDataset();
-    OFString ipp, iop, ps, frames, images_in_acquisition;
-    Uint16 r = 0, co = 0;
-    d.findAndGetOFStringArray(DCM_ImagePositionPatient, ipp);
-    d.findAndGetOFStringArray(DCM_ImageOrientationPatient, iop);
-    d.findAndGetOFStringArray(DCM_PixelSpacing, ps);
-    d.findAndGetUint16(DCM_Rows, r);
-    d.findAndGetUint16(DCM_Columns, co);
-    d.findAndGetOFString(DCM_NumberOfFrames, frames);
-    d.findAndGetOFString(DCM_ImagesInAcquisition, images_in_acquisition);
+    const OFString ipp = SmallString(d, DCM_ImagePositionPatient, true).c_str();
+    const OFString iop = SmallString(d, DCM_ImageOrientationPatient, true).c_str();
+    const OFString ps = SmallString(d, DCM_PixelSpacing, true).c_str();
+    const Uint16 r = SmallUint16(d, DCM_Rows), co = SmallUint16(d, DCM_Columns);
+    const OFString frames = SmallString(d, DCM_NumberOfFrames).c_str();
+    const OFString images_in_acquisition = SmallString(d, DCM_ImagesInAcquisition).c_str();
     long expected = 0;
     if (!images_in_acquisition.empty() &&
         absl::SimpleAtoi(images_in_acquisition.c_str(), &expected) && expected > 0 &&
@@ -367,42 +660,180 @@ absl::Status DicomReceiver::Start() {
   fs::remove_all(spool(), ec);
   fs::create_directories(spool(), ec);
   if (ec) return absl::InternalError(absl::StrCat(spool().string(), ": ", ec.message()));
-  scp_ = std::make_unique<StorageScp>(this);
-  DcmSCPConfig& cfg = scp_->getConfig();
-  cfg.setPort(static_cast<Uint16>(options_.port));
+  const std::string where = absl::StrCat("--dicom-listen ", options_.host, ":", options_.port);
+  addrinfo hints{};
+  hints.ai_family = AF_UNSPEC;
+  hints.ai_socktype = SOCK_STREAM;
+  hints.ai_flags = AI_PASSIVE;
+  addrinfo* found = nullptr;
+  const std::string port = std::to_string(options_.port);
+  if (int e = ::getaddrinfo(options_.host.c_str(), port.c_str(), &hints, &found); e != 0) {
+    return absl::UnavailableError(absl::StrCat(where, ": ", gai_strerror(e)));
+  }
+  std::string why = "no address";
+  // IPv4 addresses first: "localhost" may resolve to ::1 first, and DICOM senders are
+  // configured with IPv4 addresses.
+  std::vector<addrinfo*> candidates;
+  for (addrinfo* ai = found; ai != nullptr; ai = ai->ai_next) candidates.push_back(ai);
+  std::stable_partition(candidates.begin(), candidates.end(),
+                        [](const addrinfo* ai) { return ai->ai_family == AF_INET; });
+  for (addrinfo* ai : candidates) {
+    if (listen_fd_ >= 0) break;
+    const int fd = ::socket(ai->ai_family, ai->ai_socktype | SOCK_CLOEXEC, ai->ai_protocol);
+    if (fd < 0) continue;
+    const int one = 1;
+    ::setsockopt(fd, SOL_SOCKET, SO_REUSEADDR, &one, sizeof(one));
+    if (::bind(fd, ai->ai_addr, ai->ai_addrlen) == 0 && ::listen(fd, 64) == 0) {
+      listen_fd_ = fd;
+    } else {
+      why = std::strerror(errno);
+      ::close(fd);
+    }
+  }
+  ::freeaddrinfo(found);
+  if (listen_fd_ < 0) return absl::UnavailableError(absl::StrCat(where, ": ", why));
+  sockaddr_storage bound{};
+  socklen_t len = sizeof(bound);
+  ::getsockname(listen_fd_, reinterpret_cast<sockaddr*>(&bound), &len);
+  bound_port_ = ntohs(bound.ss_family == AF_INET6 ? reinterpret_cast<sockaddr_in6&>(bound).sin6_port
+                                                  : reinterpret_cast<sockaddr_in&>(bound).sin_port);
+
+  net_ = std::make_unique<ScpNetwork>();
+  DcmSCPConfig& cfg = *net_->config;
   cfg.setAETitle(options_.aet.c_str());
   cfg.setHostLookupEnabled(OFFalse);
-  // Non-blocking accept with a 1 s timeout: the SCP thread sees Stop() within a second.
-  cfg.setConnectionBlockingMode(DUL_NOBLOCK);
-  cfg.setConnectionTimeout(1);
   cfg.setDIMSEBlockingMode(DIMSE_NONBLOCKING);
-  cfg.setDIMSETimeout(60);
-  cfg.setACSETimeout(30);
+  cfg.setDIMSETimeout(static_cast<Uint32>(options_.timeout_seconds));
+  cfg.setACSETimeout(static_cast<Uint32>(options_.timeout_seconds));
   cfg.setMaxReceivePDULength(ASC_MAXIMUMPDUSIZE);
-  OFList<OFString> syntaxes;
-  for (const char* ts : kTransferSyntaxes) syntaxes.push_back(ts);
-  for (int i = 0; i < numberOfDcmAllStorageSOPClassUIDs; ++i) {
-    cfg.addPresentationContext(dcmAllStorageSOPClassUIDs[i], syntaxes);
+  cfg.setProgressNotificationMode(OFTrue);
+  OFCondition c;
+  {
+    // With an external socket set, DCMTK's acceptor network binds nothing of its own.
+    std::lock_guard<std::mutex> lock(ExternalSocketMutex());
+    dcmExternalSocketHandle.set(listen_fd_);
+    c = ASC_initializeNetwork(NET_ACCEPTOR, bound_port_, options_.timeout_seconds, &net_->net);
+    dcmExternalSocketHandle.set(-1);
   }
-  OFList<OFString> echo_syntaxes;
-  echo_syntaxes.push_back(UID_LittleEndianExplicitTransferSyntax);
-  echo_syntaxes.push_back(UID_LittleEndianImplicitTransferSyntax);
-  cfg.addPresentationContext(UID_VerificationSOPClass, echo_syntaxes);
-  if (OFCondition c = scp_->openListenPort(); c.bad()) {
-    return absl::UnavailableError(
-        absl::StrCat("--dicom-listen ", options_.host, ":", options_.port, ": ", c.text()));
+  if (c.bad()) {
+    ::close(listen_fd_);
+    listen_fd_ = -1;
+    return absl::UnavailableError(absl::StrCat(where, ": ", c.text()));
   }
   // Logged before the threads start: the first spdlog call of a process builds spdlog's
   // registry, and the threads' own log calls must come after it (thread start orders them).
-  spdlog::info("dicom: storage SCP {} listening on {}:{} (quiet {} s, {} route(s))", options_.aet,
-               options_.host, options_.port, options_.quiet_seconds, options_.routes.routes.size());
+  spdlog::info(
+      "dicom: storage SCP {} listening on {}:{} (quiet {} s, {} route(s), {} associations, {} "
+      "per peer, timeout {} s)",
+      options_.aet, options_.host, bound_port_, options_.quiet_seconds,
+      options_.routes.routes.size(), options_.max_associations, options_.max_per_peer,
+      options_.timeout_seconds);
   stop_ = false;
-  scp_thread_ = std::thread([this] {
-    OFCondition c = scp_->acceptAssociations();
-    if (c.bad() && !stop_) spdlog::error("dicom: the storage SCP stopped: {}", c.text());
-  });
+  accept_thread_ = std::thread([this] { AcceptLoop(); });
   settle_thread_ = std::thread([this] { SettleLoop(); });
   return absl::OkStatus();
+}
+
+void DicomReceiver::AcceptLoop() {
+  while (!stop_) {
+    {
+      // Threads of finished connections are joined here, so they do not pile up.
+      std::lock_guard<std::mutex> lock(conn_mu_);
+      for (auto it = connections_.begin(); it != connections_.end();) {
+        if (!it->done) {
+          ++it;
+          continue;
+        }
+        it->thread.join();
+        it = connections_.erase(it);
+      }
+    }
+    pollfd p{listen_fd_, POLLIN, 0};
+    if (::poll(&p, 1, 200) <= 0) continue;  // 200 ms: Stop() is seen within that
+    sockaddr_storage from{};
+    socklen_t len = sizeof(from);
+    const int fd = ::accept4(listen_fd_, reinterpret_cast<sockaddr*>(&from), &len, SOCK_CLOEXEC);
+    if (fd < 0) continue;
+    // Debian's DCMTK leaves Nagle's algorithm on: each C-STORE response would wait for the
+    // delayed ACK (about 40 ms per instance).
+    const int one = 1;
+    ::setsockopt(fd, IPPROTO_TCP, TCP_NODELAY, &one, sizeof(one));
+    const std::string peer = PeerAddress(from);
+    std::lock_guard<std::mutex> lock(conn_mu_);
+    int total = 0, from_peer = 0;
+    for (const auto& conn : connections_) {
+      if (conn.done) continue;
+      ++total;
+      from_peer += conn.peer == peer;
+    }
+    if (total >= options_.max_associations || from_peer >= options_.max_per_peer) {
+      spdlog::warn(
+          "dicom: connection from {} closed: {} open ({} from it; {} {})", peer, total, from_peer,
+          total >= options_.max_associations ? "--dicom-max-associations" : "--dicom-max-per-peer",
+          total >= options_.max_associations ? options_.max_associations : options_.max_per_peer);
+      ::close(fd);
+      continue;
+    }
+    Connection& conn = connections_.emplace_back();
+    conn.fd = fd;
+    conn.peer = peer;
+    conn.thread = std::thread([this, fd, peer] { ServeConnection(fd, peer); });
+  }
+}
+
+void DicomReceiver::ServeConnection(int fd, const std::string& peer) {
+  auto finish = [&] {
+    std::lock_guard<std::mutex> lock(conn_mu_);
+    for (auto& conn : connections_) {
+      if (conn.thread.get_id() == std::this_thread::get_id()) conn.done = true;
+    }
+  };
+  // No longer shut down by Stop(): DCMTK closes the socket next, and the number may be reused.
+  auto release_fd = [&] {
+    std::lock_guard<std::mutex> lock(conn_mu_);
+    for (auto& conn : connections_) {
+      if (conn.fd == fd) conn.fd = -1;
+    }
+  };
+  const auto deadline =
+      std::chrono::steady_clock::now() + std::chrono::seconds(options_.timeout_seconds);
+  if (auto st = WaitForAssociateRequest(fd, deadline); !st.ok()) {
+    if (!stop_) {
+      spdlog::warn("dicom: connection from {} closed: {} within {} s (--dicom-timeout-seconds)",
+                   peer, std::string(st.message()), options_.timeout_seconds);
+    }
+    release_fd();
+    ::close(fd);
+    return finish();
+  }
+  T_ASC_Association* assoc = nullptr;
+  OFCondition c;
+  {
+    std::lock_guard<std::mutex> lock(ExternalSocketMutex());
+    dcmExternalSocketHandle.set(fd);
+    c = ASC_receiveAssociation(net_->net, &assoc, ASC_MAXIMUMPDUSIZE, nullptr, nullptr, OFFalse,
+                               DUL_NOBLOCK, 1);
+    dcmExternalSocketHandle.set(-1);
+  }
+  if (c.bad()) {
+    spdlog::warn("dicom: association request from {}: {}", peer, c.text());
+    release_fd();
+    if (assoc != nullptr) {
+      ASC_dropAssociation(assoc);
+      ASC_destroyAssociation(&assoc);
+    } else {
+      ::close(fd);
+    }
+    return finish();
+  }
+  {
+    StorageScp scp(this, assoc, fd, peer);
+    scp.setSharedConfig(net_->config);
+    scp.run(assoc);
+    release_fd();
+    // ~StorageScp drops the association and closes the socket.
+  }
+  finish();
 }
 
 void DicomReceiver::Stop() {
@@ -412,8 +843,38 @@ void DicomReceiver::Stop() {
     wake_ = true;
   }
   cv_.notify_all();
-  if (scp_thread_.joinable()) scp_thread_.join();
+  if (accept_thread_.joinable()) accept_thread_.join();
+  std::list<Connection> connections;
+  {
+    // Break off what is open: a silent association would otherwise keep Stop waiting for its
+    // timeout.
+    std::lock_guard<std::mutex> lock(conn_mu_);
+    for (auto& conn : connections_) {
+      if (conn.fd >= 0) ::shutdown(conn.fd, SHUT_RDWR);
+    }
+  }
+  for (;;) {
+    std::thread t;
+    {
+      std::lock_guard<std::mutex> lock(conn_mu_);
+      for (auto& conn : connections_) {
+        if (conn.thread.joinable()) {
+          t = std::move(conn.thread);
+          break;
+        }
+      }
+    }
+    if (!t.joinable()) break;
+    t.join();
+  }
+  {
+    std::lock_guard<std::mutex> lock(conn_mu_);
+    connections_.clear();
+  }
   if (settle_thread_.joinable()) settle_thread_.join();
+  net_.reset();
+  if (listen_fd_ >= 0) ::close(listen_fd_);
+  listen_fd_ = -1;
 }
 
 void DicomReceiver::MarkAborted(const std::set<std::string>& series) {

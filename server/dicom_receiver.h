@@ -1,10 +1,20 @@
 // The PACS side of decima-server (off by default; --dicom-listen turns it on):
 //
-//   C-STORE in  a DCMTK storage SCP (one association at a time) accepts every storage SOP class
-//               in the common transfer syntaxes; each instance is written to dicom-spool/,
-//               stored as a blob (blob_store.h) and recorded in the job store
+//   C-STORE in  a DCMTK storage SCP serving up to max_associations associations at once (at most
+//               max_per_peer from one address; more connections are closed at once). Each
+//               connection has timeout_seconds to send its whole A-ASSOCIATE-RQ (ARTIM, waited
+//               for here before DCMTK reads it, so a silent connection holds nothing but its own
+//               thread) and an association may stay silent between DIMSE messages as long.
+//               Verification (C-ECHO) and every storage SOP class are accepted, in the
+//               uncompressed and compressed transfer syntaxes the job's reader decodes; deflated
+//               syntaxes are refused at negotiation (the job's reader does not inflate, and
+//               inflating in the server is what a deflate bomb needs). An instance is written
+//               to dicom-spool/ and the association aborted once it passes max_instance_bytes;
+//               else it is stored as a blob (blob_store.h) and recorded in the job store
 //               (JobStore::PutDicomInstance) before the C-STORE response says success, so an
-//               acknowledged instance survives a restart.
+//               acknowledged instance survives a restart. Its UIDs (and later the series check's
+//               attributes) are read from its first 64 KiB only, by DCMTK up to the pixel
+//               data, so a header costs bounded memory whatever lengths it declares.
 //   group       instances are grouped by SeriesInstanceUID. A series whose newest instance is
 //               older than the quiet time is checked once per set of SOP Instance UIDs
 //               and newest arrival (CheckSeriesComplete): quiet alone does not mean complete
@@ -28,14 +38,16 @@
 //               at most 3 attempts 5 s apart; the outcome is stored with the series.
 // Associations are refused when the data dir's file system has less than min_free_mb free,
 // when the called AE title is not ours, and (routes "refuse_unknown_calling_ae") when no route
-// names the calling AE title. DCMTK 3.6.7 listens on all interfaces: with a loopback --dicom-
-// listen host, peers other than loopback are refused at association time.
-// Thread-safety: Start/Stop from one thread; the SCP and the settle loop run on their own.
+// names the calling AE title. The port is bound to the --dicom-listen host only (and, with a
+// loopback host, peers other than loopback are refused at association time as well).
+// Thread-safety: Start/Stop from one thread; the listener, each connection and the settle loop
+// run on their own threads; StoreInstance and MarkAborted may be called from several at once.
 #pragma once
 
 #include <atomic>
 #include <condition_variable>
 #include <filesystem>
+#include <list>
 #include <map>
 #include <memory>
 #include <mutex>
@@ -68,6 +80,18 @@ struct DicomReceiverOptions {
   int64_t min_free_mb = 1024;  // refuse associations / instances below this much free disk
   int max_queued = 1000;       // as --max-queued
   double poll_seconds = 0.2;   // settle loop period
+  // Associations served at once, and from one peer address (connections beyond are closed as
+  // soon as they are accepted): one silent or slow peer cannot hold the port for the others.
+  int max_associations = 32;
+  int max_per_peer = 8;
+  // Seconds a connection may take to send its association request (the ARTIM timer of PS3.8
+  // 9.1.5) and an association may stay silent between messages. 30: a sender pauses for
+  // milliseconds between instances; DCMTK's own default was 60, and a silent peer held the
+  // port for that long.
+  int timeout_seconds = 30;
+  // Largest instance accepted by C-STORE (as --max-upload-mb for uploads); the association is
+  // aborted when a dataset grows past it.
+  int64_t max_instance_bytes = int64_t{2048} << 20;
   DicomRoutes routes;
   // Jobs queued from received series and the sending of their results (null: not audited).
   std::shared_ptr<const AuditLog> audit;
@@ -108,11 +132,14 @@ class DicomReceiver {
   // Opens the port and starts the SCP and the settle loop. UNIMPLEMENTED if the job store
   // keeps no receiver state; UNAVAILABLE if the port cannot be opened.
   absl::Status Start();
-  // Stops accepting (the current association finishes within about a second) and joins.
+  // Stops accepting, breaks off the open associations (their connections are shut down) and
+  // joins every thread; returns within about a second.
   void Stop();
+  // The port bound by Start (options().port, or the one the system chose for port 0).
+  int port() const { return bound_port_; }
 
-  // Called by the SCP thread for each received file (spool path): stores it (blob + store row).
-  // Returns the DIMSE status for the C-STORE response.
+  // Called by an association's thread for each received file (spool path): stores it (blob +
+  // store row). Returns the DIMSE status for the C-STORE response.
   // `*series_uid` receives the instance's series when stored.
   uint16_t StoreInstance(const std::filesystem::path& file, const std::string& calling_ae,
                          const std::string& called_ae, std::string* series_uid);
@@ -127,7 +154,10 @@ class DicomReceiver {
   std::filesystem::path spool() const;
 
  private:
+  friend class StorageScp;
   void SettleLoop();
+  void AcceptLoop();
+  void ServeConnection(int fd, const std::string& peer);
   void SettleSeries(const std::string& series_uid,
                     const std::vector<DicomInstanceRecord>& instances, const std::string& key);
   void SendPendingResults();
@@ -140,7 +170,21 @@ class DicomReceiver {
   WorkerPool* pool_;
 
   std::atomic<bool> stop_{false};
-  std::thread scp_thread_, settle_thread_;
+  std::thread accept_thread_, settle_thread_;
+  int listen_fd_ = -1;
+  int bound_port_ = 0;
+  // One per accepted connection: its socket (-1 once DCMTK is about to close it) and thread.
+  struct Connection {
+    int fd = -1;
+    std::string peer;
+    std::thread thread;
+    bool done = false;
+  };
+  std::mutex conn_mu_;
+  std::list<Connection> connections_ ABSL_GUARDED_BY(conn_mu_);
+  // Associations run concurrently; storing an instance (blob copy + store row) is serialized,
+  // as it was with one association at a time.
+  std::mutex store_mu_;
   std::mutex mu_;
   std::condition_variable cv_;
   bool wake_ ABSL_GUARDED_BY(mu_) = false;
@@ -149,8 +193,7 @@ class DicomReceiver {
   std::map<std::string, int64_t> checked_;  // instance set -> its newest arrival when checked
   std::map<std::string, int> send_attempts_;
   std::map<std::string, int64_t> next_send_ms_;
-  absl::Status scp_status_;
-  std::unique_ptr<class StorageScp> scp_;
+  std::unique_ptr<class ScpNetwork> net_;
 };
 
 }  // namespace decima::server

@@ -130,7 +130,8 @@ int main(int argc, char** argv) {
       ->envname("DECIMA_MAX_QUEUED")
       ->check(CLI::Range(1, 10000000))
       ->capture_default_str();
-  app.add_option("--max-upload-mb", max_upload_mb, "largest blob accepted, MiB")
+  app.add_option("--max-upload-mb", max_upload_mb,
+                 "largest blob accepted (an upload, or an instance received by C-STORE), MiB")
       ->envname("DECIMA_MAX_UPLOAD_MB")
       ->check(CLI::Range(int64_t{1}, int64_t{1} << 30))
       ->capture_default_str();
@@ -249,6 +250,26 @@ int main(int argc, char** argv) {
       ->envname("DECIMA_DICOM_MIN_FREE_MB")
       ->check(CLI::Range(int64_t{0}, int64_t{1} << 40))
       ->capture_default_str();
+  int dicom_max_associations = DicomReceiverOptions().max_associations;
+  int dicom_max_per_peer = DicomReceiverOptions().max_per_peer;
+  int dicom_timeout_seconds = DicomReceiverOptions().timeout_seconds;
+  app.add_option("--dicom-max-associations", dicom_max_associations,
+                 "DICOM associations served at once; more connections are closed")
+      ->envname("DECIMA_DICOM_MAX_ASSOCIATIONS")
+      ->check(CLI::Range(1, 1000))
+      ->capture_default_str();
+  app.add_option("--dicom-max-per-peer", dicom_max_per_peer,
+                 "DICOM associations served at once from one peer address")
+      ->envname("DECIMA_DICOM_MAX_PER_PEER")
+      ->check(CLI::Range(1, 1000))
+      ->capture_default_str();
+  app.add_option("--dicom-timeout-seconds", dicom_timeout_seconds,
+                 "a DICOM connection is closed when its association request takes longer, or "
+                 "its association stays silent this long (C-STOREs over --max-upload-mb abort "
+                 "their association)")
+      ->envname("DECIMA_DICOM_TIMEOUT_SECONDS")
+      ->check(CLI::Range(1, 3600))
+      ->capture_default_str();
   try {
     app.parse(argc, argv);
   } catch (const CLI::ParseError& e) {
@@ -276,6 +297,10 @@ int main(int argc, char** argv) {
     dicom.quiet_seconds = dicom_quiet_seconds;
     dicom.min_free_mb = dicom_min_free_mb;
     dicom.max_queued = max_queued;
+    dicom.max_associations = dicom_max_associations;
+    dicom.max_per_peer = dicom_max_per_peer;
+    dicom.timeout_seconds = dicom_timeout_seconds;
+    dicom.max_instance_bytes = max_upload_mb << 20;
     if (!dicom_routes.empty()) {
       auto routes = LoadDicomRoutes(dicom_routes);
       if (!routes.ok()) {

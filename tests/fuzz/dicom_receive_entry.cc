@@ -1,8 +1,10 @@
-// Fuzz entry of the DICOM receiver's handling of one received instance
-// (DicomReceiver::StoreInstance, what the storage SCP calls for every C-STORE): the file a sender
-// sent, read by DCMTK up to the pixel data, its UIDs and the AE titles checked, the file kept as
-// a blob and recorded in a real SQLite job store. Every input gets fresh stores in a temporary
-// folder of this process, removed afterwards, so nothing accumulates over a campaign.
+// Fuzz entries of the DICOM receiver's parsing of received instances. DicomReceiveEntry: its
+// handling of one received instance (DicomReceiver::StoreInstance, what the storage SCP calls for
+// every C-STORE): the file a sender sent, its first 64 KiB read by DCMTK up to the pixel data, its
+// UIDs and the AE titles checked, the file kept as a blob and recorded in a real SQLite job store.
+// Every input gets fresh stores in a temporary folder of this process, removed afterwards, so
+// nothing accumulates over a campaign. DicomSeriesCheckEntry: the settle loop's check of a series
+// (CheckSeriesComplete) over the same bounded header reader.
 #include <unistd.h>
 
 #include <algorithm>
@@ -10,7 +12,10 @@
 #include <filesystem>
 #include <fstream>
 #include <string>
+#include <string_view>
+#include <vector>
 
+#include "absl/strings/str_split.h"
 #include "server/blob_store.h"
 #include "server/data_dir.h"
 #include "server/dicom_receiver.h"
@@ -108,6 +113,38 @@ int DicomReceiveEntry(const uint8_t* data, size_t size) {
       Require(files_in_blobs == 0, "a refused instance leaves no blob");
       Require(series.empty(), "a refused instance names no series");
     }
+  }
+  fs::remove_all(dir, ec);
+  return 0;
+}
+
+int DicomSeriesCheckEntry(const uint8_t* data, size_t size) {
+  SetLastInputAccepted(false);
+  static int counter = 0;
+  const fs::path dir =
+      fs::temp_directory_path() /
+      ("decima-dicom-series-fuzz-" + std::to_string(::getpid()) + "-" + std::to_string(counter++));
+  std::error_code ec;
+  fs::remove_all(dir, ec);
+  fs::create_directories(dir);
+  {
+    const absl::string_view bytes(reinterpret_cast<const char*>(data), size);
+    std::vector<fs::path> files;
+    const absl::string_view separator(kFileSeparator.data(), kFileSeparator.size());
+    for (absl::string_view part : absl::StrSplit(bytes, absl::ByString(separator))) {
+      if (files.size() == 4) break;  // a few slices reach every branch
+      files.push_back(dir / ("i" + std::to_string(files.size()) + ".dcm"));
+      std::ofstream out(files.back(), std::ios::binary);
+      out.write(part.data(), static_cast<std::streamsize>(part.size()));
+    }
+    const absl::Status st = server::CheckSeriesComplete(files);
+    Require(st.ok() || st.code() == absl::StatusCode::kInvalidArgument,
+            "a series is complete or INVALID_ARGUMENT says why");
+    Require(!st.ok() || files.size() >= 2, "a complete series has two slices or more");
+    std::vector<fs::path> reversed(files.rbegin(), files.rend());
+    Require(server::CheckSeriesComplete(reversed).ok() == st.ok(),
+            "the order the instances arrived in does not change the verdict");
+    SetLastInputAccepted(st.ok());
   }
   fs::remove_all(dir, ec);
   return 0;

@@ -67,7 +67,13 @@ int BatchStudiesEntry(const uint8_t* data, size_t size);
 // accepts has consistent sizes and in-range indices and serializes back to the same bytes.
 int CheckpointEntry(const uint8_t* data, size_t size);
 
-// Whether the last input of the volume, checkpoint, DICOM, DICOM receive, Upload or CreateVolume entries
+// The parts (at most 4) as the instances of one received series, checked by CheckSeriesComplete
+// (the settle loop's check, over the receiver's bounded header reader): OK or INVALID_ARGUMENT,
+// OK only for 2 or more files, and the same verdict for the files in reverse order.
+int DicomSeriesCheckEntry(const uint8_t* data, size_t size);
+
+// Whether the last input of the volume, checkpoint, DICOM, DICOM receive, series check, Upload
+// or CreateVolume entries
 // was accepted (a volume read, an instance stored, an upload stored, a volume created): the
 // replay test checks that the seeds named ok-* are, so the corpora keep inputs that reach past
 // the header checks.

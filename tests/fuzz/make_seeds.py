@@ -1,5 +1,6 @@
 #!/usr/bin/env python3
-"""Writes the seed corpora of the volume, DICOM, Upload, CreateVolume and checkpoint fuzz targets
+"""Writes the seed corpora of the volume, DICOM, DICOM receive and series check, Upload,
+CreateVolume and checkpoint fuzz targets
 (corpus/<target>/): small valid files (named ok-*) and edge cases (bad-*). Run from anywhere;
 the output is deterministic, so a re-run changes nothing. Inputs of several files are joined
 with SEP (kFileSeparator in fuzz_entries.h)."""
@@ -205,6 +206,38 @@ write("dicom_receive", "bad-no-sop-instance-uid",
 write("dicom_receive", "bad-series-uid-not-a-uid", b"\0" + dicom_slice(0, series="1.2.x.4"))
 write("dicom_receive", "bad-truncated-element", b"\0" + dicom_slice(0)[:-40])
 write("dicom_receive", "bad-not-dicom", b"\0" + b"not a dicom file")
+
+
+# The receiver reads headers from their first 64 KiB and never inflates (dicom_receiver.h).
+def deflated_slice(z, zeros=1 << 20):
+    plain = dicom_slice(z, extra=element(0x29, 0x10, "LO", text("DECIMA TEST"))
+                        + element(0x29, 0x1001, "OB", b"\0" * zeros))
+    meta_end = plain.index(b"\x08\x00\x16\x00")
+    meta = plain[132:meta_end].replace(uid(EXPLICIT), uid("1.2.840.10008.1.2.1.99"))
+    meta = element(2, 0, "UL", struct.pack("<I", len(meta) - 12)) + meta[12:]
+    c = zlib.compressobj(9, zlib.DEFLATED, -15)
+    return b"\0" * 128 + b"DICM" + meta + c.compress(plain[meta_end:]) + c.flush()
+
+
+nested = (struct.pack("<HH", 0x9, 0x1003) + b"SQ\0\0" + struct.pack("<I", 0xFFFFFFFF)
+          + struct.pack("<HHI", 0xFFFE, 0xE000, 0xFFFFFFFF)) * 3500
+tiny = element(0x9, 0x1001, "LO", b"") * 9000
+write("dicom_receive", "bad-deflated-bomb", b"\0" + deflated_slice(0))
+write("dicom_receive", "bad-deep-nesting", b"\0" + dicom_slice(0, extra=nested))
+write("dicom_receive", "bad-uids-past-64-kib", b"\0" + dicom_slice(0).replace(
+    b"\x08\x00\x60\x00", tiny + b"\x08\x00\x60\x00", 1))
+
+# ---- DICOM series check (CheckSeriesComplete): the parts are the files of one series ---------
+write("dicom_series_check", "ok-two-slices-explicit", dicom_slice(0) + SEP + dicom_slice(1))
+write("dicom_series_check", "ok-three-slices-implicit", SEP.join(
+    dicom_slice(z, syntax=IMPLICIT) for z in (2, 0, 1)))
+write("dicom_series_check", "ok-undefined-length-sequence",
+      dicom_slice(0, extra=seq) + SEP + dicom_slice(1, extra=seq))
+write("dicom_series_check", "bad-one-slice", dicom_slice(0))
+write("dicom_series_check", "bad-missing-slice", SEP.join(dicom_slice(z) for z in (0, 1, 3)))
+write("dicom_series_check", "bad-deflated", deflated_slice(0, 64) + SEP + deflated_slice(1, 64))
+write("dicom_series_check", "bad-deep-nesting",
+      dicom_slice(0, extra=nested) + SEP + dicom_slice(1))
 
 # ---- Upload: flags, chunk, [sha 64], [size], [offset], [cut], payload ------------------------
 def varint(v):

@@ -1,5 +1,13 @@
 // The PACS side's pieces on their own: routes file, series completeness, the SEG/SC writer's
-// refusals. The whole loop against Orthanc is tests/e2e/pacs_e2e_test.py.
+// refusals, the storage SCP against DCMTK's storescu / echoscu and hand-made connections. The
+// whole loop against Orthanc is tests/e2e/pacs_e2e_test.py.
+#include <arpa/inet.h>
+#include <netinet/in.h>
+#include <poll.h>
+#include <sys/socket.h>
+#include <unistd.h>
+#include <zlib.h>
+
 #include <fstream>
 #include <optional>
 #include <sstream>
@@ -274,6 +282,376 @@ TEST_F(DicomReceiverTest, AnAssociationWithABrokenCallingAeTitleIsRefusedBeforeA
   ASSERT_EQ(kept->size(), 1u);
   EXPECT_EQ(kept->front().calling_ae, "SENDER");
   receiver.Stop();
+}
+
+// --- The storage SCP's network side ------------------------------------------------------------
+
+// The peak resident set of this process so far (VmHWM), MiB.
+int64_t PeakRssMb() {
+  std::ifstream in("/proc/self/status");
+  std::string line;
+  while (std::getline(in, line)) {
+    if (line.rfind("VmHWM:", 0) == 0) return std::stoll(line.substr(6)) / 1024;
+  }
+  return -1;
+}
+
+std::string Text(const fs::path& p) {
+  std::ifstream in(p);
+  std::stringstream ss;
+  ss << in.rdbuf();
+  return ss.str();
+}
+
+// A TCP connection to 127.0.0.1:port from `source` (any 127.x address; -1 on failure).
+int Connect(int port, const char* source = "127.0.0.1") {
+  const int fd = ::socket(AF_INET, SOCK_STREAM | SOCK_CLOEXEC, 0);
+  if (fd < 0) return -1;
+  sockaddr_in from{};
+  from.sin_family = AF_INET;
+  ::inet_pton(AF_INET, source, &from.sin_addr);
+  sockaddr_in to{};
+  to.sin_family = AF_INET;
+  to.sin_port = htons(static_cast<uint16_t>(port));
+  ::inet_pton(AF_INET, "127.0.0.1", &to.sin_addr);
+  if (::bind(fd, reinterpret_cast<sockaddr*>(&from), sizeof(from)) != 0 ||
+      ::connect(fd, reinterpret_cast<sockaddr*>(&to), sizeof(to)) != 0) {
+    ::close(fd);
+    return -1;
+  }
+  return fd;
+}
+
+// True when the server closed `fd` (EOF or reset, after any PDU it sent) within `within`.
+bool ClosedByPeerWithin(int fd, std::chrono::milliseconds within) {
+  const auto end = std::chrono::steady_clock::now() + within;
+  char buf[4096];
+  for (int i = 0; i < 10000; ++i) {
+    const auto left = std::chrono::duration_cast<std::chrono::milliseconds>(
+        end - std::chrono::steady_clock::now());
+    if (left.count() <= 0) return false;
+    pollfd p{fd, POLLIN, 0};
+    if (::poll(&p, 1, static_cast<int>(left.count())) <= 0) continue;
+    const ssize_t n = ::recv(fd, buf, sizeof(buf), 0);
+    if (n <= 0) return true;
+  }
+  return false;
+}
+
+// An A-ASSOCIATE-RQ PDU (PS3.8 9.3.2) proposing Verification in implicit VR little endian.
+std::string AssociateRequest(const std::string& called, const std::string& calling) {
+  auto item = [](uint8_t type, const std::string& body) {
+    std::string s{static_cast<char>(type), '\0', static_cast<char>(body.size() >> 8),
+                  static_cast<char>(body.size() & 0xFF)};
+    return s + body;
+  };
+  auto ae = [](std::string t) {
+    t.resize(16, ' ');
+    return t;
+  };
+  const std::string pc = item(0x20, std::string("\x01\0\0\0", 4) + item(0x30, "1.2.840.10008.1.1") +
+                                        item(0x40, "1.2.840.10008.1.2"));
+  const std::string user = item(0x50, item(0x51, std::string("\0\0\x40\0", 4)));
+  const std::string body = std::string("\0\x01\0\0", 4) + ae(called) + ae(calling) +
+                           std::string(32, '\0') + item(0x10, "1.2.840.10008.3.1.1.1") + pc + user;
+  const uint32_t n = static_cast<uint32_t>(body.size());
+  return std::string{'\x01',
+                     '\0',
+                     static_cast<char>(n >> 24),
+                     static_cast<char>(n >> 16),
+                     static_cast<char>(n >> 8),
+                     static_cast<char>(n)} +
+         body;
+}
+
+// A connection with an accepted association that then sends nothing; -1 unless the receiver
+// answered A-ASSOCIATE-AC.
+int SilentAssociation(int port) {
+  const int fd = Connect(port);
+  if (fd < 0) return -1;
+  const std::string rq = AssociateRequest("DECIMA", "SILENT");
+  unsigned char type = 0;
+  pollfd p{fd, POLLIN, 0};
+  if (::send(fd, rq.data(), rq.size(), MSG_NOSIGNAL) != static_cast<ssize_t>(rq.size()) ||
+      ::poll(&p, 1, 10000) != 1 || ::recv(fd, &type, 1, 0) != 1 || type != 0x02) {
+    ::close(fd);
+    return -1;
+  }
+  return fd;
+}
+
+// Writes a Part 10 file in Deflated Explicit VR Little Endian whose data set holds a private OB
+// element of `zeros` zero bytes: a few hundred KiB that inflate to `zeros`. Streams through zlib,
+// so writing it costs this process no memory.
+void WriteDeflateBomb(const fs::path& path, uint32_t zeros, const std::string& series_uid) {
+  auto le16 = [](uint16_t v) {
+    return std::string{static_cast<char>(v), static_cast<char>(v >> 8)};
+  };
+  auto le32 = [&](uint32_t v) {
+    return le16(static_cast<uint16_t>(v)) + le16(static_cast<uint16_t>(v >> 16));
+  };
+  auto tag = [&](uint16_t g, uint16_t e) { return le16(g) + le16(e); };
+  auto short_el = [&](uint16_t g, uint16_t e, const char* vr, std::string v) {
+    if (v.size() % 2) v.push_back(vr[0] == 'U' && vr[1] == 'I' ? '\0' : ' ');
+    return tag(g, e) + vr + le16(static_cast<uint16_t>(v.size())) + v;
+  };
+  const std::string sop_class = "1.2.840.10008.5.1.4.1.1.2",
+                    sop = "1.2.826.0.1.3680043.9.7777.99.1";
+  std::string meta = short_el(0x0002, 0x0001, "OB", "");
+  meta = tag(0x0002, 0x0001) + "OB" + std::string(2, '\0') + le32(2) + std::string("\0\x01", 2);
+  meta += short_el(0x0002, 0x0002, "UI", sop_class) + short_el(0x0002, 0x0003, "UI", sop) +
+          short_el(0x0002, 0x0010, "UI", "1.2.840.10008.1.2.1.99");
+  std::ofstream out(path, std::ios::binary);
+  out << std::string(128, '\0') << "DICM" << tag(0x0002, 0x0000) << "UL" << le16(4)
+      << le32(static_cast<uint32_t>(meta.size())) << meta;
+  // The private element comes after the UIDs, as a vendor's large private block does.
+  const std::string head =
+      short_el(0x0008, 0x0016, "UI", sop_class) + short_el(0x0008, 0x0018, "UI", sop) +
+      short_el(0x0020, 0x000E, "UI", series_uid) + short_el(0x0029, 0x0010, "LO", "DECIMA TEST") +
+      tag(0x0029, 0x1001) + "OB" + std::string(2, '\0') + le32(zeros);
+  z_stream z{};
+  ASSERT_EQ(deflateInit2(&z, 9, Z_DEFLATED, -15, 9, Z_DEFAULT_STRATEGY), Z_OK);  // raw deflate
+  std::vector<unsigned char> in(1 << 20, 0), buf(1 << 16);
+  auto pump = [&](const unsigned char* data, size_t n, int flush) {
+    z.next_in = const_cast<unsigned char*>(data);
+    z.avail_in = static_cast<uInt>(n);
+    do {
+      z.next_out = buf.data();
+      z.avail_out = static_cast<uInt>(buf.size());
+      deflate(&z, flush);
+      out.write(reinterpret_cast<const char*>(buf.data()),
+                static_cast<std::streamsize>(buf.size() - z.avail_out));
+    } while (z.avail_out == 0);
+  };
+  pump(reinterpret_cast<const unsigned char*>(head.data()), head.size(), Z_NO_FLUSH);
+  for (uint32_t left = zeros; left > 0;) {
+    const uint32_t n = std::min<uint32_t>(left, static_cast<uint32_t>(in.size()));
+    pump(in.data(), n, Z_NO_FLUSH);
+    left -= n;
+  }
+  pump(nullptr, 0, Z_FINISH);
+  deflateEnd(&z);
+}
+
+class DicomScpTest : public DicomReceiverTest {
+ protected:
+  void SetUp() override {
+    DicomReceiverTest::SetUp();
+    for (const char* tool : {"/usr/bin/storescu", "/usr/bin/echoscu"}) {
+      if (!fs::exists(tool)) GTEST_SKIP() << tool << " (Debian package dcmtk) is not installed";
+    }
+  }
+  void TearDown() override {
+    for (int fd : fds_) ::close(fd);
+    if (receiver_) receiver_->Stop();
+  }
+  // A started receiver on a free port (options.port is set here).
+  DicomReceiver& Started(DicomReceiverOptions options) {
+    options.quiet_seconds = 3600;  // no series is judged while a test runs
+    options.port = testing::FreePort();
+    EXPECT_GT(options.port, 0);
+    receiver_ = Receiver(options);
+    EXPECT_TRUE(receiver_->Start().ok());
+    return *receiver_;
+  }
+  int Keep(int fd) {
+    if (fd >= 0) fds_.push_back(fd);
+    return fd;
+  }
+  // Runs a DCMTK tool against the receiver; its exit code, its output in *log_text.
+  int Run(const std::string& tool, std::vector<std::string> args, std::string* log_text,
+          std::chrono::seconds timeout = std::chrono::seconds(60)) {
+    const fs::path log = dir_ / (tool + std::to_string(runs_++) + ".log");
+    std::vector<std::string> argv = {"/usr/bin/" + tool, "-aec", "DECIMA", "127.0.0.1",
+                                     std::to_string(receiver_->port())};
+    argv.insert(argv.end(), args.begin(), args.end());
+    // storescu leaves Nagle's algorithm on unless told: 40 ms per instance.
+    const int rc = testing::WaitExit(
+        testing::Spawn(argv, log.string(), log.string(), {{"TCP_NODELAY", "1"}}), timeout);
+    *log_text = Text(log);
+    return rc;
+  }
+  std::vector<int> fds_;
+  std::unique_ptr<DicomReceiver> receiver_;
+  int runs_ = 0;
+};
+
+// The README says Verification is offered: echoscu, what a PACS administrator tests a link with,
+// gets its answer (before, the presentation context list was full before Verification was
+// added, and the association was rejected).
+TEST_F(DicomScpTest, EchoscuIsAnswered) {
+  Started({});
+  std::string log;
+  EXPECT_EQ(Run("echoscu", {"-v"}, &log), 0) << log;
+  EXPECT_THAT(log, HasSubstr("Received Echo Response (Success)"));
+}
+
+// Ten TCP connections that send nothing and one accepted association that stays silent do not
+// hold the port: a real storescu send completes in about the time it takes alone (before, the
+// receiver served one connection at a time and the send waited 30 to 90 s).
+TEST_F(DicomScpTest, IdleConnectionsAndASilentAssociationDoNotDelayASend) {
+  DicomReceiverOptions options;
+  options.max_per_peer = 16;  // every connection here comes from 127.0.0.1
+  Started(options);
+  testing::SliceSpec slice;
+  testing::WriteSlice(dir_ / "slice.dcm", slice);
+  std::string log;
+  auto timed_send = [&] {
+    const auto t0 = std::chrono::steady_clock::now();
+    EXPECT_EQ(Run("storescu", {(dir_ / "slice.dcm").string()}, &log), 0) << log;
+    return std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
+  };
+  const double alone = timed_send();
+  for (int i = 0; i < 10; ++i) ASSERT_GE(Keep(Connect(receiver_->port())), 0);
+  ASSERT_GE(Keep(SilentAssociation(receiver_->port())), 0) << "no A-ASSOCIATE-AC";
+  const double beside_idle = timed_send();
+  // The bound is 2 s; 5 s leaves room for a loaded CI machine, and the old receiver
+  // took 30 s or more.
+  EXPECT_LT(beside_idle, alone + 5) << "alone " << alone << " s";
+  auto kept = store_->ListDicomInstances();
+  ASSERT_TRUE(kept.ok()) << kept.status();
+  EXPECT_EQ(kept->size(), 1u);
+}
+
+// A connection that sends no association request, and an association that sends nothing, are
+// closed after --dicom-timeout-seconds.
+TEST_F(DicomScpTest, SilentConnectionsAreClosedAfterTheTimeout) {
+  DicomReceiverOptions options;
+  options.timeout_seconds = 1;
+  Started(options);
+  const int idle = Keep(Connect(receiver_->port()));
+  const int silent = Keep(SilentAssociation(receiver_->port()));
+  ASSERT_GE(idle, 0);
+  ASSERT_GE(silent, 0) << "no A-ASSOCIATE-AC";
+  EXPECT_TRUE(ClosedByPeerWithin(idle, std::chrono::milliseconds(5000)));
+  EXPECT_TRUE(ClosedByPeerWithin(silent, std::chrono::milliseconds(5000)));
+}
+
+// One address may hold at most --dicom-max-per-peer connections: the next one from it is
+// closed at once, while another address is still served.
+TEST_F(DicomScpTest, APeerOverItsLimitIsClosedAndOthersAreServed) {
+  DicomReceiverOptions options;
+  options.max_per_peer = 2;
+  Started(options);
+  ASSERT_GE(Keep(Connect(receiver_->port(), "127.0.0.2")), 0);
+  ASSERT_GE(Keep(Connect(receiver_->port(), "127.0.0.2")), 0);
+  const int third = Keep(Connect(receiver_->port(), "127.0.0.2"));
+  ASSERT_GE(third, 0);
+  EXPECT_TRUE(ClosedByPeerWithin(third, std::chrono::milliseconds(3000)));
+  std::string log;
+  EXPECT_EQ(Run("echoscu", {}, &log), 0) << log;
+}
+
+// Deflated Explicit VR Little Endian is not negotiated: storescu sends a deflated file
+// uncompressed, and the instance kept is not deflated (the job's reader refuses deflated files,
+// so they used to be acknowledged and then never processed).
+TEST_F(DicomScpTest, DeflatedInstancesArriveUncompressedOrNotAtAll) {
+  Started({});
+  WriteDeflateBomb(dir_ / "deflated.dcm", 1 << 20, "1.2.826.0.1.3680043.9.7777.99");
+  std::string log;
+  ASSERT_EQ(Run("storescu", {"--propose-deflated", (dir_ / "deflated.dcm").string()}, &log), 0)
+      << log;
+  auto kept = store_->ListDicomInstances();
+  ASSERT_TRUE(kept.ok()) << kept.status();
+  ASSERT_EQ(kept->size(), 1u);
+  auto blob = blobs_->LocalPath(kept->front().sha256);
+  ASSERT_TRUE(blob.ok()) << blob.status();
+  const std::string bytes = Text(*blob);
+  EXPECT_EQ(bytes.find("1.2.840.10008.1.2.1.99"), std::string::npos) << "stored deflated";
+  EXPECT_GE(bytes.size(), size_t{1} << 20) << "the private element arrived inflated";
+}
+
+// A deflate bomb handed to the receiver (a 256 MiB element of zeros in a file of a few hundred
+// KiB) is refused without inflating it, and one that storescu inflates and sends is cut off at
+// the size limit: the process's peak memory grows by far less than the bomb.
+TEST_F(DicomScpTest, ADeflateBombIsRefusedInBoundedMemory) {
+  DicomReceiverOptions options;
+  options.max_instance_bytes = int64_t{16} << 20;
+  Started(options);
+  const fs::path bomb = dir_ / "bomb.dcm";
+  WriteDeflateBomb(bomb, 256u << 20, "1.2.826.0.1.3680043.9.7777.98");
+  ASSERT_LT(fs::file_size(bomb), size_t{2} << 20);
+  const int64_t before = PeakRssMb();
+  std::string series;
+  constexpr uint16_t kCannotUnderstand = 0xC000;
+  EXPECT_EQ(receiver_->StoreInstance(bomb, "SENDER", "DECIMA", &series), kCannotUnderstand);
+  std::string log;
+  EXPECT_NE(Run("storescu", {"--propose-deflated", bomb.string()}, &log), 0) << log;
+  const int64_t after = PeakRssMb();
+  EXPECT_LT(after - before, 100) << "peak RSS " << before << " -> " << after << " MiB";
+  auto kept = store_->ListDicomInstances();
+  ASSERT_TRUE(kept.ok()) << kept.status();
+  EXPECT_TRUE(kept->empty());
+  int spooled = 0;
+  for (const auto& e : fs::directory_iterator(receiver_->spool())) spooled += e.is_regular_file();
+  EXPECT_EQ(spooled, 0) << "the cut-off instance stays in the spool";
+}
+
+// --max-upload-mb applies to C-STORE: an instance over it is not stored (the association is
+// aborted as the data passes the limit), one under it is.
+TEST_F(DicomScpTest, AnInstanceOverTheSizeLimitIsRefused) {
+  DicomReceiverOptions options;
+  options.max_instance_bytes = int64_t{1} << 20;
+  Started(options);
+  testing::SliceSpec big;
+  big.rows = 1024;
+  big.columns = 1024;  // 2 MiB of pixels
+  testing::WriteSlice(dir_ / "big.dcm", big);
+  testing::SliceSpec small;
+  small.series_uid = "1.2.826.0.1.3680043.9.7777.2";
+  testing::WriteSlice(dir_ / "small.dcm", small);
+  std::string log;
+  EXPECT_NE(Run("storescu", {(dir_ / "big.dcm").string()}, &log), 0) << log;
+  auto kept = store_->ListDicomInstances();
+  ASSERT_TRUE(kept.ok()) << kept.status();
+  EXPECT_TRUE(kept->empty());
+  EXPECT_EQ(Run("storescu", {(dir_ / "small.dcm").string()}, &log), 0) << log;
+  kept = store_->ListDicomInstances();
+  ASSERT_TRUE(kept.ok()) << kept.status();
+  ASSERT_EQ(kept->size(), 1u);
+  EXPECT_EQ(kept->front().series_instance_uid, small.series_uid);
+}
+
+// A header whose attributes hide behind 64 KiB of tiny private elements, or behind an element
+// that declares 4 GiB, is read in bounded memory and refused as not understood.
+TEST_F(DicomScpTest, HeadersAreReadFromABoundedPrefix) {
+  auto receiver = Receiver();
+  auto le16 = [](uint16_t v) {
+    return std::string{static_cast<char>(v), static_cast<char>(v >> 8)};
+  };
+  std::string meta_ts = "1.2.840.10008.1.2.1";
+  meta_ts.push_back('\0');
+  const std::string meta_el =
+      std::string("\x02\0\x10\0UI", 6) + le16(static_cast<uint16_t>(meta_ts.size())) + meta_ts;
+  const std::string meta = std::string("\x02\0\0\0UL", 6) + le16(4) +
+                           std::string{static_cast<char>(meta_el.size()), 0, 0, 0} + meta_el;
+  const std::string series = std::string("\x20\0\x0E\0UI", 6) + le16(4) + std::string("1.2\0", 4);
+  const std::string sop = std::string("\x08\0\x18\0UI", 6) + le16(4) + std::string("1.3\0", 4);
+  // 200,000 empty private elements (1.6 MB): a DCMTK tree of them all would take hundreds of MB.
+  std::string many;
+  for (int i = 0; i < 200000; ++i) many += std::string("\x09\0\x01\x10LO\0\0", 8);
+  // A declared 4 GiB - 2 value, far past the end of the file.
+  const std::string huge = std::string("\x09\0\x02\x10OB\0\0\xFE\xFF\xFF\xFF", 12);
+  // Sequences nested 20,000 deep (undefined lengths): DCMTK reads them recursively.
+  std::string deep;
+  for (int i = 0; i < 20000; ++i) {
+    deep += std::string("\x09\0\x03\x10SQ\0\0\xFF\xFF\xFF\xFF\xFE\xFF\0\xE0\xFF\xFF\xFF\xFF", 20);
+  }
+  std::string series_uid;
+  constexpr uint16_t kCannotUnderstand = 0xC000;
+  const int64_t before = PeakRssMb();
+  for (const std::string& middle : {many, huge, deep}) {
+    std::ofstream(dir_ / "h.dcm", std::ios::binary)
+        << std::string(128, '\0') << "DICM" << meta << sop << middle << series;
+    EXPECT_EQ(receiver->StoreInstance(dir_ / "h.dcm", "SENDER", "DECIMA", &series_uid),
+              kCannotUnderstand);
+  }
+  EXPECT_LT(PeakRssMb() - before, 100);
+  // The same attributes without the padding are read.
+  std::ofstream(dir_ / "h.dcm", std::ios::binary)
+      << std::string(128, '\0') << "DICM" << meta << sop << series;
+  EXPECT_EQ(receiver->StoreInstance(dir_ / "h.dcm", "SENDER", "DECIMA", &series_uid), 0);
+  EXPECT_EQ(series_uid, "1.2");
 }
 
 }  // namespace
