@@ -24,6 +24,7 @@ struct DicomWebPull {
   std::string ca_file;       // "" = system trust store
   int timeout_seconds = 300;
   int64_t max_bytes = int64_t{4} << 30;  // larger answers are refused
+  int max_instances = 100000;            // answers with more parts are refused
 };
 
 struct DicomWebResult {
@@ -35,7 +36,9 @@ struct DicomWebResult {
 // Writes each application/dicom part to `out_dir`/NNNNN.dcm (created if missing). False with
 // `*error` naming the URL and the problem: an HTTP status other than 200 (with the start of the
 // body), a transfer error or timeout, an answer that is not multipart/related, has no boundary,
-// a part that is not application/dicom, no instance, or more than max_bytes.
+// a part that is not application/dicom, no instance, more than max_bytes or more than
+// max_instances parts. The answer is parsed as it arrives and each part written as it comes:
+// memory does not grow with the answer.
 bool PullDicomWeb(const DicomWebPull& pull, const std::filesystem::path& out_dir,
                   DicomWebResult* result, std::string* error);
 

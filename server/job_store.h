@@ -149,6 +149,9 @@ class JobStore {
   // itself (SQLite's incremental vacuum; PostgreSQL's autovacuum needs nothing). Called by the
   // server's collector timer.
   virtual absl::Status Compact() { return absl::OkStatus(); }
+  // One quick round trip to the store, without the reconnect retries of the other calls: the
+  // health service follows it (NOT_SERVING while it fails). UNAVAILABLE naming the store.
+  virtual absl::Status Ping() { return absl::OkStatus(); }
 
   // QUEUED -> CANCELLED at once; RUNNING -> cancel requested (the worker finishes it).
   // Final jobs are returned unchanged.

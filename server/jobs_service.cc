@@ -38,7 +38,12 @@ absl::StatusOr<v1::Job> SubmitJob(const ServiceDeps& d, const Principal& caller,
     auto id = ParseName(value, "volumes", name);
     if (!id.ok()) return id.status();
     auto vol = d.jobs->GetVolume(*id);
-    if (!vol.ok()) return absl::NotFoundError(absl::StrCat(name, ": ", value, " not found"));
+    // Only a volume the store says is missing is NOT_FOUND; a store that cannot answer is its
+    // own error (UNAVAILABLE: retry), never "not found" for a volume that exists.
+    if (absl::IsNotFound(vol.status())) {
+      return absl::NotFoundError(absl::StrCat(name, ": ", value, " not found"));
+    }
+    if (!vol.ok()) return vol.status();
     if (auto may = CallGuard::MayRead(caller, vol->creator(), value); !may.ok()) {
       detail->set_field(name);
       return absl::PermissionDeniedError(may.error_message());

@@ -737,6 +737,20 @@ class PostgresJobStore : public JobStore {
     });
   }
 
+  absl::Status Ping() override {
+    std::unique_ptr<pqxx::connection> conn;
+    try {
+      conn = pool_.Acquire();
+      pqxx::nontransaction n(*conn);
+      n.exec("SELECT 1");
+      pool_.Release(std::move(conn), false);
+      return absl::OkStatus();
+    } catch (const std::exception& e) {
+      if (conn) pool_.Release(std::move(conn), true);
+      return absl::UnavailableError(absl::StrCat("job store: PostgreSQL unreachable: ", e.what()));
+    }
+  }
+
  private:
   // Runs `body` in a transaction on a pooled connection and commits when it returns OK. A lost
   // connection (before the commit) is retried on a new one until reconnect_timeout; `body` must

@@ -93,7 +93,8 @@ int main(int argc, char** argv) {
               tls_cert, tls_key, tls_client_ca, audit_log, port_file;
   std::string store_spec = "sqlite", store_file;
   int tls_reload_seconds = 10, audit_max_mb = 64, audit_files = 10;
-  int workers = 1, max_queued = 1000, max_attempts = 3, store_connections = 8;
+  int workers = 1, max_queued = 1000, max_attempts = 3, store_connections = 8,
+      store_retry_seconds = 30;
   int64_t max_upload_mb = 2048, worker_memory_mb = 0;
   int64_t disk_reserve_mb = 64;
   double drain_seconds = 30, heartbeat_seconds = 5, lease_seconds = 15;
@@ -121,6 +122,12 @@ int main(int argc, char** argv) {
                  "PostgreSQL connections in the pool (one more listens for events)")
       ->envname("DECIMA_STORE_CONNECTIONS")
       ->check(CLI::Range(1, 64))
+      ->capture_default_str();
+  app.add_option("--store-retry-seconds", store_retry_seconds,
+                 "how long a call waits for a lost PostgreSQL to come back before it fails "
+                 "UNAVAILABLE")
+      ->envname("DECIMA_STORE_RETRY_SECONDS")
+      ->check(CLI::Range(1, 3600))
       ->capture_default_str();
   app.add_option("--workers", workers, "jobs run at once (one child process each)")
       ->envname("DECIMA_WORKERS")
@@ -410,6 +417,7 @@ int main(int argc, char** argv) {
   if (postgres) {
     PostgresStoreOptions po;
     po.connections = store_connections;
+    po.reconnect_timeout = std::chrono::seconds(store_retry_seconds);
     po.application_name = absl::StrCat("decima-server ", owner);
     store = OpenPostgresJobStore(store_spec, po);
   } else {
@@ -531,6 +539,20 @@ int main(int argc, char** argv) {
     return 1;
   }
   server->GetHealthCheckService()->SetServingStatus(true);
+  // Health follows the store (issue 35 part 7: with PostgreSQL down the server said SERVING
+  // while every call failed): one quick round trip a second, NOT_SERVING while it fails.
+  std::atomic<bool> store_ok{true}, draining{false};
+  PeriodicTask store_health(std::chrono::seconds(1), [&] {
+    const absl::Status st = (*store)->Ping();
+    if (st.ok() == store_ok.load()) return;
+    store_ok = st.ok();
+    if (st.ok()) {
+      spdlog::info("job store reachable again: health SERVING");
+    } else {
+      spdlog::error("job store unreachable, health NOT_SERVING: {}", st.ToString());
+    }
+    if (!draining) server->GetHealthCheckService()->SetServingStatus(st.ok());
+  });
   pool.Start();
   std::unique_ptr<DicomReceiver> receiver;
   if (!dicom_listen.empty()) {
@@ -566,6 +588,8 @@ int main(int argc, char** argv) {
       "signal {}: draining (health NOT_SERVING, new calls UNAVAILABLE, running jobs "
       "get {} s)",
       sig, drain_seconds);
+  draining = true;
+  store_health.Stop();
   services.StartDraining();
   if (receiver) receiver->Stop();  // no new series while draining
   server->GetHealthCheckService()->SetServingStatus(false);

@@ -1,8 +1,14 @@
+#include <signal.h>
+#include <sys/resource.h>
+
 #include <fstream>
+#include <thread>
 
 #include "client/client_lib.h"
+#include "client/dicomweb.h"
 #include "gmock/gmock.h"
 #include "gtest/gtest.h"
+#include "tests/testing/process.h"
 #include "tests/testing/test_data.h"
 
 namespace decima::client {
@@ -180,6 +186,105 @@ TEST(TerminalSafeTest, ControlCharactersAndBrokenUtf8AreEscapedPrintableTextIsKe
 TEST(Sha256HexOfTest, HashesInMemory) {
   EXPECT_EQ(Sha256HexOf(""), "e3b0c44298fc1c149afbf4c8996fb92427ae41e4649b934ca495991b7852b855");
   EXPECT_EQ(Sha256HexOf("abc"), "ba7816bf8f01cfea414140de5dae2223b00361a396177a9cb410ff61f20015ad");
+}
+
+// A WADO-RS server in python3 (http.server) answering every GET with `parts` application/dicom
+// parts of `part_mb` MiB each, written in 1 MiB pieces; stopped by PID.
+class FakeWadoServer {
+ public:
+  FakeWadoServer(int parts, int part_mb) {
+    port_ = testing::FreePort();
+    const std::string script = R"(
+import http.server, sys
+parts, size = int(sys.argv[2]), int(sys.argv[3]) << 20
+class H(http.server.BaseHTTPRequestHandler):
+    def do_GET(self):
+        b = b"b0und4ry"
+        self.send_response(200)
+        self.send_header("Content-Type", 'multipart/related; type="application/dicom"; boundary=' + b.decode())
+        # HTTP/1.0 without Content-Length: the answer ends when the connection closes.
+        self.end_headers()
+        chunk = bytes(range(256)) * 4096
+        for i in range(parts):
+            self.wfile.write(b"--" + b + b"\r\nContent-Type: application/dicom\r\n\r\n")
+            left = size
+            while left > 0:
+                n = min(left, len(chunk)); self.wfile.write(chunk[:n]); left -= n
+            self.wfile.write(b"\r\n")
+        self.wfile.write(b"--" + b + b"--\r\n")
+    def log_message(self, *a): pass
+http.server.HTTPServer(("127.0.0.1", int(sys.argv[1])), H).serve_forever()
+)";
+    pid_ = testing::Spawn({"/usr/bin/python3", "-c", script, std::to_string(port_),
+                           std::to_string(parts), std::to_string(part_mb)},
+                          "/dev/null");
+    for (int i = 0; i < 100 && !TcpPortAnswers("127.0.0.1:" + std::to_string(port_),
+                                               std::chrono::milliseconds(100));
+         ++i) {
+      std::this_thread::sleep_for(std::chrono::milliseconds(50));
+    }
+  }
+  ~FakeWadoServer() {
+    if (pid_ > 0) {
+      kill(pid_, SIGKILL);
+      testing::WaitExit(pid_, std::chrono::seconds(10));
+    }
+  }
+  std::string url() const { return "http://127.0.0.1:" + std::to_string(port_) + "/dicom-web"; }
+
+ private:
+  int port_ = 0;
+  pid_t pid_ = -1;
+};
+
+long PeakRssMb() {
+  rusage u{};
+  getrusage(RUSAGE_SELF, &u);
+  return u.ru_maxrss / 1024;
+}
+
+// Issue 35 part 7: the pull buffered the whole answer (600 MB -> 1.07 GB RSS). Parsed as it
+// arrives, a 256 MiB answer raises the peak by far less than its size, and every part is
+// written whole.
+TEST(DicomWebPullTest, ALargeAnswerIsWrittenPartByPartWithoutBufferingIt) {
+  if (!fs::exists("/usr/bin/python3")) GTEST_SKIP() << "python3 not installed";
+  FakeWadoServer server(16, 16);
+  const fs::path out = testing::MakeScratchDir("wado_pull");
+  DicomWebPull pull;
+  pull.base_url = server.url();
+  pull.study_uid = "1.2.3";
+  const long before = PeakRssMb();
+  DicomWebResult result;
+  std::string err;
+  ASSERT_TRUE(PullDicomWeb(pull, out, &result, &err)) << err;
+  const long grew = PeakRssMb() - before;
+  EXPECT_EQ(result.instances, 16);
+  EXPECT_EQ(result.bytes, int64_t{256} << 20);
+  for (int i = 1; i <= 16; ++i) {
+    char name[16];
+    std::snprintf(name, sizeof name, "%05d.dcm", i);
+    ASSERT_EQ(fs::file_size(out / name), uintmax_t{16} << 20) << name;
+  }
+  std::ifstream first(out / "00001.dcm", std::ios::binary);
+  char head[4];
+  first.read(head, 4);
+  EXPECT_EQ(std::string(head, 4), std::string("\x00\x01\x02\x03", 4)) << "the part's own bytes";
+  EXPECT_LT(grew, 64) << "peak RSS grew by " << grew << " MB for a 256 MiB answer";
+  std::printf("256 MiB WADO-RS answer: peak RSS +%ld MB, %.2f s\n", grew, result.seconds);
+}
+
+// The number of parts is limited: an answer with more than max_instances parts is refused.
+TEST(DicomWebPullTest, AnAnswerWithMorePartsThanTheLimitIsRefused) {
+  if (!fs::exists("/usr/bin/python3")) GTEST_SKIP() << "python3 not installed";
+  FakeWadoServer server(20, 0);
+  DicomWebPull pull;
+  pull.base_url = server.url();
+  pull.study_uid = "1.2.3";
+  pull.max_instances = 5;
+  DicomWebResult result;
+  std::string err;
+  EXPECT_FALSE(PullDicomWeb(pull, testing::MakeScratchDir("wado_limit"), &result, &err));
+  EXPECT_THAT(err, HasSubstr("more than 5 instances"));
 }
 
 TEST(KeepDicomFilesTest, DropsDicomdirAndFilesWithoutTheMarker) {

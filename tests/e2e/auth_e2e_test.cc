@@ -789,6 +789,10 @@ TEST_F(AuthE2E, OversizedCallsWithoutCredentialsKeepEveryAuthenticatedAuditRecor
   EXPECT_NE(alice[1].find("...(+" + std::to_string(long_name.size() - 256) + " bytes)"),
             std::string::npos);
   EXPECT_EQ(alice[2], "jobs/last-real-record");
+  std::printf(
+      "%d oversized unauthenticated calls: %d lines written, audit files %ju bytes, "
+      "%zu of 3 authenticated records kept\n",
+      kFlood, unidentified, bytes, alice.size());
   // Raw: every byte that is not printable ASCII as \u00XX; no control character but the line
   // ends.
   EXPECT_THAT(ReadFile(audit), HasSubstr(R"("jobs/\u001b[2J\u000a\u00c3\u00a9xxx)"));

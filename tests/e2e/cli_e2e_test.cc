@@ -178,6 +178,23 @@ TEST_F(CliE2E, EscapeSequencesInADisplayNameDoNotReachTheTerminal) {
   }
 }
 
+// Issue 35 part 7: `prune --force` on an emptied server left 147 MB (uploads in their grace
+// period, the disk reserve, the WAL) without a word; it now says what stays and why.
+TEST_F(CliE2E, PruneForceSaysWhatTheServerKeepsForNow) {
+  ServerProcess server(scratch_ / "data");
+  CliResult r =
+      RunCli(server.address(), {"submit", volume_.string(), "--image-size", "32", "--watch"});
+  ASSERT_EQ(r.rc, 0) << r.err << server.Log();
+  CliResult dry = RunCli(server.address(), {"prune"});
+  ASSERT_EQ(dry.rc, 0) << dry.err;
+  EXPECT_THAT(dry.err, ::testing::Not(HasSubstr("--blob-grace-seconds")));
+  CliResult p = RunCli(server.address(), {"prune", "--force"});
+  ASSERT_EQ(p.rc, 0) << p.err;
+  EXPECT_THAT(p.err, HasSubstr("deleted 1 job(s)"));
+  EXPECT_THAT(p.err, HasSubstr("--blob-grace-seconds"));
+  EXPECT_THAT(p.err, HasSubstr("--disk-reserve-mb"));
+}
+
 TEST_F(CliE2E, DefaultArtifactsAreSmallOutputsAreChosenAndFetchOnlyPicks) {
   ServerProcess server(scratch_ / "data");
   // Default: no .msh, a report and the segmentation figure.

@@ -331,6 +331,46 @@ TEST_F(HardeningE2E, SeriesInstanceUidIsHonouredEndToEnd) {
   EXPECT_THAT(job.metrics_json(), HasSubstr("\"voxels\": 4608")) << job.metrics_json();
 }
 
+// Issue 35 part 3: what the DICOM receiver does for a sender was never audited. A series sent
+// by DCMTK's storescu queues a job, and the audit log holds it under the sender's principal.
+TEST_F(HardeningE2E, AJobQueuedFromAReceivedDicomSeriesIsAudited) {
+  const fs::path storescu = "/usr/bin/storescu";
+  if (!fs::exists(storescu)) GTEST_SKIP() << "storescu (Debian package dcmtk) is not installed";
+  const fs::path folder = scratch_ / "series";
+  fs::create_directories(folder);
+  testing::SliceSpec s;
+  s.rows = s.columns = 16;
+  s.series_uid = "1.2.826.0.1.3680043.9.7777.35";
+  const auto files = testing::WriteSeries(folder, s, std::vector<double>(5, 1.0));
+  const int dicom_port = testing::FreePort();
+  ASSERT_GT(dicom_port, 0);
+  const fs::path audit = scratch_ / "audit.log";
+  ServerProcess server(
+      scratch_ / "data",
+      {"--dicom-listen", "127.0.0.1:" + std::to_string(dicom_port), "--dicom-min-free-mb", "0",
+       "--dicom-quiet-seconds", "0.2", "--audit-log", audit.string()});
+  std::vector<std::string> argv = {
+      storescu.string(),         "-aet", "SENDER", "-aec", "DECIMA", "127.0.0.1",
+      std::to_string(dicom_port)};
+  for (const auto& f : files) argv.push_back(f.string());
+  CliResult sent = RunProgram(argv, 60s);
+  ASSERT_EQ(sent.rc, 0) << sent.out << sent.err << server.Log();
+  std::string line;
+  WaitFor(
+      [&] {
+        std::ifstream in(audit);
+        for (std::string l; std::getline(in, l);) {
+          if (l.find("DicomCreateJob") != std::string::npos) line = l;
+        }
+        return !line.empty();
+      },
+      30s);
+  ASSERT_FALSE(line.empty()) << server.Log();
+  EXPECT_THAT(line, HasSubstr(R"({"principal":"dicom:SENDER","role":"system",)"
+                              R"("rpc":"DicomCreateJob","resource":"jobs/)"));
+  EXPECT_THAT(line, HasSubstr(R"("result":"OK"})"));
+}
+
 // Issue case 6: gRPC's SO_REUSEPORT let a second server share a busy port.
 TEST_F(HardeningE2E, BusyPortIsRefusedAtStart) {
   ServerProcess first(scratch_ / "data1");

@@ -385,6 +385,44 @@ TEST_F(ScaleE2E, DatabaseRestartMidRunReplicasReconnectWatchersResyncEveryJobEnd
   EXPECT_THAT(AllLogs(), HasSubstr("event feed reconnected"));
 }
 
+// Issue 35 part 7: with PostgreSQL down, CreateJob answered NOT_FOUND for an existing volume and
+// health stayed SERVING. Now a store that cannot answer is UNAVAILABLE (after
+// --store-retry-seconds), health turns NOT_SERVING within a few seconds, and SERVING again once
+// the database is back.
+TEST_F(ScaleE2E, WithTheDatabaseDownCallsAreUnavailableAndHealthFollowsTheStore) {
+  replicas_.push_back(std::make_unique<ServerProcess>(
+      data_,
+      std::vector<std::string>{"--store", Postgres()->Dsn(db_), "--store-retry-seconds", "2"}));
+  CliResult r = RunCli(addr(0), {"submit", volume_.string(), "--image-size", "32"});
+  ASSERT_EQ(r.rc, 0) << r.err;
+  const std::string volume = GetJob(addr(0), FirstLine(r.out)).spec().volume();
+  ASSERT_FALSE(volume.empty());
+  auto health = [&] { return RunCli(addr(0), {"--timeout", "5", "health"}); };
+  EXPECT_EQ(health().rc, 0);
+
+  Postgres()->Stop();
+  v1::CreateJobRequest req;
+  req.mutable_spec()->set_volume(volume);
+  v1::Job job;
+  grpc::ClientContext ctx;
+  ctx.set_deadline(std::chrono::system_clock::now() + 30s);
+  grpc::Status st = JobsStub(addr(0))->CreateJob(&ctx, req, &job);
+  EXPECT_EQ(st.error_code(), grpc::StatusCode::UNAVAILABLE) << st.error_message();
+  EXPECT_THAT(st.error_message(), HasSubstr("PostgreSQL unreachable"));
+  bool not_serving = WaitFor(
+      [&] {
+        CliResult h = health();
+        return h.rc == 8 && h.out.find("NOT_SERVING") != std::string::npos;
+      },
+      15s);
+  EXPECT_TRUE(not_serving) << AllLogs();
+
+  EXPECT_EQ(Postgres()->Start(), "");
+  EXPECT_TRUE(WaitFor([&] { return health().rc == 0; }, 30s)) << AllLogs();
+  EXPECT_THAT(AllLogs(), HasSubstr("job store unreachable, health NOT_SERVING"));
+  EXPECT_THAT(AllLogs(), HasSubstr("job store reachable again: health SERVING"));
+}
+
 TEST_F(ScaleE2E, FourthReplicaStartingMidRunRequeuesNothing) {
   StartReplicas(3);
   std::vector<std::string> jobs;
