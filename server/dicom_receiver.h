@@ -41,7 +41,8 @@
 // names the calling AE title. The port is bound to the --dicom-listen host only (and, with a
 // loopback host, peers other than loopback are refused at association time as well).
 // Thread-safety: Start/Stop from one thread; the listener, each connection and the settle loop
-// run on their own threads; StoreInstance and MarkAborted may be called from several at once.
+// run on their own threads. The connections call StoreInstance one at a time (store_mu_) and
+// MarkAborted concurrently (the job store is thread-safe).
 #pragma once
 
 #include <atomic>

@@ -224,6 +224,11 @@ nested = (struct.pack("<HH", 0x9, 0x1003) + b"SQ\0\0" + struct.pack("<I", 0xFFFF
 tiny = element(0x9, 0x1001, "LO", b"") * 9000
 write("dicom_receive", "bad-deflated-bomb", b"\0" + deflated_slice(0))
 write("dicom_receive", "bad-deep-nesting", b"\0" + dicom_slice(0, extra=nested))
+huge_ts = (struct.pack("<HH", 2, 0x10) + b"OB\0\0" + struct.pack("<I", 0xFFFFFFF0)
+           + uid(EXPLICIT))
+plain = dicom_slice(0)
+write("dicom_receive", "bad-meta-value-declares-4-gib",
+      b"\0" + plain.replace(element(2, 0x10, "UI", uid(EXPLICIT)), huge_ts, 1))
 write("dicom_receive", "bad-uids-past-64-kib", b"\0" + dicom_slice(0).replace(
     b"\x08\x00\x60\x00", tiny + b"\x08\x00\x60\x00", 1))
 
