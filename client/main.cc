@@ -1124,6 +1124,14 @@ int main(int argc, char** argv) {
   series_cmd->add_option("--page-token", series_page_token, "continue a listing");
   series_cmd->add_flag("--all", series_all, "follow every page");
   AddOutputFlags(series_cmd);
+  auto* series_delete = series_cmd->add_subcommand(
+      "delete",
+      "remove a received series' waiting instances (not yet in a job) and free their blobs");
+  std::string series_delete_uid, series_delete_from;
+  series_delete->add_option("SERIES_UID", series_delete_uid, "the SeriesInstanceUID")->required();
+  series_delete->add_option("--from", series_delete_from,
+                            "only the instances sent by this calling AE title (default: every "
+                            "sender's you may delete)");
 
   try {
     app.parse(argc, argv);
@@ -1404,6 +1412,26 @@ int main(int argc, char** argv) {
       } else {
         PrintTable(rows);
       }
+    }
+    return kOk;
+  }
+
+  if (*series_delete) {
+    auto volumes = v1::Volumes::NewStub(conn.channel);
+    v1::DeleteReceivedSeriesRequest req;
+    req.set_series_instance_uid(series_delete_uid);
+    req.set_calling_ae(series_delete_from);
+    v1::DeleteReceivedSeriesResponse resp;
+    // Not retried: a delete that reached the server and lost its answer finds nothing the
+    // second time (NOT_FOUND), which would hide that it worked.
+    grpc::Status s = volumes->DeleteReceivedSeries(conn.Context().get(), req, &resp);
+    if (!s.ok()) return Report(s, "series delete " + series_delete_uid);
+    if (JsonOut()) {
+      std::printf("%s\n", ToJson(resp).c_str());
+    } else {
+      std::printf("deleted %d waiting instance(s) of series %s (%s freed)\n",
+                  resp.deleted_instances(), series_delete_uid.c_str(),
+                  FormatBytes(resp.freed_bytes()).c_str());
     }
     return kOk;
   }
