@@ -1458,7 +1458,10 @@ int main(int argc, char** argv) {
         // The UID's tail tells series apart; -o wide or json shows it whole.
         const std::string& uid = r.series_instance_uid();
         std::string state = v1::ReceivedSeries::State_Name(r.state());
-        std::string what = r.job().empty() ? r.reason() : ShortId(r.job());
+        // The job and, when it failed or the receive was closed by another, why.
+        std::string what = r.job().empty()      ? r.reason()
+                           : r.reason().empty() ? ShortId(r.job())
+                                                : ShortId(r.job()) + ": " + r.reason();
         rows.push_back({wide || uid.size() <= 24 ? uid : "..." + uid.substr(uid.size() - 21),
                         r.calling_ae(), r.called_ae(), std::to_string(r.instance_count()), state,
                         what.empty() ? "-" : (wide ? what : what.substr(0, 100)),
