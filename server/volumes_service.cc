@@ -93,8 +93,12 @@ class VolumesService final : public v1::Volumes::Service {
     if (auto g = d_.guard->Check(ctx, &caller); !g.ok()) {
       return d_.audit->Record(nullptr, "DeleteReceivedSeries", what, g);
     }
-    // Who may delete a sender's series: whoever may change what it creates (its owner
-    // "dicom:<AE>", or an admin); a reader never.
+    // A reader may delete nothing, whatever waits (answered before NOT_FOUND could tell it
+    // what does); per sender below, whoever may change what it creates (its owner
+    // "dicom:<AE>", or an admin).
+    if (auto may = CallGuard::MayWrite(caller, caller.name, what); !may.ok()) {
+      return d_.audit->Record(&caller, "DeleteReceivedSeries", what, may);
+    }
     auto removed = server::DeleteReceivedSeries(
         d_.jobs, d_.blobs, req->series_instance_uid(), req->calling_ae(), caller.name,
         [&](const std::string& owner) {
