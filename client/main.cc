@@ -1399,6 +1399,14 @@ int main(int argc, char** argv) {
   series_cmd->add_option("--page-token", series_page_token, "continue a listing");
   series_cmd->add_flag("--all", series_all, "follow every page");
   AddOutputFlags(series_cmd);
+  auto* series_delete = series_cmd->add_subcommand(
+      "delete",
+      "remove a received series' waiting instances (not yet in a job) and free their blobs");
+  std::string series_delete_uid, series_delete_from;
+  series_delete->add_option("SERIES_UID", series_delete_uid, "the SeriesInstanceUID")->required();
+  series_delete->add_option("--from", series_delete_from,
+                            "only the instances sent by this calling AE title (default: every "
+                            "sender's you may delete)");
 
   try {
     app.parse(argc, argv);
@@ -1828,6 +1836,26 @@ int main(int argc, char** argv) {
     return kOk;
   }
 
+  if (*series_delete) {
+    auto volumes = v1::Volumes::NewStub(conn.channel);
+    v1::DeleteReceivedSeriesRequest req;
+    req.set_series_instance_uid(series_delete_uid);
+    req.set_calling_ae(series_delete_from);
+    v1::DeleteReceivedSeriesResponse resp;
+    // Not retried: a delete that reached the server and lost its answer finds nothing the
+    // second time (NOT_FOUND), which would hide that it worked.
+    grpc::Status s = volumes->DeleteReceivedSeries(conn.Context().get(), req, &resp);
+    if (!s.ok()) return Report(s, "series delete " + series_delete_uid);
+    if (JsonOut()) {
+      std::printf("%s\n", ToJson(resp).c_str());
+    } else {
+      std::printf("deleted %d waiting instance(s) of series %s (%s freed)\n",
+                  resp.deleted_instances(), series_delete_uid.c_str(),
+                  FormatBytes(resp.freed_bytes()).c_str());
+    }
+    return kOk;
+  }
+
   if (*series_cmd) {
     auto volumes = v1::Volumes::NewStub(conn.channel);
     v1::ListReceivedSeriesRequest req;
@@ -1850,7 +1878,10 @@ int main(int argc, char** argv) {
         // The UID's tail tells series apart; -o wide or json shows it whole.
         const std::string& uid = r.series_instance_uid();
         std::string state = v1::ReceivedSeries::State_Name(r.state());
-        std::string what = r.job().empty() ? r.reason() : ShortId(r.job());
+        // The job and, when it failed or the receive was closed by another, why.
+        std::string what = r.job().empty()      ? r.reason()
+                           : r.reason().empty() ? ShortId(r.job())
+                                                : ShortId(r.job()) + ": " + r.reason();
         rows.push_back({wide || uid.size() <= 24 ? uid : "..." + uid.substr(uid.size() - 21),
                         r.calling_ae(), r.called_ae(), std::to_string(r.instance_count()), state,
                         what.empty() ? "-" : (wide ? what : what.substr(0, 100)),

@@ -36,6 +36,7 @@
 #include <google/protobuf/util/time_util.h>
 
 #include "absl/strings/escaping.h"
+#include "absl/strings/match.h"
 #include "absl/strings/numbers.h"
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_format.h"
@@ -84,7 +85,7 @@ const char* kTransferSyntaxes[] = {UID_LittleEndianExplicitTransferSyntax,
                                    UID_RLELosslessTransferSyntax};
 
 struct Header {
-  std::string series_uid, sop_uid;
+  std::string series_uid, sop_uid, sop_class_uid;
 };
 
 // A UID as PS3.5 9.1 defines it: digits and dots, at most 64 characters. What the receiver
@@ -279,7 +280,8 @@ absl::StatusOr<Header> ReadUids(const fs::path& file) {
   DcmFileFormat ff;
   if (auto st = LoadBoundedHeader(file, &ff); !st.ok()) return st;
   Header h{SmallString(*ff.getDataset(), DCM_SeriesInstanceUID),
-           SmallString(*ff.getDataset(), DCM_SOPInstanceUID)};
+           SmallString(*ff.getDataset(), DCM_SOPInstanceUID),
+           SmallString(*ff.getDataset(), DCM_SOPClassUID)};
   if (h.series_uid.empty() || h.sop_uid.empty()) {
     return absl::InvalidArgumentError(absl::StrCat(
         "no SeriesInstanceUID or SOPInstanceUID within the first ", kHeaderBytes >> 10, " KiB"));
@@ -317,9 +319,13 @@ bool IsAeTitle(const std::string& ae) {
   return true;
 }
 
-std::string InstanceSetKey(std::vector<std::string> sop_uids) {
+// The key of one sender's set of instances: the sender is part of it, so the request id made
+// from it ("dicom-<key>") is another for the same SOP Instance UIDs from another sender.
+std::string InstanceSetKey(const std::string& calling_ae, std::vector<std::string> sop_uids) {
   std::sort(sop_uids.begin(), sop_uids.end());
   Sha256 h;
+  h.Update(calling_ae.data(), calling_ae.size());
+  h.Update("\n", 1);
   for (const auto& u : sop_uids) {
     h.Update(u.data(), u.size());
     h.Update("\n", 1);
@@ -472,12 +478,13 @@ class StorageScp : public DcmThreadSCP {
   }
   void notifyAssociationAcknowledge() override {
     released_ = false;
+    calling_ = getPeerAETitle().c_str();
     series_.clear();
   }
   void notifyReleaseRequest() override { released_ = true; }
   void notifyAssociationTermination() override {
     // Aborted or broken off: what it sent may be a part of what was due.
-    if (!released_ && !series_.empty()) r_->MarkAborted(series_);
+    if (!released_ && !series_.empty()) r_->MarkAborted(calling_, series_);
     series_.clear();
   }
   // Called as a dataset arrives, with the bytes received so far. Past the limit the connection
@@ -523,6 +530,7 @@ class StorageScp : public DcmThreadSCP {
   std::string peer_;
   bool released_ = false;
   bool too_big_ = false;
+  std::string calling_;           // the current association's calling AE title
   std::set<std::string> series_;  // series of the current association
 };
 
@@ -643,7 +651,8 @@ DicomReceiver::DicomReceiver(DicomReceiverOptions options, const DataDir* data_d
       store_(store),
       blobs_(blobs),
       catalog_(catalog),
-      pool_(pool) {}
+      pool_(pool),
+      started_ms_(WallMs()) {}
 
 DicomReceiver::~DicomReceiver() { Stop(); }
 
@@ -891,15 +900,185 @@ void DicomReceiver::Stop() {
   listen_fd_ = -1;
 }
 
-void DicomReceiver::MarkAborted(const std::set<std::string>& series) {
+void DicomReceiver::MarkAborted(const std::string& calling_ae,
+                                const std::set<std::string>& series) {
   const int64_t now = WallMs();
   for (const auto& s : series) {
-    spdlog::warn("dicom: the association sending series {} was aborted", s);
+    spdlog::warn("dicom: the association from {} sending series {} was aborted",
+                 absl::CHexEscape(calling_ae), s);
     // Unrecorded, a restart would judge the series by its geometry alone and might queue a
     // send cut short after a contiguous run of slices.
-    if (auto st = store_->MarkDicomSeriesAborted(s, now); !st.ok()) {
+    if (auto st = store_->MarkDicomSeriesAborted(calling_ae, s, now); !st.ok()) {
       spdlog::error("dicom: recording the abort of series {}: {}", s, st.ToString());
     }
+  }
+}
+
+namespace {
+
+// C-STORE statuses DCMTK names only for other services: PS3.7 C.4 "Duplicate SOP instance".
+constexpr uint16_t kDuplicateSopInstance = 0x0111;
+
+// The SOP classes whose instances can be slices of the volume a job reads: the cross-sectional
+// image storage classes GDCM reads as a stack. Everything else (a SEG or SC sent back by
+// mistake, a report, a presentation state, a waveform, ...) can never complete a series, so it
+// is refused when it arrives rather than waiting until it expires.
+bool IsVolumeSliceClass(const std::string& uid) {
+  static const char* const kSliceClasses[] = {UID_CTImageStorage,
+                                              UID_EnhancedCTImageStorage,
+                                              UID_LegacyConvertedEnhancedCTImageStorage,
+                                              UID_MRImageStorage,
+                                              UID_EnhancedMRImageStorage,
+                                              UID_LegacyConvertedEnhancedMRImageStorage,
+                                              UID_PositronEmissionTomographyImageStorage,
+                                              UID_EnhancedPETImageStorage,
+                                              UID_LegacyConvertedEnhancedPETImageStorage,
+                                              UID_NuclearMedicineImageStorage};
+  for (const char* c : kSliceClasses) {
+    if (uid == c) return true;
+  }
+  return false;
+}
+
+// The SOP class's name for messages ("Segmentation Storage"), or its UID.
+std::string SopClassName(const std::string& uid) {
+  if (uid.empty()) return "no SOP Class UID";
+  const char* name = dcmFindNameOfUID(uid.c_str(), nullptr);
+  return name != nullptr ? absl::StrCat(name, " (", uid, ")") : uid;
+}
+
+// A check's receive: the set at its newest arrival (the same set re-checked after a restart is
+// the same receive; sent again later, a new one).
+std::string ReceiveKey(const std::string& instance_set, int64_t newest_ms) {
+  return absl::StrCat(instance_set, "@", newest_ms);
+}
+
+std::string FormatMs(int64_t ms) {
+  return TimeUtil::ToString(TimeUtil::MillisecondsToTimestamp(ms));
+}
+
+// Earlier INCOMPLETE receives of the sender's series whose instances a later receive consumed or
+// removed: they take the outcome (`state`, `job`, `reason`) instead of waiting for ever in the
+// history. Bounded by the newest 1000 rows.
+void CloseEarlierReceives(JobStore* store, const std::string& calling_ae,
+                          const std::string& series_uid, const std::string& except_key,
+                          v1::ReceivedSeries::State state, const std::string& job,
+                          const std::string& reason) {
+  auto rows = store->ListDicomSeries(/*pending_only=*/false, 1000);
+  if (!rows.ok()) {
+    spdlog::error("dicom: {}", rows.status().ToString());
+    return;
+  }
+  for (DicomSeriesRecord r : *rows) {
+    if (r.calling_ae != calling_ae || r.series_instance_uid != series_uid ||
+        r.receive_key == except_key || r.state != v1::ReceivedSeries::INCOMPLETE) {
+      continue;
+    }
+    r.state = state;
+    r.job = job;
+    r.reason = reason;
+    r.update_ms = WallMs();
+    if (auto st = store->PutDicomSeries(r, {}); !st.ok()) {
+      spdlog::error("dicom: recording series {}: {}", series_uid, st.ToString());
+    }
+  }
+}
+
+// Removes the waiting instances of a sender's series (expired or deleted), records the outcome
+// as the receive of that set (`state`, `reason`), closes the sender's earlier INCOMPLETE
+// receives of it, and frees the blobs nothing else holds.
+absl::StatusOr<RemovedSeries> RemoveWaiting(JobStore* store, BlobStore* blobs,
+                                            const std::string& calling_ae,
+                                            const std::string& series_uid,
+                                            v1::ReceivedSeries::State state,
+                                            const std::string& reason) {
+  auto removed = store->RemoveDicomInstances(calling_ae, series_uid);
+  if (!removed.ok()) return removed.status();
+  RemovedSeries out;
+  if (removed->empty()) return out;
+  out.instances = static_cast<int>(removed->size());
+  std::vector<std::string> uids, shas;
+  int64_t first = INT64_MAX, newest = 0;
+  for (const auto& i : *removed) {
+    uids.push_back(i.sop_instance_uid);
+    shas.push_back(i.sha256);
+    first = std::min(first, i.received_ms);
+    newest = std::max(newest, i.received_ms);
+  }
+  const std::string set = InstanceSetKey(calling_ae, uids);
+  DicomSeriesRecord rec;
+  rec.receive_key = ReceiveKey(set, newest);
+  // The row of this set's check, when it was checked: its route and counts stay.
+  if (auto rows = store->ListDicomSeries(false, 1000); rows.ok()) {
+    for (const auto& r : *rows) {
+      if (r.receive_key == rec.receive_key) rec = r;
+    }
+  }
+  rec.instance_set = set;
+  rec.series_instance_uid = series_uid;
+  rec.calling_ae = calling_ae;
+  rec.called_ae = removed->back().called_ae;
+  rec.instance_count = out.instances;
+  rec.first_received_ms = first;
+  rec.last_received_ms = newest;
+  rec.state = state;
+  rec.reason = reason;
+  rec.job.clear();
+  rec.results_pending = false;
+  rec.update_ms = WallMs();
+  if (auto st = store->PutDicomSeries(rec, {}); !st.ok()) {
+    spdlog::error("dicom: recording series {}: {}", series_uid, st.ToString());
+  }
+  CloseEarlierReceives(store, calling_ae, series_uid, rec.receive_key, state, "", reason);
+  std::sort(shas.begin(), shas.end());
+  shas.erase(std::unique(shas.begin(), shas.end()), shas.end());
+  BlobSweepPolicy now;
+  now.grace = std::chrono::seconds(0);
+  // A blob another sender's instance or a volume holds stays (identical bytes are one blob).
+  const BlobSweepStats swept = blobs->Sweep(
+      now,
+      [store](const std::string& sha) {
+        auto used = store->BlobInUse(sha);
+        return !used.ok() || *used;
+      },
+      &shas);
+  out.freed_bytes = swept.bytes_freed;
+  spdlog::info("dicom: series {} from {}: {} instances removed ({} bytes freed): {}", series_uid,
+               absl::CHexEscape(calling_ae), out.instances, out.freed_bytes, reason);
+  return out;
+}
+
+}  // namespace
+
+void DicomReceiver::RecordRefused(const std::string& kind, const std::string& series_uid,
+                                  const std::string& calling_ae, const std::string& called_ae,
+                                  const std::string& reason) {
+  Sha256 h;
+  const std::string id = absl::StrCat(calling_ae, "\n", series_uid);
+  h.Update(id.data(), id.size());
+  DicomSeriesRecord rec;
+  // Per process start: the count is this process's (kept in memory, not re-read per instance).
+  rec.receive_key = absl::StrCat("refused-", kind, "-", h.HexDigest(), "@", started_ms_);
+  const int64_t now = WallMs();
+  {
+    std::lock_guard<std::mutex> lock(mu_);
+    Refused& r = refused_[rec.receive_key];
+    if (r.count++ == 0) r.first_ms = now;
+    rec.instance_count = r.count;
+    rec.first_received_ms = r.first_ms;
+  }
+  rec.series_instance_uid = series_uid;
+  rec.calling_ae = calling_ae;
+  rec.called_ae = called_ae;
+  const DicomRoute* route = options_.routes.Match(calling_ae, called_ae);
+  rec.route = route != nullptr ? route->name : "";
+  rec.state = v1::ReceivedSeries::REFUSED;
+  rec.reason = ValidUtf8(reason);
+  rec.last_received_ms = now;
+  rec.update_ms = now;
+  if (auto st = store_->PutDicomSeries(rec, {}); !st.ok()) {
+    spdlog::error("dicom: recording a refused instance of series {}: {}", series_uid,
+                  st.ToString());
   }
 }
 
@@ -920,16 +1099,49 @@ uint16_t DicomReceiver::StoreInstance(const fs::path& file, const std::string& c
                  std::string(header.status().message()));
     return STATUS_STORE_Error_CannotUnderstand;
   }
+  if (!IsVolumeSliceClass(header->sop_class_uid)) {
+    const std::string reason =
+        absl::StrCat(SopClassName(header->sop_class_uid),
+                     " is not a slice of a volume: refused (C-STORE status 0122H)");
+    spdlog::warn("dicom: instance {} of series {} from {} refused: {}", header->sop_uid,
+                 header->series_uid, calling_ae, reason);
+    RecordRefused("class", header->series_uid, calling_ae, called_ae, reason);
+    return STATUS_STORE_Refused_SOPClassNotSupported;
+  }
   auto sha = Sha256OfFile(file);
   std::error_code ec;
   const int64_t size = static_cast<int64_t>(fs::file_size(file, ec));
+  if (options_.quota_mb > 0) {
+    auto waiting = store_->DicomWaitingBytes(calling_ae);
+    if (!waiting.ok()) {
+      spdlog::error("dicom: instance {} from {}: {}", header->sop_uid, calling_ae,
+                    waiting.status().ToString());
+      return STATUS_STORE_Refused_OutOfResources;
+    }
+    if (*waiting + size > options_.quota_mb * (int64_t{1} << 20)) {
+      spdlog::warn(
+          "dicom: instance {} from {} refused: {} bytes of its instances already wait "
+          "(--dicom-quota-mb {})",
+          header->sop_uid, calling_ae, *waiting, options_.quota_mb);
+      return STATUS_STORE_Refused_OutOfResources;
+    }
+  }
   absl::Status st = sha.ok() ? CopyIntoBlobs(blobs_, file, *sha, size) : sha.status();
   if (st.ok()) {
     // Held by its upload claim until the store row below holds it (BlobInUse counts received
     // instances), so the blob collector cannot take it in between.
     blobs_->Claim(*sha);
     st = store_->PutDicomInstance(
-        {header->series_uid, header->sop_uid, *sha, calling_ae, called_ae, WallMs(), 0});
+        {header->series_uid, header->sop_uid, *sha, calling_ae, called_ae, WallMs(), 0, size});
+  }
+  if (st.code() == absl::StatusCode::kAlreadyExists) {
+    // The first bytes stay: a job reads what the sender sent first, never a silent swap. The
+    // new blob has no row and goes with the collector's next sweep.
+    spdlog::error("dicom: instance of series {} refused: {}", header->series_uid,
+                  std::string(st.message()));
+    RecordRefused("bytes", header->series_uid, calling_ae, called_ae,
+                  absl::StrCat(st.message(), ": refused (C-STORE status 0111H), the first kept"));
+    return kDuplicateSopInstance;
   }
   if (!st.ok()) {
     spdlog::error("dicom: storing instance {}: {}", header->sop_uid, st.ToString());
@@ -954,19 +1166,34 @@ void DicomReceiver::SettleLoop() {
       spdlog::error("dicom: {}", instances.status().ToString());
       continue;
     }
-    std::map<std::string, std::vector<DicomInstanceRecord>> by_series;
-    for (auto& i : *instances) by_series[i.series_instance_uid].push_back(std::move(i));
+    // A series per sender: another sender's instances of the same SeriesInstanceUID are
+    // another series (they never complete or replace these).
+    std::map<std::pair<std::string, std::string>, std::vector<DicomInstanceRecord>> by_series;
+    for (auto& i : *instances) {
+      by_series[{i.calling_ae, i.series_instance_uid}].push_back(std::move(i));
+    }
     const int64_t now = WallMs();
     const auto quiet_ms = static_cast<int64_t>(options_.quiet_seconds * 1000);
+    const auto expiry_ms = static_cast<int64_t>(options_.incomplete_expiry_seconds * 1000);
     std::set<std::string> pending_keys;
-    for (const auto& [series, list] : by_series) {
+    for (const auto& [sender_series, list] : by_series) {
+      const auto& [calling_ae, series] = sender_series;
       int64_t newest = 0;
       std::vector<std::string> uids;
       for (const auto& i : list) {
         newest = std::max(newest, i.received_ms);
         uids.push_back(i.sop_instance_uid);
       }
-      const std::string key = InstanceSetKey(uids);
+      if (expiry_ms > 0 && now - newest >= expiry_ms) {
+        auto removed = RemoveWaiting(
+            store_, blobs_, calling_ae, series, v1::ReceivedSeries::EXPIRED,
+            absl::StrCat("expired: no instance came for ", (now - newest) / 1000,
+                         " s (--dicom-incomplete-expiry ", options_.incomplete_expiry_seconds,
+                         " s); its ", list.size(), " waiting instances were removed"));
+        if (!removed.ok()) spdlog::error("dicom: {}", removed.status().ToString());
+        continue;
+      }
+      const std::string key = InstanceSetKey(calling_ae, uids);
       pending_keys.insert(key);
       // Once per set and newest arrival: the same set sent again (a retry after an abort, which
       // lifts the abort mark) is checked again.
@@ -978,7 +1205,7 @@ void DicomReceiver::SettleLoop() {
     for (auto it = checked_.begin(); it != checked_.end();) {
       it = pending_keys.count(it->first) > 0 ? std::next(it) : checked_.erase(it);
     }
-    SendPendingResults();
+    FollowReceives();
   }
 }
 
@@ -1003,6 +1230,7 @@ void DicomReceiver::SettleSeries(const std::string& series_uid,
     aborted = std::max(aborted, i.aborted_ms);
   }
   rec.last_received_ms = newest;
+  rec.receive_key = ReceiveKey(key, newest);
   const std::string owner = DicomOwner(last.calling_ae);
   auto not_queued = [&](v1::ReceivedSeries::State state, const std::string& reason) {
     rec.state = state;
@@ -1052,6 +1280,15 @@ void DicomReceiver::SettleSeries(const std::string& series_uid,
   if (!volume.ok()) {
     return not_queued(kNotQueued, absl::StrCat("volume: ", volume.status().message()));
   }
+  // The request id is the receiver's (CreateVolume and CreateJob refuse the prefix to callers),
+  // but a store from before that rule may hold another principal's: never reuse it.
+  if (volume->creator() != owner) {
+    spdlog::error("dicom: series {} from {}: request id {} names {}, created by '{}', not {}",
+                  series_uid, last.calling_ae, request_id, volume->name(), volume->creator(),
+                  owner);
+    return not_queued(kNotQueued, absl::StrCat("request id ", request_id, " is held by ",
+                                               volume->name(), " of another creator"));
+  }
   v1::JobSpec spec = route->spec;
   spec.set_volume(volume->name());
   auto normalized = NormalizeJobSpec(spec);
@@ -1066,30 +1303,38 @@ void DicomReceiver::SettleSeries(const std::string& series_uid,
     options_.audit->RecordSystem(owner, "DicomCreateJob", job.ok() ? job->name() : "",
                                  job.status());
   if (!job.ok()) return not_queued(kNotQueued, absl::StrCat("job: ", job.status().ToString()));
+  if (job->creator() != owner) {
+    spdlog::error("dicom: series {} from {}: request id {} names {}, created by '{}', not {}",
+                  series_uid, last.calling_ae, request_id, job->name(), job->creator(), owner);
+    return not_queued(kNotQueued, absl::StrCat("request id ", request_id, " is held by ",
+                                               job->name(), " of another creator"));
+  }
+  // Complete and queued (or the job of the same set reused): FollowReceives advances it with
+  // its job and sends the results to this receive's route.
   rec.state = v1::ReceivedSeries::QUEUED;
   rec.job = job->name();
-  rec.results_pending = route->destination.configured();
+  rec.reason.clear();
+  rec.results_pending = true;
   if (!created) {
-    // The same instances again: the first job stands, and so does its record.
-    auto known = store_->ListDicomSeries(false, 1000);
-    if (known.ok()) {
-      for (const auto& k : *known) {
-        if (k.instance_set == key) rec = k;
-      }
-    }
-    spdlog::info("dicom: series {} re-sent ({} instances): same set as {}, no new job", series_uid,
-                 instances.size(), job->name());
+    spdlog::info(
+        "dicom: series {} re-sent by {} ({} instances): same set as {}, no new job; its results "
+        "go to route {} too",
+        series_uid, last.calling_ae, instances.size(), job->name(), route->name);
   } else {
     spdlog::info("job {} QUEUED from DICOM series {} ({} instances from {}, route {})", id,
                  series_uid, instances.size(), last.calling_ae, route->name);
   }
   if (auto st = store_->PutDicomSeries(rec, uids); !st.ok()) {
     spdlog::error("dicom: recording series {}: {}", series_uid, st.ToString());
+    return;
   }
+  CloseEarlierReceives(store_, last.calling_ae, series_uid, rec.receive_key,
+                       v1::ReceivedSeries::COMPLETE, job->name(),
+                       absl::StrCat("completed by the receive of ", FormatMs(newest)));
   if (created) pool_->Notify();
 }
 
-void DicomReceiver::SendPendingResults() {
+void DicomReceiver::FollowReceives() {
   auto pending = store_->ListDicomSeries(/*pending_only=*/true, 100);
   if (!pending.ok()) {
     spdlog::error("dicom: {}", pending.status().ToString());
@@ -1098,17 +1343,26 @@ void DicomReceiver::SendPendingResults() {
   const int64_t now = WallMs();
   for (DicomSeriesRecord rec : *pending) {
     if (stop_) return;
+    const DicomSeriesRecord before = rec;
     auto id = ParseName(rec.job, "jobs", "job");
-    if (!id.ok()) continue;
-    auto job = store_->GetJob(*id);
-    if (!job.ok() || !IsFinal(job->state())) continue;
-    if (next_send_ms_.count(*id) > 0 && now < next_send_ms_[*id]) continue;
-    rec.update_ms = now;
-    rec.results_pending = false;
-    if (job->state() != v1::SUCCEEDED) {
-      rec.send_status = absl::StrCat("nothing sent: job ", v1::JobState_Name(job->state()), ": ",
-                                     job->error().message());
+    if (!id.ok()) {
+      rec.results_pending = false;  // nothing to follow
+    } else if (auto job = store_->GetJob(*id); !job.ok()) {
+      if (job.status().code() != absl::StatusCode::kNotFound) continue;  // retried next period
+      rec.state = v1::ReceivedSeries::FAILED;
+      rec.reason = absl::StrCat(rec.job, " was deleted before it finished");
+      rec.results_pending = false;
+    } else if (job->state() == v1::QUEUED || job->state() == v1::RUNNING) {
+      rec.state =
+          job->state() == v1::QUEUED ? v1::ReceivedSeries::QUEUED : v1::ReceivedSeries::RUNNING;
+    } else if (job->state() != v1::SUCCEEDED) {
+      rec.state = v1::ReceivedSeries::FAILED;
+      rec.reason =
+          absl::StrCat("job ", v1::JobState_Name(job->state()), ": ", job->error().message());
+      rec.send_status = "nothing sent: the job did not succeed";
+      rec.results_pending = false;
     } else {
+      rec.state = v1::ReceivedSeries::SUCCEEDED;
       const DicomRoute* route = options_.routes.Find(rec.route);
       std::vector<fs::path> files;
       for (const auto& a : job->artifacts()) {
@@ -1119,9 +1373,12 @@ void DicomReceiver::SendPendingResults() {
       }
       if (route == nullptr || !route->destination.configured()) {
         rec.send_status = absl::StrCat("nothing sent: route '", rec.route, "' has no destination");
+        rec.results_pending = false;
       } else if (files.empty()) {
         rec.send_status = "nothing sent: the job has no DICOM artifact";
-      } else {
+        rec.results_pending = false;
+      } else if (next_send_ms_.count(rec.receive_key) == 0 ||
+                 now >= next_send_ms_[rec.receive_key]) {
         DicomDestination dest = route->destination;
         dest.calling_aet = options_.aet;
         const auto t0 = std::chrono::steady_clock::now();
@@ -1131,31 +1388,95 @@ void DicomReceiver::SendPendingResults() {
         const double secs =
             std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
         if (sent.ok()) {
+          rec.state = v1::ReceivedSeries::SENT;
           rec.send_status = absl::StrCat("sent: ", *sent);
-          spdlog::info("dicom: results of {} {} in {:.3f} s", rec.job, *sent, secs);
+          rec.results_pending = false;
+          spdlog::info("dicom: results of {} {} (route {}) in {:.3f} s", rec.job, *sent, rec.route,
+                       secs);
         } else {
-          const int attempts = ++send_attempts_[*id];
+          const int attempts = ++send_attempts_[rec.receive_key];
           rec.send_status =
               absl::StrCat("attempt ", attempts, " failed: ", sent.status().ToString());
-          spdlog::warn("dicom: results of {}: {}", rec.job, rec.send_status);
+          spdlog::warn("dicom: results of {} (route {}): {}", rec.job, rec.route, rec.send_status);
           if (attempts < 3) {
-            rec.results_pending = true;
-            next_send_ms_[*id] = now + 5000;
+            next_send_ms_[rec.receive_key] = now + 5000;
+          } else {
+            rec.state = v1::ReceivedSeries::SEND_FAILED;
+            rec.results_pending = false;
           }
         }
       }
     }
     if (!rec.results_pending) {
-      send_attempts_.erase(*id);
-      next_send_ms_.erase(*id);
+      send_attempts_.erase(rec.receive_key);
+      next_send_ms_.erase(rec.receive_key);
     }
+    if (rec.state == before.state && rec.results_pending == before.results_pending &&
+        rec.send_status == before.send_status && rec.reason == before.reason) {
+      continue;  // nothing new: no write every period
+    }
+    rec.update_ms = now;
     if (auto st = store_->PutDicomSeries(rec, {}); !st.ok()) {
-      spdlog::error("dicom: recording the send of {}: {}", rec.job, st.ToString());
+      spdlog::error("dicom: recording the outcome of {}: {}", rec.job, st.ToString());
     }
   }
 }
 
 std::string DicomOwner(const std::string& calling_ae) { return absl::StrCat("dicom:", calling_ae); }
+
+absl::Status RefuseReceiverRequestId(const std::string& request_id) {
+  if (!absl::StartsWith(request_id, "dicom-")) return absl::OkStatus();
+  // Otherwise a submitter who computes a series' id before it arrives has the receiver reuse
+  // its job and send that job's results as the sender's.
+  return absl::InvalidArgumentError(absl::StrCat(
+      "request_id: '", request_id, "': the prefix 'dicom-' is reserved for the DICOM receiver"));
+}
+
+absl::StatusOr<RemovedSeries> DeleteReceivedSeries(
+    JobStore* store, BlobStore* blobs, const std::string& series_uid, const std::string& calling_ae,
+    const std::string& deleted_by,
+    const std::function<absl::Status(const std::string& owner)>& may_delete) {
+  if (!IsDicomUid(series_uid)) {
+    return absl::InvalidArgumentError(
+        absl::StrCat("series_instance_uid: '", absl::CHexEscape(series_uid),
+                     "' is not a DICOM UID (digits and dots, at most 64 characters)"));
+  }
+  if (!calling_ae.empty() && !IsAeTitle(calling_ae)) {
+    return absl::InvalidArgumentError(absl::StrCat("calling_ae: '", absl::CHexEscape(calling_ae),
+                                                   "' is not an AE title (printable ASCII, 1-16 "
+                                                   "characters)"));
+  }
+  auto instances = store->ListDicomInstances();
+  if (!instances.ok()) return instances.status();
+  std::set<std::string> senders;
+  for (const auto& i : *instances) {
+    if (i.series_instance_uid == series_uid && (calling_ae.empty() || i.calling_ae == calling_ae)) {
+      senders.insert(i.calling_ae);
+    }
+  }
+  if (senders.empty()) {
+    return absl::NotFoundError(
+        absl::StrCat("no instance of series ", series_uid,
+                     calling_ae.empty() ? "" : absl::StrCat(" from ", calling_ae), " waits"));
+  }
+  RemovedSeries total;
+  absl::Status refused;
+  int allowed = 0;
+  for (const auto& sender : senders) {
+    if (absl::Status may = may_delete(DicomOwner(sender)); !may.ok()) {
+      refused = may;
+      continue;
+    }
+    ++allowed;
+    auto removed = RemoveWaiting(store, blobs, sender, series_uid, v1::ReceivedSeries::DELETED,
+                                 absl::StrCat("deleted by ", deleted_by));
+    if (!removed.ok()) return removed.status();
+    total.instances += removed->instances;
+    total.freed_bytes += removed->freed_bytes;
+  }
+  if (allowed == 0) return refused;
+  return total;
+}
 
 namespace {
 
@@ -1193,17 +1514,17 @@ absl::StatusOr<ReceivedSeriesPage> ListReceivedSeries(JobStore* store, const std
   const size_t size = page_size <= 0 ? 50 : std::min(page_size, 1000);
   auto instances = store->ListDicomInstances();
   if (!instances.ok()) return instances.status();
-  auto checks = store->ListDicomSeries(/*pending_only=*/false, 1000);
-  if (!checks.ok()) return checks.status();
-  std::map<std::string, const DicomSeriesRecord*> by_set;
-  for (const auto& c : *checks) by_set.emplace(c.instance_set, &c);
+  auto rows = store->ListDicomSeries(/*pending_only=*/false, 1000);
+  if (!rows.ok()) return rows.status();
+  std::set<std::string> recorded;
+  for (const auto& r : *rows) recorded.insert(r.receive_key);
 
-  // Instances still waiting: the series' newest state is theirs (the check of exactly this set
-  // if one was made, else RECEIVING).
-  std::map<std::string, std::vector<const DicomInstanceRecord*>> waiting;
-  for (const auto& i : *instances) waiting[i.series_instance_uid].push_back(&i);
+  // Each sender's waiting instances not checked as they are now: a RECEIVING entry (their
+  // earlier checks, if any, are rows of their own).
+  std::map<std::pair<std::string, std::string>, std::vector<const DicomInstanceRecord*>> waiting;
+  for (const auto& i : *instances) waiting[{i.calling_ae, i.series_instance_uid}].push_back(&i);
   std::vector<v1::ReceivedSeries> all;
-  for (const auto& [uid, list] : waiting) {
+  for (const auto& [sender_series, list] : waiting) {
     std::vector<std::string> sops;
     int64_t first = INT64_MAX, last = 0;
     for (const auto* i : list) {
@@ -1211,27 +1532,18 @@ absl::StatusOr<ReceivedSeriesPage> ListReceivedSeries(JobStore* store, const std
       first = std::min(first, i->received_ms);
       last = std::max(last, i->received_ms);
     }
-    auto checked = by_set.find(InstanceSetKey(sops));
+    if (recorded.count(ReceiveKey(InstanceSetKey(sender_series.first, sops), last)) > 0) continue;
     DicomSeriesRecord r;
-    if (checked != by_set.end()) {
-      r = *checked->second;
-    } else {
-      r.state = v1::ReceivedSeries::RECEIVING;
-    }
+    r.state = v1::ReceivedSeries::RECEIVING;
     r.first_received_ms = first;
     r.last_received_ms = last;
-    r.series_instance_uid = uid;
-    r.calling_ae = list.back()->calling_ae;
+    r.series_instance_uid = sender_series.second;
+    r.calling_ae = sender_series.first;
     r.called_ae = list.back()->called_ae;
     r.instance_count = static_cast<int>(list.size());
     all.push_back(ToProto(r));
   }
-  // Series with nothing waiting: their newest check (ListDicomSeries is newest first).
-  std::set<std::string> shown;
-  for (const auto& [uid, list] : waiting) shown.insert(uid);
-  for (const auto& c : *checks) {
-    if (shown.insert(c.series_instance_uid).second) all.push_back(ToProto(c));
-  }
+  for (const auto& r : *rows) all.push_back(ToProto(r));
   std::stable_sort(all.begin(), all.end(), [](const auto& a, const auto& b) {
     return TimeUtil::TimestampToMilliseconds(a.last_receive_time()) >
            TimeUtil::TimestampToMilliseconds(b.last_receive_time());

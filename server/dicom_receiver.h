@@ -15,27 +15,39 @@
 //               acknowledged instance survives a restart. Its UIDs (and later the series check's
 //               attributes) are read from its first 64 KiB only, by DCMTK up to the pixel
 //               data, so a header costs bounded memory whatever lengths it declares.
-//   group       instances are grouped by SeriesInstanceUID. A series whose newest instance is
-//               older than the quiet time is checked once per set of SOP Instance UIDs
-//               and newest arrival (CheckSeriesComplete): quiet alone does not mean complete
-//               (Orthanc's "stable" fired after 1 of 113 instances, and an aborted send looked
-//               stable at 79).
+//   keying      everything is kept per sender, the calling AE title (whose principal
+//               "dicom:<AE>" creates the volume and job): an instance is unique per (sender,
+//               SOP Instance UID), a series per (sender, SeriesInstanceUID). Another sender's
+//               instances never complete, replace or claim a series; one sender's re-send of an
+//               instance it holds with other bytes is refused (C-STORE 0111H) and logged, the
+//               first bytes stay. Instances of a SOP class that is no slice of a volume (SEG,
+//               SC, SR, ...) are refused at C-STORE time (0122H), never left waiting.
+//   group       a sender's series whose newest instance is older than the quiet time is
+//               checked once per set of SOP Instance UIDs and newest arrival
+//               (CheckSeriesComplete): quiet alone does not mean complete (Orthanc's "stable"
+//               fired after 1 of 113 instances, and an aborted send looked stable at 79).
 //   job         a complete series becomes a volume and a job with the route's spec; both use
-//               the request id "dicom-<sha256 of the sorted SOP Instance UIDs>", so the same
-//               set sent again returns the first job instead of making a second one. An
-//               incomplete series queues nothing: the reason is logged and stored
-//               (JobStore::PutDicomSeries), its instances wait for more (a resumed send).
-//               Nor does a series whose last association was aborted (a send cut short after
-//               a contiguous run of slices looks geometrically whole) until more arrives; the
-//               mark is stored with its instances (JobStore::MarkDicomSeriesAborted), so it
-//               holds over a restart. The volume and the job are created by the principal
-//               "dicom:<calling AE title>" (DicomOwner), so the ownership rules of
-//               call_guard.h apply to them as to any submitter's.
-//   listing     ListReceivedSeries (decima.v1.Volumes.ListReceivedSeries) shows each series'
-//               state and reason from the same two tables.
-//   results     when the route has a destination, the job's DICOM artifacts (segmentation.dcm,
-//               sc-*.dcm; dicom_results.h) are sent there once it SUCCEEDED (dicom_sender.h),
-//               at most 3 attempts 5 s apart; the outcome is stored with the series.
+//               the request id "dicom-<sha256 of the sender and the sorted SOP Instance UIDs>"
+//               (a prefix CreateJob and CreateVolume refuse to anyone else), so the same set
+//               sent again by the same sender reuses the first job instead of making a second
+//               one; a job or volume under that id with another creator is not reused (not
+//               queued, logged). An incomplete series queues nothing: its instances wait for
+//               more (a resumed send), at most --dicom-incomplete-expiry, after which they and
+//               their blobs are removed. Nor does a series whose last association was aborted
+//               until more arrives (the mark is stored with its instances,
+//               JobStore::MarkDicomSeriesAborted). A sender's waiting bytes are capped by
+//               --dicom-quota-mb (C-STORE A700 beyond).
+//   history     every receive (one check of a sender's series, or its refused, expired or
+//               deleted instances) is its own row (JobStore::PutDicomSeries), which the settle
+//               loop advances honestly: COMPLETE -> QUEUED -> RUNNING -> SUCCEEDED / FAILED ->
+//               SENT / SEND_FAILED; an earlier INCOMPLETE receive that a later one completes
+//               becomes COMPLETE with its job. ListReceivedSeries
+//               (decima.v1.Volumes.ListReceivedSeries) shows them; DeleteReceivedSeries
+//               removes a series' waiting instances.
+//   results     each receive records its route: when the route has a destination, the job's
+//               DICOM artifacts (segmentation.dcm, sc-*.dcm; dicom_results.h) are sent there
+//               once it SUCCEEDED (dicom_sender.h), at most 3 attempts 5 s apart, for every
+//               receive that reused the job too (each sender and route gets its results).
 // Associations are refused when the data dir's file system has less than min_free_mb free,
 // when the called AE title is not ours, and (routes "refuse_unknown_calling_ae") when no route
 // names the calling AE title. The port is bound to the --dicom-listen host only (and, with a
@@ -49,6 +61,7 @@
 #include <condition_variable>
 #include <filesystem>
 #include <list>
+#include <functional>
 #include <map>
 #include <memory>
 #include <mutex>
@@ -93,6 +106,13 @@ struct DicomReceiverOptions {
   // Largest instance accepted by C-STORE (as --max-upload-mb for uploads); the association is
   // aborted when a dataset grows past it.
   int64_t max_instance_bytes = int64_t{2048} << 20;
+  // A series whose newest instance is older than this and still waits (incomplete, aborted,
+  // not queued) is removed with its blobs; 0 never. A day: a resumed send comes back within
+  // hours, and junk must not hold the disk for longer.
+  double incomplete_expiry_seconds = 86400;
+  // Waiting (not yet consumed) bytes per calling AE title; an instance beyond is refused. 0
+  // no limit. 10 GiB: ten large CT studies in flight from one sender.
+  int64_t quota_mb = 10240;
   DicomRoutes routes;
   // Jobs queued from received series and the sending of their results (null: not audited).
   std::shared_ptr<const AuditLog> audit;
@@ -112,17 +132,37 @@ absl::Status CheckSeriesComplete(const std::vector<std::filesystem::path>& files
 // A tokens-file submitter of that name sees them (and only them, of the received ones).
 std::string DicomOwner(const std::string& calling_ae);
 
+// CreateJob and CreateVolume: INVALID_ARGUMENT for a request id with the prefix "dicom-", which
+// is the receiver's (its jobs and volumes are found again by it); OK otherwise.
+absl::Status RefuseReceiverRequestId(const std::string& request_id);
+
 struct ReceivedSeriesPage {
   std::vector<v1::ReceivedSeries> series;
   std::string next_page_token;
 };
 
-// decima.v1.Volumes.ListReceivedSeries: the received series from the job store, one per
-// SeriesInstanceUID in its newest state (the instances still waiting, else the newest check
-// among the last 1000), newest arrival first. `owner` non-empty: only the series it owns.
-// INVALID_ARGUMENT for a page token this did not return.
+// decima.v1.Volumes.ListReceivedSeries: the receives from the job store (the newest 1000 rows,
+// and a RECEIVING entry for each sender's series whose waiting instances are not checked yet),
+// newest arrival first. `owner` non-empty: only the receives it owns. INVALID_ARGUMENT for a
+// page token this did not return.
 absl::StatusOr<ReceivedSeriesPage> ListReceivedSeries(JobStore* store, const std::string& owner,
                                                       int page_size, const std::string& page_token);
+
+struct RemovedSeries {
+  int instances = 0;
+  int64_t freed_bytes = 0;  // blobs no volume or other instance held any more
+};
+
+// decima.v1.Volumes.DeleteReceivedSeries: removes the waiting instances of `series_uid` from
+// `calling_ae` ("" every sender) and frees their blobs; the history gets a DELETED row whose
+// reason names `deleted_by`. `may_delete(owner)` says whether the caller may delete a sender's
+// (owner "dicom:<AE>"); senders it refuses are skipped. INVALID_ARGUMENT for a malformed UID or
+// AE title, NOT_FOUND when nothing of it waits, may_delete's refusal when it refused every
+// sender that had some.
+absl::StatusOr<RemovedSeries> DeleteReceivedSeries(
+    JobStore* store, BlobStore* blobs, const std::string& series_uid, const std::string& calling_ae,
+    const std::string& deleted_by,
+    const std::function<absl::Status(const std::string& owner)>& may_delete);
 
 class DicomReceiver {
  public:
@@ -139,15 +179,17 @@ class DicomReceiver {
   // The port bound by Start (options().port, or the one the system chose for port 0).
   int port() const { return bound_port_; }
 
-  // Called by an association's thread for each received file (spool path): stores it (blob +
-  // store row). Returns the DIMSE status for the C-STORE response.
-  // `*series_uid` receives the instance's series when stored.
+  // Called by an association's thread (serialized by store_mu_) for each received file (spool path): stores it (blob + store row).
+  // Returns the DIMSE status for the C-STORE response: 0 stored; 0122H a SOP class that is no
+  // slice of a volume (recorded as a REFUSED receive); 0111H this sender's SOP instance again
+  // with other bytes (refused, logged, recorded); A700 no disk or over the sender's quota;
+  // C000 not understood. `*series_uid` receives the instance's series when stored.
   uint16_t StoreInstance(const std::filesystem::path& file, const std::string& calling_ae,
                          const std::string& called_ae, std::string* series_uid);
   // Called by the SCP thread when an association that brought these series ended without a
   // release: they are not queued until an instance newer than the abort arrives (the mark is
   // stored with their instances).
-  void MarkAborted(const std::set<std::string>& series);
+  void MarkAborted(const std::string& calling_ae, const std::set<std::string>& series);
   // True when the data dir has at least min_free_mb free.
   bool DiskSpaceAllows(std::string* why) const;
   const DicomReceiverOptions& options() const { return options_; }
@@ -161,7 +203,13 @@ class DicomReceiver {
   void ServeConnection(int fd, const std::string& peer);
   void SettleSeries(const std::string& series_uid,
                     const std::vector<DicomInstanceRecord>& instances, const std::string& key);
-  void SendPendingResults();
+  // Advances the receives still followed: their job's state, then the send of its results.
+  void FollowReceives();
+  // Records a refused instance in its sender's REFUSED receive (one per sender, series and
+  // kind of refusal in this process).
+  void RecordRefused(const std::string& kind, const std::string& series_uid,
+                     const std::string& calling_ae, const std::string& called_ae,
+                     const std::string& reason);
 
   const DicomReceiverOptions options_;
   const DataDir* data_dir_;
@@ -191,10 +239,16 @@ class DicomReceiver {
   bool wake_ ABSL_GUARDED_BY(mu_) = false;
   // Settle-loop only: instance sets already checked (pruned to those still pending), send
   // attempts per job.
-  std::map<std::string, int64_t> checked_;  // instance set -> its newest arrival when checked
-  std::map<std::string, int> send_attempts_;
+  std::map<std::string, int64_t> checked_;    // instance set -> its newest arrival when checked
+  std::map<std::string, int> send_attempts_;  // by receive key
   std::map<std::string, int64_t> next_send_ms_;
   std::unique_ptr<class ScpNetwork> net_;
+  struct Refused {
+    int count = 0;
+    int64_t first_ms = 0;
+  };
+  std::map<std::string, Refused> refused_ ABSL_GUARDED_BY(mu_);  // by receive key
+  const int64_t started_ms_;
 };
 
 }  // namespace decima::server

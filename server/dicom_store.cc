@@ -17,7 +17,7 @@ absl::Status JobStore::PutDicomInstance(const DicomInstanceRecord&) {
 absl::StatusOr<std::vector<DicomInstanceRecord>> JobStore::ListDicomInstances() {
   return NotKept("ListDicomInstances");
 }
-absl::Status JobStore::MarkDicomSeriesAborted(const std::string&, int64_t) {
+absl::Status JobStore::MarkDicomSeriesAborted(const std::string&, const std::string&, int64_t) {
   return NotKept("MarkDicomSeriesAborted");
 }
 absl::Status JobStore::PutDicomSeries(const DicomSeriesRecord&, const std::vector<std::string>&) {
@@ -25,6 +25,13 @@ absl::Status JobStore::PutDicomSeries(const DicomSeriesRecord&, const std::vecto
 }
 absl::StatusOr<std::vector<DicomSeriesRecord>> JobStore::ListDicomSeries(bool, int) {
   return NotKept("ListDicomSeries");
+}
+absl::StatusOr<std::vector<DicomInstanceRecord>> JobStore::RemoveDicomInstances(
+    const std::string&, const std::string&) {
+  return NotKept("RemoveDicomInstances");
+}
+absl::StatusOr<int64_t> JobStore::DicomWaitingBytes(const std::string&) {
+  return NotKept("DicomWaitingBytes");
 }
 
 }  // namespace decima::server

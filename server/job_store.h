@@ -63,28 +63,41 @@ struct Recovered {
 
 // The PACS receiver's state (server/dicom_receiver.h), kept in the job store so that a restart
 // loses neither instances received but not yet grouped into a job nor results not yet sent.
+// Everything is keyed by the sender (the calling AE title, whose principal "dicom:<AE>" creates
+// the volume and job): two senders of the same SeriesInstanceUID or SOP Instance UID never see,
+// complete or replace each other's instances.
 struct DicomInstanceRecord {
   std::string series_instance_uid;
-  std::string sop_instance_uid;  // unique: storing the same instance again replaces the row
-  std::string sha256;            // the instance's file in the blob store
+  // Unique per calling_ae: the same bytes again replace the row, other bytes are refused.
+  std::string sop_instance_uid;
+  std::string sha256;  // the instance's file in the blob store
   std::string calling_ae, called_ae;
   int64_t received_ms = 0;  // wall clock, ms since the epoch
   // When an association that sent instances of this series was aborted while this instance
   // was held (0 never): stored, so a restart still queues no job for a series cut short.
   int64_t aborted_ms = 0;
+  int64_t size_bytes = 0;  // of the file: a sender's waiting bytes count against its quota
 };
 
-// One completeness check of a series: queued as a job, or not and why.
+// One receive of a series: the instances of one sender's series checked together (or refused,
+// expired, deleted), and what became of them: queued as a job, or not and why, then the job's
+// state and the send of its results. Every receive keeps its own row (the history that
+// `decima series` shows); a later receive never overwrites an earlier one.
 struct DicomSeriesRecord {
-  std::string instance_set;  // key: sha256 of the sorted SOP Instance UIDs checked
+  // Key: "<instance_set>@<newest arrival ms>" for a check (the same set checked again after a
+  // restart is the same receive, the same set sent again later a new one), other keys for
+  // refused instances.
+  std::string receive_key;
+  std::string instance_set;  // sha256 of the calling AE title and the sorted SOP Instance UIDs
   std::string series_instance_uid;
-  std::string job;               // "jobs/{id}" when a job was queued, else ""
-  std::string reason;            // why no job was queued ("" when one was)
-  std::string route;             // the route that chose the spec and destination
-  bool results_pending = false;  // results still to be sent to the route's destination
-  std::string send_status;       // last send attempt: "" none, "sent ...", or the error
+  std::string job;     // "jobs/{id}" when a job was queued (or reused), else ""
+  std::string reason;  // why it is not (or no longer) waiting for its job ("" when it is)
+  std::string route;   // the route that chose the spec and destination
+  // The receiver still follows this receive: its job's state, then the send of its results.
+  bool results_pending = false;
+  std::string send_status;  // last send attempt: "" none, "sent ...", or the error
   int64_t update_ms = 0;
-  // What decima.v1.ReceivedSeries shows of the checked set.
+  // What decima.v1.ReceivedSeries shows of the receive.
   v1::ReceivedSeries::State state = v1::ReceivedSeries::STATE_UNSPECIFIED;
   std::string calling_ae, called_ae;  // of the newest instance
   int instance_count = 0;
@@ -181,22 +194,31 @@ class JobStore {
 
   // PACS receiver state (tables dicom_instances and dicom_series in both stores). Not pure: a
   // store without them answers UNIMPLEMENTED, and the receiver refuses to start on it.
-  // Inserts or replaces (by SOP Instance UID) a received instance; a replaced one moves to the
-  // end of the arrival order.
+  // Inserts a received instance, keyed by (calling_ae, sop_instance_uid). The same bytes
+  // (sha256) again replace the row, which moves to the end of the arrival order; other bytes
+  // under a key already held are refused with ALREADY_EXISTS and nothing changes.
   virtual absl::Status PutDicomInstance(const DicomInstanceRecord& instance);
   // Every received instance not yet consumed by a job, in arrival order.
   virtual absl::StatusOr<std::vector<DicomInstanceRecord>> ListDicomInstances();
-  // Sets aborted_ms of every received (not consumed) instance of the series: an association
-  // that sent some of them ended without a release.
-  virtual absl::Status MarkDicomSeriesAborted(const std::string& series_instance_uid,
+  // Sets aborted_ms of every received (not consumed) instance of `calling_ae`'s series: an
+  // association that sent some of them ended without a release.
+  virtual absl::Status MarkDicomSeriesAborted(const std::string& calling_ae,
+                                              const std::string& series_instance_uid,
                                               int64_t aborted_ms);
-  // Inserts or replaces (by instance_set) a check's outcome and, in the same transaction,
-  // removes the instances `consumed` (SOP Instance UIDs) from the received ones.
+  // Inserts or replaces (by receive_key) a receive's row and, in the same transaction, removes
+  // the instances `consumed` (SOP Instance UIDs of series.calling_ae) from the received ones.
   virtual absl::Status PutDicomSeries(const DicomSeriesRecord& series,
                                       const std::vector<std::string>& consumed);
-  // Newest first, at most `limit`; only those with results_pending when `pending_only`.
+  // Newest first, at most `limit`; only those still followed (results_pending) when
+  // `pending_only`.
   virtual absl::StatusOr<std::vector<DicomSeriesRecord>> ListDicomSeries(bool pending_only,
                                                                          int limit);
+  // Removes the received instances of `calling_ae`'s series (expired or deleted) and returns
+  // them; their blobs are the caller's to release.
+  virtual absl::StatusOr<std::vector<DicomInstanceRecord>> RemoveDicomInstances(
+      const std::string& calling_ae, const std::string& series_instance_uid);
+  // The bytes of the instances from `calling_ae` still waiting (the per-sender quota).
+  virtual absl::StatusOr<int64_t> DicomWaitingBytes(const std::string& calling_ae);
 };
 
 // The embedded store: one SQLite database file in WAL mode.

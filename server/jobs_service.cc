@@ -3,6 +3,7 @@
 
 #include "absl/strings/str_cat.h"
 #include "decima/v1/jobs.grpc.pb.h"
+#include "server/dicom_receiver.h"
 #include "server/faults.h"
 #include "server/grpc_util.h"
 #include "server/job_spec.h"
@@ -23,6 +24,10 @@ absl::StatusOr<v1::Job> SubmitJob(const ServiceDeps& d, const Principal& caller,
   if (req.request_id().size() > 128) {
     detail->set_field("request_id");
     return absl::InvalidArgumentError("request_id: too long (at most 128 bytes)");
+  }
+  if (auto st = RefuseReceiverRequestId(req.request_id()); !st.ok()) {
+    detail->set_field("request_id");
+    return st;
   }
   std::string field;
   auto spec = NormalizeJobSpec(req.spec(), &field);

@@ -106,6 +106,23 @@ const char* const kMigrations[] = {
         first_received_ms BIGINT NOT NULL, last_received_ms BIGINT NOT NULL);
       CREATE INDEX dicom_series_pending ON dicom_series(ord) WHERE results_pending;
     )sql",
+    // 4: the receiver's state keyed by sender (dicom_receiver.h): an instance is unique per
+    // (calling AE title, SOP Instance UID), not across senders, and knows its size (the
+    // per-sender quota; 0 for rows from before, not counted); every receive of a series keeps
+    // its own row (receive_key; a row from before is keyed by its instance set, one per set).
+    R"sql(
+      ALTER TABLE dicom_instances DROP CONSTRAINT dicom_instances_sop_instance_uid_key;
+      ALTER TABLE dicom_instances ADD CONSTRAINT dicom_instances_by_sender_sop
+        UNIQUE(calling_ae, sop_instance_uid);
+      ALTER TABLE dicom_instances ADD COLUMN size_bytes BIGINT NOT NULL DEFAULT 0;
+      DROP INDEX dicom_instances_by_series;
+      CREATE INDEX dicom_instances_by_sender ON dicom_instances(calling_ae, series_instance_uid);
+      ALTER TABLE dicom_series ADD COLUMN receive_key TEXT;
+      UPDATE dicom_series SET receive_key = instance_set;
+      ALTER TABLE dicom_series ALTER COLUMN receive_key SET NOT NULL;
+      ALTER TABLE dicom_series ADD CONSTRAINT dicom_series_receive_key UNIQUE(receive_key);
+      ALTER TABLE dicom_series DROP CONSTRAINT dicom_series_instance_set_key;
+    )sql",
 };
 static_assert(v1::RUNNING == 2, "migration 1's partial index names RUNNING as 2");
 
@@ -130,6 +147,21 @@ absl::StatusOr<v1::Volume> ParseVolume(const pqxx::field& f) {
 // "{a,b}" for ids made of [0-9a-z-] (ParseName guarantees it) and numbers.
 std::string TextArray(const std::vector<std::string>& items) {
   return absl::StrCat("{", absl::StrJoin(items, ","), "}");
+}
+
+constexpr char kInstanceColumns[] =
+    "SELECT series_instance_uid, sop_instance_uid, sha256, calling_ae, called_ae, received_ms, "
+    "aborted_ms, size_bytes FROM dicom_instances ";
+
+// Rows of kInstanceColumns' columns, in order.
+std::vector<DicomInstanceRecord> Instances(const pqxx::result& rows) {
+  std::vector<DicomInstanceRecord> out;
+  for (const auto& row : rows) {
+    out.push_back({row[0].as<std::string>(), row[1].as<std::string>(), row[2].as<std::string>(),
+                   row[3].as<std::string>(), row[4].as<std::string>(), row[5].as<int64_t>(),
+                   row[6].as<int64_t>(), row[7].as<int64_t>()});
+  }
+  return out;
 }
 
 // A few connections shared by the store's callers; connections are made on demand and a broken
@@ -646,14 +678,26 @@ class PostgresJobStore : public JobStore {
 
   absl::Status PutDicomInstance(const DicomInstanceRecord& r) override {
     return Run<absl::Status>("storing a DICOM instance", [&](pqxx::work& w) -> absl::Status {
+      // The row lock holds a concurrent store of the same key until this one commits.
+      auto held = w.exec_params(
+          "SELECT sha256 FROM dicom_instances WHERE calling_ae=$1 AND sop_instance_uid=$2 "
+          "FOR UPDATE",
+          r.calling_ae, r.sop_instance_uid);
+      if (!held.empty() && held[0][0].as<std::string>() != r.sha256) {
+        return absl::AlreadyExistsError(
+            absl::StrCat("SOP instance ", r.sop_instance_uid, " from ", r.calling_ae,
+                         " is already held with other bytes (sha256 ", held[0][0].as<std::string>(),
+                         ", now ", r.sha256, ")"));
+      }
       // Delete + insert (not ON CONFLICT UPDATE): a re-sent instance gets a new ord, so the
       // series order stays "as last received", as in the SQLite store.
-      w.exec_params("DELETE FROM dicom_instances WHERE sop_instance_uid=$1", r.sop_instance_uid);
+      w.exec_params("DELETE FROM dicom_instances WHERE calling_ae=$1 AND sop_instance_uid=$2",
+                    r.calling_ae, r.sop_instance_uid);
       w.exec_params(
           "INSERT INTO dicom_instances(sop_instance_uid, series_instance_uid, sha256, calling_ae, "
-          "called_ae, received_ms, aborted_ms) VALUES($1,$2,$3,$4,$5,$6,$7)",
+          "called_ae, received_ms, aborted_ms, size_bytes) VALUES($1,$2,$3,$4,$5,$6,$7,$8)",
           r.sop_instance_uid, r.series_instance_uid, r.sha256, r.calling_ae, r.called_ae,
-          r.received_ms, r.aborted_ms);
+          r.received_ms, r.aborted_ms, r.size_bytes);
       return absl::OkStatus();
     });
   }
@@ -661,23 +705,17 @@ class PostgresJobStore : public JobStore {
   absl::StatusOr<std::vector<DicomInstanceRecord>> ListDicomInstances() override {
     using Out = absl::StatusOr<std::vector<DicomInstanceRecord>>;
     return Run<Out>("listing DICOM instances", [&](pqxx::work& w) -> Out {
-      std::vector<DicomInstanceRecord> out;
-      for (const auto& row :
-           w.exec("SELECT series_instance_uid, sop_instance_uid, sha256, calling_ae, called_ae, "
-                  "received_ms, aborted_ms FROM dicom_instances ORDER BY ord")) {
-        out.push_back({row[0].as<std::string>(), row[1].as<std::string>(), row[2].as<std::string>(),
-                       row[3].as<std::string>(), row[4].as<std::string>(), row[5].as<int64_t>(),
-                       row[6].as<int64_t>()});
-      }
-      return out;
+      return Instances(w.exec(absl::StrCat(kInstanceColumns, "ORDER BY ord")));
     });
   }
 
-  absl::Status MarkDicomSeriesAborted(const std::string& series_instance_uid,
+  absl::Status MarkDicomSeriesAborted(const std::string& calling_ae,
+                                      const std::string& series_instance_uid,
                                       int64_t aborted_ms) override {
     return Run<absl::Status>("marking a DICOM series aborted", [&](pqxx::work& w) -> absl::Status {
-      w.exec_params("UPDATE dicom_instances SET aborted_ms=$1 WHERE series_instance_uid=$2",
-                    aborted_ms, series_instance_uid);
+      w.exec_params(
+          "UPDATE dicom_instances SET aborted_ms=$1 WHERE calling_ae=$2 AND series_instance_uid=$3",
+          aborted_ms, calling_ae, series_instance_uid);
       return absl::OkStatus();
     });
   }
@@ -688,16 +726,17 @@ class PostgresJobStore : public JobStore {
       w.exec_params(
           "INSERT INTO dicom_series(instance_set, series_instance_uid, job, reason, route, "
           "results_pending, send_status, update_ms, state, calling_ae, called_ae, "
-          "instance_count, first_received_ms, last_received_ms) "
-          "VALUES($1,$2,$3,$4,$5,$6,$7,$8,$9,$10,$11,$12,$13,$14) "
-          "ON CONFLICT(instance_set) DO UPDATE SET job=$3, reason=$4, route=$5, "
+          "instance_count, first_received_ms, last_received_ms, receive_key) "
+          "VALUES($1,$2,$3,$4,$5,$6,$7,$8,$9,$10,$11,$12,$13,$14,$15) "
+          "ON CONFLICT(receive_key) DO UPDATE SET instance_set=$1, job=$3, reason=$4, route=$5, "
           "results_pending=$6, send_status=$7, update_ms=$8, state=$9, calling_ae=$10, "
           "called_ae=$11, instance_count=$12, first_received_ms=$13, last_received_ms=$14",
           r.instance_set, r.series_instance_uid, r.job, r.reason, r.route, r.results_pending,
           r.send_status, r.update_ms, static_cast<int>(r.state), r.calling_ae, r.called_ae,
-          r.instance_count, r.first_received_ms, r.last_received_ms);
+          r.instance_count, r.first_received_ms, r.last_received_ms, r.receive_key);
       for (const auto& uid : consumed) {
-        w.exec_params("DELETE FROM dicom_instances WHERE sop_instance_uid=$1", uid);
+        w.exec_params("DELETE FROM dicom_instances WHERE calling_ae=$1 AND sop_instance_uid=$2",
+                      r.calling_ae, uid);
       }
       return absl::OkStatus();
     });
@@ -711,8 +750,8 @@ class PostgresJobStore : public JobStore {
       for (const auto& row : w.exec_params(
                absl::StrCat("SELECT instance_set, series_instance_uid, job, reason, route, "
                             "results_pending, send_status, update_ms, state, calling_ae, "
-                            "called_ae, instance_count, first_received_ms, last_received_ms "
-                            "FROM dicom_series ",
+                            "called_ae, instance_count, first_received_ms, last_received_ms, "
+                            "receive_key FROM dicom_series ",
                             pending_only ? "WHERE results_pending " : "",
                             "ORDER BY ord DESC LIMIT $1"),
                limit)) {
@@ -731,6 +770,7 @@ class PostgresJobStore : public JobStore {
         r.instance_count = row[11].as<int>();
         r.first_received_ms = row[12].as<int64_t>();
         r.last_received_ms = row[13].as<int64_t>();
+        r.receive_key = row[14].as<std::string>();
         out.push_back(std::move(r));
       }
       return out;
@@ -749,6 +789,30 @@ class PostgresJobStore : public JobStore {
       if (conn) pool_.Release(std::move(conn), true);
       return absl::UnavailableError(absl::StrCat("job store: PostgreSQL unreachable: ", e.what()));
     }
+  }
+
+  absl::StatusOr<std::vector<DicomInstanceRecord>> RemoveDicomInstances(
+      const std::string& calling_ae, const std::string& series_instance_uid) override {
+    using Out = absl::StatusOr<std::vector<DicomInstanceRecord>>;
+    return Run<Out>("removing DICOM instances", [&](pqxx::work& w) -> Out {
+      return Instances(w.exec_params(
+          "DELETE FROM dicom_instances WHERE calling_ae=$1 AND series_instance_uid=$2 "
+          "RETURNING series_instance_uid, sop_instance_uid, sha256, calling_ae, called_ae, "
+          "received_ms, aborted_ms, size_bytes",
+          calling_ae, series_instance_uid));
+    });
+  }
+
+  absl::StatusOr<int64_t> DicomWaitingBytes(const std::string& calling_ae) override {
+    return Run<absl::StatusOr<int64_t>>(
+        "summing a sender's DICOM instances", [&](pqxx::work& w) -> absl::StatusOr<int64_t> {
+          return w
+              .exec_params1(
+                  "SELECT COALESCE(SUM(size_bytes), 0)::BIGINT FROM dicom_instances "
+                  "WHERE calling_ae=$1",
+                  calling_ae)[0]
+              .as<int64_t>();
+        });
   }
 
  private:

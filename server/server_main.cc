@@ -277,6 +277,20 @@ int main(int argc, char** argv) {
       ->envname("DECIMA_DICOM_TIMEOUT_SECONDS")
       ->check(CLI::Range(1, 3600))
       ->capture_default_str();
+  double dicom_incomplete_expiry = DicomReceiverOptions().incomplete_expiry_seconds;
+  int64_t dicom_quota_mb = DicomReceiverOptions().quota_mb;
+  app.add_option("--dicom-incomplete-expiry", dicom_incomplete_expiry,
+                 "seconds a received series may wait incomplete before its instances and blobs "
+                 "are removed (0 never)")
+      ->envname("DECIMA_DICOM_INCOMPLETE_EXPIRY")
+      ->check(CLI::Range(0.0, 1e9))
+      ->capture_default_str();
+  app.add_option("--dicom-quota-mb", dicom_quota_mb,
+                 "MiB of waiting (not yet queued) instances per calling AE title; more are "
+                 "refused (0 no limit)")
+      ->envname("DECIMA_DICOM_QUOTA_MB")
+      ->check(CLI::Range(int64_t{0}, int64_t{1} << 40))
+      ->capture_default_str();
   try {
     app.parse(argc, argv);
   } catch (const CLI::ParseError& e) {
@@ -303,6 +317,8 @@ int main(int argc, char** argv) {
     dicom.aet = dicom_aet;
     dicom.quiet_seconds = dicom_quiet_seconds;
     dicom.min_free_mb = dicom_min_free_mb;
+    dicom.incomplete_expiry_seconds = dicom_incomplete_expiry;
+    dicom.quota_mb = dicom_quota_mb;
     dicom.max_queued = max_queued;
     dicom.max_associations = dicom_max_associations;
     dicom.max_per_peer = dicom_max_per_peer;

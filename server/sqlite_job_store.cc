@@ -121,16 +121,18 @@ class SqliteJobStore : public JobStore {
       CREATE INDEX IF NOT EXISTS volume_blobs_by_sha ON volume_blobs(sha256);
       CREATE TABLE IF NOT EXISTS dicom_instances(
         ord INTEGER PRIMARY KEY AUTOINCREMENT,
-        sop_instance_uid TEXT UNIQUE NOT NULL,
+        sop_instance_uid TEXT NOT NULL,
         series_instance_uid TEXT NOT NULL,
         sha256 TEXT NOT NULL,
         calling_ae TEXT NOT NULL, called_ae TEXT NOT NULL,
         received_ms INTEGER NOT NULL,
-        aborted_ms INTEGER NOT NULL DEFAULT 0);
-      CREATE INDEX IF NOT EXISTS dicom_instances_by_sha ON dicom_instances(sha256);
+        aborted_ms INTEGER NOT NULL DEFAULT 0,
+        size_bytes INTEGER NOT NULL DEFAULT 0,
+        UNIQUE(calling_ae, sop_instance_uid));
       CREATE TABLE IF NOT EXISTS dicom_series(
         ord INTEGER PRIMARY KEY AUTOINCREMENT,
-        instance_set TEXT UNIQUE NOT NULL,
+        receive_key TEXT UNIQUE NOT NULL,
+        instance_set TEXT NOT NULL,
         series_instance_uid TEXT NOT NULL,
         job TEXT NOT NULL, reason TEXT NOT NULL, route TEXT NOT NULL,
         results_pending INTEGER NOT NULL, send_status TEXT NOT NULL,
@@ -186,6 +188,86 @@ class SqliteJobStore : public JobStore {
       }
     }
     return absl::OkStatus();
+  }
+
+  // Data dirs whose receiver tables predate keying by sender and the per-receive history:
+  // instances were unique by SOP Instance UID alone (another sender's instance replaced them)
+  // and series rows by instance set (a re-send overwrote the earlier receive). SQLite cannot
+  // change a UNIQUE constraint in place, so each table is rebuilt once, rows kept: an old
+  // instance keeps its sender, size 0 (unknown, not counted against the quota); an old row's
+  // receive key is its instance set (there was one row per set).
+  absl::Status KeyDicomStateBySender() {
+    auto has_column = [&](const char* table, const char* column) -> absl::StatusOr<bool> {
+      Stmt c(db_, absl::StrCat("SELECT COUNT(*) FROM pragma_table_info('", table, "') WHERE name='",
+                               column, "'")
+                      .c_str());
+      if (c.Step() != SQLITE_ROW) return c.Error("reading the schema");
+      return c.Int(0) > 0;
+    };
+    auto rebuild = [&](const char* sql) {
+      absl::Status st = Exec(sql);
+      if (!st.ok()) (void)Exec("ROLLBACK");
+      return st;
+    };
+    auto instances_keyed = has_column("dicom_instances", "size_bytes");
+    if (!instances_keyed.ok()) return instances_keyed.status();
+    if (!*instances_keyed) {
+      DECIMA_RETURN_IF_ERROR_LOCAL(rebuild(R"sql(
+        BEGIN IMMEDIATE;
+        DROP INDEX IF EXISTS dicom_instances_by_sha;
+        ALTER TABLE dicom_instances RENAME TO dicom_instances_unkeyed;
+        CREATE TABLE dicom_instances(
+          ord INTEGER PRIMARY KEY AUTOINCREMENT,
+          sop_instance_uid TEXT NOT NULL,
+          series_instance_uid TEXT NOT NULL,
+          sha256 TEXT NOT NULL,
+          calling_ae TEXT NOT NULL, called_ae TEXT NOT NULL,
+          received_ms INTEGER NOT NULL,
+          aborted_ms INTEGER NOT NULL DEFAULT 0,
+          size_bytes INTEGER NOT NULL DEFAULT 0,
+          UNIQUE(calling_ae, sop_instance_uid));
+        INSERT INTO dicom_instances(sop_instance_uid, series_instance_uid, sha256, calling_ae,
+                                    called_ae, received_ms, aborted_ms)
+          SELECT sop_instance_uid, series_instance_uid, sha256, calling_ae, called_ae,
+                 received_ms, aborted_ms FROM dicom_instances_unkeyed ORDER BY ord;
+        DROP TABLE dicom_instances_unkeyed;
+        COMMIT;
+      )sql"));
+    }
+    auto series_keyed = has_column("dicom_series", "receive_key");
+    if (!series_keyed.ok()) return series_keyed.status();
+    if (!*series_keyed) {
+      DECIMA_RETURN_IF_ERROR_LOCAL(rebuild(R"sql(
+        BEGIN IMMEDIATE;
+        ALTER TABLE dicom_series RENAME TO dicom_series_by_set;
+        CREATE TABLE dicom_series(
+          ord INTEGER PRIMARY KEY AUTOINCREMENT,
+          receive_key TEXT UNIQUE NOT NULL,
+          instance_set TEXT NOT NULL,
+          series_instance_uid TEXT NOT NULL,
+          job TEXT NOT NULL, reason TEXT NOT NULL, route TEXT NOT NULL,
+          results_pending INTEGER NOT NULL, send_status TEXT NOT NULL,
+          update_ms INTEGER NOT NULL,
+          state INTEGER NOT NULL DEFAULT 0,
+          calling_ae TEXT NOT NULL DEFAULT '', called_ae TEXT NOT NULL DEFAULT '',
+          instance_count INTEGER NOT NULL DEFAULT 0,
+          first_received_ms INTEGER NOT NULL DEFAULT 0,
+          last_received_ms INTEGER NOT NULL DEFAULT 0);
+        INSERT INTO dicom_series(receive_key, instance_set, series_instance_uid, job, reason, route,
+                                 results_pending, send_status, update_ms, state, calling_ae,
+                                 called_ae, instance_count, first_received_ms, last_received_ms)
+          SELECT instance_set, instance_set, series_instance_uid, job, reason, route,
+                 results_pending, send_status, update_ms, state, calling_ae, called_ae,
+                 instance_count, first_received_ms, last_received_ms
+          FROM dicom_series_by_set ORDER BY ord;
+        DROP TABLE dicom_series_by_set;
+        COMMIT;
+      )sql"));
+    }
+    return Exec(
+        "CREATE INDEX IF NOT EXISTS dicom_instances_by_sha ON dicom_instances(sha256);"
+        "CREATE INDEX IF NOT EXISTS dicom_instances_by_sender "
+        "ON dicom_instances(calling_ae, series_instance_uid)");
   }
 
   bool exclusive() const override { return true; }
@@ -584,35 +666,44 @@ class SqliteJobStore : public JobStore {
 
   absl::Status PutDicomInstance(const DicomInstanceRecord& r) override {
     std::lock_guard<std::mutex> lock(mu_);
+    Tx tx(this);
+    if (!tx.ok()) return tx.status();
+    {
+      Stmt held(db_,
+                "SELECT sha256 FROM dicom_instances WHERE calling_ae=? AND sop_instance_uid=?");
+      held.Bind(1, r.calling_ae).Bind(2, r.sop_instance_uid);
+      const int rc = held.Step();
+      if (rc == SQLITE_ROW && held.Text(0) != r.sha256) {
+        return absl::AlreadyExistsError(absl::StrCat(
+            "SOP instance ", r.sop_instance_uid, " from ", r.calling_ae,
+            " is already held with other bytes (sha256 ", held.Text(0), ", now ", r.sha256, ")"));
+      }
+      if (rc != SQLITE_ROW && rc != SQLITE_DONE) return held.Error("reading a DICOM instance");
+    }
     // REPLACE gives a re-sent instance a new ord: the series order stays "as last received".
     Stmt q(db_,
            "INSERT OR REPLACE INTO dicom_instances(sop_instance_uid, series_instance_uid, sha256, "
-           "calling_ae, called_ae, received_ms, aborted_ms) VALUES(?,?,?,?,?,?,?)");
+           "calling_ae, called_ae, received_ms, aborted_ms, size_bytes) VALUES(?,?,?,?,?,?,?,?)");
     q.Bind(1, r.sop_instance_uid).Bind(2, r.series_instance_uid).Bind(3, r.sha256);
     q.Bind(4, r.calling_ae).Bind(5, r.called_ae).Bind(6, r.received_ms).Bind(7, r.aborted_ms);
+    q.Bind(8, r.size_bytes);
     if (q.Step() != SQLITE_DONE) return q.Error("storing a DICOM instance");
+    DECIMA_TX_COMMIT(tx);
     return absl::OkStatus();
   }
 
   absl::StatusOr<std::vector<DicomInstanceRecord>> ListDicomInstances() override {
     std::lock_guard<std::mutex> lock(mu_);
-    Stmt q(db_,
-           "SELECT series_instance_uid, sop_instance_uid, sha256, calling_ae, called_ae, "
-           "received_ms, aborted_ms FROM dicom_instances ORDER BY ord");
-    std::vector<DicomInstanceRecord> out;
-    int rc;
-    while ((rc = q.Step()) == SQLITE_ROW) {
-      out.push_back({q.Text(0), q.Text(1), q.Text(2), q.Text(3), q.Text(4), q.Int(5), q.Int(6)});
-    }
-    if (rc != SQLITE_DONE) return q.Error("listing DICOM instances");
-    return out;
+    return SelectDicomInstances("", "", "");
   }
 
-  absl::Status MarkDicomSeriesAborted(const std::string& series_instance_uid,
+  absl::Status MarkDicomSeriesAborted(const std::string& calling_ae,
+                                      const std::string& series_instance_uid,
                                       int64_t aborted_ms) override {
     std::lock_guard<std::mutex> lock(mu_);
-    Stmt q(db_, "UPDATE dicom_instances SET aborted_ms=? WHERE series_instance_uid=?");
-    q.Bind(1, aborted_ms).Bind(2, series_instance_uid);
+    Stmt q(db_,
+           "UPDATE dicom_instances SET aborted_ms=? WHERE calling_ae=? AND series_instance_uid=?");
+    q.Bind(1, aborted_ms).Bind(2, calling_ae).Bind(3, series_instance_uid);
     if (q.Step() != SQLITE_DONE) return q.Error("marking a DICOM series aborted");
     return absl::OkStatus();
   }
@@ -623,22 +714,22 @@ class SqliteJobStore : public JobStore {
     Tx tx(this);
     if (!tx.ok()) return tx.status();
     Stmt q(db_,
-           "INSERT INTO dicom_series(instance_set, series_instance_uid, job, reason, route, "
-           "results_pending, send_status, update_ms, state, calling_ae, called_ae, "
+           "INSERT INTO dicom_series(receive_key, instance_set, series_instance_uid, job, reason, "
+           "route, results_pending, send_status, update_ms, state, calling_ae, called_ae, "
            "instance_count, first_received_ms, last_received_ms) "
-           "VALUES(?1,?2,?3,?4,?5,?6,?7,?8,?9,?10,?11,?12,?13,?14) "
-           "ON CONFLICT(instance_set) DO UPDATE SET job=?3, reason=?4, route=?5, "
+           "VALUES(?15,?1,?2,?3,?4,?5,?6,?7,?8,?9,?10,?11,?12,?13,?14) "
+           "ON CONFLICT(receive_key) DO UPDATE SET instance_set=?1, job=?3, reason=?4, route=?5, "
            "results_pending=?6, send_status=?7, update_ms=?8, state=?9, calling_ae=?10, "
            "called_ae=?11, instance_count=?12, first_received_ms=?13, last_received_ms=?14");
     q.Bind(1, r.instance_set).Bind(2, r.series_instance_uid).Bind(3, r.job).Bind(4, r.reason);
     q.Bind(5, r.route).Bind(6, int64_t{r.results_pending ? 1 : 0}).Bind(7, r.send_status);
     q.Bind(8, r.update_ms).Bind(9, int64_t{r.state}).Bind(10, r.calling_ae);
     q.Bind(11, r.called_ae).Bind(12, int64_t{r.instance_count}).Bind(13, r.first_received_ms);
-    q.Bind(14, r.last_received_ms);
+    q.Bind(14, r.last_received_ms).Bind(15, r.receive_key);
     if (q.Step() != SQLITE_DONE) return q.Error("storing a DICOM series outcome");
     for (const auto& uid : consumed) {
-      Stmt d(db_, "DELETE FROM dicom_instances WHERE sop_instance_uid=?");
-      d.Bind(1, uid);
+      Stmt d(db_, "DELETE FROM dicom_instances WHERE calling_ae=? AND sop_instance_uid=?");
+      d.Bind(1, r.calling_ae).Bind(2, uid);
       if (d.Step() != SQLITE_DONE) return d.Error("removing consumed DICOM instances");
     }
     DECIMA_TX_COMMIT(tx);
@@ -651,8 +742,8 @@ class SqliteJobStore : public JobStore {
     Stmt q(db_,
            absl::StrCat("SELECT instance_set, series_instance_uid, job, reason, route, "
                         "results_pending, send_status, update_ms, state, calling_ae, "
-                        "called_ae, instance_count, first_received_ms, last_received_ms "
-                        "FROM dicom_series ",
+                        "called_ae, instance_count, first_received_ms, last_received_ms, "
+                        "receive_key FROM dicom_series ",
                         pending_only ? "WHERE results_pending=1 " : "", "ORDER BY ord DESC LIMIT ?")
                .c_str());
     q.Bind(1, int64_t{limit});
@@ -674,13 +765,56 @@ class SqliteJobStore : public JobStore {
       r.instance_count = static_cast<int>(q.Int(11));
       r.first_received_ms = q.Int(12);
       r.last_received_ms = q.Int(13);
+      r.receive_key = q.Text(14);
       out.push_back(std::move(r));
     }
     if (rc != SQLITE_DONE) return q.Error("listing DICOM series");
     return out;
   }
 
+  absl::StatusOr<std::vector<DicomInstanceRecord>> RemoveDicomInstances(
+      const std::string& calling_ae, const std::string& series_instance_uid) override {
+    std::lock_guard<std::mutex> lock(mu_);
+    Tx tx(this);
+    if (!tx.ok()) return tx.status();
+    auto removed = SelectDicomInstances("WHERE calling_ae=?1 AND series_instance_uid=?2 ",
+                                        calling_ae, series_instance_uid);
+    if (!removed.ok()) return removed.status();
+    Stmt d(db_, "DELETE FROM dicom_instances WHERE calling_ae=? AND series_instance_uid=?");
+    d.Bind(1, calling_ae).Bind(2, series_instance_uid);
+    if (d.Step() != SQLITE_DONE) return d.Error("removing DICOM instances");
+    DECIMA_TX_COMMIT(tx);
+    return removed;
+  }
+
+  absl::StatusOr<int64_t> DicomWaitingBytes(const std::string& calling_ae) override {
+    std::lock_guard<std::mutex> lock(mu_);
+    Stmt q(db_, "SELECT COALESCE(SUM(size_bytes), 0) FROM dicom_instances WHERE calling_ae=?");
+    q.Bind(1, calling_ae);
+    if (q.Step() != SQLITE_ROW) return q.Error("summing a sender's DICOM instances");
+    return q.Int(0);
+  }
+
  private:
+  // The received instances matching `where` (binding ?1 and ?2 when not empty), arrival order.
+  absl::StatusOr<std::vector<DicomInstanceRecord>> SelectDicomInstances(const std::string& where,
+                                                                        const std::string& a,
+                                                                        const std::string& b) {
+    Stmt q(db_, absl::StrCat("SELECT series_instance_uid, sop_instance_uid, sha256, calling_ae, "
+                             "called_ae, received_ms, aborted_ms, size_bytes FROM dicom_instances ",
+                             where, "ORDER BY ord")
+                    .c_str());
+    if (!where.empty()) q.Bind(1, a).Bind(2, b);
+    std::vector<DicomInstanceRecord> out;
+    int rc;
+    while ((rc = q.Step()) == SQLITE_ROW) {
+      out.push_back(
+          {q.Text(0), q.Text(1), q.Text(2), q.Text(3), q.Text(4), q.Int(5), q.Int(6), q.Int(7)});
+    }
+    if (rc != SQLITE_DONE) return q.Error("listing DICOM instances");
+    return out;
+  }
+
   // BEGIN IMMEDIATE on construction, ROLLBACK on destruction unless committed. Events added
   // during the transaction are handed to the listener after COMMIT.
   class Tx {
@@ -834,6 +968,9 @@ absl::StatusOr<std::unique_ptr<JobStore>> OpenSqliteJobStore(const std::string& 
   sqlite3_busy_timeout(db, 5000);
   auto store = std::make_unique<SqliteJobStore>(db);
   absl::Status s = store->Init();
+  // After Init returned: a statement of Init still stepping would keep the tables locked
+  // against the rebuild's DROP TABLE.
+  if (s.ok()) s = store->KeyDicomStateBySender();
   if (!s.ok()) return s;
   return std::unique_ptr<JobStore>(std::move(store));
 }

@@ -1,5 +1,6 @@
 // decima.v1.Volumes: volumes made of uploaded blobs (volume_catalog.h), and the series the
 // DICOM receiver got (dicom_receiver.h), which become volumes.
+#include "absl/strings/str_cat.h"
 #include "decima/v1/volumes.grpc.pb.h"
 #include "server/dicom_receiver.h"
 #include "server/grpc_util.h"
@@ -28,6 +29,10 @@ class VolumesService final : public v1::Volumes::Service {
                               const v1::CreateVolumeRequest& req, v1::Volume* resp) {
     if (auto may = CallGuard::MayCreate(caller, "volumes"); !may.ok()) return may;
     v1::ErrorDetail detail;
+    if (auto st = RefuseReceiverRequestId(req.request_id()); !st.ok()) {
+      detail.set_field("request_id");
+      return Fail(ctx, st, detail);
+    }
     auto vol = d_.volumes->Create(req, caller.name, &detail);
     if (!vol.ok())
       return detail.field().empty() ? ToGrpc(vol.status()) : Fail(ctx, vol.status(), detail);
@@ -80,6 +85,34 @@ class VolumesService final : public v1::Volumes::Service {
     for (auto& r : page->series) *resp->add_received_series() = std::move(r);
     resp->set_next_page_token(page->next_page_token);
     return grpc::Status::OK;
+  }
+
+  grpc::Status DeleteReceivedSeries(grpc::ServerContext* ctx,
+                                    const v1::DeleteReceivedSeriesRequest* req,
+                                    v1::DeleteReceivedSeriesResponse* resp) override {
+    const std::string what = absl::StrCat("received series ", req->series_instance_uid());
+    Principal caller;
+    if (auto g = d_.guard->Check(ctx, &caller); !g.ok()) {
+      return d_.audit->Record(nullptr, "DeleteReceivedSeries", what, g);
+    }
+    // A reader may delete nothing, whatever waits (answered before NOT_FOUND could tell it
+    // what does); per sender below, whoever may change what it creates (its owner
+    // "dicom:<AE>", or an admin).
+    if (auto may = CallGuard::MayWrite(caller, caller.name, what); !may.ok()) {
+      return d_.audit->Record(&caller, "DeleteReceivedSeries", what, may);
+    }
+    auto removed = server::DeleteReceivedSeries(
+        d_.jobs, d_.blobs, req->series_instance_uid(), req->calling_ae(), caller.name,
+        [&](const std::string& owner) {
+          grpc::Status may = CallGuard::MayWrite(caller, owner, what);
+          return absl::Status(static_cast<absl::StatusCode>(may.error_code()), may.error_message());
+        });
+    if (removed.ok()) {
+      resp->set_deleted_instances(removed->instances);
+      resp->set_freed_bytes(removed->freed_bytes);
+    }
+    return d_.audit->Record(&caller, "DeleteReceivedSeries", what,
+                            removed.ok() ? grpc::Status::OK : ToGrpc(removed.status()));
   }
 
   grpc::Status DeleteVolume(grpc::ServerContext* ctx, const v1::DeleteVolumeRequest* req,

@@ -444,7 +444,7 @@ TEST_F(OwnershipE2E, EveryRpcByEveryRoleGetsTheExpectedCode) {
                                        {"admin root", "root-token"},
                                        {"anonymous", ""}};
   constexpr C OK = C::OK, PD = C::PERMISSION_DENIED, UA = C::UNAUTHENTICATED,
-              FP = C::FAILED_PRECONDITION;
+              FP = C::FAILED_PRECONDITION, NF = C::NOT_FOUND;
   struct Row {
     const char* rpc;
     std::vector<C> expected;  // one per caller
@@ -502,6 +502,14 @@ TEST_F(OwnershipE2E, EveryRpcByEveryRoleGetsTheExpectedCode) {
            EXPECT_EQ(resp.received_series_size(), 0);  // no DICOM receiver in this server
          }
          return s.error_code();
+       }},
+      {"Volumes.DeleteReceivedSeries (nothing waits)",
+       {NF, NF, PD, NF, UA},
+       [&](const std::string& t) {
+         v1::DeleteReceivedSeriesRequest r;
+         r.set_series_instance_uid("1.2.3");
+         v1::DeleteReceivedSeriesResponse resp;
+         return volumes_->DeleteReceivedSeries(Ctx(t).get(), r, &resp).error_code();
        }},
       {"Volumes.DeleteVolume",
        {OK, PD, PD, OK, UA},
@@ -625,7 +633,7 @@ TEST_F(OwnershipE2E, EveryRpcByEveryRoleGetsTheExpectedCode) {
       ++checked;
     }
   }
-  EXPECT_EQ(checked, 16 * 5);
+  EXPECT_EQ(checked, 17 * 5);
   // Health stays open without credentials.
   CliResult h = RunCli(server_->address(), {"health"});
   EXPECT_EQ(h.rc, 0) << h.err;

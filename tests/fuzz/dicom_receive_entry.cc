@@ -32,6 +32,7 @@ namespace fs = std::filesystem;
 // DIMSE statuses StoreInstance answers (PS3.7 Annex C and PS3.4 B.2.3).
 constexpr uint16_t kSuccess = 0x0000;
 constexpr uint16_t kCannotUnderstand = 0xC000;
+constexpr uint16_t kSopClassNotSupported = 0x0122;  // not a slice of a volume (SEG, SC, none)
 
 // Calling AE titles a sender may present: the first two are AE titles (PS3.5 6.2: 1-16
 // printable ASCII characters, no backslash), the others are not.
@@ -87,8 +88,9 @@ int DicomReceiveEntry(const uint8_t* data, size_t size) {
                                    nullptr);
     std::string series;
     const uint16_t status = receiver.StoreInstance(file, ae.title, options.aet, &series);
-    Require(status == kSuccess || status == kCannotUnderstand,
-            "an instance is stored or refused as not understood (nothing else fails here)");
+    Require(status == kSuccess || status == kCannotUnderstand || status == kSopClassNotSupported,
+            "an instance is stored, or refused as not understood or as no slice of a volume "
+            "(nothing else fails here)");
     auto kept = (*store)->ListDicomInstances();
     Require(kept.ok(), "the received instances list");
     if (status == kSuccess) {

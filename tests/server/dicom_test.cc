@@ -26,6 +26,7 @@ namespace decima::server {
 namespace {
 namespace fs = std::filesystem;
 using ::testing::HasSubstr;
+using ::testing::Not;
 
 constexpr char kSeries[] = "ct-head-256x256x113-dicom";
 
@@ -515,6 +516,191 @@ TEST_F(DicomScpTest, HeadersAreReadFromABoundedPrefix) {
       << std::string(128, '\0') << "DICM" << meta << sop << series;
   EXPECT_EQ(receiver->StoreInstance(dir_ / "h.dcm", "SENDER", "DECIMA", &series_uid), 0);
   EXPECT_EQ(series_uid, "1.2");
+}
+
+// A receiver fixture that sends with DCMTK's storescu, as a sender would.
+class DicomReceiverSendTest : public DicomReceiverTest {
+ protected:
+  void SetUp() override {
+    if (!fs::exists(kStorescu)) GTEST_SKIP() << "storescu (Debian package dcmtk) is not installed";
+    DicomReceiverTest::SetUp();
+  }
+  // Starts a receiver on a free port with `options` (quiet time an hour unless set).
+  DicomReceiver& StartReceiver(DicomReceiverOptions options) {
+    options.port = testing::FreePort();
+    port_ = options.port;
+    receiver_ = Receiver(options);
+    EXPECT_TRUE(receiver_->Start().ok());
+    return *receiver_;
+  }
+  void TearDown() override {
+    if (receiver_) receiver_->Stop();
+  }
+  // storescu -v from `ae`; its log (one "Received Store Response (...)" line per file).
+  std::string Send(const std::string& ae, const std::vector<fs::path>& files) {
+    const fs::path log = dir_ / ("storescu-" + std::to_string(sends_++) + ".log");
+    std::vector<std::string> argv = {
+        kStorescu.string(), "-v", "-aet", ae, "-aec", "DECIMA", "127.0.0.1", std::to_string(port_)};
+    for (const auto& f : files) argv.push_back(f.string());
+    testing::WaitExit(testing::Spawn(argv, log.string()), std::chrono::seconds(60));
+    std::ifstream in(log);
+    std::stringstream ss;
+    ss << in.rdbuf();
+    return ss.str();
+  }
+  std::vector<DicomInstanceRecord> Waiting(const std::string& ae) {
+    auto all = store_->ListDicomInstances();
+    EXPECT_TRUE(all.ok()) << all.status();
+    std::vector<DicomInstanceRecord> out;
+    for (auto& i : *all) {
+      if (i.calling_ae == ae) out.push_back(i);
+    }
+    return out;
+  }
+  // The listed receives of `ae`, newest first.
+  std::vector<v1::ReceivedSeries> Receives(const std::string& ae) {
+    auto page = ListReceivedSeries(store_.get(), DicomOwner(ae), 1000, "");
+    EXPECT_TRUE(page.ok()) << page.status();
+    return page.ok() ? page->series : std::vector<v1::ReceivedSeries>{};
+  }
+
+  const fs::path kStorescu = "/usr/bin/storescu";
+  std::unique_ptr<DicomReceiver> receiver_;
+  int port_ = 0;
+  int sends_ = 0;
+};
+
+// Series are kept per sender. EVIL sends the one slice missing from ORTHANC's series and a slice
+// with ORTHANC's SOP Instance UID and other pixels: both are EVIL's own instances, ORTHANC's
+// series still has its 3 and its bytes. ORTHANC re-sending an instance it holds with other
+// bytes is refused (0111H) and shown, the first bytes kept.
+TEST_F(DicomReceiverSendTest, AnotherSendersInstancesNeitherCompleteNorReplaceASeries) {
+  DicomReceiverOptions options;
+  options.quiet_seconds = 3600;  // nothing is judged here: what is kept is
+  StartReceiver(options);
+  testing::SliceSpec base;
+  fs::create_directories(dir_ / "series");
+  auto slices = testing::WriteSeries(dir_ / "series", base, {2, 2, 2});
+  ASSERT_EQ(slices.size(), 4u);
+  testing::SliceSpec forged = base;  // slice 1's SOP Instance UID, other pixels
+  forged.value = [](int, int) { return 4095; };
+  testing::WriteSlice(dir_ / "forged.dcm", forged);
+
+  EXPECT_THAT(Send("ORTHANC", {slices[0], slices[1], slices[3]}), HasSubstr("Success"));
+  // The bytes kept are the received file's (DCMTK writes its own meta header), so the instance's
+  // own first row is the reference. The same file again is the same bytes: accepted.
+  const std::string first_bytes = Waiting("ORTHANC").at(0).sha256;
+  const std::string log_again = Send("ORTHANC", {slices[0]});
+  EXPECT_THAT(log_again, HasSubstr("Success"));
+  EXPECT_THAT(log_again, Not(HasSubstr("Refused")));
+  const std::string evil_log = Send("EVIL", {slices[2], dir_ / "forged.dcm"});
+  EXPECT_THAT(evil_log, Not(HasSubstr("Refused")));
+  auto orthanc = Waiting("ORTHANC");
+  ASSERT_EQ(orthanc.size(), 3u);
+  EXPECT_EQ(orthanc[2].sop_instance_uid, base.series_uid + ".1");  // re-sent: last
+  EXPECT_EQ(orthanc[2].sha256, first_bytes);
+  auto evil = Waiting("EVIL");
+  ASSERT_EQ(evil.size(), 2u);
+  EXPECT_EQ(evil[1].sop_instance_uid, base.series_uid + ".1");
+  EXPECT_NE(evil[1].sha256, first_bytes);
+  auto listed = Receives("ORTHANC");
+  ASSERT_EQ(listed.size(), 1u);
+  EXPECT_EQ(listed[0].state(), v1::ReceivedSeries::RECEIVING);
+  EXPECT_EQ(listed[0].instance_count(), 3);
+  ASSERT_EQ(Receives("EVIL").size(), 1u);
+  EXPECT_EQ(Receives("EVIL")[0].instance_count(), 2);
+
+  const std::string log = Send("ORTHANC", {dir_ / "forged.dcm"});
+  EXPECT_THAT(log, Not(HasSubstr("(Success)")));
+  orthanc = Waiting("ORTHANC");
+  ASSERT_EQ(orthanc.size(), 3u);
+  EXPECT_EQ(orthanc[2].sha256, first_bytes);
+  listed = Receives("ORTHANC");
+  ASSERT_EQ(listed.size(), 2u);
+  EXPECT_EQ(listed[0].state(), v1::ReceivedSeries::REFUSED);
+  EXPECT_THAT(listed[0].reason(), HasSubstr("already held with other bytes"));
+  EXPECT_EQ(listed[0].instance_count(), 1);
+  // The status itself (PS3.7 C.4 Duplicate SOP Instance).
+  std::string series;
+  EXPECT_EQ(receiver_->StoreInstance(dir_ / "forged.dcm", "ORTHANC", "DECIMA", &series), 0x0111);
+}
+
+// An instance of a SOP class that is no slice of a volume (here a Secondary Capture, as a
+// viewer's screenshot or Decima's own results sent back) is refused when it arrives (0122H) and
+// shown as REFUSED with the reason: it never waits as an INCOMPLETE series.
+TEST_F(DicomReceiverSendTest, NonImageInstancesAreRefusedAtCStoreTime) {
+  DicomReceiverOptions options;
+  options.quiet_seconds = 0.1;
+  options.poll_seconds = 0.05;
+  StartReceiver(options);
+  testing::SliceSpec sc;
+  sc.sop_class_uid = "1.2.840.10008.5.1.4.1.1.7";  // Secondary Capture Image Storage
+  sc.series_uid = "1.2.826.0.1.3680043.9.7777.7";
+  fs::create_directories(dir_ / "sc");
+  auto files = testing::WriteSeries(dir_ / "sc", sc, {2});
+  // One storescu a file: storescu stops an association at the first refusal.
+  for (const auto& f : files) {
+    const std::string log = Send("ORTHANC", {f});
+    EXPECT_THAT(log, HasSubstr("SOPClassNotSupported")) << log;
+    EXPECT_THAT(log, Not(HasSubstr("(Success)")));
+  }
+  EXPECT_TRUE(Waiting("ORTHANC").empty());
+  std::this_thread::sleep_for(std::chrono::milliseconds(300));  // settle periods: nothing waits
+  auto listed = Receives("ORTHANC");
+  ASSERT_EQ(listed.size(), 1u);
+  EXPECT_EQ(listed[0].state(), v1::ReceivedSeries::REFUSED);
+  EXPECT_EQ(listed[0].instance_count(), 2);
+  EXPECT_THAT(listed[0].reason(), HasSubstr("SecondaryCaptureImageStorage"));
+  std::string series;
+  EXPECT_EQ(receiver_->StoreInstance(files[0], "ORTHANC", "DECIMA", &series), 0x0122);
+}
+
+// A series that waits longer than the expiry is removed without an operator: its instances,
+// and the blobs nothing else holds; the history shows it EXPIRED. A series still arriving is not.
+TEST_F(DicomReceiverSendTest, IncompleteSeriesExpireWithTheirBlobs) {
+  DicomReceiverOptions options;
+  options.quiet_seconds = 0.1;
+  options.poll_seconds = 0.05;
+  options.incomplete_expiry_seconds = 2;
+  StartReceiver(options);
+  testing::WriteSlice(dir_ / "junk.dcm", testing::SliceSpec{});
+  EXPECT_THAT(Send("JUNK", {dir_ / "junk.dcm"}), HasSubstr("Success"));
+  ASSERT_EQ(Waiting("JUNK").size(), 1u);
+  const std::string sha = Waiting("JUNK")[0].sha256;
+  EXPECT_TRUE(blobs_->Has(sha));
+  std::vector<v1::ReceivedSeries> listed;
+  for (int i = 0; i < 200; ++i) {  // at most 10 s
+    listed = Receives("JUNK");
+    if (!listed.empty() && listed[0].state() == v1::ReceivedSeries::EXPIRED) break;
+    std::this_thread::sleep_for(std::chrono::milliseconds(50));
+  }
+  ASSERT_FALSE(listed.empty());
+  EXPECT_EQ(listed[0].state(), v1::ReceivedSeries::EXPIRED) << listed[0].DebugString();
+  EXPECT_THAT(listed[0].reason(), HasSubstr("--dicom-incomplete-expiry"));
+  EXPECT_EQ(listed.size(), 1u);  // its INCOMPLETE check became the EXPIRED receive
+  EXPECT_TRUE(Waiting("JUNK").empty());
+  EXPECT_FALSE(blobs_->Has(sha));
+}
+
+// A sender's waiting bytes are capped (--dicom-quota-mb): its instance beyond is refused out of
+// resources (A700), another sender still stores.
+TEST_F(DicomReceiverSendTest, ASendersQuotaRefusesInstancesBeyondIt) {
+  DicomReceiverOptions options;
+  options.quota_mb = 1;
+  StartReceiver(options);
+  testing::SliceSpec big;  // 256 KiB of pixels a slice: the 4th passes 1 MiB
+  big.rows = 256;
+  big.columns = 512;
+  fs::create_directories(dir_ / "big");
+  auto slices = testing::WriteSeries(dir_ / "big", big, {2, 2, 2});
+  const std::string log = Send("BIG", slices);
+  EXPECT_THAT(log, HasSubstr("OutOfResources"));
+  EXPECT_EQ(Waiting("BIG").size(), 3u);
+  testing::SliceSpec other = big;
+  other.series_uid = "1.2.826.0.1.3680043.9.7777.8";
+  testing::WriteSlice(dir_ / "other.dcm", other);
+  EXPECT_THAT(Send("OTHER", {dir_ / "other.dcm"}), HasSubstr("Success"));
+  EXPECT_EQ(Waiting("OTHER").size(), 1u);
 }
 
 }  // namespace

@@ -6,6 +6,8 @@
 #include <set>
 #include <thread>
 
+#include <sqlite3.h>
+
 #include "gmock/gmock.h"
 #include "gtest/gtest.h"
 #include "server/job_store.h"
@@ -311,15 +313,16 @@ TEST_P(JobStoreTest, LabelMapOfAQueuedJobCannotBeDeleted) {
 }
 
 // The DICOM receiver's state (dicom_receiver.h): received instances, the persisted abort mark
-// and the checks' outcomes survive a restart; a check consumes its instances in one step.
+// and the receives' outcomes survive a restart; a check consumes its sender's instances in one
+// step, and every receive keeps its own row.
 TEST_P(JobStoreTest, DicomReceiverStateSurvivesReopeningAndAJobConsumesItsInstances) {
   const std::string aa(64, 'a'), bb(64, 'b');
-  ASSERT_TRUE(store_->PutDicomInstance({"s1", "i1", aa, "ORTHANC", "DECIMA", 1, 0}).ok());
-  ASSERT_TRUE(store_->PutDicomInstance({"s1", "i2", bb, "ORTHANC", "DECIMA", 2, 0}).ok());
-  ASSERT_TRUE(store_->PutDicomInstance({"s2", "k1", bb, "OTHER", "DECIMA", 2, 0}).ok());
-  // The same SOP instance again replaces its row and moves to the end.
-  ASSERT_TRUE(store_->PutDicomInstance({"s1", "i1", aa, "ORTHANC", "DECIMA", 3, 0}).ok());
-  ASSERT_TRUE(store_->MarkDicomSeriesAborted("s1", 4).ok());
+  ASSERT_TRUE(store_->PutDicomInstance({"s1", "i1", aa, "ORTHANC", "DECIMA", 1, 0, 10}).ok());
+  ASSERT_TRUE(store_->PutDicomInstance({"s1", "i2", bb, "ORTHANC", "DECIMA", 2, 0, 20}).ok());
+  ASSERT_TRUE(store_->PutDicomInstance({"s2", "k1", bb, "OTHER", "DECIMA", 2, 0, 20}).ok());
+  // The same SOP instance with the same bytes again replaces its row and moves to the end.
+  ASSERT_TRUE(store_->PutDicomInstance({"s1", "i1", aa, "ORTHANC", "DECIMA", 3, 0, 10}).ok());
+  ASSERT_TRUE(store_->MarkDicomSeriesAborted("ORTHANC", "s1", 4).ok());
   EXPECT_TRUE(*store_->BlobInUse(aa));
   EXPECT_FALSE(*store_->BlobInUse(std::string(64, 'c')));
   DicomSeriesRecord incomplete =
@@ -340,6 +343,7 @@ TEST_P(JobStoreTest, DicomReceiverStateSurvivesReopeningAndAJobConsumesItsInstan
   ASSERT_EQ(instances->size(), 3u);
   EXPECT_EQ((*instances)[0].sop_instance_uid, "i2");  // arrival order, i1 re-sent last
   EXPECT_EQ((*instances)[0].aborted_ms, 4);
+  EXPECT_EQ((*instances)[0].size_bytes, 20);
   EXPECT_EQ((*instances)[1].aborted_ms, 0);  // another series
   EXPECT_EQ((*instances)[2].sop_instance_uid, "i1");
   EXPECT_EQ((*instances)[2].received_ms, 3);
@@ -348,6 +352,7 @@ TEST_P(JobStoreTest, DicomReceiverStateSurvivesReopeningAndAJobConsumesItsInstan
   ASSERT_TRUE(checks.ok()) << checks.status();
   ASSERT_EQ(checks->size(), 1u);
   const DicomSeriesRecord& c = (*checks)[0];
+  EXPECT_EQ(c.receive_key, "set-a@r");
   EXPECT_EQ(c.state, v1::ReceivedSeries::INCOMPLETE);
   EXPECT_EQ(c.reason, "incomplete: 1 slice(s) missing");
   EXPECT_EQ(c.calling_ae, "ORTHANC");
@@ -357,6 +362,7 @@ TEST_P(JobStoreTest, DicomReceiverStateSurvivesReopeningAndAJobConsumesItsInstan
   EXPECT_EQ(c.last_received_ms, 3);
 
   DicomSeriesRecord queued = Check("set-b", "s1", "jobs/j1", "", v1::ReceivedSeries::QUEUED);
+  queued.calling_ae = "ORTHANC";
   queued.results_pending = true;
   ASSERT_TRUE(store_->PutDicomSeries(queued, {"i1", "i2"}).ok());
   ASSERT_EQ(store_->ListDicomInstances()->size(), 1u);  // s2's only
@@ -367,15 +373,71 @@ TEST_P(JobStoreTest, DicomReceiverStateSurvivesReopeningAndAJobConsumesItsInstan
   ASSERT_EQ(pending->size(), 1u);
   EXPECT_EQ((*pending)[0].job, "jobs/j1");
   queued.results_pending = false;
+  queued.state = v1::ReceivedSeries::SENT;
   queued.send_status = "sent: 3 instances";
   ASSERT_TRUE(store_->PutDicomSeries(queued, {}).ok());
   EXPECT_TRUE(store_->ListDicomSeries(true, 10)->empty());
+  // The same set sent again later is another receive: a row of its own, the first one kept.
+  DicomSeriesRecord again = queued;
+  again.receive_key = "set-b@later";
+  again.state = v1::ReceivedSeries::QUEUED;
+  again.send_status.clear();
+  ASSERT_TRUE(store_->PutDicomSeries(again, {}).ok());
   auto all = store_->ListDicomSeries(false, 10);
-  ASSERT_EQ(all->size(), 2u);
-  EXPECT_EQ((*all)[0].send_status, "sent: 3 instances");  // newest first
-  EXPECT_EQ((*all)[0].state, v1::ReceivedSeries::QUEUED);
-  EXPECT_EQ((*all)[1].reason, "incomplete: 1 slice(s) missing");
+  ASSERT_EQ(all->size(), 3u);
+  EXPECT_EQ((*all)[0].receive_key, "set-b@later");  // newest first
+  EXPECT_EQ((*all)[1].send_status, "sent: 3 instances");
+  EXPECT_EQ((*all)[1].state, v1::ReceivedSeries::SENT);
+  EXPECT_EQ((*all)[2].reason, "incomplete: 1 slice(s) missing");
   EXPECT_EQ(store_->ListDicomSeries(false, 1)->size(), 1u);
+}
+
+// Received instances are keyed by sender: another calling AE title's instance with the same SOP
+// Instance UID is its own row (it neither replaces nor consumes the first sender's), and the
+// same sender's instance with other bytes is refused, the first bytes kept.
+TEST_P(JobStoreTest, DicomInstancesAreKeptPerSenderAndOtherBytesAreRefused) {
+  const std::string aa(64, 'a'), bb(64, 'b');
+  ASSERT_TRUE(store_->PutDicomInstance({"s1", "i1", aa, "ORTHANC", "DECIMA", 1, 0, 100}).ok());
+  ASSERT_TRUE(store_->PutDicomInstance({"s1", "i2", aa, "ORTHANC", "DECIMA", 2, 0, 100}).ok());
+  ASSERT_TRUE(store_->PutDicomInstance({"s1", "i1", bb, "EVIL", "DECIMA", 3, 0, 7}).ok());
+  const absl::Status replaced =
+      store_->PutDicomInstance({"s1", "i1", bb, "ORTHANC", "DECIMA", 4, 0, 7});
+  EXPECT_EQ(replaced.code(), absl::StatusCode::kAlreadyExists) << replaced;
+  EXPECT_THAT(std::string(replaced.message()), HasSubstr("i1"));
+  auto instances = store_->ListDicomInstances();
+  ASSERT_TRUE(instances.ok()) << instances.status();
+  ASSERT_EQ(instances->size(), 3u);
+  EXPECT_EQ((*instances)[0].sha256, aa);  // ORTHANC's i1 unchanged
+  EXPECT_EQ((*instances)[0].received_ms, 1);
+  EXPECT_EQ((*instances)[2].calling_ae, "EVIL");
+  EXPECT_EQ(*store_->DicomWaitingBytes("ORTHANC"), 200);
+  EXPECT_EQ(*store_->DicomWaitingBytes("EVIL"), 7);
+  EXPECT_EQ(*store_->DicomWaitingBytes("NOBODY"), 0);
+  // An abort of EVIL's association marks EVIL's instances only.
+  ASSERT_TRUE(store_->MarkDicomSeriesAborted("EVIL", "s1", 9).ok());
+  instances = store_->ListDicomInstances();
+  EXPECT_EQ((*instances)[0].aborted_ms, 0);
+  EXPECT_EQ((*instances)[2].aborted_ms, 9);
+  // EVIL's series consumed: ORTHANC's instances of the same SOP Instance UID stay.
+  DicomSeriesRecord evil = Check("set-e", "s1", "jobs/e", "", v1::ReceivedSeries::QUEUED);
+  evil.calling_ae = "EVIL";
+  ASSERT_TRUE(store_->PutDicomSeries(evil, {"i1"}).ok());
+  ASSERT_EQ(store_->ListDicomInstances()->size(), 2u);
+  EXPECT_TRUE(*store_->BlobInUse(aa));
+  EXPECT_FALSE(*store_->BlobInUse(bb));
+  // Removed (expiry, delete): the sender's series only, returned for their blobs.
+  ASSERT_TRUE(store_->PutDicomInstance({"s1", "i3", bb, "EVIL", "DECIMA", 5, 0, 7}).ok());
+  auto removed = store_->RemoveDicomInstances("ORTHANC", "s1");
+  ASSERT_TRUE(removed.ok()) << removed.status();
+  ASSERT_EQ(removed->size(), 2u);
+  EXPECT_EQ((*removed)[0].sop_instance_uid, "i1");
+  EXPECT_EQ((*removed)[1].sha256, aa);
+  instances = store_->ListDicomInstances();
+  ASSERT_EQ(instances->size(), 1u);
+  EXPECT_EQ((*instances)[0].calling_ae, "EVIL");
+  EXPECT_FALSE(*store_->BlobInUse(aa));
+  EXPECT_EQ(*store_->DicomWaitingBytes("ORTHANC"), 0);
+  EXPECT_TRUE(store_->RemoveDicomInstances("ORTHANC", "s1")->empty());
 }
 
 TEST_P(JobStoreTest, CompactGivesDeletedJobsSpaceBack) {
@@ -406,6 +468,73 @@ TEST_P(JobStoreTest, CompactGivesDeletedJobsSpaceBack) {
   EXPECT_LT(main_file(), full);
   EXPECT_LE(main_file(), empty_size + 8192) << "before " << full << " after " << main_file();
 }
+
+#ifndef DECIMA_JOB_STORE_POSTGRES
+// A data dir whose receiver tables predate keying by sender (an instance unique by SOP Instance
+// UID alone, a series row unique by instance set) opens with its rows kept and the new keys in
+// force: another sender's instance of the same SOP Instance UID is its own row, and a later
+// receive of the same set gets its own row.
+TEST(SqliteJobStoreMigrationTest, ReceiverTablesFromBeforeSenderKeysAreUpgradedWithTheirRows) {
+  const auto path = (testing::MakeScratchDir("dicom_migration") / "jobs.sqlite").string();
+  sqlite3* db = nullptr;
+  ASSERT_EQ(sqlite3_open(path.c_str(), &db), SQLITE_OK);
+  const char* kBefore = R"sql(
+    CREATE TABLE dicom_instances(
+      ord INTEGER PRIMARY KEY AUTOINCREMENT,
+      sop_instance_uid TEXT UNIQUE NOT NULL,
+      series_instance_uid TEXT NOT NULL,
+      sha256 TEXT NOT NULL,
+      calling_ae TEXT NOT NULL, called_ae TEXT NOT NULL,
+      received_ms INTEGER NOT NULL,
+      aborted_ms INTEGER NOT NULL DEFAULT 0);
+    CREATE INDEX dicom_instances_by_sha ON dicom_instances(sha256);
+    CREATE TABLE dicom_series(
+      ord INTEGER PRIMARY KEY AUTOINCREMENT,
+      instance_set TEXT UNIQUE NOT NULL,
+      series_instance_uid TEXT NOT NULL,
+      job TEXT NOT NULL, reason TEXT NOT NULL, route TEXT NOT NULL,
+      results_pending INTEGER NOT NULL, send_status TEXT NOT NULL,
+      update_ms INTEGER NOT NULL,
+      state INTEGER NOT NULL DEFAULT 0,
+      calling_ae TEXT NOT NULL DEFAULT '', called_ae TEXT NOT NULL DEFAULT '',
+      instance_count INTEGER NOT NULL DEFAULT 0,
+      first_received_ms INTEGER NOT NULL DEFAULT 0,
+      last_received_ms INTEGER NOT NULL DEFAULT 0);
+    INSERT INTO dicom_instances(sop_instance_uid, series_instance_uid, sha256, calling_ae,
+                                called_ae, received_ms, aborted_ms)
+      VALUES('i1', 's1', 'aa', 'ORTHANC', 'DECIMA', 1, 0), ('i2', 's1', 'bb', 'ORTHANC', 'DECIMA', 2, 5);
+    INSERT INTO dicom_series(instance_set, series_instance_uid, job, reason, route,
+                             results_pending, send_status, update_ms, state, calling_ae)
+      VALUES('set-x', 's0', 'jobs/j0', '', 'r', 1, '', 3, 3, 'ORTHANC');
+  )sql";
+  ASSERT_EQ(sqlite3_exec(db, kBefore, nullptr, nullptr, nullptr), SQLITE_OK) << sqlite3_errmsg(db);
+  sqlite3_close(db);
+
+  auto store = OpenSqliteJobStore(path);
+  ASSERT_TRUE(store.ok()) << store.status();
+  auto instances = (*store)->ListDicomInstances();
+  ASSERT_TRUE(instances.ok()) << instances.status();
+  ASSERT_EQ(instances->size(), 2u);
+  EXPECT_EQ((*instances)[1].sop_instance_uid, "i2");
+  EXPECT_EQ((*instances)[1].aborted_ms, 5);
+  EXPECT_TRUE(*(*store)->BlobInUse("bb"));
+  ASSERT_TRUE((*store)->PutDicomInstance({"s1", "i1", "cc", "EVIL", "DECIMA", 9, 0, 1}).ok());
+  EXPECT_EQ((*store)->ListDicomInstances()->size(), 3u);
+  EXPECT_EQ((*store)->PutDicomInstance({"s1", "i1", "cc", "ORTHANC", "DECIMA", 9, 0, 1}).code(),
+            absl::StatusCode::kAlreadyExists);
+  auto rows = (*store)->ListDicomSeries(true, 10);
+  ASSERT_TRUE(rows.ok()) << rows.status();
+  ASSERT_EQ(rows->size(), 1u);
+  EXPECT_EQ((*rows)[0].receive_key, "set-x");
+  EXPECT_EQ((*rows)[0].job, "jobs/j0");
+  DicomSeriesRecord later = (*rows)[0];
+  later.receive_key = "set-x@later";
+  ASSERT_TRUE((*store)->PutDicomSeries(later, {}).ok());
+  EXPECT_EQ((*store)->ListDicomSeries(false, 10)->size(), 2u);
+  store->reset();
+  ASSERT_TRUE(OpenSqliteJobStore(path).ok());  // and opens again as it is
+}
+#endif
 
 #ifdef DECIMA_JOB_STORE_POSTGRES
 INSTANTIATE_TEST_SUITE_P(Stores, JobStoreTest, ::testing::Values("postgresql"),

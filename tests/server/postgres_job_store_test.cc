@@ -42,7 +42,70 @@ TEST(PostgresJobStoreTest, ReplicasStartingTogetherApplyTheSchemaOnce) {
   const std::string db = dsn.substr(dsn.rfind('/') + 1);
   EXPECT_EQ(
       SharedPostgres()->Sql("SELECT COUNT(*), MAX(version) FROM decima_schema_migrations", db),
-      "3|3");  // every migration once (2: creator columns, 3: DICOM receiver tables)
+      "4|4");  // every migration once (2: creator columns, 3: DICOM receiver tables, 4: keyed
+               // by sender)
+}
+
+// A database at schema version 3, whose receiver tables kept an instance unique by SOP Instance
+// UID alone and a series row unique by instance set, upgrades (migration 4) with its rows kept
+// and the sender keys in force.
+TEST(PostgresJobStoreTest, ReceiverTablesOfVersion3AreKeyedBySenderWithTheirRows) {
+  DECIMA_REQUIRE_POSTGRES();
+  const std::string dsn = FreshDatabase();
+  ASSERT_FALSE(dsn.empty());
+  const std::string db = dsn.substr(dsn.rfind('/') + 1);
+  // Version 3's receiver tables as migration 3 made them (the other tables play no part here).
+  ASSERT_TRUE(SharedPostgres()->Sql(R"sql(
+    CREATE TABLE decima_schema_migrations(
+      version INTEGER PRIMARY KEY, applied_at TIMESTAMPTZ NOT NULL DEFAULT now());
+    INSERT INTO decima_schema_migrations(version) VALUES (1), (2), (3);
+    CREATE TABLE dicom_instances(
+      ord BIGSERIAL PRIMARY KEY,
+      sop_instance_uid TEXT UNIQUE NOT NULL,
+      series_instance_uid TEXT NOT NULL,
+      sha256 TEXT NOT NULL,
+      calling_ae TEXT NOT NULL, called_ae TEXT NOT NULL,
+      received_ms BIGINT NOT NULL,
+      aborted_ms BIGINT NOT NULL DEFAULT 0);
+    CREATE INDEX dicom_instances_by_sha ON dicom_instances(sha256);
+    CREATE INDEX dicom_instances_by_series ON dicom_instances(series_instance_uid);
+    CREATE TABLE dicom_series(
+      ord BIGSERIAL PRIMARY KEY,
+      instance_set TEXT UNIQUE NOT NULL,
+      series_instance_uid TEXT NOT NULL,
+      job TEXT NOT NULL, reason TEXT NOT NULL, route TEXT NOT NULL,
+      results_pending BOOLEAN NOT NULL, send_status TEXT NOT NULL,
+      update_ms BIGINT NOT NULL,
+      state INTEGER NOT NULL,
+      calling_ae TEXT NOT NULL, called_ae TEXT NOT NULL,
+      instance_count INTEGER NOT NULL,
+      first_received_ms BIGINT NOT NULL, last_received_ms BIGINT NOT NULL);
+    INSERT INTO dicom_instances(sop_instance_uid, series_instance_uid, sha256, calling_ae,
+                                called_ae, received_ms)
+      VALUES ('i1', 's1', 'aa', 'ORTHANC', 'DECIMA', 1);
+    INSERT INTO dicom_series VALUES (DEFAULT, 'set-x', 's0', 'jobs/j0', '', 'r', TRUE, '', 3, 3,
+                                     'ORTHANC', 'DECIMA', 2, 1, 2);
+  )sql",
+                                    db));
+  auto store = OpenPostgres(dsn);
+  ASSERT_TRUE(store.ok()) << store.status();
+  EXPECT_EQ(SharedPostgres()->Sql("SELECT MAX(version) FROM decima_schema_migrations", db), "4");
+  auto instances = (*store)->ListDicomInstances();
+  ASSERT_TRUE(instances.ok()) << instances.status();
+  ASSERT_EQ(instances->size(), 1u);
+  EXPECT_EQ((*instances)[0].size_bytes, 0);
+  ASSERT_TRUE((*store)->PutDicomInstance({"s1", "i1", "bb", "EVIL", "DECIMA", 2, 0, 1}).ok());
+  EXPECT_EQ((*store)->ListDicomInstances()->size(), 2u);
+  EXPECT_EQ((*store)->PutDicomInstance({"s1", "i1", "bb", "ORTHANC", "DECIMA", 3, 0, 1}).code(),
+            absl::StatusCode::kAlreadyExists);
+  auto rows = (*store)->ListDicomSeries(true, 10);
+  ASSERT_TRUE(rows.ok()) << rows.status();
+  ASSERT_EQ(rows->size(), 1u);
+  EXPECT_EQ((*rows)[0].receive_key, "set-x");
+  DicomSeriesRecord later = (*rows)[0];
+  later.receive_key = "set-x@later";
+  ASSERT_TRUE((*store)->PutDicomSeries(later, {}).ok());
+  EXPECT_EQ((*store)->ListDicomSeries(false, 10)->size(), 2u);
 }
 
 TEST(PostgresJobStoreTest, ConcurrentClaimersTakeEveryJobExactlyOnce) {

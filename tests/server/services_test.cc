@@ -302,12 +302,15 @@ TEST_F(ServicesTest, ListReceivedSeriesShowsStateAndReasonByOwner) {
   Start(false, *ids);
   const std::string aa(64, 'a'), bb(64, 'b');
   ASSERT_TRUE(
-      store_->PutDicomInstance({"1.2.3", "i1", aa, "ORTHANC", "DECIMA", 1700000000000, 0}).ok());
+      store_->PutDicomInstance({"1.2.3", "i1", aa, "ORTHANC", "DECIMA", 1700000000000, 0, 1}).ok());
   ASSERT_TRUE(
-      store_->PutDicomInstance({"1.2.4", "k1", bb, "CT1", "DECIMA", 1700000001000, 0}).ok());
+      store_->PutDicomInstance({"1.2.4", "k1", bb, "CT1", "DECIMA", 1700000001000, 0, 1}).ok());
   DicomSeriesRecord incomplete =
       Check("set", "1.2.4", "", "incomplete: 1 slice(s) missing", v1::ReceivedSeries::INCOMPLETE);
-  // A check of another set than the one waiting now: the waiting one is RECEIVING.
+  incomplete.calling_ae = "CT1";
+  incomplete.last_received_ms = 1700000000500;
+  // An earlier receive (another set than the one waiting now): its own entry, and the waiting
+  // set is RECEIVING.
   ASSERT_TRUE(store_->PutDicomSeries(incomplete, {}).ok());
   DicomSeriesRecord queued = Check("set2", "1.2.5", "jobs/j1", "", v1::ReceivedSeries::QUEUED);
   queued.send_status = "sent: 3 instances";
@@ -328,7 +331,7 @@ TEST_F(ServicesTest, ListReceivedSeriesShowsStateAndReasonByOwner) {
   };
   v1::ListReceivedSeriesResponse all;
   ASSERT_TRUE(list("rita", &all).ok());
-  ASSERT_EQ(all.received_series_size(), 3);
+  ASSERT_EQ(all.received_series_size(), 4);
   const v1::ReceivedSeries& newest = all.received_series(0);  // newest arrival first
   EXPECT_EQ(newest.series_instance_uid(), "1.2.5");
   EXPECT_EQ(newest.state(), v1::ReceivedSeries::QUEUED);
@@ -340,17 +343,24 @@ TEST_F(ServicesTest, ListReceivedSeriesShowsStateAndReasonByOwner) {
   EXPECT_EQ(all.received_series(1).series_instance_uid(), "1.2.4");
   EXPECT_EQ(all.received_series(1).state(), v1::ReceivedSeries::RECEIVING);
   EXPECT_EQ(all.received_series(1).calling_ae(), "CT1");
-  EXPECT_EQ(all.received_series(2).state(), v1::ReceivedSeries::RECEIVING);
+  EXPECT_EQ(all.received_series(2).state(), v1::ReceivedSeries::INCOMPLETE);
+  EXPECT_EQ(all.received_series(2).calling_ae(), "CT1");
+  EXPECT_EQ(all.received_series(3).state(), v1::ReceivedSeries::RECEIVING);
 
-  // The waiting set of 1.2.4 checked (its key: sha256 of the sorted SOP Instance UIDs, one a
-  // line): INCOMPLETE with the reason.
-  incomplete.instance_set = HexSha256("k1\n");
+  // The waiting set of 1.2.4 checked (its key: sha256 of the sender and the sorted SOP
+  // Instance UIDs, one a line; the receive: that at its newest arrival): INCOMPLETE with the
+  // reason, and the earlier receive stays an entry of its own.
+  incomplete.instance_set = HexSha256("CT1\nk1\n");
+  incomplete.receive_key = incomplete.instance_set + "@1700000001000";
+  incomplete.last_received_ms = 1700000001000;
   ASSERT_TRUE(store_->PutDicomSeries(incomplete, {}).ok());
   v1::ListReceivedSeriesResponse again;
   ASSERT_TRUE(list("rita", &again).ok());
-  ASSERT_EQ(again.received_series_size(), 3);
+  ASSERT_EQ(again.received_series_size(), 4);
   EXPECT_EQ(again.received_series(1).state(), v1::ReceivedSeries::INCOMPLETE);
   EXPECT_EQ(again.received_series(1).reason(), "incomplete: 1 slice(s) missing");
+  EXPECT_EQ(again.received_series(2).state(), v1::ReceivedSeries::INCOMPLETE);
+  EXPECT_EQ(again.received_series(3).state(), v1::ReceivedSeries::RECEIVING);
 
   v1::ListReceivedSeriesResponse own, none, page;
   ASSERT_TRUE(list("pacs", &own).ok());
@@ -363,11 +373,11 @@ TEST_F(ServicesTest, ListReceivedSeriesShowsStateAndReasonByOwner) {
   ASSERT_FALSE(page.next_page_token().empty());
   v1::ListReceivedSeriesResponse rest;
   ASSERT_TRUE(list("rita", &rest, page.next_page_token(), 2).ok());
-  ASSERT_EQ(rest.received_series_size(), 1);
+  ASSERT_EQ(rest.received_series_size(), 2);
   EXPECT_TRUE(rest.next_page_token().empty());
   // A token past the end (the list shrank since, or it was made up) is an empty last page; the
   // largest offset must not wrap around to a token for the start.
-  for (const std::string past : {"r3", "r1000000", "r18446744073709551615"}) {
+  for (const std::string past : {"r4", "r1000000", "r18446744073709551615"}) {
     SCOPED_TRACE(past);
     v1::ListReceivedSeriesResponse empty;
     ASSERT_TRUE(list("rita", &empty, past, 2).ok());
@@ -378,6 +388,98 @@ TEST_F(ServicesTest, ListReceivedSeriesShowsStateAndReasonByOwner) {
   EXPECT_EQ(list("rita", &bad, "o7").error_code(), grpc::INVALID_ARGUMENT);
   EXPECT_EQ(list("rita", &bad, "r-1").error_code(), grpc::INVALID_ARGUMENT);
   EXPECT_EQ(list("wrong", &bad).error_code(), grpc::UNAUTHENTICATED);
+}
+
+// DeleteReceivedSeries: a sender's waiting instances go with their blobs, and the history keeps
+// a DELETED entry. Only the series' owner ("dicom:<calling AE>") or an admin may delete it; a
+// reader or another submitter gets PERMISSION_DENIED and nothing changes.
+TEST_F(ServicesTest, DeleteReceivedSeriesIsTheOwnersOrAnAdminsAndFreesTheBlobs) {
+  auto ids = Identities::Parse(
+      absl::StrCat("token ", HexSha256("pacs"), " dicom:ORTHANC submitter\n", "token ",
+                   HexSha256("alice"), " alice submitter\n", "token ", HexSha256("rita"),
+                   " rita reader\n", "token ", HexSha256("root"), " root admin\n"),
+      "tokens");
+  ASSERT_TRUE(ids.ok()) << ids.status();
+  Start(false, *ids);
+  const std::string bytes = "DICM instance bytes";
+  const std::string sha = HexSha256(bytes);
+  {
+    auto w = blobs_->OpenWriter(sha, static_cast<int64_t>(bytes.size()), 0);
+    ASSERT_TRUE(w.ok()) << w.status();
+    ASSERT_TRUE((*w)->Append(bytes.data(), bytes.size()).ok());
+    ASSERT_TRUE((*w)->Commit().ok());
+  }
+  const int64_t size = static_cast<int64_t>(bytes.size());
+  ASSERT_TRUE(store_->PutDicomInstance({"1.2.3", "i1", sha, "ORTHANC", "DECIMA", 1, 0, size}).ok());
+  ASSERT_TRUE(store_->PutDicomInstance({"1.2.3", "i1", sha, "CT1", "DECIMA", 2, 0, size}).ok());
+  auto stub = v1::Volumes::NewStub(channel_);
+  auto del = [&](const std::string& token, const std::string& uid, const std::string& from,
+                 v1::DeleteReceivedSeriesResponse* resp) {
+    v1::DeleteReceivedSeriesRequest req;
+    req.set_series_instance_uid(uid);
+    req.set_calling_ae(from);
+    return stub->DeleteReceivedSeries(Ctx(token).get(), req, resp);
+  };
+  v1::DeleteReceivedSeriesResponse resp;
+  EXPECT_EQ(del("rita", "1.2.3", "", &resp).error_code(), grpc::PERMISSION_DENIED);
+  EXPECT_EQ(del("alice", "1.2.3", "ORTHANC", &resp).error_code(), grpc::PERMISSION_DENIED);
+  EXPECT_EQ(del("pacs", "1.2.3", "CT1", &resp).error_code(), grpc::PERMISSION_DENIED);
+  EXPECT_EQ(store_->ListDicomInstances()->size(), 2u);
+  EXPECT_EQ(del("pacs", "1.2.x", "", &resp).error_code(), grpc::INVALID_ARGUMENT);
+  EXPECT_EQ(del("pacs", "1.2.9", "", &resp).error_code(), grpc::NOT_FOUND);
+
+  // Every sender's it may delete: ORTHANC's only. CT1's instance holds the same bytes (one
+  // blob), so the blob stays.
+  ASSERT_TRUE(del("pacs", "1.2.3", "", &resp).ok());
+  EXPECT_EQ(resp.deleted_instances(), 1);
+  EXPECT_EQ(resp.freed_bytes(), 0);
+  ASSERT_EQ(store_->ListDicomInstances()->size(), 1u);
+  EXPECT_TRUE(blobs_->Has(sha));
+  ASSERT_TRUE(del("root", "1.2.3", "CT1", &resp).ok());
+  EXPECT_EQ(resp.deleted_instances(), 1);
+  EXPECT_EQ(resp.freed_bytes(), size);
+  EXPECT_TRUE(store_->ListDicomInstances()->empty());
+  EXPECT_FALSE(blobs_->Has(sha));
+  EXPECT_EQ(del("root", "1.2.3", "", &resp).error_code(), grpc::NOT_FOUND);
+
+  v1::ListReceivedSeriesResponse listed;
+  ASSERT_TRUE(stub->ListReceivedSeries(Ctx("rita").get(), {}, &listed).ok());
+  ASSERT_EQ(listed.received_series_size(), 2);
+  for (const auto& r : listed.received_series()) {
+    EXPECT_EQ(r.state(), v1::ReceivedSeries::DELETED);
+    EXPECT_EQ(r.instance_count(), 1);
+  }
+  EXPECT_EQ(listed.received_series(0).reason(), "deleted by root");
+  EXPECT_EQ(listed.received_series(1).reason(), "deleted by dicom:ORTHANC");
+}
+
+// The request id prefix "dicom-" is the DICOM receiver's: a submitter who computes a series'
+// id before it arrives cannot have the receiver take its job (or volume) as the sender's.
+TEST_F(ServicesTest, RequestIdsWithTheReceiverPrefixAreRefused) {
+  Start();
+  auto jobs = v1::Jobs::NewStub(channel_);
+  v1::CreateJobRequest req;
+  req.mutable_spec()->set_volume("volumes/v");
+  req.set_request_id("dicom-" + std::string(64, 'a'));
+  v1::Job job;
+  auto ctx = Ctx();
+  grpc::Status s = jobs->CreateJob(ctx.get(), req, &job);
+  EXPECT_EQ(s.error_code(), grpc::INVALID_ARGUMENT) << s.error_message();
+  EXPECT_THAT(s.error_message(), HasSubstr("reserved for the DICOM receiver"));
+  EXPECT_EQ(Detail(*ctx).field(), "request_id");
+  EXPECT_EQ(*store_->CountJobs(v1::QUEUED), 0);
+  auto vols = v1::Volumes::NewStub(channel_);
+  v1::CreateVolumeRequest vreq;
+  vreq.set_request_id("dicom-x");
+  vreq.mutable_volume()->add_files()->set_path("a.nii");
+  v1::Volume vol;
+  auto vctx = Ctx();
+  s = vols->CreateVolume(vctx.get(), vreq, &vol);
+  EXPECT_EQ(s.error_code(), grpc::INVALID_ARGUMENT) << s.error_message();
+  EXPECT_EQ(Detail(*vctx).field(), "request_id");
+  // Other ids are the caller's as before.
+  req.set_request_id("my-dicom-1");
+  EXPECT_TRUE(jobs->CreateJob(Ctx().get(), req, &job).ok());
 }
 
 TEST(IdentitiesTest, TokensFileNamesTheLineAndKeepsOnlyHashes) {

@@ -62,7 +62,7 @@ void WriteSlice(const fs::path& path, const SliceSpec& s) {
   gdcm::Writer writer;
   gdcm::File& file = writer.GetFile();
   gdcm::DataSet& ds = file.GetDataSet();
-  PutText(ds, 0x0008, 0x0016, gdcm::VR::UI, "1.2.840.10008.5.1.4.1.1.2");  // CT Image Storage
+  PutText(ds, 0x0008, 0x0016, gdcm::VR::UI, s.sop_class_uid);
   PutText(ds, 0x0008, 0x0018, gdcm::VR::UI, absl::StrCat(s.series_uid, ".", s.instance));
   PutText(ds, 0x0008, 0x0060, gdcm::VR::CS, s.modality);
   PutText(ds, 0x0008, 0x103e, gdcm::VR::LO, s.description);
