@@ -61,8 +61,8 @@ int DicomReceiveEntry(const uint8_t* data, size_t size);
 // accepts has consistent sizes and in-range indices and serializes back to the same bytes.
 int CheckpointEntry(const uint8_t* data, size_t size);
 
-// Whether the last input of the volume, checkpoint, DICOM, DICOM receive, Upload or CreateVolume entries
-// was accepted (a volume read, an instance stored, an upload stored, a volume created): the
+// Whether the last input of the volume, checkpoint, DICOM, DICOM receive, Upload or CreateVolume
+// entries was accepted (a volume read, an instance stored, an upload stored, a volume created): the
 // replay test checks that the seeds named ok-* are, so the corpora keep inputs that reach past
 // the header checks.
 bool LastInputAccepted();
