@@ -2,12 +2,12 @@
 
 #include <fcntl.h>
 #include <openssl/evp.h>
+#include <sys/stat.h>
 #include <unistd.h>
 
 #include <cerrno>
 #include <cstring>
-#include <fstream>
-#include <sstream>
+#include <string_view>
 #include <type_traits>
 
 #include "absl/strings/str_cat.h"
@@ -45,7 +45,7 @@ class Writer {
 
 class Reader {
  public:
-  explicit Reader(const std::string& in) : in_(in) {}
+  explicit Reader(std::string_view in) : in_(in) {}
 
   template <typename T>
   absl::Status Get(const char* field, T* v) {
@@ -69,7 +69,7 @@ class Reader {
     uint64_t n = 0;
     if (auto st = Get(field, &n); !st.ok()) return st;
     if (n > in_.size() - at_) return Truncated(field);
-    s->assign(in_, at_, n);
+    s->assign(in_.substr(at_, n));
     at_ += n;
     return absl::OkStatus();
   }
@@ -85,7 +85,7 @@ class Reader {
   static absl::Status Truncated(const char* field) {
     return absl::InvalidArgumentError(absl::StrCat("checkpoint: field ", field, " is truncated"));
   }
-  const std::string& in_;
+  std::string_view in_;
   size_t at_ = 0;
 };
 
@@ -134,7 +134,7 @@ absl::Status Errno(const char* what, const std::filesystem::path& path) {
 
 }  // namespace
 
-std::string Sha256Hex(const std::string& bytes) {
+std::string Sha256Hex(std::string_view bytes) {
   unsigned char md[EVP_MAX_MD_SIZE];
   unsigned int len = 0;
   EVP_Digest(bytes.data(), bytes.size(), md, &len, EVP_sha256(), nullptr);
@@ -313,17 +313,35 @@ absl::Status WriteCheckpoint(const std::filesystem::path& path, const std::strin
 
 absl::StatusOr<std::string> ReadCheckpoint(const std::filesystem::path& path,
                                            const std::string& key) {
-  std::ifstream in(path, std::ios::binary);
-  if (!in) return absl::NotFoundError(absl::StrCat("no checkpoint ", path.string()));
-  std::stringstream ss;
-  ss << in.rdbuf();
-  const std::string file = ss.str();
+  // One read into a buffer of the file's size, and no copy of the payload but the final move:
+  // the simplified mesh of a scan is tens to hundreds of MB, read on the resume's critical path.
+  const int fd = ::open(path.c_str(), O_RDONLY | O_CLOEXEC);
+  if (fd < 0) {
+    if (errno == ENOENT) return absl::NotFoundError(absl::StrCat("no checkpoint ", path.string()));
+    return Errno("opening", path);
+  }
+  struct stat st {};
+  if (::fstat(fd, &st) != 0) {
+    absl::Status s = Errno("reading", path);
+    ::close(fd);
+    return s;
+  }
+  std::string file(static_cast<size_t>(st.st_size), '\0');
+  size_t done = 0;
+  while (done < file.size()) {
+    const ssize_t n = ::read(fd, file.data() + done, file.size() - done);
+    if (n < 0 && errno == EINTR) continue;
+    if (n <= 0) break;
+    done += static_cast<size_t>(n);
+  }
+  ::close(fd);
+  file.resize(done);
   const auto refuse = [&](const std::string& why) {
     return absl::FailedPreconditionError(absl::StrCat(path.string(), ": ", why));
   };
   const size_t magic = sizeof kMagic - 1;
   if (file.compare(0, magic, kMagic) != 0) return refuse("not a checkpoint (bad magic)");
-  const std::string rest = file.substr(magic);
+  const std::string_view rest = std::string_view(file).substr(magic);
   Reader r(rest);
   std::string stored_key;
   uint64_t size = 0;
@@ -337,10 +355,12 @@ absl::StatusOr<std::string> ReadCheckpoint(const std::filesystem::path& path,
                                rest.size() < header + 64 ? 0 : rest.size() - header - 64,
                                " bytes, the header says ", size));
   }
-  const std::string sha = rest.substr(header, 64);
-  std::string payload = rest.substr(header + 64);
-  if (Sha256Hex(payload) != sha) return refuse("checksum mismatch (damaged file)");
-  return payload;
+  const std::string_view sha = rest.substr(header, 64);
+  if (Sha256Hex(rest.substr(header + 64)) != sha) {
+    return refuse("checksum mismatch (damaged file)");
+  }
+  file.erase(0, magic + header + 64);
+  return file;
 }
 
 }  // namespace decima::pipeline

@@ -18,6 +18,7 @@
 
 #include <filesystem>
 #include <string>
+#include <string_view>
 
 #include "absl/status/status.h"
 #include "absl/status/statusor.h"
@@ -27,7 +28,7 @@
 namespace decima::pipeline {
 
 // Lower-case hex sha256 of `bytes` (OpenSSL's libcrypto).
-std::string Sha256Hex(const std::string& bytes);
+std::string Sha256Hex(std::string_view bytes);
 
 // Serialization of the two checkpointed stage outputs. Parse* return InvalidArgument naming the
 // field that is truncated or out of range; they never read past `bytes`.

@@ -11,7 +11,9 @@
 # The resumed time is (submit -> paused) + (restarted server healthy -> SUCCEEDED): the job's
 # own time, without the test pause and the server's restart. The uninterrupted time is
 # submit -> SUCCEEDED of the same job without a fault. Job states are polled every 0.2 s.
-# Prints one JSON object.
+# Prints one JSON object, with the pipeline's own stage seconds of the uninterrupted job and of
+# each resumed attempt (a resumed stage's seconds are the time to read its checkpoint), which
+# show the resume's cost apart from the machine's load.
 set -euo pipefail
 build=${1:?usage: resume_bench.sh BUILD_DIR VOLUME [BOUNDARY...]}
 volume=${2:?usage: resume_bench.sh BUILD_DIR VOLUME [BOUNDARY...]}
@@ -79,7 +81,8 @@ uninterrupted=$(python3 -c "print(round($(now) - $t0, 2))")
 memory=$("$cli_bin" --server "$addr" status "$job" -o json | python3 -c '
 import json,sys
 m=json.loads(json.load(sys.stdin).get("metrics_json","{}"))
-print(json.dumps({"pipeline_s": m["seconds"]["total"], "peak_rss_mb": m.get("peak_rss_mb"),
+print(json.dumps({"pipeline_s": m["seconds"]["total"], "seconds": m["seconds"],
+                  "peak_rss_mb": m.get("peak_rss_mb"),
                   "stage_peak_rss_mb": m.get("stage_peak_rss_mb")}))')
 
 results=""
@@ -96,13 +99,14 @@ for b in "${boundaries[@]}"; do
   resumed=$("$cli_bin" --server "$addr" status "$job" -o json | python3 -c '
 import json,sys
 j=json.load(sys.stdin)
-print(json.dumps(json.loads(j.get("metrics_json","{}")).get("resumed_stages")))')
+m=json.loads(j.get("metrics_json","{}"))
+print(json.dumps({"resumed_stages": m.get("resumed_stages"), "seconds": m.get("seconds")}))')
   results+=$(python3 -c "
 import json
 before, after, base = $before, $after, $uninterrupted
 print(json.dumps({'boundary': '$b', 'until_paused_s': round(before, 2),
                   'after_restart_s': round(after, 2), 'resumed_total_s': round(before + after, 2),
-                  'ratio': round((before + after) / base, 3), 'resumed_stages': $resumed}) + ',')")
+                  'ratio': round((before + after) / base, 3), 'resumed_job': $resumed}) + ',')")
 done
 python3 -c "
 import json

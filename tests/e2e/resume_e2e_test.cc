@@ -55,6 +55,11 @@ struct Case {
   int signal;            // what stops the server there
 };
 
+// How ctest and gtest name a case's parameter (instead of its bytes).
+void PrintTo(const Case& c, std::ostream* os) {
+  *os << "pause after " << c.boundary << ", then " << (c.signal == SIGTERM ? "SIGTERM" : "SIGKILL");
+}
+
 std::string CaseName(const ::testing::TestParamInfo<Case>& info) {
   return "After" + std::string(1, char(std::toupper(info.param.boundary[0]))) +
          info.param.boundary.substr(1) + (info.param.signal == SIGTERM ? "Sigterm" : "Sigkill");

@@ -73,10 +73,9 @@ int CheckpointEntry(const uint8_t* data, size_t size);
 int DicomSeriesCheckEntry(const uint8_t* data, size_t size);
 
 // Whether the last input of the volume, checkpoint, DICOM, DICOM receive, series check, Upload
-// or CreateVolume entries
-// was accepted (a volume read, an instance stored, an upload stored, a volume created): the
-// replay test checks that the seeds named ok-* are, so the corpora keep inputs that reach past
-// the header checks.
+// or CreateVolume entries was accepted (a volume read, an instance stored, an upload stored, a
+// volume created): the replay test checks that the seeds named ok-* are, so the corpora keep
+// inputs that reach past the header checks.
 bool LastInputAccepted();
 void SetLastInputAccepted(bool accepted);
 
