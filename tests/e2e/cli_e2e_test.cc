@@ -223,9 +223,9 @@ TEST_F(CliE2E, DefaultArtifactsAreSmallOutputsAreChosenAndFetchOnlyPicks) {
   const std::string job = FirstLine(r.out);
 
   // A name the server does not know is refused at submit, naming the field.
-  r = RunCli(server.address(), {"submit", volume_.string(), "--outputs", "stl"});
+  r = RunCli(server.address(), {"submit", volume_.string(), "--outputs", "obj"});
   EXPECT_EQ(r.rc, 2) << r.err;  // the CLI's own check
-  EXPECT_THAT(r.err, HasSubstr("stl"));
+  EXPECT_THAT(r.err, HasSubstr("obj"));
 
   // fetch --only: file names or kinds; an unknown name lists what there is.
   const fs::path some = scratch_ / "some";

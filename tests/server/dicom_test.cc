@@ -490,7 +490,10 @@ TEST_F(DicomScpTest, HeadersAreReadFromABoundedPrefix) {
   const std::string meta = std::string("\x02\0\0\0UL", 6) + le16(4) +
                            std::string{static_cast<char>(meta_el.size()), 0, 0, 0} + meta_el;
   const std::string series = std::string("\x20\0\x0E\0UI", 6) + le16(4) + std::string("1.2\0", 4);
-  const std::string sop = std::string("\x08\0\x18\0UI", 6) + le16(4) + std::string("1.3\0", 4);
+  // CT Image Storage: the receiver refuses instances that are no slice of a volume.
+  const std::string sop = std::string("\x08\0\x16\0UI", 6) + le16(26) +
+                          std::string("1.2.840.10008.5.1.4.1.1.2\0", 26) +
+                          std::string("\x08\0\x18\0UI", 6) + le16(4) + std::string("1.3\0", 4);
   // 200,000 empty private elements (1.6 MB): a DCMTK tree of them all would take hundreds of MB.
   std::string many;
   for (int i = 0; i < 200000; ++i) many += std::string("\x09\0\x01\x10LO\0\0", 8);

@@ -101,7 +101,7 @@ TEST(NormalizeJobSpec, OutputsAreCaseInsensitiveStoredInOrderAndDefaultSmall) {
   ASSERT_TRUE(n.ok()) << n.status();
   EXPECT_THAT(n->outputs(), ::testing::ElementsAre("msh", "report"));
   EXPECT_EQ(n->vtu_compression_level(), 0);
-  s.add_outputs("stl");
+  s.add_outputs("obj");  // not a kind
   std::string field;
   EXPECT_EQ(NormalizeJobSpec(s, &field).status().code(), absl::StatusCode::kInvalidArgument);
   EXPECT_EQ(field, "spec.outputs");

@@ -17,6 +17,7 @@ import json
 import logging
 import os
 import queue
+import socket
 import time
 import uuid
 
@@ -217,7 +218,25 @@ class Client:
     def _metadata(self):
         return (("authorization", "Bearer " + self.token),) if self.token else ()
 
+    def _tcp_answers(self, seconds=1.0):
+        """Whether something accepts TCP connections at the address (as the CLI checks)."""
+        host, _, port = self.address.rpartition(":")
+        try:
+            with socket.create_connection((host.strip("[]"), int(port)), timeout=seconds):
+                return True
+        except (OSError, ValueError):
+            return False
+
     def _unreachable(self, what, detail):
+        # Something accepts TCP there, so the server may well run: a plaintext call to a TLS
+        # server fails exactly like this. Same words as the CLI's.
+        if not self._tls and self._tcp_answers():
+            return errors.ServerUnreachable(
+                f"{what}: cannot talk to decima-server at {self.address} ({self._source}): "
+                f"{detail}\n  hint: something accepts connections there, so the server may "
+                "serve TLS (decima-server --tls-cert): pass tls=True, with ca_cert=CA.pem for "
+                "a private CA (or DECIMA_CA_CERT)", what=what, server_message=detail,
+                code=grpc.StatusCode.UNAVAILABLE)
         hint = ("\n  hint: is the server running there? Start it with `decima-server --listen "
                 f"{self.address}`, or pass its address to Client() or set DECIMA_SERVER.")
         if self._tls:
