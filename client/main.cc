@@ -219,7 +219,10 @@ std::string NewRequestId() {
 }
 
 // Retries a unary call while the server is UNAVAILABLE (restarting), up to --reconnect, saying
-// so once; never before the first answer (then the address is wrong: fail fast).
+// so once; never before the first answer (then the address is wrong: fail fast). CANCELLED is
+// retried too: the CLI never cancels a unary call itself, so it is a server that shut down with
+// the call in flight (watch streams stay open through a drain, so the watch's last GetJob can
+// land just as the draining server stops).
 template <typename F>
 grpc::Status WithRetry(F call) {
   auto until = std::chrono::steady_clock::now() +
@@ -228,7 +231,8 @@ grpc::Status WithRetry(F call) {
   bool said = false;
   for (;;) {
     grpc::Status s = call();
-    if (s.error_code() != grpc::StatusCode::UNAVAILABLE) {
+    if (s.error_code() != grpc::StatusCode::UNAVAILABLE &&
+        s.error_code() != grpc::StatusCode::CANCELLED) {
       if (s.ok()) ever_connected = true;
       return s;
     }

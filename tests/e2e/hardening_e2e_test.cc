@@ -392,7 +392,10 @@ TEST_F(HardeningE2E, WatchersSurviveAGracefulRestartAndShortJobsFinishInTheDrain
     const std::string drain = std::to_string(8 * kSlowdown);
     ServerProcess server(
         data, {"--listen", listen, "--allow-faults", "--workers", "2", "--drain-seconds", drain});
-    CliResult r = RunCli(listen, {"submit", volume_.string(), "--fault", "sleep:12"});
+    // The first job must outlast the drain (it is requeued and its watcher reconnects): its
+    // pause scales with the drain, since watch streams of running jobs stay open through it.
+    CliResult r = RunCli(
+        listen, {"submit", volume_.string(), "--fault", "sleep:" + std::to_string(12 * kSlowdown)});
     ASSERT_EQ(r.rc, 0) << r.err;
     requeued = FirstLine(r.out);
     r = RunCli(listen, {"submit", volume_.string(), "--fault", "sleep:2"});
