@@ -61,7 +61,8 @@ class Reader {
     if (auto st = Get(field, &n); !st.ok()) return st;
     if (n > kMaxElements || n * sizeof(T) > in_.size() - at_) return Truncated(field);
     v->resize(n);
-    std::memcpy(v->data(), in_.data() + at_, n * sizeof(T));
+    // An empty vector's data() may be null, which memcpy must not get even for 0 bytes.
+    if (n > 0) std::memcpy(v->data(), in_.data() + at_, n * sizeof(T));
     at_ += n * sizeof(T);
     return absl::OkStatus();
   }
