@@ -29,6 +29,7 @@
 #include "absl/strings/str_cat.h"
 #include "core/common/parallel.h"
 #include "core/common/status.h"
+#include "core/mesh/atomic_file.h"
 
 namespace decima {
 namespace {
@@ -39,10 +40,8 @@ constexpr int kMaxRegions = 8;                          // labels and regions ar
 
 std::string PathString(const std::filesystem::path& path) { return path.string(); }
 
-absl::Status IoError(int err, absl::string_view what, const std::filesystem::path& path) {
-  return absl::Status(absl::ErrnoToStatusCode(err),
-                      absl::StrCat(PathString(path), ": ", what, ": ", std::strerror(err)));
-}
+using mesh_detail::AtomicFile;
+using mesh_detail::IoError;
 
 // Checks the size invariants of tet_mesh.h that a writer relies on (indices are checked too, so a
 // file never references a missing vertex).
@@ -72,63 +71,6 @@ absl::Status CheckMeshForWriting(const TetMesh& m, const std::filesystem::path& 
   }
   return absl::OkStatus();
 }
-
-// A file written under a temporary name and renamed over `path` by Commit(); destroyed without
-// Commit() it removes the temporary file.
-class AtomicFile {
- public:
-  AtomicFile() = default;
-  AtomicFile(const AtomicFile&) = delete;
-  AtomicFile& operator=(const AtomicFile&) = delete;
-  ~AtomicFile() {
-    if (file_ != nullptr) std::fclose(file_);
-    if (!committed_ && !tmp_.empty()) {
-      std::error_code ec;
-      std::filesystem::remove(tmp_, ec);
-    }
-  }
-
-  absl::Status Open(const std::filesystem::path& path) {
-    static std::atomic<uint64_t> counter{0};
-    path_ = path;
-    tmp_ = path;
-    tmp_ += absl::StrCat(".tmp-", ::getpid(), "-", counter.fetch_add(1));
-    file_ = std::fopen(tmp_.c_str(), "wb");
-    if (file_ == nullptr) {
-      const int err = errno;
-      tmp_.clear();
-      return IoError(err, "cannot create file", path_);
-    }
-    return absl::OkStatus();
-  }
-
-  absl::Status Write(const void* data, size_t bytes) {
-    if (bytes == 0) return absl::OkStatus();
-    if (std::fwrite(data, 1, bytes, file_) != bytes) return IoError(errno, "write failed", path_);
-    return absl::OkStatus();
-  }
-  absl::Status Write(std::string_view s) { return Write(s.data(), s.size()); }
-
-  absl::Status Commit() {
-    FILE* f = file_;
-    file_ = nullptr;
-    if (std::fflush(f) != 0) {
-      const int err = errno;
-      std::fclose(f);
-      return IoError(err, "write failed", path_);
-    }
-    if (std::fclose(f) != 0) return IoError(errno, "close failed", path_);
-    if (std::rename(tmp_.c_str(), path_.c_str()) != 0)
-      return IoError(errno, "rename failed", path_);
-    committed_ = true;
-    return absl::OkStatus();
-  }
-
- private:
-  std::filesystem::path path_, tmp_;
-  FILE* file_ = nullptr;
-  bool committed_ = false;
-};
 
 // Text formatting into one reusable buffer, flushed to an AtomicFile when full.
 class TextWriter {

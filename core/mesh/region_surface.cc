@@ -11,36 +11,18 @@
 #include <tuple>
 
 #include "absl/strings/str_cat.h"
+#include "core/mesh/atomic_file.h"
 
 namespace decima {
 namespace {
 
-// Writes `bytes` to a temporary file beside `path`, then renames it over `path`.
+// Writes `bytes` to `path` through a temporary file renamed over it (mesh_io's writers do the
+// same), so a failed write leaves nothing behind.
 absl::Status WriteFileAtomically(const std::filesystem::path& path, const std::string& bytes) {
-  std::filesystem::path tmp = path;
-  tmp += ".partial";
-  {
-    std::ofstream out(tmp, std::ios::binary | std::ios::trunc);
-    if (!out) {
-      return absl::UnavailableError(
-          absl::StrCat("cannot write ", tmp.string(), ": ", std::strerror(errno)));
-    }
-    out.write(bytes.data(), static_cast<std::streamsize>(bytes.size()));
-    out.flush();
-    if (!out) {
-      std::error_code ec;
-      std::filesystem::remove(tmp, ec);
-      return absl::UnavailableError(absl::StrCat("writing ", tmp.string(), " failed"));
-    }
-  }
-  std::error_code ec;
-  std::filesystem::rename(tmp, path, ec);
-  if (ec) {
-    std::filesystem::remove(tmp, ec);
-    return absl::UnavailableError(
-        absl::StrCat("cannot rename ", tmp.string(), " to ", path.string(), ": ", ec.message()));
-  }
-  return absl::OkStatus();
+  mesh_detail::AtomicFile file;
+  if (absl::Status s = file.Open(path); !s.ok()) return s;
+  if (absl::Status s = file.Write(bytes); !s.ok()) return s;
+  return file.Commit();
 }
 
 // A JSON string literal of `text` (quotes, backslashes and control characters escaped).

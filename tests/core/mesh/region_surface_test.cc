@@ -15,6 +15,7 @@
 
 #include "core/mesh/tetrahedralize.h"
 #include "core/volume/volume.h"
+#include "tests/testing/test_data.h"
 
 namespace decima {
 namespace {
@@ -145,7 +146,8 @@ TEST(RegionSurface, StlHoldsEveryTriangleWithItsNameAndOutwardNormals) {
   // A 3 mm cube: 6 sides of 9 squares of 2 triangles.
   EXPECT_EQ(surfaces[0].triangle_count(), 6 * 9 * 2);
   ExpectClosedManifold(surfaces[0], 2);
-  const auto path = std::filesystem::path(::testing::TempDir()) / "surface-bone.stl";
+  const std::filesystem::path dir = testing::MakeScratchDir("region_surface_stl");
+  const auto path = dir / "surface-bone.stl";
   ASSERT_TRUE(WriteStl(surfaces[0], "bone", path).ok());
   std::ifstream in(path, std::ios::binary);
   const std::string bytes((std::istreambuf_iterator<char>(in)), std::istreambuf_iterator<char>());
@@ -166,7 +168,10 @@ TEST(RegionSurface, StlHoldsEveryTriangleWithItsNameAndOutwardNormals) {
         3.0f;
     EXPECT_GT(n.dot(centroid - Eigen::Vector3f(1.5f, 1.5f, 1.5f)), 0.0f) << "facet " << f;
   }
-  EXPECT_FALSE(std::filesystem::exists(path.string() + ".partial"));
+  // The STL is the folder's only file: no temporary is left beside it.
+  EXPECT_EQ(std::distance(std::filesystem::directory_iterator(dir),
+                          std::filesystem::directory_iterator()),
+            1);
   // An unwritable place is an error naming it, not a crash.
   const auto bad = WriteStl(surfaces[0], "bone", "/nonexistent-dir/x.stl");
   EXPECT_FALSE(bad.ok());
