@@ -28,7 +28,7 @@
 #include <thread>
 
 #include "decima/v1/jobs.grpc.pb.h"
-#include "server/job_store.h"
+#include "server/store/job_store.h"
 #include "tests/e2e/e2e_util.h"
 #include "tests/testing/postgres_server.h"
 #include "tests/testing/test_data.h"

@@ -18,7 +18,7 @@
 #include "decima/v1/uploads.grpc.pb.h"
 #include "gmock/gmock.h"
 #include "gtest/gtest.h"
-#include "server/sha256.h"
+#include "server/util/sha256.h"
 #include "tests/e2e/e2e_util.h"
 #include "tests/testing/postgres_server.h"
 #include "tests/testing/test_data.h"

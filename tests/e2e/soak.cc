@@ -43,7 +43,7 @@
 #include "decima/v1/jobs.grpc.pb.h"
 #include "decima/v1/uploads.grpc.pb.h"
 #include "decima/v1/volumes.grpc.pb.h"
-#include "server/sha256.h"
+#include "server/util/sha256.h"
 #include "tests/e2e/e2e_util.h"
 
 namespace fs = std::filesystem;

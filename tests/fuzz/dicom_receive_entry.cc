@@ -16,11 +16,11 @@
 #include <vector>
 
 #include "absl/strings/str_split.h"
-#include "server/blob_store.h"
-#include "server/data_dir.h"
-#include "server/dicom_receiver.h"
-#include "server/job_store.h"
-#include "server/sha256.h"
+#include "server/dicom/dicom_receiver.h"
+#include "server/files/blob_store.h"
+#include "server/files/data_dir.h"
+#include "server/store/job_store.h"
+#include "server/util/sha256.h"
 #include "tests/fuzz/fuzz_entries.h"
 #include "tests/fuzz/fuzz_require.h"
 

@@ -1,0 +1,46 @@
+#include "server/jobs/dicom_results.h"
+
+#include "absl/strings/match.h"
+#include "absl/strings/str_cat.h"
+#include "core/io/dicom_export.h"
+#include "core/io/volume_io.h"
+
+namespace decima::server {
+namespace fs = std::filesystem;
+
+absl::Status AddDicomResults(const pipeline::JobSpec& spec, const fs::path& out_dir,
+                             pipeline::JobResult* result) {
+  std::error_code ec;
+  if (!fs::is_directory(spec.input, ec)) return absl::OkStatus();
+  const fs::path labels_path = out_dir / "labels.nii.gz";
+  // The SEG is made from the label map: a job whose outputs leave out "labels" gets none.
+  if (!fs::exists(labels_path, ec)) return absl::OkStatus();
+  auto labels = io::ReadVolume(labels_path);
+  if (!labels.ok()) {
+    return absl::Status(labels.status().code(), absl::StrCat("dicom: ", labels.status().message()));
+  }
+  io::DicomExportOptions o;
+  o.source_dir = spec.input;
+  o.series_instance_uid = spec.series_instance_uid;
+  o.labels = &*labels;
+  o.out_dir = out_dir;
+  for (const auto& a : result->artifacts) {
+    if ((absl::StartsWith(a.name, "comparison") || absl::StartsWith(a.name, "diff")) &&
+        absl::EndsWith(a.name, ".png")) {
+      o.renders.push_back(a.path);
+    }
+  }
+  auto written = io::WriteDicomResults(o);
+  if (!written.ok()) {
+    return absl::Status(written.status().code(),
+                        absl::StrCat("dicom: ", written.status().message()));
+  }
+  auto add = [&](const fs::path& p) {
+    result->artifacts.push_back({p.filename().string(), p, fs::file_size(p, ec)});
+  };
+  add(written->segmentation);
+  for (const auto& p : written->secondary) add(p);
+  return absl::OkStatus();
+}
+
+}  // namespace decima::server
