@@ -73,8 +73,7 @@ Panel MakePanel(const Volume& image, const std::vector<float>& values, const uin
 
 }  // namespace
 
-absl::Status WriteSegmentationMontage(const Volume& image, const Volume& labels,
-                                      const std::filesystem::path& png) {
+absl::StatusOr<Image> SegmentationMontage(const Volume& image, const Volume& labels) {
   DECIMA_RETURN_IF_ERROR(Validate(image, "montage: image"));
   DECIMA_RETURN_IF_ERROR(Validate(labels, "montage: labels"));
   if (labels.type != VoxelType::kUInt8 || !SameGrid(image, labels)) {
@@ -129,7 +128,12 @@ absl::Status WriteSegmentationMontage(const Volume& image, const Volume& labels,
     height = std::max(height, p.height);
   }
   width += kGap * (static_cast<int>(panels.size()) - 1);
-  std::vector<uint8_t> rgb(static_cast<size_t>(width) * height * 3, 0);
+  Image montage;
+  montage.width = width;
+  montage.height = height;
+  montage.channels = 3;
+  std::vector<uint8_t>& rgb = montage.pixels;
+  rgb.assign(static_cast<size_t>(width) * height * 3, 0);
   int x0 = 0;
   for (const Panel& p : panels) {
     for (int r = 0; r < p.height; ++r) {
@@ -149,7 +153,13 @@ absl::Status WriteSegmentationMontage(const Volume& image, const Volume& labels,
     }
     x0 += p.width + kGap;
   }
-  return WritePng(png, width, height, 3, rgb.data());
+  return montage;
+}
+
+absl::Status WriteSegmentationMontage(const Volume& image, const Volume& labels,
+                                      const std::filesystem::path& png) {
+  DECIMA_ASSIGN_OR_RETURN(const Image montage, SegmentationMontage(image, labels));
+  return WritePng(png, montage);
 }
 
 }  // namespace decima

@@ -5,14 +5,20 @@
 #include <filesystem>
 
 #include "absl/status/status.h"
+#include "absl/status/statusor.h"
+#include "core/io/png.h"
 #include "core/volume/volume.h"
 
 namespace decima {
 
-// Writes a PNG montage of three orthogonal slices through the volume centre (axial | coronal |
+// The montage of three orthogonal slices through the volume centre (axial | coronal |
 // sagittal, each at its physical aspect ratio) with the labels as a coloured overlay and the
 // interfaces drawn solid, like the paper's Fig. 2. Grey levels window the image between its
-// 1st and 99th percentile. `labels` must be uint8 on the image's grid. Overwrites `png`.
+// 1st and 99th percentile. `labels` must be uint8 on the image's grid (InvalidArgument
+// otherwise). An RGB image, so that a caller can add a caption before writing it.
+absl::StatusOr<Image> SegmentationMontage(const Volume& image, const Volume& labels);
+
+// SegmentationMontage written as a PNG file; overwrites `png`.
 absl::Status WriteSegmentationMontage(const Volume& image, const Volume& labels,
                                       const std::filesystem::path& png);
 

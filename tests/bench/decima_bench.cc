@@ -37,6 +37,7 @@
 #include "core/render/transfer_function.h"
 #include "core/segment/segment.h"
 #include "core/simplify/simplify.h"
+#include "core/simplify/simplify_json.h"
 #include "core/volume/phantom.h"
 #include "tests/bench/bench_util.h"
 
@@ -177,21 +178,11 @@ absl::Status RunSimplify(const BenchOptions& o, BenchState& state, Json& out) {
   });
   if (!s.ok()) return s;
   const SimplifyResult& r = *state.simplified;
-  out["policy"] = o.policy;
-  out["target_reduction"] = o.reduction;
+  out.update(SimplifyResultToJson(r, so, state.mesh->vertex_count()));
   if (so.policy == SimplifyPolicy::kField) {
     out["min_dihedral_degrees"] = o.min_dihedral;
     out["refit_iterations"] = o.refit_iterations;
   }
-  out["achieved_reduction"] = r.achieved_reduction;
-  out["reached_target"] = r.reached_target;
-  out["stop_reason"] = StopReasonName(r.stop_reason);
-  out["stop_message"] = r.stop_message;
-  out["passes"] = r.passes;
-  out["cells_before"] = r.input_cells;
-  out["cells_after"] = r.output_cells;
-  out["vertices_before"] = state.mesh->vertex_count();
-  out["vertices_after"] = r.mesh.vertex_count();
   out["cells_removed_per_second"] = (r.input_cells - r.output_cells) / out["seconds"].get<double>();
 
   FidelityOptions fo;
