@@ -179,10 +179,16 @@ class JobStore {
   virtual absl::StatusOr<std::vector<v1::JobEvent>> ListEvents(const std::string& id, int64_t after,
                                                                int limit) = 0;
 
-  // Volumes. CreateVolume with a used non-empty request_id returns the first volume. The
-  // creator is the stored proto's Volume.creator (set by the caller).
+  // Volumes. CreateVolume with a used non-empty request_id returns the first volume; else, with
+  // a non-empty `content_key` (VolumeContentKey, volume_catalog.h) that a stored volume of the
+  // same creator has, that volume. Either way `*created` = false. Two creates of one content
+  // by one creator, also concurrent ones through several replicas, make one row; another
+  // creator's volume is never returned by content. The creator is the stored proto's
+  // Volume.creator (set by the caller).
   virtual absl::StatusOr<v1::Volume> CreateVolume(const std::string& id, const v1::Volume& volume,
-                                                  const std::string& request_id, bool* created) = 0;
+                                                  const std::string& request_id,
+                                                  const std::string& content_key,
+                                                  bool* created) = 0;
   virtual absl::StatusOr<v1::Volume> GetVolume(const std::string& id) = 0;
   // Newest first; `creator` non-empty: only volumes whose Volume.creator equals it.
   virtual absl::StatusOr<VolumePage> ListVolumes(const std::string& creator, int page_size,

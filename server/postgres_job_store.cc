@@ -123,6 +123,12 @@ const char* const kMigrations[] = {
       ALTER TABLE dicom_series ADD CONSTRAINT dicom_series_receive_key UNIQUE(receive_key);
       ALTER TABLE dicom_series DROP CONSTRAINT dicom_series_instance_set_key;
     )sql",
+    // 5: volumes found by content (VolumeContentKey, volume_catalog.h): one row per creator and
+    // content, also when replicas create it at once. NULL for rows from before (never reused).
+    R"sql(
+      ALTER TABLE volumes ADD COLUMN content_key TEXT;
+      CREATE UNIQUE INDEX volumes_by_content ON volumes(creator, content_key);
+    )sql",
 };
 static_assert(v1::RUNNING == 2, "migration 1's partial index names RUNNING as 2");
 
@@ -570,26 +576,36 @@ class PostgresJobStore : public JobStore {
   }
 
   absl::StatusOr<v1::Volume> CreateVolume(const std::string& id, const v1::Volume& volume,
-                                          const std::string& request_id, bool* created) override {
+                                          const std::string& request_id,
+                                          const std::string& content_key, bool* created) override {
     *created = false;
     bool made = false;
     auto out = Run<absl::StatusOr<v1::Volume>>(
         "creating a volume", [&](pqxx::work& w) -> absl::StatusOr<v1::Volume> {
           made = false;
           auto existing = [&]() -> std::optional<absl::StatusOr<v1::Volume>> {
-            if (request_id.empty()) return std::nullopt;
-            auto r = w.exec_params("SELECT volume FROM volumes WHERE request_id=$1", request_id);
-            if (r.empty()) return std::nullopt;
-            return ParseVolume(r[0][0]);
+            if (!request_id.empty()) {
+              auto r = w.exec_params("SELECT volume FROM volumes WHERE request_id=$1", request_id);
+              if (!r.empty()) return ParseVolume(r[0][0]);
+            }
+            if (!content_key.empty()) {
+              auto r =
+                  w.exec_params("SELECT volume FROM volumes WHERE creator=$1 AND content_key=$2",
+                                volume.creator(), content_key);
+              if (!r.empty()) return ParseVolume(r[0][0]);
+            }
+            return std::nullopt;
           };
           if (auto e = existing()) return *e;
+          // Without a conflict target: a concurrent create of the same request id or of the
+          // same creator and content (another replica's) leaves its row to be answered.
           auto ins = w.exec_params(
-              "INSERT INTO volumes(id, request_id, volume, creator) VALUES($1,NULLIF($2,''),$3,$4) "
-              "ON CONFLICT (request_id) DO NOTHING RETURNING ord",
-              id, request_id, Bytes(volume), volume.creator());
+              "INSERT INTO volumes(id, request_id, volume, creator, content_key) "
+              "VALUES($1,NULLIF($2,''),$3,$4,NULLIF($5,'')) ON CONFLICT DO NOTHING RETURNING ord",
+              id, request_id, Bytes(volume), volume.creator(), content_key);
           if (ins.empty()) {
             if (auto e = existing()) return *e;
-            return absl::AbortedError("job store: request_id conflict without a row; retry");
+            return absl::AbortedError("job store: volume conflict without a row; retry");
           }
           for (const auto& f : volume.files()) {
             w.exec_params(

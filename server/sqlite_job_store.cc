@@ -114,7 +114,8 @@ class SqliteJobStore : public JobStore {
         id TEXT UNIQUE NOT NULL,
         request_id TEXT UNIQUE,
         volume BLOB NOT NULL,
-        creator TEXT NOT NULL DEFAULT '');
+        creator TEXT NOT NULL DEFAULT '',
+        content_key TEXT);
       CREATE TABLE IF NOT EXISTS volume_blobs(
         volume_id TEXT NOT NULL, sha256 TEXT NOT NULL,
         PRIMARY KEY(volume_id, sha256)) WITHOUT ROWID;
@@ -165,6 +166,20 @@ class SqliteJobStore : public JobStore {
                      .c_str()));
       }
     }
+    // Data dirs created before volumes were found by content: the column, NULL for the old
+    // rows, which are then never reused (the next create of their content makes the row that
+    // later ones reuse). The index makes one row per creator and content (NULLs are distinct).
+    bool has_content_key = false;
+    {
+      Stmt c(db_, "SELECT COUNT(*) FROM pragma_table_info('volumes') WHERE name='content_key'");
+      if (c.Step() != SQLITE_ROW) return c.Error("reading the schema");
+      has_content_key = c.Int(0) > 0;
+    }
+    if (!has_content_key) {
+      DECIMA_RETURN_IF_ERROR_LOCAL(Exec("ALTER TABLE volumes ADD COLUMN content_key TEXT"));
+    }
+    DECIMA_RETURN_IF_ERROR_LOCAL(Exec(
+        "CREATE UNIQUE INDEX IF NOT EXISTS volumes_by_content ON volumes(creator, content_key)"));
     // Data dirs whose receiver tables predate the persisted abort mark and the
     // ReceivedSeries fields: the columns, zero / "" for the old rows (their state is then
     // derived from job and reason, dicom_receiver.cc).
@@ -543,7 +558,8 @@ class SqliteJobStore : public JobStore {
   }
 
   absl::StatusOr<v1::Volume> CreateVolume(const std::string& id, const v1::Volume& volume,
-                                          const std::string& request_id, bool* created) override {
+                                          const std::string& request_id,
+                                          const std::string& content_key, bool* created) override {
     std::lock_guard<std::mutex> lock(mu_);
     *created = false;
     if (!request_id.empty()) {
@@ -551,9 +567,15 @@ class SqliteJobStore : public JobStore {
       q.Bind(1, request_id);
       if (q.Step() == SQLITE_ROW) return ParseVolume(q.Text(0));
     }
+    if (!content_key.empty()) {
+      Stmt q(db_, "SELECT volume FROM volumes WHERE creator=? AND content_key=?");
+      q.Bind(1, volume.creator()).Bind(2, content_key);
+      if (q.Step() == SQLITE_ROW) return ParseVolume(q.Text(0));
+    }
     Tx tx(this);
     if (!tx.ok()) return tx.status();
-    Stmt ins(db_, "INSERT INTO volumes(id, request_id, volume, creator) VALUES(?,?,?,?)");
+    Stmt ins(db_,
+             "INSERT INTO volumes(id, request_id, volume, creator, content_key) VALUES(?,?,?,?,?)");
     ins.Bind(1, id);
     if (request_id.empty()) {
       ins.BindNull(2);
@@ -562,6 +584,11 @@ class SqliteJobStore : public JobStore {
     }
     ins.BindBlob(3, volume.SerializeAsString());
     ins.Bind(4, volume.creator());
+    if (content_key.empty()) {
+      ins.BindNull(5);
+    } else {
+      ins.Bind(5, content_key);
+    }
     if (ins.Step() != SQLITE_DONE) return ins.Error("inserting volume");
     for (const auto& f : volume.files()) {
       Stmt b(db_, "INSERT OR IGNORE INTO volume_blobs(volume_id, sha256) VALUES(?,?)");

@@ -8,6 +8,7 @@
 
 #include <sqlite3.h>
 
+#include "absl/strings/escaping.h"
 #include "gmock/gmock.h"
 #include "gtest/gtest.h"
 #include "server/job_store.h"
@@ -260,9 +261,9 @@ TEST_P(JobStoreTest, CreatorIsStoredAndFiltersListingsPageByPage) {
   v1::Volume v;
   v.set_creator("bob");
   bool created = false;
-  ASSERT_TRUE(store_->CreateVolume("vb", v, "", &created).ok());
+  ASSERT_TRUE(store_->CreateVolume("vb", v, "", "", &created).ok());
   v.set_creator("alice");
-  ASSERT_TRUE(store_->CreateVolume("va", v, "", &created).ok());
+  ASSERT_TRUE(store_->CreateVolume("va", v, "", "", &created).ok());
   auto bobs = store_->ListVolumes("bob", 10, "");
   ASSERT_TRUE(bobs.ok());
   ASSERT_EQ(bobs->volumes.size(), 1u);
@@ -284,7 +285,7 @@ TEST_P(JobStoreTest, VolumeInUseCannotBeDeleted) {
   v1::Volume v;
   v.add_files()->set_blob("blobs/" + std::string(64, 'a'));
   bool created = false;
-  ASSERT_TRUE(store_->CreateVolume("v1", v, "", &created).ok());
+  ASSERT_TRUE(store_->CreateVolume("v1", v, "", "", &created).ok());
   EXPECT_TRUE(*store_->BlobInUse(std::string(64, 'a')));
   Create("a");  // reads volumes/v1
   EXPECT_EQ(store_->DeleteVolume("v1").code(), absl::StatusCode::kFailedPrecondition);
@@ -299,7 +300,7 @@ TEST_P(JobStoreTest, LabelMapOfAQueuedJobCannotBeDeleted) {
   for (const char* id : {"v1", "labels"}) {
     v1::Volume v;
     v.add_files()->set_blob("blobs/" + std::string(64, id[0]));
-    ASSERT_TRUE(store_->CreateVolume(id, v, "", &created).ok());
+    ASSERT_TRUE(store_->CreateVolume(id, v, "", "", &created).ok());
   }
   v1::JobSpec spec;
   spec.set_volume("volumes/v1");
@@ -310,6 +311,56 @@ TEST_P(JobStoreTest, LabelMapOfAQueuedJobCannotBeDeleted) {
   EXPECT_THAT(std::string(st.message()), HasSubstr("label map"));
   ASSERT_TRUE(store_->Cancel("a").ok());
   EXPECT_TRUE(store_->DeleteVolume("labels").ok());
+}
+
+// CreateVolume by content (issue 35 part 7): the same creator and key answer the first row,
+// another creator's key is another row, a deleted volume is not answered again, and the key
+// survives reopening the store.
+TEST_P(JobStoreTest, VolumesAreFoundByCreatorAndContentKeyUntilDeleted) {
+  const std::string key(64, 'c');
+  v1::Volume v;
+  v.add_files()->set_blob("blobs/" + std::string(64, 'a'));
+  v.set_creator("alice");
+  v.set_display_name("first");
+  bool created = false;
+  ASSERT_TRUE(store_->CreateVolume("v1", v, "", key, &created).ok());
+  EXPECT_TRUE(created);
+  v.set_name("volumes/ignored");
+  v.set_display_name("second");
+  auto again = store_->CreateVolume("v2", v, "", key, &created);
+  ASSERT_TRUE(again.ok()) << again.status();
+  EXPECT_FALSE(created);
+  EXPECT_EQ(again->display_name(), "first");
+  EXPECT_EQ(store_->GetVolume("v2").status().code(), absl::StatusCode::kNotFound);
+
+  v.set_creator("bob");
+  auto bobs = store_->CreateVolume("v3", v, "", key, &created);
+  ASSERT_TRUE(bobs.ok()) << bobs.status();
+  EXPECT_TRUE(created);
+  EXPECT_EQ(bobs->display_name(), "second");
+
+  // Without a key (a store's own callers, rows from before keys): never found by content.
+  ASSERT_TRUE(store_->CreateVolume("v4", v, "", "", &created).ok());
+  EXPECT_TRUE(created);
+  ASSERT_TRUE(store_->CreateVolume("v5", v, "", "", &created).ok());
+  EXPECT_TRUE(created);
+
+  store_.reset();
+  auto reopened = Reopen();
+  ASSERT_TRUE(reopened.ok()) << reopened.status();
+  store_ = std::move(*reopened);
+  v.set_creator("alice");
+  auto after = store_->CreateVolume("v6", v, "", key, &created);
+  ASSERT_TRUE(after.ok());
+  EXPECT_FALSE(created);
+  EXPECT_EQ(store_->GetVolume("v1")->display_name(), "first");
+  ASSERT_TRUE(store_->DeleteVolume("v1").ok());
+  auto fresh = store_->CreateVolume("v7", v, "", key, &created);
+  ASSERT_TRUE(fresh.ok()) << fresh.status();
+  EXPECT_TRUE(created);
+  EXPECT_TRUE(store_->GetVolume("v7").ok());
+  EXPECT_EQ(store_->ListVolumes("alice", 10, "")->volumes.size(), 1u);
+  EXPECT_EQ(store_->ListVolumes("bob", 10, "")->volumes.size(), 3u);
 }
 
 // The DICOM receiver's state (dicom_receiver.h): received instances, the persisted abort mark
@@ -474,6 +525,43 @@ TEST_P(JobStoreTest, CompactGivesDeletedJobsSpaceBack) {
 // UID alone, a series row unique by instance set) opens with its rows kept and the new keys in
 // force: another sender's instance of the same SOP Instance UID is its own row, and a later
 // receive of the same set gets its own row.
+// A data dir from before volumes had content keys: the column is added, the old row stays (and
+// is not found by content), and new volumes are found by content from then on.
+TEST(SqliteJobStoreMigrationTest, VolumesFromBeforeContentKeysKeepTheirRows) {
+  const auto path = (testing::MakeScratchDir("volume_migration") / "jobs.sqlite").string();
+  sqlite3* db = nullptr;
+  ASSERT_EQ(sqlite3_open(path.c_str(), &db), SQLITE_OK);
+  v1::Volume old;
+  old.set_name("volumes/old");
+  old.set_creator("alice");
+  const std::string bytes = old.SerializeAsString();
+  const std::string kBefore = R"sql(
+    CREATE TABLE volumes(
+      ord INTEGER PRIMARY KEY AUTOINCREMENT,
+      id TEXT UNIQUE NOT NULL,
+      request_id TEXT UNIQUE,
+      volume BLOB NOT NULL,
+      creator TEXT NOT NULL DEFAULT '');
+    INSERT INTO volumes(id, volume, creator) VALUES('old', X')sql" +
+                              absl::BytesToHexString(bytes) + R"sql(', 'alice');
+  )sql";
+  ASSERT_EQ(sqlite3_exec(db, kBefore.c_str(), nullptr, nullptr, nullptr), SQLITE_OK)
+      << sqlite3_errmsg(db);
+  sqlite3_close(db);
+
+  auto store = OpenSqliteJobStore(path);
+  ASSERT_TRUE(store.ok()) << store.status();
+  EXPECT_EQ((*store)->GetVolume("old")->name(), "volumes/old");
+  bool created = false;
+  const std::string key(64, 'd');
+  ASSERT_TRUE((*store)->CreateVolume("new", old, "", key, &created).ok());
+  EXPECT_TRUE(created);
+  auto again = (*store)->CreateVolume("newer", old, "", key, &created);
+  ASSERT_TRUE(again.ok()) << again.status();
+  EXPECT_FALSE(created);
+  EXPECT_EQ((*store)->ListVolumes("alice", 10, "")->volumes.size(), 2u);
+}
+
 TEST(SqliteJobStoreMigrationTest, ReceiverTablesFromBeforeSenderKeysAreUpgradedWithTheirRows) {
   const auto path = (testing::MakeScratchDir("dicom_migration") / "jobs.sqlite").string();
   sqlite3* db = nullptr;
