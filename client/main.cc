@@ -1877,7 +1877,7 @@ int main(int argc, char** argv) {
     const bool wide = g.output == "wide";
     std::vector<std::vector<std::string>> rows = {
         {"SERIES", "FROM", "TO", "INSTANCES", "STATE", "JOB / REASON", "FIRST", "LAST"}};
-    if (wide) rows[0].insert(rows[0].end(), {"ROUTE", "OWNER", "RESULTS"});
+    if (wide) rows[0].insert(rows[0].end(), {"ROUTE", "OWNER", "ASSOCIATION", "RESULTS"});
     for (int page = 0; page < 1000; ++page) {
       v1::ListReceivedSeriesResponse resp;
       grpc::Status s =
@@ -1900,8 +1900,10 @@ int main(int argc, char** argv) {
                         what.empty() ? "-" : (wide ? what : what.substr(0, 100)),
                         FormatTime(r.first_receive_time()), FormatTime(r.last_receive_time())});
         if (wide) {
-          rows.back().insert(rows.back().end(), {r.route().empty() ? "-" : r.route(), r.owner(),
-                                                 r.send_status().empty() ? "-" : r.send_status()});
+          rows.back().insert(rows.back().end(),
+                             {r.route().empty() ? "-" : r.route(), r.owner(),
+                              r.association_id().empty() ? "-" : r.association_id(),
+                              r.send_status().empty() ? "-" : r.send_status()});
         }
       }
       if (!ContinueListing(resp.next_page_token(), series_all)) break;

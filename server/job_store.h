@@ -77,6 +77,9 @@ struct DicomInstanceRecord {
   // was held (0 never): stored, so a restart still queues no job for a series cut short.
   int64_t aborted_ms = 0;
   int64_t size_bytes = 0;  // of the file: a sender's waiting bytes count against its quota
+  // The association that brought it (DicomReceiver: an id per accepted association); "" for
+  // instances stored before associations had ids.
+  std::string association_id;
 };
 
 // One receive of a series: the instances of one sender's series checked together (or refused,
@@ -102,6 +105,8 @@ struct DicomSeriesRecord {
   std::string calling_ae, called_ae;  // of the newest instance
   int instance_count = 0;
   int64_t first_received_ms = 0, last_received_ms = 0;
+  // The association of the newest instance (decima.v1.ReceivedSeries.association_id).
+  std::string association_id;
 };
 
 bool IsFinal(v1::JobState state);

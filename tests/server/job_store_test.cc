@@ -368,11 +368,15 @@ TEST_P(JobStoreTest, VolumesAreFoundByCreatorAndContentKeyUntilDeleted) {
 // step, and every receive keeps its own row.
 TEST_P(JobStoreTest, DicomReceiverStateSurvivesReopeningAndAJobConsumesItsInstances) {
   const std::string aa(64, 'a'), bb(64, 'b');
-  ASSERT_TRUE(store_->PutDicomInstance({"s1", "i1", aa, "ORTHANC", "DECIMA", 1, 0, 10}).ok());
-  ASSERT_TRUE(store_->PutDicomInstance({"s1", "i2", bb, "ORTHANC", "DECIMA", 2, 0, 20}).ok());
-  ASSERT_TRUE(store_->PutDicomInstance({"s2", "k1", bb, "OTHER", "DECIMA", 2, 0, 20}).ok());
-  // The same SOP instance with the same bytes again replaces its row and moves to the end.
-  ASSERT_TRUE(store_->PutDicomInstance({"s1", "i1", aa, "ORTHANC", "DECIMA", 3, 0, 10}).ok());
+  ASSERT_TRUE(
+      store_->PutDicomInstance({"s1", "i1", aa, "ORTHANC", "DECIMA", 1, 0, 10, "assoc-1"}).ok());
+  ASSERT_TRUE(
+      store_->PutDicomInstance({"s1", "i2", bb, "ORTHANC", "DECIMA", 2, 0, 20, "assoc-1"}).ok());
+  ASSERT_TRUE(store_->PutDicomInstance({"s2", "k1", bb, "OTHER", "DECIMA", 2, 0, 20, "x"}).ok());
+  // The same SOP instance with the same bytes again replaces its row and moves to the end, with
+  // the association that brought it this time.
+  ASSERT_TRUE(
+      store_->PutDicomInstance({"s1", "i1", aa, "ORTHANC", "DECIMA", 3, 0, 10, "assoc-2"}).ok());
   ASSERT_TRUE(store_->MarkDicomSeriesAborted("ORTHANC", "s1", 4).ok());
   EXPECT_TRUE(*store_->BlobInUse(aa));
   EXPECT_FALSE(*store_->BlobInUse(std::string(64, 'c')));
@@ -383,6 +387,7 @@ TEST_P(JobStoreTest, DicomReceiverStateSurvivesReopeningAndAJobConsumesItsInstan
   incomplete.instance_count = 2;
   incomplete.first_received_ms = 2;
   incomplete.last_received_ms = 3;
+  incomplete.association_id = "assoc-2";
   ASSERT_TRUE(store_->PutDicomSeries(incomplete, {}).ok());
 
   store_.reset();  // a restart
@@ -395,6 +400,8 @@ TEST_P(JobStoreTest, DicomReceiverStateSurvivesReopeningAndAJobConsumesItsInstan
   EXPECT_EQ((*instances)[0].sop_instance_uid, "i2");  // arrival order, i1 re-sent last
   EXPECT_EQ((*instances)[0].aborted_ms, 4);
   EXPECT_EQ((*instances)[0].size_bytes, 20);
+  EXPECT_EQ((*instances)[0].association_id, "assoc-1");
+  EXPECT_EQ((*instances)[2].association_id, "assoc-2");
   EXPECT_EQ((*instances)[1].aborted_ms, 0);  // another series
   EXPECT_EQ((*instances)[2].sop_instance_uid, "i1");
   EXPECT_EQ((*instances)[2].received_ms, 3);
@@ -411,6 +418,7 @@ TEST_P(JobStoreTest, DicomReceiverStateSurvivesReopeningAndAJobConsumesItsInstan
   EXPECT_EQ(c.instance_count, 2);
   EXPECT_EQ(c.first_received_ms, 2);
   EXPECT_EQ(c.last_received_ms, 3);
+  EXPECT_EQ(c.association_id, "assoc-2");
 
   DicomSeriesRecord queued = Check("set-b", "s1", "jobs/j1", "", v1::ReceivedSeries::QUEUED);
   queued.calling_ae = "ORTHANC";
@@ -431,12 +439,15 @@ TEST_P(JobStoreTest, DicomReceiverStateSurvivesReopeningAndAJobConsumesItsInstan
   // The same set sent again later is another receive: a row of its own, the first one kept.
   DicomSeriesRecord again = queued;
   again.receive_key = "set-b@later";
+  again.association_id = "assoc-3";
   again.state = v1::ReceivedSeries::QUEUED;
   again.send_status.clear();
   ASSERT_TRUE(store_->PutDicomSeries(again, {}).ok());
   auto all = store_->ListDicomSeries(false, 10);
   ASSERT_EQ(all->size(), 3u);
   EXPECT_EQ((*all)[0].receive_key, "set-b@later");  // newest first
+  EXPECT_EQ((*all)[0].association_id, "assoc-3");
+  EXPECT_EQ((*all)[1].association_id, "");
   EXPECT_EQ((*all)[1].send_status, "sent: 3 instances");
   EXPECT_EQ((*all)[1].state, v1::ReceivedSeries::SENT);
   EXPECT_EQ((*all)[2].reason, "incomplete: 1 slice(s) missing");
@@ -448,11 +459,11 @@ TEST_P(JobStoreTest, DicomReceiverStateSurvivesReopeningAndAJobConsumesItsInstan
 // same sender's instance with other bytes is refused, the first bytes kept.
 TEST_P(JobStoreTest, DicomInstancesAreKeptPerSenderAndOtherBytesAreRefused) {
   const std::string aa(64, 'a'), bb(64, 'b');
-  ASSERT_TRUE(store_->PutDicomInstance({"s1", "i1", aa, "ORTHANC", "DECIMA", 1, 0, 100}).ok());
-  ASSERT_TRUE(store_->PutDicomInstance({"s1", "i2", aa, "ORTHANC", "DECIMA", 2, 0, 100}).ok());
-  ASSERT_TRUE(store_->PutDicomInstance({"s1", "i1", bb, "EVIL", "DECIMA", 3, 0, 7}).ok());
+  ASSERT_TRUE(store_->PutDicomInstance({"s1", "i1", aa, "ORTHANC", "DECIMA", 1, 0, 100, ""}).ok());
+  ASSERT_TRUE(store_->PutDicomInstance({"s1", "i2", aa, "ORTHANC", "DECIMA", 2, 0, 100, ""}).ok());
+  ASSERT_TRUE(store_->PutDicomInstance({"s1", "i1", bb, "EVIL", "DECIMA", 3, 0, 7, ""}).ok());
   const absl::Status replaced =
-      store_->PutDicomInstance({"s1", "i1", bb, "ORTHANC", "DECIMA", 4, 0, 7});
+      store_->PutDicomInstance({"s1", "i1", bb, "ORTHANC", "DECIMA", 4, 0, 7, ""});
   EXPECT_EQ(replaced.code(), absl::StatusCode::kAlreadyExists) << replaced;
   EXPECT_THAT(std::string(replaced.message()), HasSubstr("i1"));
   auto instances = store_->ListDicomInstances();
@@ -477,7 +488,7 @@ TEST_P(JobStoreTest, DicomInstancesAreKeptPerSenderAndOtherBytesAreRefused) {
   EXPECT_TRUE(*store_->BlobInUse(aa));
   EXPECT_FALSE(*store_->BlobInUse(bb));
   // Removed (expiry, delete): the sender's series only, returned for their blobs.
-  ASSERT_TRUE(store_->PutDicomInstance({"s1", "i3", bb, "EVIL", "DECIMA", 5, 0, 7}).ok());
+  ASSERT_TRUE(store_->PutDicomInstance({"s1", "i3", bb, "EVIL", "DECIMA", 5, 0, 7, ""}).ok());
   auto removed = store_->RemoveDicomInstances("ORTHANC", "s1");
   ASSERT_TRUE(removed.ok()) << removed.status();
   ASSERT_EQ(removed->size(), 2u);
@@ -605,10 +616,11 @@ TEST(SqliteJobStoreMigrationTest, ReceiverTablesFromBeforeSenderKeysAreUpgradedW
   ASSERT_EQ(instances->size(), 2u);
   EXPECT_EQ((*instances)[1].sop_instance_uid, "i2");
   EXPECT_EQ((*instances)[1].aborted_ms, 5);
+  EXPECT_EQ((*instances)[1].association_id, "");  // the column added after the rebuild
   EXPECT_TRUE(*(*store)->BlobInUse("bb"));
-  ASSERT_TRUE((*store)->PutDicomInstance({"s1", "i1", "cc", "EVIL", "DECIMA", 9, 0, 1}).ok());
+  ASSERT_TRUE((*store)->PutDicomInstance({"s1", "i1", "cc", "EVIL", "DECIMA", 9, 0, 1, ""}).ok());
   EXPECT_EQ((*store)->ListDicomInstances()->size(), 3u);
-  EXPECT_EQ((*store)->PutDicomInstance({"s1", "i1", "cc", "ORTHANC", "DECIMA", 9, 0, 1}).code(),
+  EXPECT_EQ((*store)->PutDicomInstance({"s1", "i1", "cc", "ORTHANC", "DECIMA", 9, 0, 1, ""}).code(),
             absl::StatusCode::kAlreadyExists);
   auto rows = (*store)->ListDicomSeries(true, 10);
   ASSERT_TRUE(rows.ok()) << rows.status();

@@ -42,14 +42,14 @@ TEST(PostgresJobStoreTest, ReplicasStartingTogetherApplyTheSchemaOnce) {
   const std::string db = dsn.substr(dsn.rfind('/') + 1);
   EXPECT_EQ(
       SharedPostgres()->Sql("SELECT COUNT(*), MAX(version) FROM decima_schema_migrations", db),
-      "5|5");  // every migration once (2: creator columns, 3: DICOM receiver tables, 4: keyed
-               // by sender, 5: volume content keys)
+      "6|6");  // every migration once (2: creator columns, 3: DICOM receiver tables, 4: keyed
+               // by sender, 5: volume content keys, 6: DICOM association ids)
 }
 
 // A database at schema version 3, whose receiver tables kept an instance unique by SOP Instance
 // UID alone and a series row unique by instance set, upgrades (migration 4) with its rows kept
 // and the sender keys in force; its volumes get content keys (migration 5, NULL for the old
-// row).
+// row) and its receiver rows association ids ("" for the old rows, migration 6).
 TEST(PostgresJobStoreTest, ReceiverTablesOfVersion3AreKeyedBySenderWithTheirRows) {
   DECIMA_REQUIRE_POSTGRES();
   const std::string dsn = FreshDatabase();
@@ -98,21 +98,23 @@ TEST(PostgresJobStoreTest, ReceiverTablesOfVersion3AreKeyedBySenderWithTheirRows
                                     db));
   auto store = OpenPostgres(dsn);
   ASSERT_TRUE(store.ok()) << store.status();
-  EXPECT_EQ(SharedPostgres()->Sql("SELECT MAX(version) FROM decima_schema_migrations", db), "5");
+  EXPECT_EQ(SharedPostgres()->Sql("SELECT MAX(version) FROM decima_schema_migrations", db), "6");
   EXPECT_EQ(SharedPostgres()->Sql("SELECT COUNT(*) FROM volumes WHERE content_key IS NULL", db),
             "1");
   auto instances = (*store)->ListDicomInstances();
   ASSERT_TRUE(instances.ok()) << instances.status();
   ASSERT_EQ(instances->size(), 1u);
   EXPECT_EQ((*instances)[0].size_bytes, 0);
-  ASSERT_TRUE((*store)->PutDicomInstance({"s1", "i1", "bb", "EVIL", "DECIMA", 2, 0, 1}).ok());
+  EXPECT_EQ((*instances)[0].association_id, "");
+  ASSERT_TRUE((*store)->PutDicomInstance({"s1", "i1", "bb", "EVIL", "DECIMA", 2, 0, 1, ""}).ok());
   EXPECT_EQ((*store)->ListDicomInstances()->size(), 2u);
-  EXPECT_EQ((*store)->PutDicomInstance({"s1", "i1", "bb", "ORTHANC", "DECIMA", 3, 0, 1}).code(),
+  EXPECT_EQ((*store)->PutDicomInstance({"s1", "i1", "bb", "ORTHANC", "DECIMA", 3, 0, 1, ""}).code(),
             absl::StatusCode::kAlreadyExists);
   auto rows = (*store)->ListDicomSeries(true, 10);
   ASSERT_TRUE(rows.ok()) << rows.status();
   ASSERT_EQ(rows->size(), 1u);
   EXPECT_EQ((*rows)[0].receive_key, "set-x");
+  EXPECT_EQ((*rows)[0].association_id, "");
   DicomSeriesRecord later = (*rows)[0];
   later.receive_key = "set-x@later";
   ASSERT_TRUE((*store)->PutDicomSeries(later, {}).ok());

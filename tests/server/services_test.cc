@@ -307,9 +307,10 @@ TEST_F(ServicesTest, ListReceivedSeriesShowsStateAndReasonByOwner) {
   Start(false, *ids);
   const std::string aa(64, 'a'), bb(64, 'b');
   ASSERT_TRUE(
-      store_->PutDicomInstance({"1.2.3", "i1", aa, "ORTHANC", "DECIMA", 1700000000000, 0, 1}).ok());
+      store_->PutDicomInstance({"1.2.3", "i1", aa, "ORTHANC", "DECIMA", 1700000000000, 0, 1, ""})
+          .ok());
   ASSERT_TRUE(
-      store_->PutDicomInstance({"1.2.4", "k1", bb, "CT1", "DECIMA", 1700000001000, 0, 1}).ok());
+      store_->PutDicomInstance({"1.2.4", "k1", bb, "CT1", "DECIMA", 1700000001000, 0, 1, ""}).ok());
   DicomSeriesRecord incomplete =
       Check("set", "1.2.4", "", "incomplete: 1 slice(s) missing", v1::ReceivedSeries::INCOMPLETE);
   incomplete.calling_ae = "CT1";
@@ -415,8 +416,9 @@ TEST_F(ServicesTest, DeleteReceivedSeriesIsTheOwnersOrAnAdminsAndFreesTheBlobs) 
     ASSERT_TRUE((*w)->Commit().ok());
   }
   const int64_t size = static_cast<int64_t>(bytes.size());
-  ASSERT_TRUE(store_->PutDicomInstance({"1.2.3", "i1", sha, "ORTHANC", "DECIMA", 1, 0, size}).ok());
-  ASSERT_TRUE(store_->PutDicomInstance({"1.2.3", "i1", sha, "CT1", "DECIMA", 2, 0, size}).ok());
+  ASSERT_TRUE(
+      store_->PutDicomInstance({"1.2.3", "i1", sha, "ORTHANC", "DECIMA", 1, 0, size, ""}).ok());
+  ASSERT_TRUE(store_->PutDicomInstance({"1.2.3", "i1", sha, "CT1", "DECIMA", 2, 0, size, ""}).ok());
   auto stub = v1::Volumes::NewStub(channel_);
   auto del = [&](const std::string& token, const std::string& uid, const std::string& from,
                  v1::DeleteReceivedSeriesResponse* resp) {
