@@ -969,6 +969,24 @@ TEST_P(VolumeReuseE2E, TheSameFileIsOneVolumePerPrincipalUntilDeleted) {
   EXPECT_THAT(err5, ::testing::Not(HasSubstr("reusing")));
   EXPECT_EQ(Volumes(addr, "alice-token"), std::vector<std::string>{fresh});
   EXPECT_EQ(Volumes(addr, "bob-token"), std::vector<std::string>{bobs});
+
+  // A refused job on a reused volume leaves that volume alone: it was alice's before the call
+  // (the CLI deletes only a volume its own call created), even when no job reads it any more.
+  ASSERT_EQ(RunCli(addr, {"--token", "alice-token", "delete", job5}).rc, 0);
+  CliResult refused = RunCli(addr, {"--token", "alice-token", "submit", volume_.string(),
+                                    "--transfer-function", "no-such"});
+  EXPECT_NE(refused.rc, 0);
+  EXPECT_THAT(refused.err, HasSubstr("reusing " + fresh));
+  EXPECT_THAT(refused.err, HasSubstr("INVALID_ARGUMENT"));
+  EXPECT_EQ(Volumes(addr, "alice-token"), std::vector<std::string>{fresh});
+  // A volume the refused submit made itself is deleted again.
+  const fs::path other = scratch_ / "other.nii";
+  WriteTinyNifti(other, 12, 10, 8, 5);
+  refused = RunCli(
+      addr, {"--token", "alice-token", "submit", other.string(), "--transfer-function", "no-such"});
+  EXPECT_NE(refused.rc, 0);
+  EXPECT_THAT(refused.err, ::testing::Not(HasSubstr("reusing")));
+  EXPECT_EQ(Volumes(addr, "alice-token"), std::vector<std::string>{fresh});
 }
 
 INSTANTIATE_TEST_SUITE_P(Stores, VolumeReuseE2E, ::testing::Values("sqlite", "postgresql"),
