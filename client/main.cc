@@ -1105,17 +1105,7 @@ int UploadVolume(const fs::path& input, std::vector<InputFile> files,
     vf->set_blob("blobs/" + f.sha256);
     manifest += f.name + "\n" + f.sha256 + "\n";
   }
-  if (!Quiet()) {
-    if (present == total) {
-      std::fprintf(stderr, "decima: %s already on the server (%zu file(s), %s)\n", input.c_str(),
-                   files.size(), FormatBytes(total).c_str());
-    } else if (stderr_tty) {
-      std::fprintf(stderr, "\r\033[K");
-    } else {
-      std::fprintf(stderr, "decima: uploaded %s (%zu file(s), %s)\n", input.c_str(), files.size(),
-                   FormatBytes(total - present).c_str());
-    }
-  }
+  if (!Quiet() && present != total && stderr_tty) std::fprintf(stderr, "\r\033[K");
   req.mutable_volume()->set_display_name(display_name);
   req.mutable_volume()->set_series_instance_uid(series);
   req.set_request_id(
@@ -1127,6 +1117,17 @@ int UploadVolume(const fs::path& input, std::vector<InputFile> files,
   grpc::Status s = WithRetry([&] { return stub->CreateVolume(conn.Context().get(), req, &vol); });
   if (!s.ok()) return Report(s, "create volume from " + input.string());
   if (!Quiet()) {
+    // Said after CreateVolume: only the server knows whether these files are a volume already.
+    if (vol.reused()) {
+      std::fprintf(stderr, "decima: reusing %s: the same %zu file(s) as %s (%s)\n",
+                   vol.name().c_str(), files.size(), input.c_str(), FormatBytes(total).c_str());
+    } else if (present == total) {
+      std::fprintf(stderr, "decima: %s already on the server (%zu file(s), %s)\n", input.c_str(),
+                   files.size(), FormatBytes(total).c_str());
+    } else if (!stderr_tty) {
+      std::fprintf(stderr, "decima: uploaded %s (%zu file(s), %s)\n", input.c_str(), files.size(),
+                   FormatBytes(total - present).c_str());
+    }
     std::fprintf(stderr, "decima: %s = %s %s", vol.name().c_str(),
                  TerminalSafe(vol.display_name()).c_str(),
                  v1::VolumeFormat_Name(vol.format()).c_str());
@@ -1142,6 +1143,12 @@ int UploadVolume(const fs::path& input, std::vector<InputFile> files,
   g_volumes[vol.name()] = vol;
   *name = vol.name();
   return kOk;
+}
+
+// True when this run's CreateVolume made `name` (not a volume it reused).
+bool MadeBySubmit(const std::string& name) {
+  auto it = g_volumes.find(name);
+  return it != g_volumes.end() && !it->second.reused();
 }
 
 // Every page of ListJobs (bounded), newest first.
@@ -1662,7 +1669,8 @@ int main(int argc, char** argv) {
               continue;
             }
             vrc = Report(s, "submit " + study.label);
-            if (request_id.empty()) {  // as for one INPUT: no volume left behind by a refusal
+            // As for one INPUT: no volume left behind by a refusal.
+            if (request_id.empty() && MadeBySubmit(jreq.spec().volume())) {
               auto vstub = v1::Volumes::NewStub(conn.channel);
               v1::DeleteVolumeRequest dreq;
               dreq.set_name(jreq.spec().volume());
@@ -1730,11 +1738,12 @@ int main(int argc, char** argv) {
     });
     if (!s.ok()) {
       // Volumes made for this job only (a fresh request id) are not left behind by a refused
-      // job; with --request-id they may belong to the job made first, so they stay.
+      // job; with --request-id they may belong to the job made first, and a reused one is the
+      // caller's from before, so those stay.
       if (request_id.empty()) {
         auto vstub = v1::Volumes::NewStub(conn.channel);
         for (const std::string& name : {spec->volume(), spec->label_map()}) {
-          if (name.empty()) continue;
+          if (name.empty() || !MadeBySubmit(name)) continue;
           v1::DeleteVolumeRequest dreq;
           dreq.set_name(name);
           v1::DeleteVolumeResponse dresp;
@@ -1868,7 +1877,7 @@ int main(int argc, char** argv) {
     const bool wide = g.output == "wide";
     std::vector<std::vector<std::string>> rows = {
         {"SERIES", "FROM", "TO", "INSTANCES", "STATE", "JOB / REASON", "FIRST", "LAST"}};
-    if (wide) rows[0].insert(rows[0].end(), {"ROUTE", "OWNER", "RESULTS"});
+    if (wide) rows[0].insert(rows[0].end(), {"ROUTE", "OWNER", "ASSOCIATION", "RESULTS"});
     for (int page = 0; page < 1000; ++page) {
       v1::ListReceivedSeriesResponse resp;
       grpc::Status s =
@@ -1891,8 +1900,10 @@ int main(int argc, char** argv) {
                         what.empty() ? "-" : (wide ? what : what.substr(0, 100)),
                         FormatTime(r.first_receive_time()), FormatTime(r.last_receive_time())});
         if (wide) {
-          rows.back().insert(rows.back().end(), {r.route().empty() ? "-" : r.route(), r.owner(),
-                                                 r.send_status().empty() ? "-" : r.send_status()});
+          rows.back().insert(rows.back().end(),
+                             {r.route().empty() ? "-" : r.route(), r.owner(),
+                              r.association_id().empty() ? "-" : r.association_id(),
+                              r.send_status().empty() ? "-" : r.send_status()});
         }
       }
       if (!ContinueListing(resp.next_page_token(), series_all)) break;

@@ -169,12 +169,15 @@ grpc::Status AuditLog::Record(const Principal* caller, const char* rpc, const st
 }
 
 void AuditLog::RecordSystem(const std::string& principal, const char* action,
-                            const std::string& resource, const absl::Status& result) const {
+                            const std::string& resource, const absl::Status& result,
+                            const std::string& association) const {
   if (!logger_) return;
   absl::MutexLock lock(&mu_);
-  WriteLocked(absl::StrCat("{\"principal\":", Quote(principal), ",\"role\":\"system\",\"rpc\":\"",
-                           action, "\",\"resource\":", Quote(resource), ",\"result\":\"",
-                           absl::StatusCodeToString(result.code()), "\"}"));
+  WriteLocked(
+      absl::StrCat("{\"principal\":", Quote(principal), ",\"role\":\"system\",\"rpc\":\"", action,
+                   "\",\"resource\":", Quote(resource),
+                   association.empty() ? "" : absl::StrCat(",\"association\":", Quote(association)),
+                   ",\"result\":\"", absl::StatusCodeToString(result.code()), "\"}"));
 }
 
 grpc::Status AuditLog::Ready() const {

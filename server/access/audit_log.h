@@ -66,9 +66,10 @@ class AuditLog {
   // written and the line counts against kUnidentifiedPerSecond). Returns `result`.
   grpc::Status Record(const Principal* caller, const char* rpc, const std::string& resource,
                       const grpc::Status& result) const;
-  // The same for a change the server makes on behalf of `principal` (the DICOM receiver).
+  // The same for a change the server makes on behalf of `principal` (the DICOM receiver);
+  // `association` non-empty: the DICOM association it came from ("association" in the line).
   void RecordSystem(const std::string& principal, const char* action, const std::string& resource,
-                    const absl::Status& result) const;
+                    const absl::Status& result, const std::string& association = "") const;
 
   // OK while records are being written. After a record failed: tries to write a line saying
   // auditing resumes; UNAVAILABLE naming the file if that fails too (the caller refuses its

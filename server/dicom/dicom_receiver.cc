@@ -481,12 +481,23 @@ class StorageScp : public DcmThreadSCP {
     released_ = false;
     calling_ = getPeerAETitle().c_str();
     series_.clear();
+    stored_ = 0;
+    // Random, so ids stay unique across restarts and replicas without shared state.
+    association_ = NewId();
+    spdlog::info("dicom: association {} accepted from {}: calling AE '{}', called AE '{}'",
+                 association_, peer_, absl::CHexEscape(calling_),
+                 absl::CHexEscape(getCalledAETitle().c_str()));
   }
   void notifyReleaseRequest() override { released_ = true; }
   void notifyAssociationTermination() override {
+    if (association_.empty()) return;  // refused before it was accepted: no id, nothing sent
+    spdlog::info("dicom: association {} from {} ({}) {}: {} instance(s) stored", association_,
+                 peer_, absl::CHexEscape(calling_), released_ ? "released" : "aborted", stored_);
     // Aborted or broken off: what it sent may be a part of what was due.
     if (!released_ && !series_.empty()) r_->MarkAborted(calling_, series_);
     series_.clear();
+    r_->EndAssociation(association_);
+    association_.clear();
   }
   // Called as a dataset arrives, with the bytes received so far. Past the limit the connection
   // stops reading: DCMTK's next read fails and it aborts the association, so neither the spool
@@ -515,10 +526,13 @@ class StorageScp : public DcmThreadSCP {
     Uint16 status;
     {
       std::lock_guard<std::mutex> lock(r_->store_mu_);
-      status =
-          r_->StoreInstance(tmp, getPeerAETitle().c_str(), getCalledAETitle().c_str(), &series);
+      status = r_->StoreInstance(tmp, getPeerAETitle().c_str(), getCalledAETitle().c_str(), &series,
+                                 association_);
     }
-    if (!series.empty()) series_.insert(series);
+    if (!series.empty()) {
+      series_.insert(series);
+      ++stored_;
+    }
     std::error_code ec;
     fs::remove(tmp, ec);
     return sendSTOREResponse(info.presentationContextID, req, status);
@@ -533,6 +547,8 @@ class StorageScp : public DcmThreadSCP {
   bool too_big_ = false;
   std::string calling_;           // the current association's calling AE title
   std::set<std::string> series_;  // series of the current association
+  std::string association_;       // the current association's id ("" before one is accepted)
+  int stored_ = 0;                // instances it stored
 };
 
 absl::Status CheckSeriesComplete(const std::vector<fs::path>& files) {
@@ -1019,6 +1035,7 @@ absl::StatusOr<RemovedSeries> RemoveWaiting(JobStore* store, BlobStore* blobs,
   rec.series_instance_uid = series_uid;
   rec.calling_ae = calling_ae;
   rec.called_ae = removed->back().called_ae;
+  rec.association_id = removed->back().association_id;
   rec.instance_count = out.instances;
   rec.first_received_ms = first;
   rec.last_received_ms = newest;
@@ -1053,13 +1070,17 @@ absl::StatusOr<RemovedSeries> RemoveWaiting(JobStore* store, BlobStore* blobs,
 
 void DicomReceiver::RecordRefused(const std::string& kind, const std::string& series_uid,
                                   const std::string& calling_ae, const std::string& called_ae,
-                                  const std::string& reason) {
+                                  const std::string& reason, const std::string& association_id) {
   Sha256 h;
   const std::string id = absl::StrCat(calling_ae, "\n", series_uid);
   h.Update(id.data(), id.size());
   DicomSeriesRecord rec;
-  // Per process start: the count is this process's (kept in memory, not re-read per instance).
-  rec.receive_key = absl::StrCat("refused-", kind, "-", h.HexDigest(), "@", started_ms_);
+  // Per association (each is a receive of its own); without one, per process start. The count
+  // is kept in memory, not re-read per instance.
+  rec.receive_key =
+      absl::StrCat("refused-", kind, "-", h.HexDigest(), "@",
+                   association_id.empty() ? absl::StrCat(started_ms_) : association_id);
+  rec.association_id = association_id;
   const int64_t now = WallMs();
   {
     std::lock_guard<std::mutex> lock(mu_);
@@ -1083,8 +1104,15 @@ void DicomReceiver::RecordRefused(const std::string& kind, const std::string& se
   }
 }
 
+void DicomReceiver::EndAssociation(const std::string& association_id) {
+  const std::string suffix = "@" + association_id;
+  std::lock_guard<std::mutex> lock(mu_);
+  std::erase_if(refused_, [&](const auto& entry) { return absl::EndsWith(entry.first, suffix); });
+}
+
 uint16_t DicomReceiver::StoreInstance(const fs::path& file, const std::string& calling_ae,
-                                      const std::string& called_ae, std::string* series_uid) {
+                                      const std::string& called_ae, std::string* series_uid,
+                                      const std::string& association_id) {
   std::string why;
   if (!DiskSpaceAllows(&why)) {
     spdlog::warn("dicom: instance from {} refused: {}", absl::CHexEscape(calling_ae), why);
@@ -1106,7 +1134,7 @@ uint16_t DicomReceiver::StoreInstance(const fs::path& file, const std::string& c
                      " is not a slice of a volume: refused (C-STORE status 0122H)");
     spdlog::warn("dicom: instance {} of series {} from {} refused: {}", header->sop_uid,
                  header->series_uid, calling_ae, reason);
-    RecordRefused("class", header->series_uid, calling_ae, called_ae, reason);
+    RecordRefused("class", header->series_uid, calling_ae, called_ae, reason, association_id);
     return STATUS_STORE_Refused_SOPClassNotSupported;
   }
   auto sha = Sha256OfFile(file);
@@ -1132,8 +1160,8 @@ uint16_t DicomReceiver::StoreInstance(const fs::path& file, const std::string& c
     // Held by its upload claim until the store row below holds it (BlobInUse counts received
     // instances), so the blob collector cannot take it in between.
     blobs_->Claim(*sha);
-    st = store_->PutDicomInstance(
-        {header->series_uid, header->sop_uid, *sha, calling_ae, called_ae, WallMs(), 0, size});
+    st = store_->PutDicomInstance({header->series_uid, header->sop_uid, *sha, calling_ae, called_ae,
+                                   WallMs(), 0, size, association_id});
   }
   if (st.code() == absl::StatusCode::kAlreadyExists) {
     // The first bytes stay: a job reads what the sender sent first, never a silent swap. The
@@ -1141,7 +1169,8 @@ uint16_t DicomReceiver::StoreInstance(const fs::path& file, const std::string& c
     spdlog::error("dicom: instance of series {} refused: {}", header->series_uid,
                   std::string(st.message()));
     RecordRefused("bytes", header->series_uid, calling_ae, called_ae,
-                  absl::StrCat(st.message(), ": refused (C-STORE status 0111H), the first kept"));
+                  absl::StrCat(st.message(), ": refused (C-STORE status 0111H), the first kept"),
+                  association_id);
     return kDuplicateSopInstance;
   }
   if (!st.ok()) {
@@ -1222,6 +1251,7 @@ void DicomReceiver::SettleSeries(const std::string& series_uid,
   rec.update_ms = WallMs();
   rec.calling_ae = last.calling_ae;
   rec.called_ae = last.called_ae;
+  rec.association_id = last.association_id;
   rec.instance_count = static_cast<int>(instances.size());
   rec.first_received_ms = INT64_MAX;
   int64_t newest = 0, aborted = 0;
@@ -1301,8 +1331,8 @@ void DicomReceiver::SettleSeries(const std::string& series_uid,
   auto job = store_->CreateJob(id, *normalized, request_id, options_.max_queued, owner, &created);
   if (!created) data_dir_->RemoveJob(id);
   if (options_.audit)
-    options_.audit->RecordSystem(owner, "DicomCreateJob", job.ok() ? job->name() : "",
-                                 job.status());
+    options_.audit->RecordSystem(owner, "DicomCreateJob", job.ok() ? job->name() : "", job.status(),
+                                 rec.association_id);
   if (!job.ok()) return not_queued(kNotQueued, absl::StrCat("job: ", job.status().ToString()));
   if (job->creator() != owner) {
     spdlog::error("dicom: series {} from {}: request id {} names {}, created by '{}', not {}",
@@ -1322,8 +1352,10 @@ void DicomReceiver::SettleSeries(const std::string& series_uid,
         "go to route {} too",
         series_uid, last.calling_ae, instances.size(), job->name(), route->name);
   } else {
-    spdlog::info("job {} QUEUED from DICOM series {} ({} instances from {}, route {})", id,
-                 series_uid, instances.size(), last.calling_ae, route->name);
+    spdlog::info(
+        "job {} QUEUED from DICOM series {} ({} instances from {}, newest by association {}, "
+        "route {})",
+        id, series_uid, instances.size(), last.calling_ae, rec.association_id, route->name);
   }
   if (auto st = store_->PutDicomSeries(rec, uids); !st.ok()) {
     spdlog::error("dicom: recording series {}: {}", series_uid, st.ToString());
@@ -1385,7 +1417,8 @@ void DicomReceiver::FollowReceives() {
         const auto t0 = std::chrono::steady_clock::now();
         auto sent = SendDicomFiles(dest, files);
         if (options_.audit)
-          options_.audit->RecordSystem(job->creator(), "DicomSendResults", rec.job, sent.status());
+          options_.audit->RecordSystem(job->creator(), "DicomSendResults", rec.job, sent.status(),
+                                       rec.association_id);
         const double secs =
             std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
         if (sent.ok()) {
@@ -1498,6 +1531,7 @@ v1::ReceivedSeries ToProto(const DicomSeriesRecord& r) {
   *out.mutable_first_receive_time() = TimeUtil::MillisecondsToTimestamp(r.first_received_ms);
   *out.mutable_last_receive_time() = TimeUtil::MillisecondsToTimestamp(r.last_received_ms);
   out.set_send_status(ValidUtf8(r.send_status));
+  out.set_association_id(r.association_id);
   return out;
 }
 
@@ -1541,6 +1575,7 @@ absl::StatusOr<ReceivedSeriesPage> ListReceivedSeries(JobStore* store, const std
     r.series_instance_uid = sender_series.second;
     r.calling_ae = sender_series.first;
     r.called_ae = list.back()->called_ae;
+    r.association_id = list.back()->association_id;
     r.instance_count = static_cast<int>(list.size());
     all.push_back(ToProto(r));
   }

@@ -15,6 +15,10 @@
 //               acknowledged instance survives a restart. Its UIDs (and later the series check's
 //               attributes) are read from its first 64 KiB only, by DCMTK up to the pixel
 //               data, so a header costs bounded memory whatever lengths it declares.
+//   association each accepted association gets an id (NewId, 16 hex digits), logged with the
+//               peer's address and AE titles when it is accepted and when it ends; every
+//               instance it brings and every receive records it (association_id), and the audit
+//               records of the job a receive queued and of its results' send carry it.
 //   keying      everything is kept per sender, the calling AE title (whose principal
 //               "dicom:<AE>" creates the volume and job): an instance is unique per (sender,
 //               SOP Instance UID), a series per (sender, SeriesInstanceUID). Another sender's
@@ -184,9 +188,10 @@ class DicomReceiver {
   // stored; 0122H a SOP class that is no slice of a volume (recorded as a REFUSED receive); 0111H
   // this sender's SOP instance again with other bytes (refused, logged, recorded); A700 no disk or
   // over the sender's quota; C000 not understood. `*series_uid` receives the instance's series when
-  // stored.
+  // stored. `association_id`: the association that brought it ("" for none, as in tests).
   uint16_t StoreInstance(const std::filesystem::path& file, const std::string& calling_ae,
-                         const std::string& called_ae, std::string* series_uid);
+                         const std::string& called_ae, std::string* series_uid,
+                         const std::string& association_id = "");
   // Called by the SCP thread when an association that brought these series ended without a
   // release: they are not queued until an instance newer than the abort arrives (the mark is
   // stored with their instances).
@@ -206,11 +211,14 @@ class DicomReceiver {
                     const std::vector<DicomInstanceRecord>& instances, const std::string& key);
   // Advances the receives still followed: their job's state, then the send of its results.
   void FollowReceives();
-  // Records a refused instance in its sender's REFUSED receive (one per sender, series and
-  // kind of refusal in this process).
+  // Records a refused instance in its sender's REFUSED receive: one per association, series
+  // and kind of refusal (without an association, one per sender, series and kind in this
+  // process).
   void RecordRefused(const std::string& kind, const std::string& series_uid,
                      const std::string& calling_ae, const std::string& called_ae,
-                     const std::string& reason);
+                     const std::string& reason, const std::string& association_id);
+  // Forgets the refusal counts of an association that ended (its rows stay in the store).
+  void EndAssociation(const std::string& association_id);
 
   const DicomReceiverOptions options_;
   const DataDir* data_dir_;

@@ -1,6 +1,8 @@
 #include "server/files/volume_catalog.h"
 
+#include <algorithm>
 #include <set>
+#include <utility>
 #include <vector>
 
 #include "absl/strings/match.h"
@@ -23,6 +25,22 @@ bool SafeRelativePath(const std::string& p) {
     if (part.empty() || part == "." || part == "..") return false;
   }
   return true;
+}
+
+std::string VolumeContentKey(const v1::Volume& volume) {
+  std::vector<std::pair<std::string, std::string>> files;
+  for (const auto& f : volume.files()) files.emplace_back(f.path(), f.blob());
+  std::sort(files.begin(), files.end());
+  // Length-prefixed fields: no choice of names can make two different manifests hash alike.
+  std::string text =
+      absl::StrCat("decima-volume-content-1\n", volume.format(), "\n",
+                   volume.series_instance_uid().size(), ":", volume.series_instance_uid(), "\n");
+  for (const auto& [path, blob] : files) {
+    absl::StrAppend(&text, path.size(), ":", path, blob.size(), ":", blob, "\n");
+  }
+  Sha256 h;
+  h.Update(text.data(), text.size());
+  return h.HexDigest();
 }
 
 absl::StatusOr<v1::Volume> VolumeCatalog::Create(const v1::CreateVolumeRequest& request,
@@ -110,11 +128,15 @@ absl::StatusOr<v1::Volume> VolumeCatalog::Create(const v1::CreateVolumeRequest& 
   vol.set_scalar_type(header->scalar_type);
   vol.set_size_bytes(total);
   vol.set_creator(creator);
+  vol.clear_reused();  // output only: what a client sent is not stored
   *vol.mutable_create_time() = NowTimestamp();
   if (vol.display_name().empty()) vol.set_display_name(paths[0]);
   bool created = false;
-  auto stored = jobs_->CreateVolume(id, vol, request.request_id(), &created);
+  // Found by content after the probe, so the key holds the parsed format (a request naming it
+  // and one leaving it to detection are the same content) and the store decides atomically.
+  auto stored = jobs_->CreateVolume(id, vol, request.request_id(), VolumeContentKey(vol), &created);
   if (!stored.ok() || !created) data_dir_->RemoveVolume(id);
+  if (stored.ok()) stored->set_reused(!created);
   return stored;
 }
 

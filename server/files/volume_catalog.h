@@ -26,10 +26,12 @@ class VolumeCatalog {
                 BlobSweepPolicy sweep)
       : data_dir_(data_dir), jobs_(jobs), blobs_(blobs), disk_(disk), sweep_(sweep) {}
 
-  // The stored volume (or the one created first with the same request_id). INVALID_ARGUMENT
-  // for an unsafe or repeated path, a malformed blob name, or a header that does not parse
-  // (`detail->field` names the field); NOT_FOUND for a blob that was not uploaded.
-  // `creator` (the caller's principal) is recorded in Volume.creator.
+  // The stored volume: a new one, or with `reused` set the one created first with the same
+  // request_id, or `creator`'s live volume of the same content (VolumeContentKey; its
+  // display_name stays the first one's). INVALID_ARGUMENT for an unsafe or repeated path, a
+  // malformed blob name, or a header that does not parse (`detail->field` names the field);
+  // NOT_FOUND for a blob that was not uploaded. `creator` (the caller's principal) is recorded
+  // in Volume.creator.
   absl::StatusOr<v1::Volume> Create(const v1::CreateVolumeRequest& request,
                                     const std::string& creator, v1::ErrorDetail* detail);
   // FAILED_PRECONDITION while a queued or running job reads it (as its volume or label map).
@@ -50,5 +52,10 @@ class VolumeCatalog {
 
 // A manifest path: relative, no "..", no empty or hidden components, printable.
 bool SafeRelativePath(const std::string& path);
+
+// What makes two volumes the same content: the sha256 of the parsed format, the
+// series_instance_uid and the manifest's (path, blob) pairs in path order (the order a client
+// lists its files in does not matter; a renamed file does, since names pick the header file).
+std::string VolumeContentKey(const v1::Volume& volume);
 
 }  // namespace decima::server

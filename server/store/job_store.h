@@ -77,6 +77,9 @@ struct DicomInstanceRecord {
   // was held (0 never): stored, so a restart still queues no job for a series cut short.
   int64_t aborted_ms = 0;
   int64_t size_bytes = 0;  // of the file: a sender's waiting bytes count against its quota
+  // The association that brought it (DicomReceiver: an id per accepted association); "" for
+  // instances stored before associations had ids.
+  std::string association_id;
 };
 
 // One receive of a series: the instances of one sender's series checked together (or refused,
@@ -102,6 +105,8 @@ struct DicomSeriesRecord {
   std::string calling_ae, called_ae;  // of the newest instance
   int instance_count = 0;
   int64_t first_received_ms = 0, last_received_ms = 0;
+  // The association of the newest instance (decima.v1.ReceivedSeries.association_id).
+  std::string association_id;
 };
 
 bool IsFinal(v1::JobState state);
@@ -179,10 +184,16 @@ class JobStore {
   virtual absl::StatusOr<std::vector<v1::JobEvent>> ListEvents(const std::string& id, int64_t after,
                                                                int limit) = 0;
 
-  // Volumes. CreateVolume with a used non-empty request_id returns the first volume. The
-  // creator is the stored proto's Volume.creator (set by the caller).
+  // Volumes. CreateVolume with a used non-empty request_id returns the first volume; else, with
+  // a non-empty `content_key` (VolumeContentKey, volume_catalog.h) that a stored volume of the
+  // same creator has, that volume. Either way `*created` = false. Two creates of one content
+  // by one creator, also concurrent ones through several replicas, make one row; another
+  // creator's volume is never returned by content. The creator is the stored proto's
+  // Volume.creator (set by the caller).
   virtual absl::StatusOr<v1::Volume> CreateVolume(const std::string& id, const v1::Volume& volume,
-                                                  const std::string& request_id, bool* created) = 0;
+                                                  const std::string& request_id,
+                                                  const std::string& content_key,
+                                                  bool* created) = 0;
   virtual absl::StatusOr<v1::Volume> GetVolume(const std::string& id) = 0;
   // Newest first; `creator` non-empty: only volumes whose Volume.creator equals it.
   virtual absl::StatusOr<VolumePage> ListVolumes(const std::string& creator, int page_size,

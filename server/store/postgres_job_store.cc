@@ -123,6 +123,18 @@ const char* const kMigrations[] = {
       ALTER TABLE dicom_series ADD CONSTRAINT dicom_series_receive_key UNIQUE(receive_key);
       ALTER TABLE dicom_series DROP CONSTRAINT dicom_series_instance_set_key;
     )sql",
+    // 5: volumes found by content (VolumeContentKey, volume_catalog.h): one row per creator and
+    // content, also when replicas create it at once. NULL for rows from before (never reused).
+    R"sql(
+      ALTER TABLE volumes ADD COLUMN content_key TEXT;
+      CREATE UNIQUE INDEX volumes_by_content ON volumes(creator, content_key);
+    )sql",
+    // 6: the DICOM association that brought each waiting instance and each receive
+    // (dicom_receiver.h); "" for rows from before.
+    R"sql(
+      ALTER TABLE dicom_instances ADD COLUMN association_id TEXT NOT NULL DEFAULT '';
+      ALTER TABLE dicom_series ADD COLUMN association_id TEXT NOT NULL DEFAULT '';
+    )sql",
 };
 static_assert(v1::RUNNING == 2, "migration 1's partial index names RUNNING as 2");
 
@@ -151,7 +163,7 @@ std::string TextArray(const std::vector<std::string>& items) {
 
 constexpr char kInstanceColumns[] =
     "SELECT series_instance_uid, sop_instance_uid, sha256, calling_ae, called_ae, received_ms, "
-    "aborted_ms, size_bytes FROM dicom_instances ";
+    "aborted_ms, size_bytes, association_id FROM dicom_instances ";
 
 // Rows of kInstanceColumns' columns, in order.
 std::vector<DicomInstanceRecord> Instances(const pqxx::result& rows) {
@@ -159,7 +171,7 @@ std::vector<DicomInstanceRecord> Instances(const pqxx::result& rows) {
   for (const auto& row : rows) {
     out.push_back({row[0].as<std::string>(), row[1].as<std::string>(), row[2].as<std::string>(),
                    row[3].as<std::string>(), row[4].as<std::string>(), row[5].as<int64_t>(),
-                   row[6].as<int64_t>(), row[7].as<int64_t>()});
+                   row[6].as<int64_t>(), row[7].as<int64_t>(), row[8].as<std::string>()});
   }
   return out;
 }
@@ -570,26 +582,36 @@ class PostgresJobStore : public JobStore {
   }
 
   absl::StatusOr<v1::Volume> CreateVolume(const std::string& id, const v1::Volume& volume,
-                                          const std::string& request_id, bool* created) override {
+                                          const std::string& request_id,
+                                          const std::string& content_key, bool* created) override {
     *created = false;
     bool made = false;
     auto out = Run<absl::StatusOr<v1::Volume>>(
         "creating a volume", [&](pqxx::work& w) -> absl::StatusOr<v1::Volume> {
           made = false;
           auto existing = [&]() -> std::optional<absl::StatusOr<v1::Volume>> {
-            if (request_id.empty()) return std::nullopt;
-            auto r = w.exec_params("SELECT volume FROM volumes WHERE request_id=$1", request_id);
-            if (r.empty()) return std::nullopt;
-            return ParseVolume(r[0][0]);
+            if (!request_id.empty()) {
+              auto r = w.exec_params("SELECT volume FROM volumes WHERE request_id=$1", request_id);
+              if (!r.empty()) return ParseVolume(r[0][0]);
+            }
+            if (!content_key.empty()) {
+              auto r =
+                  w.exec_params("SELECT volume FROM volumes WHERE creator=$1 AND content_key=$2",
+                                volume.creator(), content_key);
+              if (!r.empty()) return ParseVolume(r[0][0]);
+            }
+            return std::nullopt;
           };
           if (auto e = existing()) return *e;
+          // Without a conflict target: a concurrent create of the same request id or of the
+          // same creator and content (another replica's) leaves its row to be answered.
           auto ins = w.exec_params(
-              "INSERT INTO volumes(id, request_id, volume, creator) VALUES($1,NULLIF($2,''),$3,$4) "
-              "ON CONFLICT (request_id) DO NOTHING RETURNING ord",
-              id, request_id, Bytes(volume), volume.creator());
+              "INSERT INTO volumes(id, request_id, volume, creator, content_key) "
+              "VALUES($1,NULLIF($2,''),$3,$4,NULLIF($5,'')) ON CONFLICT DO NOTHING RETURNING ord",
+              id, request_id, Bytes(volume), volume.creator(), content_key);
           if (ins.empty()) {
             if (auto e = existing()) return *e;
-            return absl::AbortedError("job store: request_id conflict without a row; retry");
+            return absl::AbortedError("job store: volume conflict without a row; retry");
           }
           for (const auto& f : volume.files()) {
             w.exec_params(
@@ -695,9 +717,10 @@ class PostgresJobStore : public JobStore {
                     r.calling_ae, r.sop_instance_uid);
       w.exec_params(
           "INSERT INTO dicom_instances(sop_instance_uid, series_instance_uid, sha256, calling_ae, "
-          "called_ae, received_ms, aborted_ms, size_bytes) VALUES($1,$2,$3,$4,$5,$6,$7,$8)",
+          "called_ae, received_ms, aborted_ms, size_bytes, association_id) "
+          "VALUES($1,$2,$3,$4,$5,$6,$7,$8,$9)",
           r.sop_instance_uid, r.series_instance_uid, r.sha256, r.calling_ae, r.called_ae,
-          r.received_ms, r.aborted_ms, r.size_bytes);
+          r.received_ms, r.aborted_ms, r.size_bytes, r.association_id);
       return absl::OkStatus();
     });
   }
@@ -726,14 +749,16 @@ class PostgresJobStore : public JobStore {
       w.exec_params(
           "INSERT INTO dicom_series(instance_set, series_instance_uid, job, reason, route, "
           "results_pending, send_status, update_ms, state, calling_ae, called_ae, "
-          "instance_count, first_received_ms, last_received_ms, receive_key) "
-          "VALUES($1,$2,$3,$4,$5,$6,$7,$8,$9,$10,$11,$12,$13,$14,$15) "
+          "instance_count, first_received_ms, last_received_ms, receive_key, association_id) "
+          "VALUES($1,$2,$3,$4,$5,$6,$7,$8,$9,$10,$11,$12,$13,$14,$15,$16) "
           "ON CONFLICT(receive_key) DO UPDATE SET instance_set=$1, job=$3, reason=$4, route=$5, "
           "results_pending=$6, send_status=$7, update_ms=$8, state=$9, calling_ae=$10, "
-          "called_ae=$11, instance_count=$12, first_received_ms=$13, last_received_ms=$14",
+          "called_ae=$11, instance_count=$12, first_received_ms=$13, last_received_ms=$14, "
+          "association_id=$16",
           r.instance_set, r.series_instance_uid, r.job, r.reason, r.route, r.results_pending,
           r.send_status, r.update_ms, static_cast<int>(r.state), r.calling_ae, r.called_ae,
-          r.instance_count, r.first_received_ms, r.last_received_ms, r.receive_key);
+          r.instance_count, r.first_received_ms, r.last_received_ms, r.receive_key,
+          r.association_id);
       for (const auto& uid : consumed) {
         w.exec_params("DELETE FROM dicom_instances WHERE calling_ae=$1 AND sop_instance_uid=$2",
                       r.calling_ae, uid);
@@ -751,7 +776,7 @@ class PostgresJobStore : public JobStore {
                absl::StrCat("SELECT instance_set, series_instance_uid, job, reason, route, "
                             "results_pending, send_status, update_ms, state, calling_ae, "
                             "called_ae, instance_count, first_received_ms, last_received_ms, "
-                            "receive_key FROM dicom_series ",
+                            "receive_key, association_id FROM dicom_series ",
                             pending_only ? "WHERE results_pending " : "",
                             "ORDER BY ord DESC LIMIT $1"),
                limit)) {
@@ -771,6 +796,7 @@ class PostgresJobStore : public JobStore {
         r.first_received_ms = row[12].as<int64_t>();
         r.last_received_ms = row[13].as<int64_t>();
         r.receive_key = row[14].as<std::string>();
+        r.association_id = row[15].as<std::string>();
         out.push_back(std::move(r));
       }
       return out;
@@ -798,7 +824,7 @@ class PostgresJobStore : public JobStore {
       return Instances(w.exec_params(
           "DELETE FROM dicom_instances WHERE calling_ae=$1 AND series_instance_uid=$2 "
           "RETURNING series_instance_uid, sop_instance_uid, sha256, calling_ae, called_ae, "
-          "received_ms, aborted_ms, size_bytes",
+          "received_ms, aborted_ms, size_bytes, association_id",
           calling_ae, series_instance_uid));
     });
   }

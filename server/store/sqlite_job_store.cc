@@ -114,7 +114,8 @@ class SqliteJobStore : public JobStore {
         id TEXT UNIQUE NOT NULL,
         request_id TEXT UNIQUE,
         volume BLOB NOT NULL,
-        creator TEXT NOT NULL DEFAULT '');
+        creator TEXT NOT NULL DEFAULT '',
+        content_key TEXT);
       CREATE TABLE IF NOT EXISTS volume_blobs(
         volume_id TEXT NOT NULL, sha256 TEXT NOT NULL,
         PRIMARY KEY(volume_id, sha256)) WITHOUT ROWID;
@@ -128,6 +129,7 @@ class SqliteJobStore : public JobStore {
         received_ms INTEGER NOT NULL,
         aborted_ms INTEGER NOT NULL DEFAULT 0,
         size_bytes INTEGER NOT NULL DEFAULT 0,
+        association_id TEXT NOT NULL DEFAULT '',
         UNIQUE(calling_ae, sop_instance_uid));
       CREATE TABLE IF NOT EXISTS dicom_series(
         ord INTEGER PRIMARY KEY AUTOINCREMENT,
@@ -141,7 +143,8 @@ class SqliteJobStore : public JobStore {
         calling_ae TEXT NOT NULL DEFAULT '', called_ae TEXT NOT NULL DEFAULT '',
         instance_count INTEGER NOT NULL DEFAULT 0,
         first_received_ms INTEGER NOT NULL DEFAULT 0,
-        last_received_ms INTEGER NOT NULL DEFAULT 0);
+        last_received_ms INTEGER NOT NULL DEFAULT 0,
+        association_id TEXT NOT NULL DEFAULT '');
     )sql";
     DECIMA_RETURN_IF_ERROR_LOCAL(Exec(kSchema));
     // Data dirs created before leases had epochs: add the column (0 for every job).
@@ -165,6 +168,20 @@ class SqliteJobStore : public JobStore {
                      .c_str()));
       }
     }
+    // Data dirs created before volumes were found by content: the column, NULL for the old
+    // rows, which are then never reused (the next create of their content makes the row that
+    // later ones reuse). The index makes one row per creator and content (NULLs are distinct).
+    bool has_content_key = false;
+    {
+      Stmt c(db_, "SELECT COUNT(*) FROM pragma_table_info('volumes') WHERE name='content_key'");
+      if (c.Step() != SQLITE_ROW) return c.Error("reading the schema");
+      has_content_key = c.Int(0) > 0;
+    }
+    if (!has_content_key) {
+      DECIMA_RETURN_IF_ERROR_LOCAL(Exec("ALTER TABLE volumes ADD COLUMN content_key TEXT"));
+    }
+    DECIMA_RETURN_IF_ERROR_LOCAL(Exec(
+        "CREATE UNIQUE INDEX IF NOT EXISTS volumes_by_content ON volumes(creator, content_key)"));
     // Data dirs whose receiver tables predate the persisted abort mark and the
     // ReceivedSeries fields: the columns, zero / "" for the old rows (their state is then
     // derived from job and reason, dicom_receiver.cc).
@@ -264,10 +281,23 @@ class SqliteJobStore : public JobStore {
         COMMIT;
       )sql"));
     }
-    return Exec(
-        "CREATE INDEX IF NOT EXISTS dicom_instances_by_sha ON dicom_instances(sha256);"
-        "CREATE INDEX IF NOT EXISTS dicom_instances_by_sender "
-        "ON dicom_instances(calling_ae, series_instance_uid)");
+    DECIMA_RETURN_IF_ERROR_LOCAL(
+        Exec("CREATE INDEX IF NOT EXISTS dicom_instances_by_sha ON dicom_instances(sha256);"
+             "CREATE INDEX IF NOT EXISTS dicom_instances_by_sender "
+             "ON dicom_instances(calling_ae, series_instance_uid)"));
+    // Data dirs whose receiver tables predate association ids: the column, "" for the old
+    // rows. Added after the rebuilds above, which copy the columns of their time only.
+    for (const char* table : {"dicom_instances", "dicom_series"}) {
+      auto has = has_column(table, "association_id");
+      if (!has.ok()) return has.status();
+      if (!*has) {
+        DECIMA_RETURN_IF_ERROR_LOCAL(
+            Exec(absl::StrCat("ALTER TABLE ", table,
+                              " ADD COLUMN association_id TEXT NOT NULL DEFAULT ''")
+                     .c_str()));
+      }
+    }
+    return absl::OkStatus();
   }
 
   bool exclusive() const override { return true; }
@@ -543,7 +573,8 @@ class SqliteJobStore : public JobStore {
   }
 
   absl::StatusOr<v1::Volume> CreateVolume(const std::string& id, const v1::Volume& volume,
-                                          const std::string& request_id, bool* created) override {
+                                          const std::string& request_id,
+                                          const std::string& content_key, bool* created) override {
     std::lock_guard<std::mutex> lock(mu_);
     *created = false;
     if (!request_id.empty()) {
@@ -551,9 +582,15 @@ class SqliteJobStore : public JobStore {
       q.Bind(1, request_id);
       if (q.Step() == SQLITE_ROW) return ParseVolume(q.Text(0));
     }
+    if (!content_key.empty()) {
+      Stmt q(db_, "SELECT volume FROM volumes WHERE creator=? AND content_key=?");
+      q.Bind(1, volume.creator()).Bind(2, content_key);
+      if (q.Step() == SQLITE_ROW) return ParseVolume(q.Text(0));
+    }
     Tx tx(this);
     if (!tx.ok()) return tx.status();
-    Stmt ins(db_, "INSERT INTO volumes(id, request_id, volume, creator) VALUES(?,?,?,?)");
+    Stmt ins(db_,
+             "INSERT INTO volumes(id, request_id, volume, creator, content_key) VALUES(?,?,?,?,?)");
     ins.Bind(1, id);
     if (request_id.empty()) {
       ins.BindNull(2);
@@ -562,6 +599,11 @@ class SqliteJobStore : public JobStore {
     }
     ins.BindBlob(3, volume.SerializeAsString());
     ins.Bind(4, volume.creator());
+    if (content_key.empty()) {
+      ins.BindNull(5);
+    } else {
+      ins.Bind(5, content_key);
+    }
     if (ins.Step() != SQLITE_DONE) return ins.Error("inserting volume");
     for (const auto& f : volume.files()) {
       Stmt b(db_, "INSERT OR IGNORE INTO volume_blobs(volume_id, sha256) VALUES(?,?)");
@@ -683,10 +725,11 @@ class SqliteJobStore : public JobStore {
     // REPLACE gives a re-sent instance a new ord: the series order stays "as last received".
     Stmt q(db_,
            "INSERT OR REPLACE INTO dicom_instances(sop_instance_uid, series_instance_uid, sha256, "
-           "calling_ae, called_ae, received_ms, aborted_ms, size_bytes) VALUES(?,?,?,?,?,?,?,?)");
+           "calling_ae, called_ae, received_ms, aborted_ms, size_bytes, association_id) "
+           "VALUES(?,?,?,?,?,?,?,?,?)");
     q.Bind(1, r.sop_instance_uid).Bind(2, r.series_instance_uid).Bind(3, r.sha256);
     q.Bind(4, r.calling_ae).Bind(5, r.called_ae).Bind(6, r.received_ms).Bind(7, r.aborted_ms);
-    q.Bind(8, r.size_bytes);
+    q.Bind(8, r.size_bytes).Bind(9, r.association_id);
     if (q.Step() != SQLITE_DONE) return q.Error("storing a DICOM instance");
     DECIMA_TX_COMMIT(tx);
     return absl::OkStatus();
@@ -716,16 +759,17 @@ class SqliteJobStore : public JobStore {
     Stmt q(db_,
            "INSERT INTO dicom_series(receive_key, instance_set, series_instance_uid, job, reason, "
            "route, results_pending, send_status, update_ms, state, calling_ae, called_ae, "
-           "instance_count, first_received_ms, last_received_ms) "
-           "VALUES(?15,?1,?2,?3,?4,?5,?6,?7,?8,?9,?10,?11,?12,?13,?14) "
+           "instance_count, first_received_ms, last_received_ms, association_id) "
+           "VALUES(?15,?1,?2,?3,?4,?5,?6,?7,?8,?9,?10,?11,?12,?13,?14,?16) "
            "ON CONFLICT(receive_key) DO UPDATE SET instance_set=?1, job=?3, reason=?4, route=?5, "
            "results_pending=?6, send_status=?7, update_ms=?8, state=?9, calling_ae=?10, "
-           "called_ae=?11, instance_count=?12, first_received_ms=?13, last_received_ms=?14");
+           "called_ae=?11, instance_count=?12, first_received_ms=?13, last_received_ms=?14, "
+           "association_id=?16");
     q.Bind(1, r.instance_set).Bind(2, r.series_instance_uid).Bind(3, r.job).Bind(4, r.reason);
     q.Bind(5, r.route).Bind(6, int64_t{r.results_pending ? 1 : 0}).Bind(7, r.send_status);
     q.Bind(8, r.update_ms).Bind(9, int64_t{r.state}).Bind(10, r.calling_ae);
     q.Bind(11, r.called_ae).Bind(12, int64_t{r.instance_count}).Bind(13, r.first_received_ms);
-    q.Bind(14, r.last_received_ms).Bind(15, r.receive_key);
+    q.Bind(14, r.last_received_ms).Bind(15, r.receive_key).Bind(16, r.association_id);
     if (q.Step() != SQLITE_DONE) return q.Error("storing a DICOM series outcome");
     for (const auto& uid : consumed) {
       Stmt d(db_, "DELETE FROM dicom_instances WHERE calling_ae=? AND sop_instance_uid=?");
@@ -743,7 +787,7 @@ class SqliteJobStore : public JobStore {
            absl::StrCat("SELECT instance_set, series_instance_uid, job, reason, route, "
                         "results_pending, send_status, update_ms, state, calling_ae, "
                         "called_ae, instance_count, first_received_ms, last_received_ms, "
-                        "receive_key FROM dicom_series ",
+                        "receive_key, association_id FROM dicom_series ",
                         pending_only ? "WHERE results_pending=1 " : "", "ORDER BY ord DESC LIMIT ?")
                .c_str());
     q.Bind(1, int64_t{limit});
@@ -766,6 +810,7 @@ class SqliteJobStore : public JobStore {
       r.first_received_ms = q.Int(12);
       r.last_received_ms = q.Int(13);
       r.receive_key = q.Text(14);
+      r.association_id = q.Text(15);
       out.push_back(std::move(r));
     }
     if (rc != SQLITE_DONE) return q.Error("listing DICOM series");
@@ -801,15 +846,16 @@ class SqliteJobStore : public JobStore {
                                                                         const std::string& a,
                                                                         const std::string& b) {
     Stmt q(db_, absl::StrCat("SELECT series_instance_uid, sop_instance_uid, sha256, calling_ae, "
-                             "called_ae, received_ms, aborted_ms, size_bytes FROM dicom_instances ",
+                             "called_ae, received_ms, aborted_ms, size_bytes, association_id "
+                             "FROM dicom_instances ",
                              where, "ORDER BY ord")
                     .c_str());
     if (!where.empty()) q.Bind(1, a).Bind(2, b);
     std::vector<DicomInstanceRecord> out;
     int rc;
     while ((rc = q.Step()) == SQLITE_ROW) {
-      out.push_back(
-          {q.Text(0), q.Text(1), q.Text(2), q.Text(3), q.Text(4), q.Int(5), q.Int(6), q.Int(7)});
+      out.push_back({q.Text(0), q.Text(1), q.Text(2), q.Text(3), q.Text(4), q.Int(5), q.Int(6),
+                     q.Int(7), q.Text(8)});
     }
     if (rc != SQLITE_DONE) return q.Error("listing DICOM instances");
     return out;

@@ -21,6 +21,7 @@
 #include "gtest/gtest.h"
 #include "server/util/sha256.h"
 #include "tests/e2e/e2e_util.h"
+#include "tests/testing/postgres_server.h"
 #include "tests/testing/process.h"
 #include "tests/testing/test_data.h"
 
@@ -367,11 +368,14 @@ class OwnershipE2E : public AuthE2E {
     w->WritesDone();
     return w->Finish().error_code();
   }
+  // `path` names the file: the same principal's create of the same name and bytes answers its
+  // volume of them, so a volume a case deletes needs a name of its own.
   grpc::StatusCode CreateVolume(const std::string& token, const std::string& sha,
-                                std::string* name = nullptr) {
+                                std::string* name = nullptr,
+                                const std::string& path = "phantom.nii") {
     v1::CreateVolumeRequest req;
     auto* f = req.mutable_volume()->add_files();
-    f->set_path("phantom.nii");
+    f->set_path(path);
     f->set_blob("blobs/" + sha);
     v1::Volume v;
     auto s = volumes_->CreateVolume(Ctx(token).get(), req, &v);
@@ -515,7 +519,7 @@ TEST_F(OwnershipE2E, EveryRpcByEveryRoleGetsTheExpectedCode) {
        {OK, PD, PD, OK, UA},
        [&](const std::string& t) {
          std::string victim;
-         EXPECT_EQ(CreateVolume("alice-token", phantom_sha_, &victim), OK);
+         EXPECT_EQ(CreateVolume("alice-token", phantom_sha_, &victim, "victim.nii"), OK);
          v1::DeleteVolumeRequest r;
          r.set_name(victim);
          v1::DeleteVolumeResponse resp;
@@ -865,6 +869,128 @@ TEST_F(AuthE2E, MutationsAreRefusedWhileTheAuditLogCannotBeWritten) {
   EXPECT_EQ(h.rc, 0) << h.err;
   EXPECT_THAT(server.Log(), HasSubstr("AUDIT LOG STOPPED"));
 }
+
+testing::PostgresServer* SharedPostgres() {
+  static testing::PostgresServer* pg = [] {
+    auto* p = new testing::PostgresServer();
+    std::atexit([] { delete SharedPostgres(); });
+    return p;
+  }();
+  return pg;
+}
+
+// Issue 35 part 7: every submit of the same file made a new volume record. Now a principal's
+// submit of a file it already has as a live volume reuses that volume (the CLI says so), another
+// principal's identical bytes are a record of its own, and a deleted volume is not reused. In
+// both job stores (the volume rows live there), with the real server and CLI.
+class VolumeReuseE2E : public ::testing::TestWithParam<std::string> {
+ protected:
+  void SetUp() override {
+    scratch_ = testing::MakeScratchDir("volume_reuse_e2e");
+    volume_ = scratch_ / "phantom.nii";
+    WriteTinyNifti(volume_, 12, 10, 8);
+    tokens_ = scratch_ / "tokens";
+    std::ofstream(tokens_) << "token " << Sha256Hex("alice-token") << " alice submitter\n"
+                           << "token " << Sha256Hex("bob-token") << " bob submitter\n";
+    if (GetParam() == "postgresql") {
+      if (!testing::PostgresServer::BinDir()) GTEST_SKIP() << testing::PostgresServer::WhyAbsent();
+      ASSERT_EQ(SharedPostgres()->error(), "") << "PostgreSQL did not start";
+      const std::string db = "reuse" + std::to_string(::getpid());
+      ASSERT_EQ(SharedPostgres()->CreateDatabase(db), "");
+      store_ = {"--store", SharedPostgres()->Dsn(db)};
+    }
+  }
+  // `decima --token TOKEN submit phantom.nii --watch`: the job's name and the CLI's stderr.
+  std::pair<std::string, std::string> Submit(const std::string& address, const std::string& token) {
+    CliResult r = RunCli(address, {"--token", token, "submit", volume_.string(), "--image-size",
+                                   "32", "--reduction", "0.3", "--watch"});
+    EXPECT_EQ(r.rc, 0) << r.err;
+    return {FirstLine(r.out), r.err};
+  }
+  std::string VolumeOf(const std::string& address, const std::string& token,
+                       const std::string& job) {
+    CliResult r = RunCli(address, {"--token", token, "status", job, "-o", "json"});
+    auto j = nlohmann::json::parse(r.out, nullptr, false);
+    EXPECT_TRUE(j.is_object()) << r.out << r.err;
+    return j.is_object() ? j["spec"]["volume"].get<std::string>() : "";
+  }
+  std::vector<std::string> Volumes(const std::string& address, const std::string& token) {
+    auto stub = v1::Volumes::NewStub(SharedChannel(address));
+    grpc::ClientContext ctx;
+    ctx.set_deadline(std::chrono::system_clock::now() + 30s);
+    ctx.AddMetadata("authorization", "Bearer " + token);
+    v1::ListVolumesResponse resp;
+    grpc::Status st = stub->ListVolumes(&ctx, {}, &resp);
+    EXPECT_TRUE(st.ok()) << st.error_message();
+    std::vector<std::string> names;
+    for (const auto& v : resp.volumes()) names.push_back(v.name());
+    return names;
+  }
+
+  fs::path scratch_, volume_, tokens_;
+  std::vector<std::string> store_;
+};
+
+TEST_P(VolumeReuseE2E, TheSameFileIsOneVolumePerPrincipalUntilDeleted) {
+  std::vector<std::string> flags = {"--tokens-file", tokens_.string()};
+  flags.insert(flags.end(), store_.begin(), store_.end());
+  ServerProcess server(scratch_ / "data", flags);
+  const std::string addr = server.address();
+
+  const auto [job1, err1] = Submit(addr, "alice-token");
+  const std::string alices = VolumeOf(addr, "alice-token", job1);
+  ASSERT_FALSE(alices.empty());
+  EXPECT_THAT(err1, HasSubstr("uploaded"));
+  EXPECT_THAT(err1, ::testing::Not(HasSubstr("reusing")));
+  const auto [job2, err2] = Submit(addr, "alice-token");
+  EXPECT_NE(job2, job1);
+  EXPECT_EQ(VolumeOf(addr, "alice-token", job2), alices);
+  EXPECT_THAT(err2, HasSubstr("reusing " + alices));
+  EXPECT_THAT(err2, ::testing::Not(HasSubstr("uploaded")));
+  EXPECT_EQ(Volumes(addr, "alice-token"), std::vector<std::string>{alices});
+
+  // Bob's identical bytes: a record of his own, which alice's listing does not show.
+  const auto [job3, err3] = Submit(addr, "bob-token");
+  const std::string bobs = VolumeOf(addr, "bob-token", job3);
+  EXPECT_NE(bobs, alices);
+  EXPECT_THAT(err3, ::testing::Not(HasSubstr("reusing")));
+  EXPECT_EQ(Volumes(addr, "bob-token"), std::vector<std::string>{bobs});
+  EXPECT_EQ(Volumes(addr, "alice-token"), std::vector<std::string>{alices});
+  const auto [job4, err4] = Submit(addr, "bob-token");
+  EXPECT_THAT(err4, HasSubstr("reusing " + bobs));
+
+  // Deleted (with both jobs that read it), then submitted again: a new record.
+  CliResult del = RunCli(addr, {"--token", "alice-token", "delete", job1, job2, "--volume"});
+  ASSERT_EQ(del.rc, 0) << del.err;
+  EXPECT_THAT(del.out, HasSubstr("deleted " + alices));
+  const auto [job5, err5] = Submit(addr, "alice-token");
+  const std::string fresh = VolumeOf(addr, "alice-token", job5);
+  EXPECT_NE(fresh, alices);
+  EXPECT_THAT(err5, ::testing::Not(HasSubstr("reusing")));
+  EXPECT_EQ(Volumes(addr, "alice-token"), std::vector<std::string>{fresh});
+  EXPECT_EQ(Volumes(addr, "bob-token"), std::vector<std::string>{bobs});
+
+  // A refused job on a reused volume leaves that volume alone: it was alice's before the call
+  // (the CLI deletes only a volume its own call created), even when no job reads it any more.
+  ASSERT_EQ(RunCli(addr, {"--token", "alice-token", "delete", job5}).rc, 0);
+  CliResult refused = RunCli(addr, {"--token", "alice-token", "submit", volume_.string(),
+                                    "--transfer-function", "no-such"});
+  EXPECT_NE(refused.rc, 0);
+  EXPECT_THAT(refused.err, HasSubstr("reusing " + fresh));
+  EXPECT_THAT(refused.err, HasSubstr("INVALID_ARGUMENT"));
+  EXPECT_EQ(Volumes(addr, "alice-token"), std::vector<std::string>{fresh});
+  // A volume the refused submit made itself is deleted again.
+  const fs::path other = scratch_ / "other.nii";
+  WriteTinyNifti(other, 12, 10, 8, 5);
+  refused = RunCli(
+      addr, {"--token", "alice-token", "submit", other.string(), "--transfer-function", "no-such"});
+  EXPECT_NE(refused.rc, 0);
+  EXPECT_THAT(refused.err, ::testing::Not(HasSubstr("reusing")));
+  EXPECT_EQ(Volumes(addr, "alice-token"), std::vector<std::string>{fresh});
+}
+
+INSTANTIATE_TEST_SUITE_P(Stores, VolumeReuseE2E, ::testing::Values("sqlite", "postgresql"),
+                         [](const auto& info) { return info.param; });
 
 }  // namespace
 }  // namespace decima::e2e

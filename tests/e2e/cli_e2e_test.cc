@@ -138,8 +138,9 @@ TEST_F(CliE2E, EscapeSequencesInADisplayNameDoNotReachTheTerminal) {
   ServerProcess server(scratch_ / "data");
   CliResult r = RunCli(server.address(), {"submit", volume_.string(), "--image-size", "32"});
   ASSERT_EQ(r.rc, 0) << r.err << server.Log();
-  // Another caller's volume of the same blob whose display name is an attack on terminals
-  // (set OSC title, clear screen, an 8-bit CSI as UTF-8), and a job on it.
+  // Another volume of the same blob whose display name is an attack on terminals (set OSC
+  // title, clear screen, an 8-bit CSI as UTF-8), and a job on it. The file has another name:
+  // under the same one this caller's volume would be reused, with its first display name.
   auto volumes = v1::Volumes::NewStub(SharedChannel(server.address()));
   auto jobs = v1::Jobs::NewStub(SharedChannel(server.address()));
   const v1::Job first = GetJob(server.address(), FirstLine(r.out));
@@ -152,6 +153,7 @@ TEST_F(CliE2E, EscapeSequencesInADisplayNameDoNotReachTheTerminal) {
   }
   v1::CreateVolumeRequest cv;
   *cv.mutable_volume()->mutable_files() = vol.files();
+  cv.mutable_volume()->mutable_files(0)->set_path("scan.nii");
   cv.mutable_volume()->set_display_name("\x1b]0;owned\x07\x1b[2Jscan\xc2\x9b.nii");
   v1::Volume evil;
   {

@@ -135,7 +135,10 @@ class DicomSeriesE2eTest : public ::testing::Test {
 // ORTHANC's own re-send completes it: the earlier INCOMPLETE receive becomes COMPLETE, the new
 // one goes QUEUED -> RUNNING -> SUCCEEDED -> SENT, its job is ORTHANC's principal's, and the
 // results go to ORTHANC's PACS only. EVIL's series, once complete, gets its own job whose
-// results go to EVIL's PACS.
+// results go to EVIL's PACS. Each association has its own id: the two receives of ORTHANC's
+// series (one per association) show theirs in `decima series` (-o json and -o wide), the
+// server's log names each when it is accepted, and the audit records of the job and of its
+// results' send carry the completing association's.
 TEST_F(DicomSeriesE2eTest, EachSenderCompletesOnlyItsOwnSeriesAndGetsItsOwnResults) {
   Pacs pacs_a(dir_ / "pacs-a", "PACSA"), pacs_b(dir_ / "pacs-b", "PACSB");
   dicom_port_ = testing::FreePort();
@@ -152,9 +155,11 @@ TEST_F(DicomSeriesE2eTest, EachSenderCompletesOnlyItsOwnSeriesAndGetsItsOwnResul
            << spec << R"(, "destination": {"dicom": "127.0.0.1:)" << pacs_b.port()
            << R"(", "aet": "PACSB"}}]})";
   }
-  ServerProcess server(dir_ / "data", {"--dicom-listen", "127.0.0.1:" + std::to_string(dicom_port_),
-                                       "--dicom-min-free-mb", "0", "--dicom-quiet-seconds", "0.5",
-                                       "--dicom-routes", (dir_ / "routes.json").string()});
+  const fs::path audit = dir_ / "audit.log";
+  ServerProcess server(
+      dir_ / "data", {"--dicom-listen", "127.0.0.1:" + std::to_string(dicom_port_),
+                      "--dicom-min-free-mb", "0", "--dicom-quiet-seconds", "0.5", "--dicom-routes",
+                      (dir_ / "routes.json").string(), "--audit-log", audit.string()});
   const std::string addr = server.address();
 
   std::string log;
@@ -184,6 +189,34 @@ TEST_F(DicomSeriesE2eTest, EachSenderCompletesOnlyItsOwnSeriesAndGetsItsOwnResul
   ASSERT_EQ(orthanc.size(), 2u);  // the history: both receives
   EXPECT_EQ(orthanc[1].value("state", ""), "COMPLETE");
   EXPECT_EQ(orthanc[1].value("job", ""), job);
+  // One id per association: the first receive's is the first send's, the completing one's the
+  // re-send's; EVIL's association had another.
+  const std::string first_id = orthanc[1].value("association_id", "");
+  const std::string second_id = orthanc[0].value("association_id", "");
+  EXPECT_THAT(first_id, ::testing::MatchesRegex("[0-9a-f]{16}"));
+  EXPECT_THAT(second_id, ::testing::MatchesRegex("[0-9a-f]{16}"));
+  EXPECT_NE(first_id, second_id);
+  EXPECT_EQ(first_id, first.value("association_id", ""));
+  const std::string evil_id = Receives(addr, "EVIL").at(0).value("association_id", "");
+  EXPECT_THAT(evil_id, ::testing::MatchesRegex("[0-9a-f]{16}"));
+  EXPECT_NE(evil_id, first_id);
+  EXPECT_NE(evil_id, second_id);
+  for (const std::string& id : {first_id, second_id}) {
+    EXPECT_THAT(server.Log(), HasSubstr("association " + id +
+                                        " accepted from 127.0.0.1: calling AE 'ORTHANC', "
+                                        "called AE 'DECIMA'"));
+  }
+  CliResult wide = RunCli(addr, {"series", "-o", "wide"});
+  ASSERT_EQ(wide.rc, 0) << wide.err;
+  EXPECT_THAT(wide.out, HasSubstr("ASSOCIATION"));
+  EXPECT_THAT(wide.out, HasSubstr(first_id));
+  EXPECT_THAT(wide.out, HasSubstr(second_id));
+  // The audit records of the job queued from the completing receive and of its results' send.
+  const std::string audited = Slurp(audit);
+  EXPECT_THAT(audited, HasSubstr("\"rpc\":\"DicomCreateJob\",\"resource\":\"" + job +
+                                 "\",\"association\":\"" + second_id + "\""));
+  EXPECT_THAT(audited, HasSubstr("\"rpc\":\"DicomSendResults\",\"resource\":\"" + job +
+                                 "\",\"association\":\"" + second_id + "\""));
   EXPECT_GT(pacs_a.received(), 0);
   EXPECT_EQ(pacs_b.received(), 0);
   // The states on the way were logged by the server as they happened.

@@ -488,24 +488,31 @@ class Client:
 
         The local checks come first (InputError, MissingInputError: nothing is sent). When the
         server refuses the job, the volumes made for it are deleted again (not with a
-        request_id: they may belong to the job it made first).
+        request_id: they may belong to the job it made first; nor a volume the server reused,
+        which the caller had before).
         """
         job_spec = self._spec(spec)
         _inputs.collect(path_or_folder)  # a missing input fails before any call
         if label_map is not None:
             _inputs.collect(label_map)
         self._ensure_reachable("submit")
-        job_spec.volume = self._make_volume(path_or_folder, series or "", request_id or "").name
+        volume = self._make_volume(path_or_folder, series or "", request_id or "")
+        job_spec.volume = volume.name
+        # A reused volume is the caller's from before: never deleted on a refusal.
+        made = [volume.name] if not volume.reused else []
         if label_map is not None:
-            job_spec.label_map = self._make_volume(
-                label_map, "", (request_id + "/label-map") if request_id else "").name
+            labels = self._make_volume(
+                label_map, "", (request_id + "/label-map") if request_id else "")
+            job_spec.label_map = labels.name
+            if not labels.reused:
+                made.append(labels.name)
         req = jobs_pb2.CreateJobRequest(spec=job_spec, request_id=request_id or str(uuid.uuid4()))
         try:
             job = self._unary("submit", self._jobs.CreateJob, req,
                               extra_metadata=self._create_job_metadata)
         except errors.DecimaError:
             if not request_id:
-                for name in (job_spec.volume, job_spec.label_map):
+                for name in made:
                     if name:
                         try:
                             self._volumes.DeleteVolume(

@@ -5,8 +5,10 @@ README's notebook example. The bad inputs are in test_errors.py."""
 import gzip
 import json
 import os
+import re
 import shutil
 import signal
+import subprocess
 import threading
 import time
 
@@ -149,6 +151,47 @@ def test_series_lists_what_the_receiver_got(client, cli_bin, server):
     assert client.series() == []
     rc, _, err = run_cli(cli_bin, server.address, ["series"])
     assert rc == 0 and "no series received" in err
+
+
+def test_series_carry_the_id_of_the_association_that_brought_them(server_bin, tmp_path):
+    # One slice of the shared series by the real storescu, twice: two associations, each with
+    # the id the server logged when it accepted it; the newest receive shows the second's.
+    storescu = "/usr/bin/storescu"
+    series = os.path.join(os.environ.get("DECIMA_SHARED_DATA", ""), "ct-head-256x256x113-dicom")
+    if not os.access(storescu, os.X_OK):
+        pytest.skip("storescu (Debian package dcmtk) is not installed")
+    if not os.path.isdir(series):
+        pytest.skip(f"the shared DICOM series is absent ({series})")
+    slice_file = os.path.join(series, sorted(n for n in os.listdir(series)
+                                             if n.endswith(".dcm"))[0])
+    dicom_port = free_port()
+    srv = Server(server_bin, str(tmp_path), port=free_port(),
+                 extra=["--dicom-listen", f"127.0.0.1:{dicom_port}", "--dicom-min-free-mb", "0",
+                        "--dicom-quiet-seconds", "0.2"])
+    try:
+        client = decima_client.Client(srv.address, token=TOKEN, timeout=10)
+        ids = []
+        for _ in range(2):
+            subprocess.run([storescu, "-aet", "CT1", "-aec", "DECIMA", "127.0.0.1",
+                            str(dicom_port), slice_file], check=True, timeout=60,
+                           capture_output=True)
+            accepted = re.findall(r"association ([0-9a-f]{16}) accepted from 127\.0\.0\.1: "
+                                  r"calling AE 'CT1'", (tmp_path / "server.log").read_text())
+            assert len(accepted) == len(ids) + 1, srv.read_log()
+            ids.append(accepted[-1])
+            deadline = time.monotonic() + 30
+            while time.monotonic() < deadline:
+                listed = client.series()
+                if listed and listed[0].state != volumes_pb2.ReceivedSeries.RECEIVING:
+                    break
+                time.sleep(0.1)
+            assert listed and listed[0].association_id == ids[-1], listed
+        assert ids[0] != ids[1]
+        # The re-sent slice is the same instance: the receive of the second association.
+        assert [r.association_id for r in client.series()][0] == ids[1]
+        client.close()
+    finally:
+        srv.stop()
 
 
 def test_fetch_with_a_reduction_says_the_server_offers_no_levels(client, tmp_path):

@@ -6,7 +6,12 @@
 
 #include <grpcpp/grpcpp.h>
 
+#include <fstream>
+#include <iterator>
+
 #include "absl/strings/str_cat.h"
+#include "core/io/volume_io.h"
+#include "core/volume/volume.h"
 #include "decima/v1/artifacts.grpc.pb.h"
 #include "decima/v1/errors.pb.h"
 #include "decima/v1/jobs.grpc.pb.h"
@@ -61,7 +66,7 @@ class ServicesTest : public ::testing::Test {
     v1::Volume vol;
     vol.set_name("volumes/v");
     bool created = false;
-    ASSERT_TRUE(store_->CreateVolume("v", vol, "", &created).ok());
+    ASSERT_TRUE(store_->CreateVolume("v", vol, "", "", &created).ok());
   }
   void TearDown() override {
     if (server_) server_->Shutdown();
@@ -302,9 +307,10 @@ TEST_F(ServicesTest, ListReceivedSeriesShowsStateAndReasonByOwner) {
   Start(false, *ids);
   const std::string aa(64, 'a'), bb(64, 'b');
   ASSERT_TRUE(
-      store_->PutDicomInstance({"1.2.3", "i1", aa, "ORTHANC", "DECIMA", 1700000000000, 0, 1}).ok());
+      store_->PutDicomInstance({"1.2.3", "i1", aa, "ORTHANC", "DECIMA", 1700000000000, 0, 1, ""})
+          .ok());
   ASSERT_TRUE(
-      store_->PutDicomInstance({"1.2.4", "k1", bb, "CT1", "DECIMA", 1700000001000, 0, 1}).ok());
+      store_->PutDicomInstance({"1.2.4", "k1", bb, "CT1", "DECIMA", 1700000001000, 0, 1, ""}).ok());
   DicomSeriesRecord incomplete =
       Check("set", "1.2.4", "", "incomplete: 1 slice(s) missing", v1::ReceivedSeries::INCOMPLETE);
   incomplete.calling_ae = "CT1";
@@ -410,8 +416,9 @@ TEST_F(ServicesTest, DeleteReceivedSeriesIsTheOwnersOrAnAdminsAndFreesTheBlobs) 
     ASSERT_TRUE((*w)->Commit().ok());
   }
   const int64_t size = static_cast<int64_t>(bytes.size());
-  ASSERT_TRUE(store_->PutDicomInstance({"1.2.3", "i1", sha, "ORTHANC", "DECIMA", 1, 0, size}).ok());
-  ASSERT_TRUE(store_->PutDicomInstance({"1.2.3", "i1", sha, "CT1", "DECIMA", 2, 0, size}).ok());
+  ASSERT_TRUE(
+      store_->PutDicomInstance({"1.2.3", "i1", sha, "ORTHANC", "DECIMA", 1, 0, size, ""}).ok());
+  ASSERT_TRUE(store_->PutDicomInstance({"1.2.3", "i1", sha, "CT1", "DECIMA", 2, 0, size, ""}).ok());
   auto stub = v1::Volumes::NewStub(channel_);
   auto del = [&](const std::string& token, const std::string& uid, const std::string& from,
                  v1::DeleteReceivedSeriesResponse* resp) {
@@ -451,6 +458,91 @@ TEST_F(ServicesTest, DeleteReceivedSeriesIsTheOwnersOrAnAdminsAndFreesTheBlobs) 
   }
   EXPECT_EQ(listed.received_series(0).reason(), "deleted by root");
   EXPECT_EQ(listed.received_series(1).reason(), "deleted by dicom:ORTHANC");
+}
+
+// CreateVolume is idempotent on content per principal (issue 35 part 7): the caller's live
+// volume of the same files is answered (reused, the first display name kept) whatever the
+// request id, display name or whether the format was named; another name of the file, another
+// principal or a deleted volume make a new one, and a reused create leaves no folder behind.
+TEST_F(ServicesTest, CreateVolumeReusesOnlyTheCallersLiveVolumeOfTheSameFiles) {
+  auto ids = Identities::Parse(absl::StrCat("token ", HexSha256("alice"), " alice submitter\n",
+                                            "token ", HexSha256("bob"), " bob submitter\n"),
+                               "tokens");
+  ASSERT_TRUE(ids.ok()) << ids.status();
+  Start(false, *ids);
+  auto volume = MakeVolume({6, 5, 4}, VoxelType::kInt16);
+  ASSERT_TRUE(volume.ok()) << volume.status();
+  const fs::path nifti = dir_ / "head.nii";
+  ASSERT_TRUE(io::WriteNifti(*volume, nifti).ok());
+  auto sha = Sha256OfFile(nifti);
+  ASSERT_TRUE(sha.ok()) << sha.status();
+  {
+    std::ifstream in(nifti, std::ios::binary);
+    const std::string bytes((std::istreambuf_iterator<char>(in)), {});
+    auto w = blobs_->OpenWriter(*sha, static_cast<int64_t>(bytes.size()), 0);
+    ASSERT_TRUE(w.ok()) << w.status();
+    ASSERT_TRUE((*w)->Append(bytes.data(), bytes.size()).ok());
+    ASSERT_TRUE((*w)->Commit().ok());
+  }
+  auto stub = v1::Volumes::NewStub(channel_);
+  auto create = [&](const std::string& token, const std::string& path,
+                    const std::string& display_name, v1::VolumeFormat format,
+                    const std::string& request_id) {
+    v1::CreateVolumeRequest req;
+    auto* f = req.mutable_volume()->add_files();
+    f->set_path(path);
+    f->set_blob("blobs/" + *sha);
+    req.mutable_volume()->set_display_name(display_name);
+    req.mutable_volume()->set_format(format);
+    req.mutable_volume()->set_reused(true);  // output only: ignored on input
+    req.set_request_id(request_id);
+    v1::Volume vol;
+    grpc::Status s = stub->CreateVolume(Ctx(token).get(), req, &vol);
+    EXPECT_TRUE(s.ok()) << s.error_message();
+    return vol;
+  };
+  const v1::Volume first = create("alice", "head.nii", "first", v1::VOLUME_FORMAT_UNSPECIFIED, "");
+  EXPECT_FALSE(first.reused());
+  const v1::Volume again = create("alice", "head.nii", "second", v1::VOLUME_FORMAT_NIFTI, "r2");
+  EXPECT_EQ(again.name(), first.name());
+  EXPECT_TRUE(again.reused());
+  EXPECT_EQ(again.display_name(), "first");
+  EXPECT_EQ(again.create_time().seconds(), first.create_time().seconds());
+  v1::GetVolumeRequest get;
+  get.set_name(first.name());
+  v1::Volume stored;
+  ASSERT_TRUE(stub->GetVolume(Ctx("alice").get(), get, &stored).ok());
+  EXPECT_FALSE(stored.reused());
+
+  const v1::Volume renamed = create("alice", "other.nii", "other", v1::VOLUME_FORMAT_NIFTI, "");
+  EXPECT_NE(renamed.name(), first.name());
+  EXPECT_FALSE(renamed.reused());
+  const v1::Volume bobs = create("bob", "head.nii", "bob's", v1::VOLUME_FORMAT_UNSPECIFIED, "");
+  EXPECT_NE(bobs.name(), first.name());
+  EXPECT_FALSE(bobs.reused());
+  EXPECT_EQ(bobs.creator(), "bob");
+  EXPECT_EQ(bobs.display_name(), "bob's");
+  EXPECT_TRUE(create("bob", "head.nii", "", v1::VOLUME_FORMAT_UNSPECIFIED, "").reused());
+
+  v1::DeleteVolumeRequest del;
+  del.set_name(first.name());
+  v1::DeleteVolumeResponse deleted;
+  ASSERT_TRUE(stub->DeleteVolume(Ctx("alice").get(), del, &deleted).ok());
+  const v1::Volume after = create("alice", "head.nii", "third", v1::VOLUME_FORMAT_UNSPECIFIED, "");
+  EXPECT_NE(after.name(), first.name());
+  EXPECT_FALSE(after.reused());
+  EXPECT_EQ(after.display_name(), "third");
+  EXPECT_EQ(stub->GetVolume(Ctx("bob").get(), get, &stored).error_code(), grpc::NOT_FOUND);
+
+  v1::ListVolumesResponse alices, bobs_list;
+  ASSERT_TRUE(stub->ListVolumes(Ctx("alice").get(), {}, &alices).ok());
+  ASSERT_TRUE(stub->ListVolumes(Ctx("bob").get(), {}, &bobs_list).ok());
+  EXPECT_EQ(alices.volumes_size(), 2);
+  EXPECT_EQ(bobs_list.volumes_size(), 1);
+  // One folder per live volume: the reused creates removed what they had materialized.
+  int folders = 0;
+  for (const auto& e : fs::directory_iterator(dir_ / "volumes")) folders += e.is_directory();
+  EXPECT_EQ(folders, 3);
 }
 
 // The request id prefix "dicom-" is the DICOM receiver's: a submitter who computes a series'

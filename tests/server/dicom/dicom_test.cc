@@ -630,7 +630,8 @@ TEST_F(DicomReceiverSendTest, AnotherSendersInstancesNeitherCompleteNorReplaceAS
 
 // An instance of a SOP class that is no slice of a volume (here a Secondary Capture, as a
 // viewer's screenshot or Decima's own results sent back) is refused when it arrives (0122H) and
-// shown as REFUSED with the reason: it never waits as an INCOMPLETE series.
+// shown as REFUSED with the reason: it never waits as an INCOMPLETE series. Each association's
+// refusals are a receive of their own, with that association's id.
 TEST_F(DicomReceiverSendTest, NonImageInstancesAreRefusedAtCStoreTime) {
   DicomReceiverOptions options;
   options.quiet_seconds = 0.1;
@@ -650,12 +651,66 @@ TEST_F(DicomReceiverSendTest, NonImageInstancesAreRefusedAtCStoreTime) {
   EXPECT_TRUE(Waiting("ORTHANC").empty());
   std::this_thread::sleep_for(std::chrono::milliseconds(300));  // settle periods: nothing waits
   auto listed = Receives("ORTHANC");
-  ASSERT_EQ(listed.size(), 1u);
-  EXPECT_EQ(listed[0].state(), v1::ReceivedSeries::REFUSED);
-  EXPECT_EQ(listed[0].instance_count(), 2);
-  EXPECT_THAT(listed[0].reason(), HasSubstr("SecondaryCaptureImageStorage"));
+  ASSERT_EQ(listed.size(), 2u);
+  for (const auto& r : listed) {
+    EXPECT_EQ(r.state(), v1::ReceivedSeries::REFUSED);
+    EXPECT_EQ(r.instance_count(), 1);
+    EXPECT_THAT(r.reason(), HasSubstr("SecondaryCaptureImageStorage"));
+    EXPECT_THAT(r.association_id(), ::testing::MatchesRegex("[0-9a-f]{16}"));
+  }
+  EXPECT_NE(listed[0].association_id(), listed[1].association_id());
   std::string series;
   EXPECT_EQ(receiver_->StoreInstance(files[0], "ORTHANC", "DECIMA", &series), 0x0122);
+}
+
+// Every accepted association gets its own id: each instance it brings and each receive
+// records it. A series sent over two associations, checked after each, is two receives (the
+// first INCOMPLETE, the second of the whole set, here still a slice short), each with the id of
+// the association that brought its newest instance; the id is in the receiver's log line of
+// the association. Instances stored without an association have none.
+TEST_F(DicomReceiverSendTest, EachAssociationHasItsOwnIdOnItsInstancesAndReceives) {
+  DicomReceiverOptions options;
+  options.quiet_seconds = 0.2;
+  options.poll_seconds = 0.05;
+  StartReceiver(options);
+  testing::SliceSpec base;
+  fs::create_directories(dir_ / "series");
+  auto slices = testing::WriteSeries(dir_ / "series", base, {2, 2, 2, 2});
+  ASSERT_EQ(slices.size(), 5u);
+  auto wait_receives = [&](size_t n) {
+    std::vector<v1::ReceivedSeries> listed;
+    for (int i = 0; i < 200; ++i) {  // at most 10 s
+      listed = Receives("ORTHANC");
+      if (listed.size() == n && listed[0].state() == v1::ReceivedSeries::INCOMPLETE) break;
+      std::this_thread::sleep_for(std::chrono::milliseconds(50));
+    }
+    return listed;
+  };
+  EXPECT_THAT(Send("ORTHANC", {slices[0], slices[1], slices[4]}), HasSubstr("Success"));
+  auto first = wait_receives(1);
+  ASSERT_EQ(first.size(), 1u);
+  ASSERT_EQ(first[0].state(), v1::ReceivedSeries::INCOMPLETE) << first[0].DebugString();
+  const std::string a = first[0].association_id();
+  EXPECT_THAT(a, ::testing::MatchesRegex("[0-9a-f]{16}"));
+  for (const auto& i : Waiting("ORTHANC")) EXPECT_EQ(i.association_id, a);
+
+  EXPECT_THAT(Send("ORTHANC", {slices[2]}), HasSubstr("Success"));
+  auto both = wait_receives(2);
+  ASSERT_EQ(both.size(), 2u);
+  const std::string b = both[0].association_id();
+  EXPECT_THAT(b, ::testing::MatchesRegex("[0-9a-f]{16}"));
+  EXPECT_NE(b, a);
+  EXPECT_EQ(both[0].instance_count(), 4);
+  EXPECT_EQ(both[1].association_id(), a);  // the first receive keeps its own
+  EXPECT_EQ(both[1].instance_count(), 3);
+  auto waiting = Waiting("ORTHANC");
+  ASSERT_EQ(waiting.size(), 4u);
+  EXPECT_EQ(waiting.back().association_id, b);
+  EXPECT_EQ(waiting.front().association_id, a);
+
+  std::string series;
+  ASSERT_EQ(receiver_->StoreInstance(slices[3], "CT1", "DECIMA", &series), 0);
+  EXPECT_EQ(Waiting("CT1").at(0).association_id, "");
 }
 
 // A series that waits longer than the expiry is removed without an operator: its instances,

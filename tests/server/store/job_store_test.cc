@@ -8,6 +8,7 @@
 
 #include <sqlite3.h>
 
+#include "absl/strings/escaping.h"
 #include "gmock/gmock.h"
 #include "gtest/gtest.h"
 #include "server/store/job_store.h"
@@ -260,9 +261,9 @@ TEST_P(JobStoreTest, CreatorIsStoredAndFiltersListingsPageByPage) {
   v1::Volume v;
   v.set_creator("bob");
   bool created = false;
-  ASSERT_TRUE(store_->CreateVolume("vb", v, "", &created).ok());
+  ASSERT_TRUE(store_->CreateVolume("vb", v, "", "", &created).ok());
   v.set_creator("alice");
-  ASSERT_TRUE(store_->CreateVolume("va", v, "", &created).ok());
+  ASSERT_TRUE(store_->CreateVolume("va", v, "", "", &created).ok());
   auto bobs = store_->ListVolumes("bob", 10, "");
   ASSERT_TRUE(bobs.ok());
   ASSERT_EQ(bobs->volumes.size(), 1u);
@@ -284,7 +285,7 @@ TEST_P(JobStoreTest, VolumeInUseCannotBeDeleted) {
   v1::Volume v;
   v.add_files()->set_blob("blobs/" + std::string(64, 'a'));
   bool created = false;
-  ASSERT_TRUE(store_->CreateVolume("v1", v, "", &created).ok());
+  ASSERT_TRUE(store_->CreateVolume("v1", v, "", "", &created).ok());
   EXPECT_TRUE(*store_->BlobInUse(std::string(64, 'a')));
   Create("a");  // reads volumes/v1
   EXPECT_EQ(store_->DeleteVolume("v1").code(), absl::StatusCode::kFailedPrecondition);
@@ -299,7 +300,7 @@ TEST_P(JobStoreTest, LabelMapOfAQueuedJobCannotBeDeleted) {
   for (const char* id : {"v1", "labels"}) {
     v1::Volume v;
     v.add_files()->set_blob("blobs/" + std::string(64, id[0]));
-    ASSERT_TRUE(store_->CreateVolume(id, v, "", &created).ok());
+    ASSERT_TRUE(store_->CreateVolume(id, v, "", "", &created).ok());
   }
   v1::JobSpec spec;
   spec.set_volume("volumes/v1");
@@ -312,16 +313,70 @@ TEST_P(JobStoreTest, LabelMapOfAQueuedJobCannotBeDeleted) {
   EXPECT_TRUE(store_->DeleteVolume("labels").ok());
 }
 
+// CreateVolume by content (issue 35 part 7): the same creator and key answer the first row,
+// another creator's key is another row, a deleted volume is not answered again, and the key
+// survives reopening the store.
+TEST_P(JobStoreTest, VolumesAreFoundByCreatorAndContentKeyUntilDeleted) {
+  const std::string key(64, 'c');
+  v1::Volume v;
+  v.add_files()->set_blob("blobs/" + std::string(64, 'a'));
+  v.set_creator("alice");
+  v.set_display_name("first");
+  bool created = false;
+  ASSERT_TRUE(store_->CreateVolume("v1", v, "", key, &created).ok());
+  EXPECT_TRUE(created);
+  v.set_name("volumes/ignored");
+  v.set_display_name("second");
+  auto again = store_->CreateVolume("v2", v, "", key, &created);
+  ASSERT_TRUE(again.ok()) << again.status();
+  EXPECT_FALSE(created);
+  EXPECT_EQ(again->display_name(), "first");
+  EXPECT_EQ(store_->GetVolume("v2").status().code(), absl::StatusCode::kNotFound);
+
+  v.set_creator("bob");
+  auto bobs = store_->CreateVolume("v3", v, "", key, &created);
+  ASSERT_TRUE(bobs.ok()) << bobs.status();
+  EXPECT_TRUE(created);
+  EXPECT_EQ(bobs->display_name(), "second");
+
+  // Without a key (a store's own callers, rows from before keys): never found by content.
+  ASSERT_TRUE(store_->CreateVolume("v4", v, "", "", &created).ok());
+  EXPECT_TRUE(created);
+  ASSERT_TRUE(store_->CreateVolume("v5", v, "", "", &created).ok());
+  EXPECT_TRUE(created);
+
+  store_.reset();
+  auto reopened = Reopen();
+  ASSERT_TRUE(reopened.ok()) << reopened.status();
+  store_ = std::move(*reopened);
+  v.set_creator("alice");
+  auto after = store_->CreateVolume("v6", v, "", key, &created);
+  ASSERT_TRUE(after.ok());
+  EXPECT_FALSE(created);
+  EXPECT_EQ(store_->GetVolume("v1")->display_name(), "first");
+  ASSERT_TRUE(store_->DeleteVolume("v1").ok());
+  auto fresh = store_->CreateVolume("v7", v, "", key, &created);
+  ASSERT_TRUE(fresh.ok()) << fresh.status();
+  EXPECT_TRUE(created);
+  EXPECT_TRUE(store_->GetVolume("v7").ok());
+  EXPECT_EQ(store_->ListVolumes("alice", 10, "")->volumes.size(), 1u);
+  EXPECT_EQ(store_->ListVolumes("bob", 10, "")->volumes.size(), 3u);
+}
+
 // The DICOM receiver's state (dicom_receiver.h): received instances, the persisted abort mark
 // and the receives' outcomes survive a restart; a check consumes its sender's instances in one
 // step, and every receive keeps its own row.
 TEST_P(JobStoreTest, DicomReceiverStateSurvivesReopeningAndAJobConsumesItsInstances) {
   const std::string aa(64, 'a'), bb(64, 'b');
-  ASSERT_TRUE(store_->PutDicomInstance({"s1", "i1", aa, "ORTHANC", "DECIMA", 1, 0, 10}).ok());
-  ASSERT_TRUE(store_->PutDicomInstance({"s1", "i2", bb, "ORTHANC", "DECIMA", 2, 0, 20}).ok());
-  ASSERT_TRUE(store_->PutDicomInstance({"s2", "k1", bb, "OTHER", "DECIMA", 2, 0, 20}).ok());
-  // The same SOP instance with the same bytes again replaces its row and moves to the end.
-  ASSERT_TRUE(store_->PutDicomInstance({"s1", "i1", aa, "ORTHANC", "DECIMA", 3, 0, 10}).ok());
+  ASSERT_TRUE(
+      store_->PutDicomInstance({"s1", "i1", aa, "ORTHANC", "DECIMA", 1, 0, 10, "assoc-1"}).ok());
+  ASSERT_TRUE(
+      store_->PutDicomInstance({"s1", "i2", bb, "ORTHANC", "DECIMA", 2, 0, 20, "assoc-1"}).ok());
+  ASSERT_TRUE(store_->PutDicomInstance({"s2", "k1", bb, "OTHER", "DECIMA", 2, 0, 20, "x"}).ok());
+  // The same SOP instance with the same bytes again replaces its row and moves to the end, with
+  // the association that brought it this time.
+  ASSERT_TRUE(
+      store_->PutDicomInstance({"s1", "i1", aa, "ORTHANC", "DECIMA", 3, 0, 10, "assoc-2"}).ok());
   ASSERT_TRUE(store_->MarkDicomSeriesAborted("ORTHANC", "s1", 4).ok());
   EXPECT_TRUE(*store_->BlobInUse(aa));
   EXPECT_FALSE(*store_->BlobInUse(std::string(64, 'c')));
@@ -332,6 +387,7 @@ TEST_P(JobStoreTest, DicomReceiverStateSurvivesReopeningAndAJobConsumesItsInstan
   incomplete.instance_count = 2;
   incomplete.first_received_ms = 2;
   incomplete.last_received_ms = 3;
+  incomplete.association_id = "assoc-2";
   ASSERT_TRUE(store_->PutDicomSeries(incomplete, {}).ok());
 
   store_.reset();  // a restart
@@ -344,6 +400,8 @@ TEST_P(JobStoreTest, DicomReceiverStateSurvivesReopeningAndAJobConsumesItsInstan
   EXPECT_EQ((*instances)[0].sop_instance_uid, "i2");  // arrival order, i1 re-sent last
   EXPECT_EQ((*instances)[0].aborted_ms, 4);
   EXPECT_EQ((*instances)[0].size_bytes, 20);
+  EXPECT_EQ((*instances)[0].association_id, "assoc-1");
+  EXPECT_EQ((*instances)[2].association_id, "assoc-2");
   EXPECT_EQ((*instances)[1].aborted_ms, 0);  // another series
   EXPECT_EQ((*instances)[2].sop_instance_uid, "i1");
   EXPECT_EQ((*instances)[2].received_ms, 3);
@@ -360,6 +418,7 @@ TEST_P(JobStoreTest, DicomReceiverStateSurvivesReopeningAndAJobConsumesItsInstan
   EXPECT_EQ(c.instance_count, 2);
   EXPECT_EQ(c.first_received_ms, 2);
   EXPECT_EQ(c.last_received_ms, 3);
+  EXPECT_EQ(c.association_id, "assoc-2");
 
   DicomSeriesRecord queued = Check("set-b", "s1", "jobs/j1", "", v1::ReceivedSeries::QUEUED);
   queued.calling_ae = "ORTHANC";
@@ -380,12 +439,15 @@ TEST_P(JobStoreTest, DicomReceiverStateSurvivesReopeningAndAJobConsumesItsInstan
   // The same set sent again later is another receive: a row of its own, the first one kept.
   DicomSeriesRecord again = queued;
   again.receive_key = "set-b@later";
+  again.association_id = "assoc-3";
   again.state = v1::ReceivedSeries::QUEUED;
   again.send_status.clear();
   ASSERT_TRUE(store_->PutDicomSeries(again, {}).ok());
   auto all = store_->ListDicomSeries(false, 10);
   ASSERT_EQ(all->size(), 3u);
   EXPECT_EQ((*all)[0].receive_key, "set-b@later");  // newest first
+  EXPECT_EQ((*all)[0].association_id, "assoc-3");
+  EXPECT_EQ((*all)[1].association_id, "");
   EXPECT_EQ((*all)[1].send_status, "sent: 3 instances");
   EXPECT_EQ((*all)[1].state, v1::ReceivedSeries::SENT);
   EXPECT_EQ((*all)[2].reason, "incomplete: 1 slice(s) missing");
@@ -397,11 +459,11 @@ TEST_P(JobStoreTest, DicomReceiverStateSurvivesReopeningAndAJobConsumesItsInstan
 // same sender's instance with other bytes is refused, the first bytes kept.
 TEST_P(JobStoreTest, DicomInstancesAreKeptPerSenderAndOtherBytesAreRefused) {
   const std::string aa(64, 'a'), bb(64, 'b');
-  ASSERT_TRUE(store_->PutDicomInstance({"s1", "i1", aa, "ORTHANC", "DECIMA", 1, 0, 100}).ok());
-  ASSERT_TRUE(store_->PutDicomInstance({"s1", "i2", aa, "ORTHANC", "DECIMA", 2, 0, 100}).ok());
-  ASSERT_TRUE(store_->PutDicomInstance({"s1", "i1", bb, "EVIL", "DECIMA", 3, 0, 7}).ok());
+  ASSERT_TRUE(store_->PutDicomInstance({"s1", "i1", aa, "ORTHANC", "DECIMA", 1, 0, 100, ""}).ok());
+  ASSERT_TRUE(store_->PutDicomInstance({"s1", "i2", aa, "ORTHANC", "DECIMA", 2, 0, 100, ""}).ok());
+  ASSERT_TRUE(store_->PutDicomInstance({"s1", "i1", bb, "EVIL", "DECIMA", 3, 0, 7, ""}).ok());
   const absl::Status replaced =
-      store_->PutDicomInstance({"s1", "i1", bb, "ORTHANC", "DECIMA", 4, 0, 7});
+      store_->PutDicomInstance({"s1", "i1", bb, "ORTHANC", "DECIMA", 4, 0, 7, ""});
   EXPECT_EQ(replaced.code(), absl::StatusCode::kAlreadyExists) << replaced;
   EXPECT_THAT(std::string(replaced.message()), HasSubstr("i1"));
   auto instances = store_->ListDicomInstances();
@@ -426,7 +488,7 @@ TEST_P(JobStoreTest, DicomInstancesAreKeptPerSenderAndOtherBytesAreRefused) {
   EXPECT_TRUE(*store_->BlobInUse(aa));
   EXPECT_FALSE(*store_->BlobInUse(bb));
   // Removed (expiry, delete): the sender's series only, returned for their blobs.
-  ASSERT_TRUE(store_->PutDicomInstance({"s1", "i3", bb, "EVIL", "DECIMA", 5, 0, 7}).ok());
+  ASSERT_TRUE(store_->PutDicomInstance({"s1", "i3", bb, "EVIL", "DECIMA", 5, 0, 7, ""}).ok());
   auto removed = store_->RemoveDicomInstances("ORTHANC", "s1");
   ASSERT_TRUE(removed.ok()) << removed.status();
   ASSERT_EQ(removed->size(), 2u);
@@ -474,6 +536,43 @@ TEST_P(JobStoreTest, CompactGivesDeletedJobsSpaceBack) {
 // UID alone, a series row unique by instance set) opens with its rows kept and the new keys in
 // force: another sender's instance of the same SOP Instance UID is its own row, and a later
 // receive of the same set gets its own row.
+// A data dir from before volumes had content keys: the column is added, the old row stays (and
+// is not found by content), and new volumes are found by content from then on.
+TEST(SqliteJobStoreMigrationTest, VolumesFromBeforeContentKeysKeepTheirRows) {
+  const auto path = (testing::MakeScratchDir("volume_migration") / "jobs.sqlite").string();
+  sqlite3* db = nullptr;
+  ASSERT_EQ(sqlite3_open(path.c_str(), &db), SQLITE_OK);
+  v1::Volume old;
+  old.set_name("volumes/old");
+  old.set_creator("alice");
+  const std::string bytes = old.SerializeAsString();
+  const std::string kBefore = R"sql(
+    CREATE TABLE volumes(
+      ord INTEGER PRIMARY KEY AUTOINCREMENT,
+      id TEXT UNIQUE NOT NULL,
+      request_id TEXT UNIQUE,
+      volume BLOB NOT NULL,
+      creator TEXT NOT NULL DEFAULT '');
+    INSERT INTO volumes(id, volume, creator) VALUES('old', X')sql" +
+                              absl::BytesToHexString(bytes) + R"sql(', 'alice');
+  )sql";
+  ASSERT_EQ(sqlite3_exec(db, kBefore.c_str(), nullptr, nullptr, nullptr), SQLITE_OK)
+      << sqlite3_errmsg(db);
+  sqlite3_close(db);
+
+  auto store = OpenSqliteJobStore(path);
+  ASSERT_TRUE(store.ok()) << store.status();
+  EXPECT_EQ((*store)->GetVolume("old")->name(), "volumes/old");
+  bool created = false;
+  const std::string key(64, 'd');
+  ASSERT_TRUE((*store)->CreateVolume("new", old, "", key, &created).ok());
+  EXPECT_TRUE(created);
+  auto again = (*store)->CreateVolume("newer", old, "", key, &created);
+  ASSERT_TRUE(again.ok()) << again.status();
+  EXPECT_FALSE(created);
+  EXPECT_EQ((*store)->ListVolumes("alice", 10, "")->volumes.size(), 2u);
+}
+
 TEST(SqliteJobStoreMigrationTest, ReceiverTablesFromBeforeSenderKeysAreUpgradedWithTheirRows) {
   const auto path = (testing::MakeScratchDir("dicom_migration") / "jobs.sqlite").string();
   sqlite3* db = nullptr;
@@ -517,10 +616,11 @@ TEST(SqliteJobStoreMigrationTest, ReceiverTablesFromBeforeSenderKeysAreUpgradedW
   ASSERT_EQ(instances->size(), 2u);
   EXPECT_EQ((*instances)[1].sop_instance_uid, "i2");
   EXPECT_EQ((*instances)[1].aborted_ms, 5);
+  EXPECT_EQ((*instances)[1].association_id, "");  // the column added after the rebuild
   EXPECT_TRUE(*(*store)->BlobInUse("bb"));
-  ASSERT_TRUE((*store)->PutDicomInstance({"s1", "i1", "cc", "EVIL", "DECIMA", 9, 0, 1}).ok());
+  ASSERT_TRUE((*store)->PutDicomInstance({"s1", "i1", "cc", "EVIL", "DECIMA", 9, 0, 1, ""}).ok());
   EXPECT_EQ((*store)->ListDicomInstances()->size(), 3u);
-  EXPECT_EQ((*store)->PutDicomInstance({"s1", "i1", "cc", "ORTHANC", "DECIMA", 9, 0, 1}).code(),
+  EXPECT_EQ((*store)->PutDicomInstance({"s1", "i1", "cc", "ORTHANC", "DECIMA", 9, 0, 1, ""}).code(),
             absl::StatusCode::kAlreadyExists);
   auto rows = (*store)->ListDicomSeries(true, 10);
   ASSERT_TRUE(rows.ok()) << rows.status();

@@ -42,23 +42,32 @@ TEST(PostgresJobStoreTest, ReplicasStartingTogetherApplyTheSchemaOnce) {
   const std::string db = dsn.substr(dsn.rfind('/') + 1);
   EXPECT_EQ(
       SharedPostgres()->Sql("SELECT COUNT(*), MAX(version) FROM decima_schema_migrations", db),
-      "4|4");  // every migration once (2: creator columns, 3: DICOM receiver tables, 4: keyed
-               // by sender)
+      "6|6");  // every migration once (2: creator columns, 3: DICOM receiver tables, 4: keyed
+               // by sender, 5: volume content keys, 6: DICOM association ids)
 }
 
 // A database at schema version 3, whose receiver tables kept an instance unique by SOP Instance
 // UID alone and a series row unique by instance set, upgrades (migration 4) with its rows kept
-// and the sender keys in force.
+// and the sender keys in force; its volumes get content keys (migration 5, NULL for the old
+// row) and its receiver rows association ids ("" for the old rows, migration 6).
 TEST(PostgresJobStoreTest, ReceiverTablesOfVersion3AreKeyedBySenderWithTheirRows) {
   DECIMA_REQUIRE_POSTGRES();
   const std::string dsn = FreshDatabase();
   ASSERT_FALSE(dsn.empty());
   const std::string db = dsn.substr(dsn.rfind('/') + 1);
-  // Version 3's receiver tables as migration 3 made them (the other tables play no part here).
+  // Version 3's receiver tables as migration 3 made them, and its volumes table (the other
+  // tables play no part here).
   ASSERT_TRUE(SharedPostgres()->Sql(R"sql(
     CREATE TABLE decima_schema_migrations(
       version INTEGER PRIMARY KEY, applied_at TIMESTAMPTZ NOT NULL DEFAULT now());
     INSERT INTO decima_schema_migrations(version) VALUES (1), (2), (3);
+    CREATE TABLE volumes(
+      ord BIGSERIAL PRIMARY KEY,
+      id TEXT UNIQUE NOT NULL,
+      request_id TEXT UNIQUE,
+      volume BYTEA NOT NULL,
+      creator TEXT NOT NULL DEFAULT '');
+    INSERT INTO volumes(id, volume, creator) VALUES ('old', '', 'alice');
     CREATE TABLE dicom_instances(
       ord BIGSERIAL PRIMARY KEY,
       sop_instance_uid TEXT UNIQUE NOT NULL,
@@ -89,19 +98,23 @@ TEST(PostgresJobStoreTest, ReceiverTablesOfVersion3AreKeyedBySenderWithTheirRows
                                     db));
   auto store = OpenPostgres(dsn);
   ASSERT_TRUE(store.ok()) << store.status();
-  EXPECT_EQ(SharedPostgres()->Sql("SELECT MAX(version) FROM decima_schema_migrations", db), "4");
+  EXPECT_EQ(SharedPostgres()->Sql("SELECT MAX(version) FROM decima_schema_migrations", db), "6");
+  EXPECT_EQ(SharedPostgres()->Sql("SELECT COUNT(*) FROM volumes WHERE content_key IS NULL", db),
+            "1");
   auto instances = (*store)->ListDicomInstances();
   ASSERT_TRUE(instances.ok()) << instances.status();
   ASSERT_EQ(instances->size(), 1u);
   EXPECT_EQ((*instances)[0].size_bytes, 0);
-  ASSERT_TRUE((*store)->PutDicomInstance({"s1", "i1", "bb", "EVIL", "DECIMA", 2, 0, 1}).ok());
+  EXPECT_EQ((*instances)[0].association_id, "");
+  ASSERT_TRUE((*store)->PutDicomInstance({"s1", "i1", "bb", "EVIL", "DECIMA", 2, 0, 1, ""}).ok());
   EXPECT_EQ((*store)->ListDicomInstances()->size(), 2u);
-  EXPECT_EQ((*store)->PutDicomInstance({"s1", "i1", "bb", "ORTHANC", "DECIMA", 3, 0, 1}).code(),
+  EXPECT_EQ((*store)->PutDicomInstance({"s1", "i1", "bb", "ORTHANC", "DECIMA", 3, 0, 1, ""}).code(),
             absl::StatusCode::kAlreadyExists);
   auto rows = (*store)->ListDicomSeries(true, 10);
   ASSERT_TRUE(rows.ok()) << rows.status();
   ASSERT_EQ(rows->size(), 1u);
   EXPECT_EQ((*rows)[0].receive_key, "set-x");
+  EXPECT_EQ((*rows)[0].association_id, "");
   DicomSeriesRecord later = (*rows)[0];
   later.receive_key = "set-x@later";
   ASSERT_TRUE((*store)->PutDicomSeries(later, {}).ok());
