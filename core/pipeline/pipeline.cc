@@ -28,6 +28,7 @@
 #include "core/metrics/fidelity.h"
 #include "core/metrics/fidelity_json.h"
 #include "core/pipeline/checkpoint.h"
+#include "core/pipeline/levels_output.h"
 #include "core/render/annotate.h"
 #include "core/render/camera.h"
 #include "core/render/canvas.h"
@@ -204,6 +205,7 @@ absl::StatusOr<std::vector<CurvePoint>> DiffCurve(const TetMesh& original, Simpl
                       {}});
     options.target_reduction = targets[i];
     options.error_tolerance = 0;
+    options.record_levels_to = 0;  // a record would take each point's run down to the floor
     DECIMA_ASSIGN_OR_RETURN(const SimplifyResult s, Simplify(original, options, nullptr, cancel));
     DECIMA_ASSIGN_OR_RETURN(const RenderableMesh r, BuildRenderableMesh(s.mesh, {}, cancel));
     DECIMA_ASSIGN_OR_RETURN(const RenderedImage img, Render(r, camera, tf, {}, cancel));
@@ -365,12 +367,23 @@ std::string SegmentKey(const JobSpec& spec, const std::string& input_key) {
                       " series=", spec.series_instance_uid);
 }
 
+Json LevelsJson(const LevelsOutput& l) {
+  if (!l.artifact) return {{"note", l.note}};
+  return {{"file", *l.artifact},
+          {"bytes", l.bytes},
+          {"collapses", l.collapses},
+          {"deepest_reduction", l.deepest_reduction},
+          {"exhausted", l.exhausted},
+          {"seconds", l.seconds},
+          {"note", l.note}};
+}
+
 std::string SimplifyKey(const JobSpec& spec, const std::string& segment_key) {
   char buf[256];
   std::snprintf(buf, sizeof buf,
-                "|simplify policy=%s target=%.17g tolerance=%.17g w=%.17g,%.17g,%.17g",
+                "|simplify policy=%s target=%.17g tolerance=%.17g w=%.17g,%.17g,%.17g levels=%.17g",
                 SimplifyPolicyName(spec.policy), spec.target_reduction, spec.error_tolerance,
-                spec.weights.shape, spec.weights.volume, spec.weights.neighbour);
+                spec.weights.shape, spec.weights.volume, spec.weights.neighbour, LevelFloor(spec));
   return segment_key + buf;
 }
 
@@ -441,6 +454,12 @@ absl::Status ValidateJobSpec(const JobSpec& spec, std::string* field) {
   DECIMA_RETURN_IF_ERROR(simplify("weights.neighbour", [&](SimplifyOptions& o) {
     o.weights.neighbour = spec.weights.neighbour;
   }));
+  if (!(spec.record_levels_to > 0 && spec.record_levels_to <= 0.99)) {
+    return check("record_levels_to", absl::InvalidArgumentError(absl::StrCat(
+                                         spec.record_levels_to,
+                                         ": expected a reduction in (0, 0.99] down to which "
+                                         "the levels are recorded")));
+  }
 
   if (spec.views.empty() || spec.views.size() > 16) {
     return check("views", absl::InvalidArgumentError(
@@ -570,6 +589,7 @@ absl::StatusOr<JobResult> RunJob(const JobSpec& spec, const std::filesystem::pat
   simplify_options.target_reduction = spec.target_reduction;
   simplify_options.error_tolerance = spec.error_tolerance;
   simplify_options.weights = spec.weights;
+  simplify_options.record_levels_to = LevelFloor(spec);
   const std::string simplify_key = SimplifyKey(spec, segment_key);
   SimplifyResult simplified;
   if (auto saved = Resume(checkpoints, "simplify", simplify_key, &ParseSimplifyResult, progress)) {
@@ -643,6 +663,11 @@ absl::StatusOr<JobResult> RunJob(const JobSpec& spec, const std::filesystem::pat
     }
     DECIMA_RETURN_IF_ERROR(CheckCancelled(cancel, "write"));
   }
+  DECIMA_ASSIGN_OR_RETURN(
+      const LevelsOutput levels,
+      WriteLevelsOutput(spec, simplify_options, original, &simplified, out_dir, cancel));
+  if (levels.artifact) add_artifact(*levels.artifact);
+  metrics["levels"] = LevelsJson(levels);
   timings["write"] = Seconds(t);
   rss.EndStage("write");
   Report(progress,

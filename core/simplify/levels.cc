@@ -10,6 +10,7 @@
 #include "core/common/status.h"
 #include "core/mesh/tetrahedralize.h"
 #include "core/simplify/field_refit.h"
+#include "core/simplify/levels_io.h"
 
 namespace decima {
 
@@ -71,6 +72,11 @@ absl::StatusOr<SimplifyResult> ExtractLevel(const TetMesh& base, const SimplifyL
     return absl::InvalidArgumentError(absl::StrFormat(
         "levels: recorded on a mesh of %d vertices and %d cells, given one of %d and %d",
         levels.base_vertices, levels.base_cells, base.vertex_count(), base.tet_count()));
+  }
+  if (BaseMeshDigest(base) != levels.base_digest) {
+    return absl::InvalidArgumentError(
+        "levels: recorded on another mesh of the same size (its digest differs): a level record "
+        "applies only to the mesh its run simplified");
   }
   const double deepest = levels.deepest_reduction();
   if (!(reduction >= 0 && reduction <= 0.99) || (!levels.exhausted && reduction > deepest)) {

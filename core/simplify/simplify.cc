@@ -15,6 +15,7 @@
 #include "core/simplify/field_engine.h"
 #include "core/simplify/field_refit.h"
 #include "core/simplify/levels.h"
+#include "core/simplify/levels_io.h"
 
 namespace decima {
 namespace {
@@ -276,6 +277,7 @@ absl::StatusOr<SimplifyResult> Simplify(const TetMesh& mesh, const SimplifyOptio
     const int64_t floor = int64_t(std::ceil(options.record_levels_to * double(result.input_cells)));
     SimplifyLevels levels;
     levels.refit_iterations = options.refit_iterations;
+    levels.base_digest = BaseMeshDigest(mesh);
     SimplifyResult deep;
     DECIMA_RETURN_IF_ERROR(simplify_internal::RunFieldSimplify(
         mesh, options, threads, std::max(target, floor),

@@ -150,6 +150,8 @@ struct SimplifyLevels {
   int64_t base_cells = 0;
   // The refit steps every extracted level gets (SimplifyOptions::refit_iterations of the run).
   int32_t refit_iterations = 0;
+  // BaseMeshDigest (levels_io.h) of the base: ExtractLevel refuses another mesh of the same size.
+  uint64_t base_digest = 0;
   // true: the run stopped because no collapse was left (or the tolerance stopped it), so a
   // reduction deeper than the last level gives the last level, as a run to it would; false: the
   // run stopped at its floor (SimplifyOptions::record_levels_to), and deeper is unknown.

@@ -2,7 +2,7 @@
 //
 //   decima-bench --input PATH|phantom:NxNxN --stages load,segment,tetra,simplify,render
 //                [--regions K] [--reduction F] [--policy field|paper|tetfusion] [--size W]
-//                [--view NAME] [--repeat N] --json
+//                [--record-levels-to F] [--view NAME] [--repeat N] --json
 //
 // Every stage runs --repeat times on the output of the previous stage; `seconds` is the median
 // and `seconds_all` every run. The process's peak resident memory after the stage is reported
@@ -36,6 +36,7 @@
 #include "core/render/renderer.h"
 #include "core/render/transfer_function.h"
 #include "core/segment/segment.h"
+#include "core/simplify/levels_io.h"
 #include "core/simplify/simplify.h"
 #include "core/volume/phantom.h"
 #include "tests/bench/bench_util.h"
@@ -73,6 +74,7 @@ struct BenchOptions {
   std::string policy = "field";
   double min_dihedral = SimplifyOptions().min_dihedral_degrees;
   int refit_iterations = SimplifyOptions().refit_iterations;
+  double record_levels_to = 0;
   int size = 512;
   std::string view = "anterior";
 };
@@ -168,6 +170,7 @@ absl::Status RunSimplify(const BenchOptions& o, BenchState& state, Json& out) {
   so.target_reduction = o.reduction;
   so.min_dihedral_degrees = o.min_dihedral;
   so.refit_iterations = o.refit_iterations;
+  so.record_levels_to = o.record_levels_to;
   absl::Status s = Time(o.repeat, out, [&]() -> absl::Status {
     state.simplified.reset();
     auto r = Simplify(*state.mesh, so);
@@ -182,6 +185,12 @@ absl::Status RunSimplify(const BenchOptions& o, BenchState& state, Json& out) {
   if (so.policy == SimplifyPolicy::kField) {
     out["min_dihedral_degrees"] = o.min_dihedral;
     out["refit_iterations"] = o.refit_iterations;
+    out["record_levels_to"] = o.record_levels_to;
+    if (r.levels) {
+      out["levels_collapses"] = r.levels->collapses();
+      out["levels_deepest_reduction"] = r.levels->deepest_reduction();
+      out["levels_file_bytes"] = SerializeLevels(*r.levels).size();
+    }
   }
   out["achieved_reduction"] = r.achieved_reduction;
   out["reached_target"] = r.reached_target;
@@ -270,6 +279,11 @@ int Main(int argc, char** argv) {
   app.add_option("--refit-iterations", o.refit_iterations,
                  "simplify, field policy: least-squares refit steps (0 = keep the samples)")
       ->check(CLI::Range(0, 1000))
+      ->capture_default_str();
+  app.add_option("--record-levels-to", o.record_levels_to,
+                 "simplify, field policy: record the collapses down to this reduction (0 = no "
+                 "levels); the mesh is then the level at --reduction of that record")
+      ->check(CLI::Range(0.0, 0.99))
       ->capture_default_str();
   app.add_option("--size", o.size, "render: image width and height in pixels")
       ->check(CLI::Range(16, 4096))
