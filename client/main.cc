@@ -951,6 +951,7 @@ bool MatchesOnly(const std::string& file, const std::vector<std::string>& only) 
     if (o == "msh" && file == "mesh.msh") return true;
     if (o == "medit" && file == "mesh.mesh") return true;
     if (o == "glb" && file == "surfaces.glb") return true;
+    if (o == "levels" && file == "mesh.levels") return true;
     if (o == "stl" && file.rfind("surface-", 0) == 0 && file.size() > 4 &&
         file.compare(file.size() - 4, 4, ".stl") == 0) {
       return true;
@@ -1305,15 +1306,17 @@ int main(int argc, char** argv) {
   submit
       ->add_option(
           "--outputs", outputs,
-          "artifacts to produce, comma-separated: vtu, msh, medit, stl, glb, labels, images, "
-          "segmentation, report, curve (default vtu,labels,images,segmentation,report; "
+          "artifacts to produce, comma-separated: vtu, msh, medit, stl, glb, levels, labels, "
+          "images, segmentation, report, curve (default vtu,labels,images,segmentation,report; "
           "metrics.json always; stl = one closed surface per region, "
           "surface-region_<r>.stl; glb = all of them, named and coloured, in surfaces.glb; "
+          "levels = mesh.levels, the collapse record down to 90 %, from which any level of "
+          "detail can be extracted later (field policy; the run goes down to 90 %); "
           "curve = diff1 against cells removed, one more "
           "simplification per 10 % step)")
       ->delimiter(',')
-      ->transform(CLI::IsMember({"vtu", "msh", "medit", "stl", "glb", "labels", "images",
-                                 "segmentation", "report", "curve"},
+      ->transform(CLI::IsMember({"vtu", "msh", "medit", "stl", "glb", "levels", "labels",
+                                 "images", "segmentation", "report", "curve"},
                                 CLI::ignore_case));
   submit
       ->add_option("--vtu-level", vtu_level,

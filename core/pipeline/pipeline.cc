@@ -20,6 +20,7 @@
 #include "core/metrics/fidelity_json.h"
 #include "core/pipeline/checkpoint.h"
 #include "core/pipeline/job_run.h"
+#include "core/pipeline/levels_output.h"
 #include "core/pipeline/pictures.h"
 #include "core/pipeline/report.h"
 #include "core/render/camera.h"
@@ -93,10 +94,21 @@ std::string SegmentKey(const JobSpec& spec, const std::string& input_key) {
 std::string SimplifyKey(const JobSpec& spec, const std::string& segment_key) {
   char buf[256];
   std::snprintf(buf, sizeof buf,
-                "|simplify policy=%s target=%.17g tolerance=%.17g w=%.17g,%.17g,%.17g",
+                "|simplify policy=%s target=%.17g tolerance=%.17g w=%.17g,%.17g,%.17g levels=%.17g",
                 SimplifyPolicyName(spec.policy), spec.target_reduction, spec.error_tolerance,
-                spec.weights.shape, spec.weights.volume, spec.weights.neighbour);
+                spec.weights.shape, spec.weights.volume, spec.weights.neighbour, LevelFloor(spec));
   return segment_key + buf;
+}
+
+Json LevelsJson(const LevelsOutput& l) {
+  if (!l.artifact) return {{"note", l.note}};
+  return {{"file", *l.artifact},
+          {"bytes", l.bytes},
+          {"collapses", l.collapses},
+          {"deepest_reduction", l.deepest_reduction},
+          {"exhausted", l.exhausted},
+          {"seconds", l.seconds},
+          {"note", l.note}};
 }
 
 // The stage's output from its checkpoint, or nothing (no checkpoints, none saved yet, or one
@@ -204,6 +216,7 @@ SimplifyOptions SimplifyOptionsOf(const JobSpec& spec) {
   o.target_reduction = spec.target_reduction;
   o.error_tolerance = spec.error_tolerance;
   o.weights = spec.weights;
+  o.record_levels_to = LevelFloor(spec);
   return o;
 }
 
@@ -281,15 +294,21 @@ absl::Status WriteRegionSurfaces(const JobSpec& spec, const TetMesh& mesh, const
   return stage.CheckCancelled();
 }
 
-// write: only the mesh formats the spec asks for. Returns the size of the first mesh file.
-absl::StatusOr<int64_t> WriteStage(const JobSpec& spec, const SimplifyResult& simplified,
-                                   JobRun& run) {
+// write: only the mesh formats the spec asks for, and the collapse record with "levels" (a
+// resumed simplification is run again for it). Returns the size of the first mesh file.
+absl::StatusOr<int64_t> WriteStage(const JobSpec& spec, const TetMesh& original,
+                                   SimplifyResult& simplified, JobRun& run) {
   DECIMA_ASSIGN_OR_RETURN(const Stage stage, run.Stage("write"));
   DECIMA_ASSIGN_OR_RETURN(const int64_t mesh_bytes,
                           WriteMeshFiles(spec, simplified.mesh, stage, run));
   if (Wants(spec, "stl") || Wants(spec, "glb")) {
     DECIMA_RETURN_IF_ERROR(WriteRegionSurfaces(spec, simplified.mesh, stage, run));
   }
+  DECIMA_ASSIGN_OR_RETURN(const LevelsOutput levels,
+                          WriteLevelsOutput(spec, SimplifyOptionsOf(spec), original, &simplified,
+                                            run.out_dir(), stage.cancel()));
+  if (levels.artifact) run.AddArtifact(*levels.artifact);
+  run.metrics()["levels"] = LevelsJson(levels);
   const bool mesh_asked = Wants(spec, "vtu") || Wants(spec, "msh") || Wants(spec, "medit");
   stage.Report(1, mesh_asked ? "mesh written" : "no mesh file asked for");
   return mesh_bytes;
@@ -441,6 +460,7 @@ absl::StatusOr<std::vector<CurvePoint>> DiffCurve(const TetMesh& original, Simpl
                  absl::StrCat("simplifying to ", FormatPercent(targets[i])));
     options.target_reduction = targets[i];
     options.error_tolerance = 0;
+    options.record_levels_to = 0;  // a record would take each point's run down to the floor
     DECIMA_ASSIGN_OR_RETURN(const SimplifyResult s,
                             Simplify(original, options, nullptr, stage.cancel()));
     DECIMA_ASSIGN_OR_RETURN(const RenderableMesh r,
@@ -548,6 +568,12 @@ absl::Status ValidateJobSpec(const JobSpec& spec, std::string* field) {
   DECIMA_RETURN_IF_ERROR(simplify("weights.neighbour", [&](SimplifyOptions& o) {
     o.weights.neighbour = spec.weights.neighbour;
   }));
+  if (!(spec.record_levels_to > 0 && spec.record_levels_to <= 0.99)) {
+    return check("record_levels_to", absl::InvalidArgumentError(absl::StrCat(
+                                         spec.record_levels_to,
+                                         ": expected a reduction in (0, 0.99] down to which "
+                                         "the levels are recorded")));
+  }
 
   if (spec.views.empty() || spec.views.size() > 16) {
     return check("views", absl::InvalidArgumentError(
@@ -611,9 +637,9 @@ absl::StatusOr<JobResult> RunJob(const JobSpec& spec, const std::filesystem::pat
   DECIMA_ASSIGN_OR_RETURN(const SegmentResult seg,
                           SegmentStage(spec, image, checkpoints, segment_key, run));
   DECIMA_ASSIGN_OR_RETURN(const TetMesh original, TetrahedralizeStage(image, seg, run));
-  DECIMA_ASSIGN_OR_RETURN(const SimplifyResult simplified,
+  DECIMA_ASSIGN_OR_RETURN(SimplifyResult simplified,
                           SimplifyStage(spec, original, checkpoints, simplify_key, run));
-  DECIMA_ASSIGN_OR_RETURN(const int64_t mesh_bytes, WriteStage(spec, simplified, run));
+  DECIMA_ASSIGN_OR_RETURN(const int64_t mesh_bytes, WriteStage(spec, original, simplified, run));
   DECIMA_ASSIGN_OR_RETURN(
       const Rendered rendered,
       RenderStage(spec, image, seg, original, simplified, mesh_bytes, run, &report));

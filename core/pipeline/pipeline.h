@@ -33,11 +33,17 @@ struct JobSpec {
   SimplifyPolicy policy = SimplifyPolicy::kField;
   double error_tolerance = 0;  // >= 0; 0 = no tolerance, stop on the target only
   ErrorWeights weights;
+  // With the "levels" output and the field policy: the collapses are recorded down to this
+  // reduction (SimplifyOptions::record_levels_to, (0, 0.99]) and written as mesh.levels, so the
+  // mesh at any reduction down to it can be had later without another job. The run then goes to
+  // this floor (or to target_reduction if deeper), and the job's mesh is the level of the record.
+  double record_levels_to = 0.9;
   // Rendering.
   std::vector<std::string> views{"anterior"};  // 1..16 names ParseView accepts
   int image_size = 512;                        // pixels, 16..4096
   std::string transfer_function = "auto";      // preset name, "auto" (from modality), or JSON text
   // Artifacts (kOutputKinds), in that order; metrics.json is always written.
+  // "levels" is not a default: it takes the run down to record_levels_to (core/pipeline/README.md).
   std::vector<std::string> outputs{"vtu", "labels", "images", "segmentation", "report"};
   int vtu_compression_level = 1;  // 0 = uncompressed, 1..9 zlib
   // Captions only (picture footers, report.html); empty: the input's file name / nothing.
@@ -51,8 +57,10 @@ struct JobSpec {
 // "stl" writes surface-region_<r>.stl per region and "glb" one surfaces.glb with every region
 // named and coloured: the closed surfaces of the simplified mesh's cells of each region
 // (core/mesh/region_surface.h), so they agree with the tets.
-inline constexpr const char* kOutputKinds[] = {
-    "vtu", "msh", "medit", "stl", "glb", "labels", "images", "segmentation", "report", "curve"};
+// "levels" writes mesh.levels, the collapse record (core/pipeline/levels_output.h).
+inline constexpr const char* kOutputKinds[] = {"vtu",          "msh",    "medit",  "stl",
+                                               "glb",          "levels", "labels", "images",
+                                               "segmentation", "report", "curve"};
 
 // OK, or InvalidArgument for the first parameter out of range; `*field` (when given) receives
 // its JobSpec member name ("target_reduction", "weights.shape", ...). Checks the parameters

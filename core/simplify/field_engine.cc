@@ -308,6 +308,14 @@ struct Plane {
   bool Keeps(const double p[3]) const { return n[0] * p[0] + n[1] * p[1] + n[2] * p[2] >= min; }
 };
 
+// One collapse u -> v as the level record keeps it, with the cost that ordered it (to merge the
+// slabs' records of a round).
+struct LoggedCollapse {
+  int32_t u, v;
+  int64_t deleted;
+  float cost;
+};
+
 // What one run of the greedy loop owns: its queue, its working memory and its counts. The serial
 // loop has one; in a parallel round every block of the mesh gets one (README "Parallel rounds").
 struct Worker {
@@ -321,6 +329,7 @@ struct Worker {
           constrained_moves = 0;
   double last_error = 0, max_error = 0;
   bool tolerance_hit = false;
+  std::vector<LoggedCollapse>* log = nullptr;  // where the collapses go, if levels are recorded
   // Starts a new queue with fresh counts; the working memory is kept.
   void Reset(std::vector<HeapEntry> entries) {
     heap.Assign(std::move(entries));
@@ -341,8 +350,9 @@ enum class Drained { kLimit, kStopCost, kEmpty, kCancelled };
 
 class FieldEngine {
  public:
-  FieldEngine(const TetMesh& mesh, const SimplifyOptions& options, int threads)
-      : in_(mesh), options_(options), threads_(threads) {}
+  FieldEngine(const TetMesh& mesh, const SimplifyOptions& options, int threads,
+              SimplifyLevels* levels)
+      : in_(mesh), options_(options), threads_(threads), levels_(levels) {}
 
   absl::Status Run(int64_t target, double tolerance, const ProgressFn& progress,
                    const CancelToken* cancel, SimplifyResult* result);
@@ -379,6 +389,8 @@ class FieldEngine {
                          Worker* totals, absl::Status* status);
   void ReleaseQueue();
   void Finish(SimplifyResult* result);
+  // Appends collapses to the level record (levels_), which holds their deleted cells in 16 bits.
+  absl::Status Record(const std::vector<LoggedCollapse>& collapses);
 
   // u's quadric in double with its point and cost factor: the candidates of u share it.
   struct Source {
@@ -489,6 +501,7 @@ class FieldEngine {
   const TetMesh& in_;
   const SimplifyOptions& options_;
   const int threads_;
+  SimplifyLevels* const levels_;  // null: no level record
 
   int64_t nv_ = 0, nt_ = 0;
   const float* pos_ = nullptr;  // the input positions, mm (they never change)
@@ -1140,8 +1153,10 @@ Drained FieldEngine::Drain(Worker& w, int64_t limit, float stop_cost, bool in_bl
     }
     const bool u_free = st_[u].flags == 0;
     if (!u_free) ++w.constrained_moves;
-    w.removed += Collapse(u, v, star, w);
+    const int64_t deleted = Collapse(u, v, star, w);
+    w.removed += deleted;
     ++w.collapses;
+    if (w.log != nullptr) w.log->push_back({u, v, deleted, float(cost)});
     const double wt = quadric_[kQuadricSize * int64_t(u) + kWeightEntry];
     w.last_error = wt > 0 ? std::sqrt(std::max(0.0, cost) / wt) : 0;
     w.max_error = std::max(w.max_error, w.last_error);
@@ -1434,17 +1449,38 @@ int64_t FieldEngine::ParallelRounds(int64_t target, const ProgressFn& progress,
     std::stable_sort(order.begin(), order.end(),
                      [&](int x, int y) { return entries[x].size() > entries[y].size(); });
     std::vector<Worker> done(blocks);
+    std::vector<std::vector<LoggedCollapse>> slab_log(levels_ != nullptr ? blocks : 0);
     std::atomic<bool> cancelled{false};
     ParallelTasks(blocks, threads_, [&](int thread, int64_t task) {
       const int b = order[task];
       Worker& w = workers[thread];
       w.Reset(std::move(entries[b]));
+      w.log = levels_ != nullptr ? &slab_log[b] : nullptr;
       if (Drain(w, limit[b], stop_cost, true, 0, cancel) == Drained::kCancelled) cancelled = true;
       AddCounts(w, &done[b]);
     });
     if (cancelled) {
       *status = CheckCancelled(cancel, "simplify");
       return removed;
+    }
+    if (levels_ != nullptr) {
+      // The slabs' collapses touch disjoint vertices and cells, so any interleaving that keeps
+      // each slab's order is a valid sequence with the same end. Merged by cost (ties to the
+      // lower slab), a level cut inside this round takes the cheapest collapses of every slab
+      // instead of all of the first slabs': the nearest to the serial order this round allows.
+      std::vector<LoggedCollapse> merged;
+      std::vector<size_t> next(blocks, 0);
+      for (;;) {
+        int best = -1;
+        for (int b = 0; b < blocks; ++b) {
+          if (next[b] == slab_log[b].size()) continue;
+          if (best < 0 || slab_log[b][next[b]].cost < slab_log[best][next[best]].cost) best = b;
+        }
+        if (best < 0) break;
+        merged.push_back(slab_log[best][next[best]++]);
+      }
+      *status = Record(merged);
+      if (!status->ok()) return removed;
     }
     int64_t round_removed = 0, round_collapses = 0;
     for (const Worker& d : done) {
@@ -1496,6 +1532,8 @@ absl::Status FieldEngine::Run(int64_t target, double tolerance, const ProgressFn
     DECIMA_RETURN_IF_ERROR(status);
   }
   Worker w;
+  std::vector<LoggedCollapse> serial_log;
+  if (levels_ != nullptr) w.log = &serial_log;
   {
     std::vector<HeapEntry> entries;
     for (int64_t v = 0; v < nv_; ++v) {
@@ -1516,6 +1554,10 @@ absl::Status FieldEngine::Run(int64_t target, double tolerance, const ProgressFn
                                       rounds.collapses + w.collapses, total,
                                       100.0 * double(total) / double(std::max<int64_t>(1, nt_))),
                       {{"pass", 1.0}, {"cells_removed", double(total)}, {"error", w.last_error}}});
+    if (levels_ != nullptr) {
+      DECIMA_RETURN_IF_ERROR(Record(serial_log));
+      serial_log.clear();
+    }
     if (drained != Drained::kLimit || total >= target) break;
   }
   removed += w.removed;
@@ -1538,8 +1580,27 @@ absl::Status FieldEngine::Run(int64_t target, double tolerance, const ProgressFn
     result->stop_reason =
         rounds.tolerance_hit ? StopReason::kErrorTolerance : StopReason::kNoValidCollapse;
   }
+  if (levels_ != nullptr) {
+    levels_->base_vertices = nv_;
+    levels_->base_cells = nt_;
+    levels_->exhausted = removed < target;
+  }
   ReleaseQueue();
   Finish(result);
+  return absl::OkStatus();
+}
+
+absl::Status FieldEngine::Record(const std::vector<LoggedCollapse>& collapses) {
+  for (const LoggedCollapse& c : collapses) {
+    if (c.deleted > std::numeric_limits<uint16_t>::max()) {
+      return absl::InternalError(absl::StrCat(
+          "simplify: collapse ", c.u, " -> ", c.v, " deleted ", c.deleted,
+          " cells, more than the level record holds (65535); run without record_levels_to"));
+    }
+    levels_->removed_vertex.push_back(c.u);
+    levels_->survivor.push_back(c.v);
+    levels_->cells_deleted.push_back(uint16_t(c.deleted));
+  }
   return absl::OkStatus();
 }
 
@@ -1667,8 +1728,9 @@ int SlabAxis(const float* positions, int64_t n, const float lo[3], const float h
 
 absl::Status RunFieldSimplify(const TetMesh& mesh, const SimplifyOptions& options, int threads,
                               int64_t target, double tolerance, const ProgressFn& progress,
-                              const CancelToken* cancel, SimplifyResult* result) {
-  FieldEngine engine(mesh, options, threads);
+                              const CancelToken* cancel, SimplifyResult* result,
+                              SimplifyLevels* levels) {
+  FieldEngine engine(mesh, options, threads, levels);
   return engine.Run(target, tolerance, progress, cancel, result);
 }
 

@@ -15,10 +15,14 @@ namespace decima::simplify_internal {
 
 // Runs the field policy on `mesh` (already validated) until `target` cells are removed, the
 // error tolerance stops it (`tolerance` > 0: an RMS field error in image units) or no valid
-// collapse is left. Fills every field of `result`. Cancelled if `cancel` fires.
+// collapse is left. Fills every field of `result` (not result->levels). Cancelled if `cancel`
+// fires. `levels` not null: every collapse is appended to it in an order whose every prefix is a
+// valid mesh (the serial loop's order; a parallel round's slabs merged by cost), and its counts
+// and `exhausted` are set; the run then depends on `target` only through the rounds' pacing.
 absl::Status RunFieldSimplify(const TetMesh& mesh, const SimplifyOptions& options, int threads,
                               int64_t target, double tolerance, const ProgressFn& progress,
-                              const CancelToken* cancel, SimplifyResult* result);
+                              const CancelToken* cancel, SimplifyResult* result,
+                              SimplifyLevels* levels = nullptr);
 
 // The axis (0, 1, 2) the parallel rounds cut into slabs of `width` mm, for n vertices at
 // `positions` (x, y, z each) inside the box [lo, hi]. The longest axis, since a shorter one gives

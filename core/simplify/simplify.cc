@@ -14,6 +14,8 @@
 #include "core/simplify/collapse_engine.h"
 #include "core/simplify/field_engine.h"
 #include "core/simplify/field_refit.h"
+#include "core/simplify/levels.h"
+#include "core/simplify/levels_io.h"
 
 namespace decima {
 namespace {
@@ -192,6 +194,15 @@ absl::Status ValidateSimplifyOptions(const SimplifyOptions& o) {
   if (o.refit_iterations < 0 || o.refit_iterations > 1000) {
     return bad(absl::StrCat("refit_iterations = ", o.refit_iterations, ": expected 0..1000"));
   }
+  if (!(o.record_levels_to >= 0 && o.record_levels_to <= 0.99)) {
+    return bad(absl::StrCat("record_levels_to = ", o.record_levels_to,
+                            ": expected a fraction of cells in [0, 0.99] (0: no levels)"));
+  }
+  if (o.record_levels_to > 0 && o.policy != SimplifyPolicy::kField) {
+    return bad(absl::StrCat("record_levels_to = ", o.record_levels_to,
+                            ": only the field policy records levels, not ",
+                            SimplifyPolicyName(o.policy)));
+  }
   if (o.threads < 0 || o.threads > 1024) {
     return bad(absl::StrCat("threads = ", o.threads, ": expected 0..1024"));
   }
@@ -260,7 +271,26 @@ absl::StatusOr<SimplifyResult> Simplify(const TetMesh& mesh, const SimplifyOptio
                  : std::numeric_limits<int64_t>::max();
   const bool has_tolerance = options.error_tolerance > 0;
 
-  if (options.policy == SimplifyPolicy::kField) {
+  if (options.policy == SimplifyPolicy::kField && options.record_levels_to > 0) {
+    // The run goes to the floor (or deeper, to the target), and the mesh at the target is a level
+    // of the record: the same as any other run with this floor gives for it (levels.h).
+    const int64_t floor = int64_t(std::ceil(options.record_levels_to * double(result.input_cells)));
+    SimplifyLevels levels;
+    levels.refit_iterations = options.refit_iterations;
+    levels.base_digest = BaseMeshDigest(mesh);
+    SimplifyResult deep;
+    DECIMA_RETURN_IF_ERROR(simplify_internal::RunFieldSimplify(
+        mesh, options, threads, std::max(target, floor),
+        has_tolerance ? options.error_tolerance : 0, progress, cancel, &deep, &levels));
+    deep.mesh = TetMesh();  // the level below is built from `mesh` and the record
+    DECIMA_ASSIGN_OR_RETURN(
+        result, ExtractLevel(mesh, levels, options.target_reduction, threads, progress, cancel));
+    result.passes = deep.passes;
+    result.pass_stats = std::move(deep.pass_stats);
+    result.max_error = deep.max_error;
+    if (!result.reached_target && has_target) result.stop_reason = deep.stop_reason;
+    result.levels = std::move(levels);
+  } else if (options.policy == SimplifyPolicy::kField) {
     DECIMA_RETURN_IF_ERROR(simplify_internal::RunFieldSimplify(
         mesh, options, threads, target, has_tolerance ? options.error_tolerance : 0, progress,
         cancel, &result));

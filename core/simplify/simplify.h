@@ -106,6 +106,12 @@ struct SimplifyOptions {
   // to the original samples after the collapses (README "Refit"); 0 keeps every surviving vertex's
   // voxel sample. 0..1000.
   int refit_iterations = 10;
+  // kField: record the collapse sequence down to this reduction (the level floor), in [0, 0.99];
+  // 0 = none. The run then goes to max(target, floor) and `mesh` is the level at the target taken
+  // from the record (levels.h), so every run with the same options and floor gives, at any
+  // reduction it recorded, the same mesh as a run to that reduction. The parallel rounds are
+  // paced by the floor instead of the target for that (README "Levels").
+  double record_levels_to = 0;
   int threads = 0;  // worker threads (scoring; kField: its slabs too); 0 = hardware concurrency
 };
 
@@ -136,6 +142,32 @@ struct SimplifyPassStats {
   double last_error = 0;       // Δε of the last collapse of the pass
 };
 
+// The collapse sequence of a field-policy run (SimplifyOptions::record_levels_to), from which
+// levels.h's ExtractLevel gives the mesh at any recorded reduction. A simplicial map with levels:
+// half-edge collapses keep every survivor's attributes, so each collapse is (u, v) and its count.
+struct SimplifyLevels {
+  int64_t base_vertices = 0;  // of the mesh Simplify was given (the base of every level)
+  int64_t base_cells = 0;
+  // The refit steps every extracted level gets (SimplifyOptions::refit_iterations of the run).
+  int32_t refit_iterations = 0;
+  // BaseMeshDigest (levels_io.h) of the base: ExtractLevel refuses another mesh of the same size.
+  uint64_t base_digest = 0;
+  // true: the run stopped because no collapse was left (or the tolerance stopped it), so a
+  // reduction deeper than the last level gives the last level, as a run to it would; false: the
+  // run stopped at its floor (SimplifyOptions::record_levels_to), and deeper is unknown.
+  bool exhausted = false;
+  // Collapse i merged removed_vertex[i] into survivor[i] (base vertex ids) and deleted
+  // cells_deleted[i] cells. The order is the run's: every prefix is a valid mesh.
+  std::vector<int32_t> removed_vertex;
+  std::vector<int32_t> survivor;
+  std::vector<uint16_t> cells_deleted;
+
+  int64_t collapses() const { return int64_t(removed_vertex.size()); }
+  int64_t cells_removed() const;  // by every collapse
+  // The deepest recorded reduction: cells_removed() / base_cells.
+  double deepest_reduction() const;
+};
+
 struct SimplifyResult {
   TetMesh mesh;  // compacted: no unreferenced vertex, no deleted cell
   // vertex_map[v] for every input vertex v: index in `mesh` of the vertex it became (itself,
@@ -151,6 +183,8 @@ struct SimplifyResult {
   int64_t collapses = 0;
   double max_error = 0;  // largest Δε of a performed collapse
   std::vector<SimplifyPassStats> pass_stats;
+  // With SimplifyOptions::record_levels_to: every collapse of the run, down to the floor.
+  std::optional<SimplifyLevels> levels;
 };
 
 // OK if every option is in its documented range, else InvalidArgument whose message names the

@@ -2,7 +2,8 @@
 //
 //   decima-bench --input PATH|phantom:NxNxN --stages load,segment,tetra,simplify,render
 //                [--regions K] [--reduction F] [--policy field|paper|tetfusion] [--size W]
-//                [--view NAME] [--repeat N] --json
+//                [--record-levels-to F [--extract-levels R,...]] [--view NAME] [--repeat N]
+//                --json
 //
 // Every stage runs --repeat times on the output of the previous stage; `seconds` is the median
 // and `seconds_all` every run. The process's peak resident memory after the stage is reported
@@ -36,6 +37,8 @@
 #include "core/render/renderer.h"
 #include "core/render/transfer_function.h"
 #include "core/segment/segment.h"
+#include "core/simplify/levels.h"
+#include "core/simplify/levels_io.h"
 #include "core/simplify/simplify.h"
 #include "core/simplify/simplify_json.h"
 #include "core/volume/phantom.h"
@@ -74,6 +77,8 @@ struct BenchOptions {
   std::string policy = "field";
   double min_dihedral = SimplifyOptions().min_dihedral_degrees;
   int refit_iterations = SimplifyOptions().refit_iterations;
+  double record_levels_to = 0;
+  std::vector<double> extract_levels;
   int size = 512;
   std::string view = "anterior";
 };
@@ -169,6 +174,7 @@ absl::Status RunSimplify(const BenchOptions& o, BenchState& state, Json& out) {
   so.target_reduction = o.reduction;
   so.min_dihedral_degrees = o.min_dihedral;
   so.refit_iterations = o.refit_iterations;
+  so.record_levels_to = o.record_levels_to;
   absl::Status s = Time(o.repeat, out, [&]() -> absl::Status {
     state.simplified.reset();
     auto r = Simplify(*state.mesh, so);
@@ -182,6 +188,12 @@ absl::Status RunSimplify(const BenchOptions& o, BenchState& state, Json& out) {
   if (so.policy == SimplifyPolicy::kField) {
     out["min_dihedral_degrees"] = o.min_dihedral;
     out["refit_iterations"] = o.refit_iterations;
+    out["record_levels_to"] = o.record_levels_to;
+    if (r.levels) {
+      out["levels_collapses"] = r.levels->collapses();
+      out["levels_deepest_reduction"] = r.levels->deepest_reduction();
+      out["levels_file_bytes"] = SerializeLevels(*r.levels).size();
+    }
   }
   out["cells_removed_per_second"] = (r.input_cells - r.output_cells) / out["seconds"].get<double>();
 
@@ -192,6 +204,27 @@ absl::Status RunSimplify(const BenchOptions& o, BenchState& state, Json& out) {
   auto f = MeasureFidelity(state.image, r.mesh, fo);
   if (!f.ok()) return f.status();
   out["fidelity"] = FidelityToJson(*f);
+  // Levels taken from the record: what a fetch at another reduction costs in the core (the
+  // extraction and its refit), and what it keeps.
+  if (r.levels && !o.extract_levels.empty()) {
+    Json levels = Json::array();
+    for (double reduction : o.extract_levels) {
+      const auto start = std::chrono::steady_clock::now();
+      auto level = ExtractLevel(*state.mesh, *r.levels, reduction, 0);
+      if (!level.ok()) return level.status();
+      const double seconds =
+          std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
+      fo.vertex_map = &level->vertex_map;
+      auto lf = MeasureFidelity(state.image, level->mesh, fo);
+      if (!lf.ok()) return lf.status();
+      levels.push_back({{"reduction", reduction},
+                        {"seconds", seconds},
+                        {"achieved_reduction", level->achieved_reduction},
+                        {"cells", level->output_cells},
+                        {"psnr_db", lf->psnr_db}});
+    }
+    out["extracted_levels"] = levels;
+  }
   return absl::OkStatus();
 }
 
@@ -262,6 +295,16 @@ int Main(int argc, char** argv) {
                  "simplify, field policy: least-squares refit steps (0 = keep the samples)")
       ->check(CLI::Range(0, 1000))
       ->capture_default_str();
+  app.add_option("--record-levels-to", o.record_levels_to,
+                 "simplify, field policy: record the collapses down to this reduction (0 = no "
+                 "levels); the mesh is then the level at --reduction of that record")
+      ->check(CLI::Range(0.0, 0.99))
+      ->capture_default_str();
+  app.add_option("--extract-levels", o.extract_levels,
+                 "simplify with --record-levels-to: also extract these reductions from the "
+                 "record (comma-separated), with their time and PSNR")
+      ->delimiter(',')
+      ->check(CLI::Range(0.0, 0.99));
   app.add_option("--size", o.size, "render: image width and height in pixels")
       ->check(CLI::Range(16, 4096))
       ->capture_default_str();

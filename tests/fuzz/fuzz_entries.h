@@ -36,6 +36,11 @@ int NrrdEntry(const uint8_t* data, size_t size);
 // never crash or abort; a volume returned passes Validate.
 int DicomEntry(const uint8_t* data, size_t size);
 
+// The bytes as a .levels file (ParseLevels): it must return a Status, and a record it accepts
+// must be a valid simplicial map (ValidateLevels) that the writer turns into a file read back
+// the same.
+int LevelsEntry(const uint8_t* data, size_t size);
+
 // Upload + GetUploadStatus through the real service (in-process gRPC, LocalBlobStore in a temp
 // folder). The input chooses honest or fuzzed digest, size and offset, chunking, an interrupted
 // stream and its resume. Every answer has an expected code (not UNKNOWN/INTERNAL); an honest

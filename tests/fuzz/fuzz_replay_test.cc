@@ -32,6 +32,7 @@ TEST(FuzzReplay, EveryDicomSeedRunsThroughItsEntry) { ReplayCorpus("dicom", Dico
 TEST(FuzzReplay, EveryCheckpointSeedRunsThroughItsEntry) {
   ReplayCorpus("checkpoint", CheckpointEntry);
 }
+TEST(FuzzReplay, EveryLevelsSeedRunsThroughItsEntry) { ReplayCorpus("levels", LevelsEntry); }
 
 // The corpus must keep files the readers accept (named ok-*), so the fuzzer starts past the
 // header checks and the entries' invariant checks run on real meshes and functions.
@@ -58,6 +59,7 @@ TEST(FuzzReplay, VolumeSeedsNamedOkAreAccepted) {
   ExpectOkSeedsAccepted("nrrd", NrrdEntry);
   ExpectOkSeedsAccepted("dicom", DicomEntry);
   ExpectOkSeedsAccepted("checkpoint", CheckpointEntry);
+  ExpectOkSeedsAccepted("levels", LevelsEntry);
 }
 
 }  // namespace

@@ -1,6 +1,6 @@
 #!/usr/bin/env python3
 """Writes the seed corpora of the volume, DICOM, DICOM receive and series check, Upload,
-CreateVolume and checkpoint fuzz targets
+CreateVolume, checkpoint and level-record fuzz targets
 (corpus/<target>/): small valid files (named ok-*) and edge cases (bad-*). Run from anywhere;
 the output is deterministic, so a re-run changes nothing. Inputs of several files are joined
 with SEP (kFileSeparator in fuzz_entries.h)."""
@@ -365,3 +365,59 @@ write("checkpoint", "bad-checksum-file", b"\x03" + ckpt_file(simplify_payload(),
 write("checkpoint", "bad-other-key-file", b"\x02" + ckpt_file(seg_payload(), key=b"other"))
 write("checkpoint", "bad-torn-file", b"\x02" + ckpt_file(seg_payload())[:-10])
 write("checkpoint", "bad-huge-count", b"\x01" + struct.pack("<Q", 1 << 62) + b"\0" * 32)
+
+
+# ---- level records (core/simplify/levels_io.h; format in core/simplify/README.md) ------------
+M64 = (1 << 64) - 1
+
+
+def rotl(x, r):
+    return ((x << r) | (x >> (64 - r))) & M64
+
+
+def levels_checksum(data):
+    """LevelsChecksum: the digest of every byte before the checksum."""
+    h = 0x9e3779b97f4a7c15
+
+    def mix(h, w):
+        w = (w * 0x87c37b91114253d5) & M64
+        w = (rotl(w, 31) * 0x4cf5ad432745937f) & M64
+        h ^= w
+        return (rotl(h, 27) * 5 + 0x52dce729) & M64
+
+    n = len(data) - len(data) % 8
+    for i in range(0, n, 8):
+        h = mix(h, struct.unpack_from("<Q", data, i)[0])
+    if n < len(data):
+        tail = int.from_bytes(data[n:], "little")
+        h = mix(h, tail ^ ((len(data) - n) << 56))
+    h = mix(h, len(data))
+    for shift, mul in ((33, 0xff51afd7ed558ccd), (33, 0xc4ceb9fe1a85ec53)):
+        h ^= h >> shift
+        h = (h * mul) & M64
+    return h ^ (h >> 33)
+
+
+def levels_file(nv, nt, collapses, version=1, flags=0, refit=10, digest=0x1234, count=None,
+                payload=None):
+    raw = b"".join(struct.pack("<i", u) for u, v, k in collapses)
+    raw += b"".join(struct.pack("<i", v - u) for u, v, k in collapses)
+    raw += b"".join(struct.pack("<H", k) for u, v, k in collapses)
+    packed = zlib.compress(raw, 6) if payload is None else payload
+    n = len(collapses) if count is None else count
+    out = b"DECIMALV" + struct.pack("<IIQQQIIQQ", version, flags, nv, nt, n, refit, 0, digest,
+                                    len(packed)) + packed
+    return out + struct.pack("<Q", levels_checksum(out))
+
+
+LEVELS = [(1, 0, 2), (3, 2, 1), (5, 0, 3)]
+write("levels", "ok-three-collapses", levels_file(8, 12, LEVELS))
+write("levels", "ok-exhausted-empty", levels_file(4, 1, [], flags=1))
+write("levels", "bad-magic", b"DECIMALX" + levels_file(8, 12, LEVELS)[8:])
+write("levels", "bad-version", levels_file(8, 12, LEVELS, version=2))
+write("levels", "bad-truncated", levels_file(8, 12, LEVELS)[:-5])
+write("levels", "bad-count-above-payload", levels_file(8, 12, LEVELS, count=4))
+write("levels", "bad-huge-count", levels_file(1 << 30, 12, LEVELS, count=1 << 29))
+write("levels", "bad-vertex-removed-twice", levels_file(8, 12, [(1, 0, 2), (1, 2, 1)]))
+write("levels", "bad-more-cells-deleted-than-base", levels_file(8, 2, LEVELS))
+write("levels", "bad-checksum", levels_file(8, 12, LEVELS)[:-1] + b"\0")

@@ -49,7 +49,7 @@ _SPEC_KEYS = {"regions": "regions", "class_means": "class_means",
               "outputs": "outputs", "vtu_compression_level": "vtu_compression_level",
               "vtu_level": "vtu_compression_level"}
 # fetch(outputs=...) kinds, as the CLI's --only: kind -> file name.
-_KIND_FILES = {"vtu": "mesh.vtu", "msh": "mesh.msh", "medit": "mesh.mesh",
+_KIND_FILES = {"vtu": "mesh.vtu", "msh": "mesh.msh", "medit": "mesh.mesh", "levels": "mesh.levels",
                "labels": "labels.nii.gz", "segmentation": "segmentation.png",
                "report": "report.html", "curve": "curve.png", "metrics": "metrics.json"}
 _FINAL = (jobs_pb2.SUCCEEDED, jobs_pb2.FAILED, jobs_pb2.CANCELLED)
@@ -767,8 +767,8 @@ class Job:
     def fetch(self, out_dir, outputs=None, reduction=None):
         """Downloads the artifacts of a succeeded job into out_dir (created if needed) and
         returns their paths. outputs: file names ("mesh.vtu") or kinds ("vtu", "msh",
-        "medit", "labels", "images", "segmentation", "report", "curve", "metrics"), as a list
-        or comma-separated; None for all. Each file goes to NAME.part first (an interrupted
+        "medit", "levels", "labels", "images", "segmentation", "report", "curve", "metrics"), as
+        a list or comma-separated; None for all. Each file goes to NAME.part first (an interrupted
         fetch resumes from its size), is checked against the server's size and sha256, then
         renamed.
 

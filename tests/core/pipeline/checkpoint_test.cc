@@ -174,6 +174,31 @@ TEST_F(ResumeTest, ADamagedCheckpointIsIgnoredAndTheStageRunsAgain) {
   ExpectSameOutputs(*run.result, dir_ / "a2");
 }
 
+// A checkpoint holds the simplified mesh, not its collapse record: a levels job resumed after
+// simplify runs the simplification again for the record, which is the uninterrupted run's.
+TEST_F(ResumeTest, ALevelsJobResumedAfterSimplifyWritesTheSameRecord) {
+  JobSpec spec = spec_;
+  spec.outputs = {"vtu", "levels"};
+  spec.record_levels_to = 0.7;
+  auto plain = RunJob(spec, dir_ / "plain", nullptr, nullptr);
+  ASSERT_TRUE(plain.ok()) << plain.status();
+  const Attempt first = RunWithCheckpoints(spec, dir_ / "a1", dir_ / "ckpt", "simplify");
+  ASSERT_EQ(first.result.status().code(), absl::StatusCode::kCancelled) << first.result.status();
+  const Attempt second = RunWithCheckpoints(spec, dir_ / "a2", dir_ / "ckpt");
+  ASSERT_TRUE(second.result.ok()) << second.result.status();
+  EXPECT_EQ(Json::parse(second.result->metrics_json)["resumed_stages"],
+            Json({"segment", "simplify"}));
+  const std::string record = ReadAll(dir_ / "plain" / "mesh.levels");
+  EXPECT_GT(record.size(), 72u);
+  EXPECT_EQ(ReadAll(dir_ / "a2" / "mesh.levels"), record);
+  EXPECT_EQ(ReadAll(dir_ / "a2" / "mesh.vtu"), ReadAll(dir_ / "plain" / "mesh.vtu"));
+  // The floor is part of the checkpoint's key: a job without levels does not resume it.
+  const Attempt without = RunWithCheckpoints(spec_, dir_ / "a3", dir_ / "ckpt");
+  ASSERT_TRUE(without.result.ok()) << without.result.status();
+  EXPECT_EQ(Json::parse(without.result->metrics_json)["resumed_stages"], Json({"segment"}));
+  ExpectSameOutputs(*without.result, dir_ / "a3");
+}
+
 TEST(Checkpoint, ATornOrForeignFileIsRefusedAndAMissingOneIsNotFound) {
   const fs::path dir = decima::testing::MakeScratchDir("checkpoint");
   const fs::path f = dir / "x.ckpt";

@@ -13,6 +13,7 @@
 
 #include "core/io/png.h"
 #include "core/io/volume_io.h"
+#include "core/simplify/levels_io.h"
 #include "core/volume/phantom.h"
 #include "tests/testing/test_data.h"
 
@@ -98,6 +99,47 @@ TEST(RunJob, StlOutputWritesOneClosedSurfacePerRegion) {
     EXPECT_GT(a.size_bytes, 84u + 50u * 4u) << a.name;
     EXPECT_EQ((a.size_bytes - 84) % 50, 0u) << a.name;
   }
+}
+
+// The levels output: mesh.levels is the record of a run down to the floor, the same for every
+// target up to it (so a level fetched from one job is the mesh of a job at that level), and the
+// job's mesh is that record's level at its target.
+TEST(RunJob, LevelsOutputIsOneRecordWhateverTheTarget) {
+  const fs::path dir = decima::testing::MakeScratchDir("pipeline");
+  JobSpec spec = SmallSpec(PhantomFile(dir));
+  spec.outputs = {"vtu", "levels"};
+  spec.record_levels_to = 0.7;
+  std::vector<std::string> levels_bytes;
+  for (double target : {0.3, 0.6}) {
+    spec.target_reduction = target;
+    const fs::path out = dir / ("out-" + std::to_string(target));
+    auto result = RunJob(spec, out, nullptr, nullptr);
+    ASSERT_TRUE(result.ok()) << result.status();
+    std::set<std::string> names;
+    for (const auto& a : result->artifacts) names.insert(a.name);
+    EXPECT_EQ(names, (std::set<std::string>{"mesh.vtu", "mesh.levels", "metrics.json"}));
+    auto levels = ReadLevels(out / "mesh.levels");
+    ASSERT_TRUE(levels.ok()) << levels.status();
+    EXPECT_TRUE(levels->exhausted || levels->deepest_reduction() >= 0.7);
+    auto m = nlohmann::json::parse(result->metrics_json);
+    EXPECT_EQ(m["levels"]["file"], "mesh.levels");
+    EXPECT_EQ(m["levels"]["collapses"].get<int64_t>(), levels->collapses());
+    EXPECT_NEAR(m["simplification"]["achieved_reduction"].get<double>(), target, 0.01);
+    std::ifstream in(out / "mesh.levels", std::ios::binary);
+    levels_bytes.emplace_back(std::istreambuf_iterator<char>(in), std::istreambuf_iterator<char>());
+  }
+  EXPECT_EQ(levels_bytes[0], levels_bytes[1]);
+  // The paper policy records no levels: said in the metrics, no file, the job still runs.
+  spec.policy = SimplifyPolicy::kPaper;
+  auto paper = RunJob(spec, dir / "paper", nullptr, nullptr);
+  ASSERT_TRUE(paper.ok()) << paper.status();
+  EXPECT_FALSE(fs::exists(dir / "paper" / "mesh.levels"));
+  EXPECT_THAT(nlohmann::json::parse(paper->metrics_json)["levels"]["note"].get<std::string>(),
+              HasSubstr("the paper policy does not record them"));
+  spec.record_levels_to = 0;
+  std::string field;
+  EXPECT_FALSE(ValidateJobSpec(spec, &field).ok());
+  EXPECT_EQ(field, "record_levels_to");
 }
 
 TEST(RunJob, WritesOnlyTheOutputsAskedFor) {
