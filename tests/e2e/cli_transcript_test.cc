@@ -128,14 +128,9 @@ void ExpectGolden(const std::string& name, const std::string& actual, const fs::
   ADD_FAILURE() << "the CLI's output differs from " << golden << ":\n" << diff.out;
 }
 
-class CliTranscript : public ::testing::Test {
+class CliTranscript : public ScratchTest {
  protected:
-  void SetUp() override {
-    scratch_ = testing::MakeScratchDir("cli_transcript");
-    volume_ = scratch_ / "phantom.nii";
-    WriteTinyNifti(volume_, 12, 10, 8);
-  }
-  fs::path scratch_, volume_;
+  CliTranscript() : ScratchTest("cli_transcript") {}
 };
 
 TEST_F(CliTranscript, HelpOfTheProgramAndOfEveryVerb) {
