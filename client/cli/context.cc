@@ -212,6 +212,15 @@ int ResolveJob(CliContext& ctx, const std::string& arg, std::string* name) {
   return kUsage;
 }
 
+int GetJobOf(CliContext& ctx, const std::string& arg, const std::string& verb, v1::Job* job) {
+  v1::GetJobRequest req;
+  if (int rc = ResolveJob(ctx, arg, req.mutable_name()); rc != kOk) return rc;
+  auto jobs = v1::Jobs::NewStub(ctx.conn.channel);
+  grpc::Status s = WithRetry(ctx, [&] { return jobs->GetJob(ctx.conn.Context().get(), req, job); });
+  if (!s.ok()) return Report(ctx, s, verb + " " + req.name());
+  return kOk;
+}
+
 const v1::Volume* GetVolume(CliContext& ctx, const std::string& name) {
   if (name.empty()) return nullptr;
   auto it = ctx.volumes.find(name);

@@ -103,6 +103,9 @@ grpc::Status WithRetry(CliContext& ctx, F call) {
 
 // Resolves JOB: "jobs/{id}", a full id, or a unique prefix of an id (as docker does).
 int ResolveJob(CliContext& ctx, const std::string& arg, std::string* name);
+// Resolves JOB and gets the job, retried while the server restarts; a failure is reported as
+// "VERB jobs/...".
+int GetJobOf(CliContext& ctx, const std::string& arg, const std::string& verb, v1::Job* job);
 // The volume `name` (cached), or nullptr when it is empty or cannot be read.
 const v1::Volume* GetVolume(CliContext& ctx, const std::string& name);
 // Every page of ListJobs (bounded), newest first.

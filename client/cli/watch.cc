@@ -12,10 +12,12 @@ namespace decima::client {
 
 namespace {
 
-ReconnectPolicy PolicyOf(const CliContext& ctx) {
+// The job's stream on the context's channel, retried for --reconnect.
+JobEventStream StreamOf(CliContext& ctx, v1::Jobs::StubInterface* stub, const std::string& name) {
   ReconnectPolicy p;
   p.give_up_after = std::chrono::milliseconds(static_cast<int64_t>(ctx.flags.reconnect_s * 1000));
-  return p;
+  return JobEventStream(
+      stub, [&ctx] { return ctx.conn.Context(false); }, name, p, &ctx.ever_connected);
 }
 
 }  // namespace
@@ -24,9 +26,7 @@ int Watch(CliContext& ctx, const std::string& name, v1::Job* final) {
   auto stub = v1::Jobs::NewStub(ctx.conn.channel);
   ArmInterrupt(ctx, name);
   ProgressView view(name, stderr, ctx.stderr_tty, ctx.Quiet(), TerminalColumns);
-  JobEventStream stream(
-      stub.get(), [&] { return ctx.conn.Context(false); }, name, PolicyOf(ctx),
-      &ctx.ever_connected);
+  JobEventStream stream = StreamOf(ctx, stub.get(), name);
   JobEventStream::Handlers h;
   h.event = [&](const v1::JobEvent& ev) {
     if (ctx.JsonOut()) {
@@ -85,9 +85,7 @@ std::vector<WatchOutcome> WatchMany(CliContext& ctx, const std::vector<std::stri
     const std::string id = ShortId(name);
     auto stub = v1::Jobs::NewStub(ctx.conn.channel);
     JobLinesView view(id, say);
-    JobEventStream stream(
-        stub.get(), [&] { return ctx.conn.Context(false); }, name, PolicyOf(ctx),
-        &ctx.ever_connected);
+    JobEventStream stream = StreamOf(ctx, stub.get(), name);
     JobEventStream::Handlers h;
     h.event = [&](const v1::JobEvent& ev) {
       if (ctx.JsonOut()) {

@@ -103,13 +103,8 @@ namespace {
 
 int RunFetch(CliContext& ctx, const FetchOptions& o) {
   if (int rc = ConnectAndCheck(ctx, "fetch"); rc != kOk) return rc;
-  auto jobs = v1::Jobs::NewStub(ctx.conn.channel);
-  v1::GetJobRequest req;
-  if (int rc = ResolveJob(ctx, o.job, req.mutable_name()); rc != kOk) return rc;
   v1::Job job;
-  grpc::Status s =
-      WithRetry(ctx, [&] { return jobs->GetJob(ctx.conn.Context().get(), req, &job); });
-  if (!s.ok()) return Report(ctx, s, "fetch " + req.name());
+  if (int rc = GetJobOf(ctx, o.job, "fetch", &job); rc != kOk) return rc;
   return FetchArtifacts(ctx, job, o.out, o.only);
 }
 

@@ -13,13 +13,8 @@ struct StatusOptions {
 
 int RunStatus(CliContext& ctx, const StatusOptions& o) {
   if (int rc = ConnectAndCheck(ctx, "status"); rc != kOk) return rc;
-  auto jobs = v1::Jobs::NewStub(ctx.conn.channel);
-  v1::GetJobRequest req;
-  if (int rc = ResolveJob(ctx, o.job, req.mutable_name()); rc != kOk) return rc;
   v1::Job job;
-  grpc::Status s =
-      WithRetry(ctx, [&] { return jobs->GetJob(ctx.conn.Context().get(), req, &job); });
-  if (!s.ok()) return Report(ctx, s, "status " + req.name());
+  if (int rc = GetJobOf(ctx, o.job, "status", &job); rc != kOk) return rc;
   if (ctx.JsonOut()) {
     std::printf("%s\n", ToJson(job).c_str());
   } else {
