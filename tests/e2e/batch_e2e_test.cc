@@ -80,10 +80,9 @@ void WriteTruncatedNiftiGz(const fs::path& path) {
   fs::resize_file(path, fs::file_size(path) - 12);
 }
 
-class BatchE2E : public ::testing::Test {
+class BatchE2E : public ScratchTest {
  protected:
-  void SetUp() override { scratch_ = testing::MakeScratchDir("batch_e2e"); }
-  fs::path scratch_;
+  BatchE2E() : ScratchTest("batch_e2e", /*phantom=*/false) {}
 };
 
 TEST_F(BatchE2E, TenStudiesOneBrokenNineSucceedOneFailsClearlyAndTheExitCodeSaysSo) {

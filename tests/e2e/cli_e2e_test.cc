@@ -86,15 +86,21 @@ std::vector<v1::Volume> ListVolumes(const std::string& address) {
   return {resp.volumes().begin(), resp.volumes().end()};
 }
 
-class CliE2E : public ::testing::Test {
+class CliE2E : public ScratchTest {
  protected:
-  void SetUp() override {
-    scratch_ = testing::MakeScratchDir("cli_e2e");
-    volume_ = scratch_ / "phantom.nii";
-    WriteTinyNifti(volume_, 12, 10, 8);
+  CliE2E() : ScratchTest("cli_e2e") {}
+
+  // Two succeeded jobs of the phantom (30 % reduction), oldest first, as bare ids.
+  std::vector<std::string> TwoSucceededJobs(const ServerProcess& server) {
+    std::vector<std::string> jobs;
+    for (int i = 0; i < 2; ++i) {
+      CliResult r = RunCli(server.address(), {"-q", "submit", volume_.string(), "--watch",
+                                              "--image-size", "32", "--reduction", "0.3"});
+      EXPECT_EQ(r.rc, 0) << r.err;
+      jobs.push_back(FirstLine(r.out).substr(5));
+    }
+    return jobs;
   }
-  fs::path scratch_;
-  fs::path volume_;
 };
 
 // Issue 35 part 5: `--request-id` hashed its text through a file at a predictable path in the
@@ -271,15 +277,9 @@ TEST_F(CliE2E, MissedReductionTargetWarnsAndExitsTen) {
   EXPECT_TRUE(summary) << r.out;
 }
 
-TEST_F(CliE2E, TablesOutputFormatsPrefixesDeleteAndPrune) {
+TEST_F(CliE2E, ListIsATableAndJsonLinesWithTheFlagBeforeOrAfterTheVerb) {
   ServerProcess server(scratch_ / "data");
-  std::vector<std::string> jobs;
-  for (int i = 0; i < 2; ++i) {
-    CliResult r = RunCli(server.address(), {"-q", "submit", volume_.string(), "--watch",
-                                            "--image-size", "32", "--reduction", "0.3"});
-    ASSERT_EQ(r.rc, 0) << r.err;
-    jobs.push_back(FirstLine(r.out).substr(5));
-  }
+  TwoSucceededJobs(server);
   CliResult r = RunCli(server.address(), {"list"});
   ASSERT_EQ(r.rc, 0) << r.err;
   std::vector<std::string> lines = Lines(r.out);
@@ -303,7 +303,12 @@ TEST_F(CliE2E, TablesOutputFormatsPrefixesDeleteAndPrune) {
       EXPECT_EQ(j["state"], "SUCCEEDED");
     }
   }
-  r = RunCli(server.address(), {"list", "-o", "wide", "--state", "succeeded"});
+}
+
+TEST_F(CliE2E, ListWideShowsTheAchievedReductionAndStatesAreChecked) {
+  ServerProcess server(scratch_ / "data");
+  TwoSucceededJobs(server);
+  CliResult r = RunCli(server.address(), {"list", "-o", "wide", "--state", "succeeded"});
   ASSERT_EQ(r.rc, 0) << r.err;
   EXPECT_THAT(r.out, HasSubstr("ACHIEVED"));
   // REDUCTION (the target), CREATED, DURATION, then ACHIEVED: at least the target.
@@ -311,8 +316,13 @@ TEST_F(CliE2E, TablesOutputFormatsPrefixesDeleteAndPrune) {
   EXPECT_TRUE(std::regex_search(r.out, achieved_column)) << r.out;
   EXPECT_EQ(RunCli(server.address(), {"list", "--state", "running"}).out, "");
   EXPECT_EQ(RunCli(server.address(), {"list", "--state", "done"}).rc, 2);
-  // Paging: one job per page says how to go on; the token gives the other; --all follows.
-  r = RunCli(server.address(), {"list", "--page-size", "1"});
+}
+
+TEST_F(CliE2E, ListPagesSayHowToGoOnAndAllFollowsThem) {
+  ServerProcess server(scratch_ / "data");
+  TwoSucceededJobs(server);
+  // One job per page says how to go on; the token gives the other; --all follows.
+  CliResult r = RunCli(server.address(), {"list", "--page-size", "1"});
   ASSERT_EQ(r.rc, 0) << r.err;
   EXPECT_EQ(Lines(r.out).size(), 2u) << r.out;
   const std::string more = "more: --page-token ";
@@ -329,11 +339,14 @@ TEST_F(CliE2E, TablesOutputFormatsPrefixesDeleteAndPrune) {
   EXPECT_THAT(r.out, ::testing::Not(HasSubstr("next_page_token")));
   r = RunCli(server.address(), {"list", "--page-size", "1", "-o", "json"});
   EXPECT_THAT(r.out, HasSubstr("{\"next_page_token\":"));
+}
 
-  // describe-like status through a unique prefix (the shortest one that tells them apart).
+TEST_F(CliE2E, StatusDescribesAJobFoundByItsShortestUniquePrefix) {
+  ServerProcess server(scratch_ / "data");
+  const std::vector<std::string> jobs = TwoSucceededJobs(server);
   size_t n = 1;
   while (jobs[0].substr(0, n) == jobs[1].substr(0, n)) ++n;
-  r = RunCli(server.address(), {"status", jobs[0].substr(0, n)});
+  CliResult r = RunCli(server.address(), {"status", jobs[0].substr(0, n)});
   ASSERT_EQ(r.rc, 0) << r.err;
   for (const char* key :
        {"Name:", "State:", "Input:", "Spec:", "Times:", "Result:", "Artifacts:", "mesh.vtu"}) {
@@ -345,17 +358,21 @@ TEST_F(CliE2E, TablesOutputFormatsPrefixesDeleteAndPrune) {
   ASSERT_EQ(r.rc, 0);
   EXPECT_TRUE(nlohmann::json::parse(r.out, nullptr, false).is_object()) << r.out;
   EXPECT_EQ(RunCli(server.address(), {"status", "zzzz"}).rc, 6);
+}
 
-  // --version for both programs.
-  r = RunCli(server.address(), {"--version"});
+TEST_F(CliE2E, VersionOfBothPrograms) {
+  CliResult r = RunProgram({CliBinary().string(), "--version"});
   EXPECT_EQ(r.rc, 0);
   EXPECT_THAT(r.out, HasSubstr("decima "));
   CliResult sv = RunProgram({ServerBinary().string(), "--version"});
   EXPECT_EQ(sv.rc, 0) << sv.err;
   EXPECT_THAT(sv.out, HasSubstr("decima-server "));
+}
 
-  // delete one job; prune: a dry run first, then --force removes the rest and every volume.
-  r = RunCli(server.address(), {"delete", jobs[0]});
+TEST_F(CliE2E, DeleteRemovesAJobAndPruneIsADryRunUntilForced) {
+  ServerProcess server(scratch_ / "data");
+  const std::vector<std::string> jobs = TwoSucceededJobs(server);
+  CliResult r = RunCli(server.address(), {"delete", jobs[0]});
   ASSERT_EQ(r.rc, 0) << r.err;
   EXPECT_THAT(r.out, HasSubstr("deleted jobs/" + jobs[0]));
   EXPECT_EQ(RunCli(server.address(), {"status", jobs[0]}).rc, 6);

@@ -15,6 +15,8 @@
 #include <grpcpp/grpcpp.h>
 
 #include "decima/v1/jobs.pb.h"
+#include "gtest/gtest.h"
+#include "tests/testing/test_data.h"
 
 namespace decima::e2e {
 
@@ -138,6 +140,24 @@ void WriteTinyNifti(const std::filesystem::path& path, int nx, int ny, int nz, i
 
 // The first line of `s` ("jobs/abc").
 std::string FirstLine(const std::string& s);
+
+// The SetUp the CLI's end-to-end suites share: a scratch folder of their own (removed at exit)
+// and, unless `phantom` is false, the tiny volume `phantom.nii` in it that they submit.
+class ScratchTest : public ::testing::Test {
+ protected:
+  explicit ScratchTest(std::string tag, bool phantom = true)
+      : tag_(std::move(tag)), phantom_(phantom) {}
+  void SetUp() override {
+    scratch_ = testing::MakeScratchDir(tag_);
+    volume_ = scratch_ / "phantom.nii";
+    if (phantom_) WriteTinyNifti(volume_, 12, 10, 8);
+  }
+  std::filesystem::path scratch_, volume_;
+
+ private:
+  std::string tag_;
+  bool phantom_;
+};
 
 std::filesystem::path ServerBinary();
 std::filesystem::path CliBinary();

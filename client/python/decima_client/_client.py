@@ -1,5 +1,5 @@
 """Client and Job: the `decima` CLI's submit, watch, fetch, list, cancel, delete and series as
-Python calls, with the CLI's semantics (client/main.cc, client/client_lib.cc):
+Python calls, with the CLI's semantics (client/cmd/, client/cli/, client/client_lib.cc):
 
 - Before the first call the client waits at most min(5 s, timeout) for the connection and
   raises ServerUnreachable when the address refuses it or nothing answers. Only a server that

@@ -1,0 +1,126 @@
+// decima fetch JOB --out DIR [--only NAME...]: a succeeded job's artifacts, resumed and
+// checked (size, sha256); also the download of `submit --out`.
+#include <fstream>
+
+#include "client/cli/output.h"
+#include "client/cmd/commands.h"
+
+namespace decima::client {
+
+namespace fs = std::filesystem;
+
+namespace {
+
+struct FetchOptions {
+  std::string job;
+  fs::path out;
+  std::vector<std::string> only;
+};
+
+// Whether `file` is one of `only`: a file name, or a kind (as in --outputs) that produces it.
+bool MatchesOnly(const std::string& file, const std::vector<std::string>& only) {
+  if (only.empty()) return true;
+  for (std::string o : only) {
+    for (char& c : o) c = static_cast<char>(std::tolower(static_cast<unsigned char>(c)));
+    if (o == file) return true;
+    if (o == "vtu" && file == "mesh.vtu") return true;
+    if (o == "msh" && file == "mesh.msh") return true;
+    if (o == "medit" && file == "mesh.mesh") return true;
+    if (o == "glb" && file == "surfaces.glb") return true;
+    if (o == "levels" && file == "mesh.levels") return true;
+    if (o == "stl" && file.rfind("surface-", 0) == 0 && file.size() > 4 &&
+        file.compare(file.size() - 4, 4, ".stl") == 0) {
+      return true;
+    }
+    if (o == "labels" && file == "labels.nii.gz") return true;
+    if (o == "segmentation" && file == "segmentation.png") return true;
+    if (o == "report" && file == "report.html") return true;
+    if (o == "curve" && file == "curve.png") return true;
+    if (o == "metrics" && file == "metrics.json") return true;
+    if (o == "images" && file.size() > 4 && file.compare(file.size() - 4, 4, ".png") == 0 &&
+        file != "segmentation.png" && file != "curve.png") {
+      return true;
+    }
+  }
+  return false;
+}
+
+}  // namespace
+
+int FetchArtifacts(CliContext& ctx, const v1::Job& job, const fs::path& out,
+                   const std::vector<std::string>& only) {
+  if (job.state() != v1::SUCCEEDED) {
+    std::fprintf(stderr, "decima: fetch %s: the job is %s%s%s\n", job.name().c_str(),
+                 v1::JobState_Name(job.state()).c_str(), job.error().message().empty() ? "" : ": ",
+                 TerminalSafe(job.error().message()).c_str());
+    int code = ExitCodeFor(job.state());
+    return code == kOk ? kError : code;
+  }
+  // Every name given must select something, so a typo is an error and not an empty fetch.
+  for (const auto& o : only) {
+    bool any = false;
+    for (const auto& a : job.artifacts()) any = any || MatchesOnly(a.file_name(), {o});
+    if (!any) {
+      std::string names;
+      for (const auto& a : job.artifacts()) names += " " + a.file_name();
+      std::fprintf(stderr,
+                   "decima: fetch --only %s: no such artifact in %s; it has:%s (or the kinds "
+                   "vtu, msh, medit, stl, glb, labels, images, segmentation, report, curve, "
+                   "metrics)\n",
+                   o.c_str(), job.name().c_str(), names.c_str());
+      return kUsage;
+    }
+  }
+  int64_t total = 0;
+  for (const auto& a : job.artifacts()) {
+    if (!MatchesOnly(a.file_name(), only)) continue;
+    fs::path path;
+    grpc::Status s = WithRetry(ctx, [&] {
+      return DownloadArtifact(
+          ctx.conn, a, out,
+          [&](int64_t d, int64_t t) { ByteBar(ctx, "fetch " + a.file_name(), d, t); }, &path);
+    });
+    if (!s.ok()) return Report(ctx, s, "fetch " + a.name());
+    total += a.size_bytes();
+    if (ctx.JsonOut()) {
+      std::printf("{\"artifact\":%s,\"path\":%s,\"size_bytes\":%lld}\n",
+                  JsonString(a.file_name()).c_str(), JsonString(path.string()).c_str(),
+                  static_cast<long long>(a.size_bytes()));
+    } else {
+      std::printf("%s\n", path.c_str());
+    }
+  }
+  if (!job.metrics_json().empty() && MatchesOnly("metrics.json", only) &&
+      !fs::exists(out / "metrics.json")) {
+    std::ofstream(out / "metrics.json") << job.metrics_json();
+  }
+  if (!ctx.Quiet())
+    std::fprintf(stderr, "decima: fetched %s into %s\n", FormatBytes(total).c_str(), out.c_str());
+  std::fflush(stdout);
+  return kOk;
+}
+
+namespace {
+
+int RunFetch(CliContext& ctx, const FetchOptions& o) {
+  if (int rc = ConnectAndCheck(ctx, "fetch"); rc != kOk) return rc;
+  v1::Job job;
+  if (int rc = GetJobOf(ctx, o.job, "fetch", &job); rc != kOk) return rc;
+  return FetchArtifacts(ctx, job, o.out, o.only);
+}
+
+}  // namespace
+
+Command NewCmdFetch(CLI::App& app, CliContext& ctx) {
+  auto o = std::make_shared<FetchOptions>();
+  auto* cmd = app.add_subcommand("fetch", "download a succeeded job's artifacts");
+  cmd->add_option("JOB", o->job, "job id, unique id prefix, or jobs/{id}")->required();
+  cmd->add_option("--out", o->out, "destination folder")->required();
+  cmd->add_option("--only", o->only,
+                  "only these artifacts: file names (mesh.vtu) or kinds (vtu, msh, medit, "
+                  "labels, images, segmentation, report, curve, metrics)");
+  AddOutputFlags(cmd, ctx.flags);
+  return {cmd, [&ctx, o] { return RunFetch(ctx, *o); }};
+}
+
+}  // namespace decima::client

@@ -1,0 +1,409 @@
+// decima submit INPUT [job options] [--watch] [--out DIR]: uploads a volume (a file, a header
+// with its data files, a DICOM folder, or a series pulled by --dicomweb) and queues a job;
+// several INPUTs or --each FOLDER: a batch, one job per study found (client/batch.h).
+#include <algorithm>
+#include <cstdlib>
+#include <optional>
+
+#include "client/batch.h"
+#include "client/cli/dicomweb_flags.h"
+#include "client/cli/output.h"
+#include "client/cli/volume_upload.h"
+#include "client/cli/watch.h"
+#include "client/cmd/commands.h"
+
+namespace decima::client {
+
+namespace fs = std::filesystem;
+
+namespace {
+
+struct SubmitOptions {
+  std::vector<std::string> inputs;
+  fs::path each;
+  DicomWebFlags dicomweb;
+  std::string label_map, policy = "field", transfer_function, fault, request_id, series;
+  fs::path out;
+  // Unset options stay unset in the request: the server owns the defaults.
+  std::optional<int> regions, image_size, vtu_level;
+  std::optional<double> reduction, tolerance;
+  std::vector<double> class_means;
+  std::vector<std::string> weights, views, view_list, outputs, only;
+  bool watch = false;
+};
+
+// --views and the repeated --view, in order. "--views 30,20" splits into "30" and "20", never
+// views on their own: such pairs are joined.
+std::vector<std::string> AllViews(const SubmitOptions& o) {
+  auto number = [](const std::string& s) {
+    char* end = nullptr;
+    std::strtod(s.c_str(), &end);
+    return !s.empty() && end == s.c_str() + s.size();
+  };
+  std::vector<std::string> all;
+  for (size_t i = 0; i < o.view_list.size(); ++i) {
+    if (number(o.view_list[i]) && i + 1 < o.view_list.size() && number(o.view_list[i + 1])) {
+      all.push_back(o.view_list[i] + ":" + o.view_list[i + 1]);
+      ++i;
+    } else {
+      all.push_back(o.view_list[i]);
+    }
+  }
+  all.insert(all.end(), o.views.begin(), o.views.end());
+  return all;
+}
+
+// --weight NAME=VALUE overrides.
+int SetWeights(const std::vector<std::string>& weights, v1::ErrorWeights* ew) {
+  for (const auto& w : weights) {
+    auto eq = w.find('=');
+    if (eq == std::string::npos) {
+      std::fprintf(stderr, "decima: --weight %s: expected NAME=VALUE\n", w.c_str());
+      return kUsage;
+    }
+    std::string name = w.substr(0, eq);
+    for (char& c : name) c = static_cast<char>(std::tolower(static_cast<unsigned char>(c)));
+    double value = 0;
+    try {
+      value = std::stod(w.substr(eq + 1));
+    } catch (...) {
+      std::fprintf(stderr, "decima: --weight %s: VALUE is not a number\n", w.c_str());
+      return kUsage;
+    }
+    if (name == "w_r" || name == "regional") {
+      ew->set_regional(value);
+    } else if (name == "w_g" || name == "gradient") {
+      ew->set_gradient(value);
+    } else if (name == "w_s" || name == "shape") {
+      ew->set_shape(value);
+    } else if (name == "w_v" || name == "volume") {
+      ew->set_volume(value);
+    } else if (name == "w_n" || name == "neighbour") {
+      ew->set_neighbour(value);
+    } else {
+      std::fprintf(stderr, "decima: --weight %s: unknown weight (w_r, w_g, w_s, w_v, w_n)\n",
+                   w.c_str());
+      return kUsage;
+    }
+  }
+  return kOk;
+}
+
+// Everything of the spec but its volume, from the flags (the same for every study of a batch).
+int FillSpec(const SubmitOptions& o, v1::JobSpec* spec) {
+  if (o.regions) spec->set_regions(*o.regions);
+  for (double m : o.class_means) spec->add_class_means(m);
+  if (o.reduction) spec->set_target_reduction(*o.reduction);
+  spec->set_policy(o.policy == "paper"       ? v1::PAPER
+                   : o.policy == "tetfusion" ? v1::TETFUSION
+                                             : v1::FIELD);
+  if (o.tolerance) spec->set_error_tolerance(*o.tolerance);
+  if (!o.weights.empty()) {
+    if (int rc = SetWeights(o.weights, spec->mutable_weights()); rc != kOk) return rc;
+  }
+  for (const auto& v : AllViews(o)) spec->add_views(v);
+  if (o.image_size) spec->set_image_size(*o.image_size);
+  spec->set_transfer_function(o.transfer_function);
+  for (const auto& out : o.outputs) spec->add_outputs(out);
+  if (o.vtu_level) spec->set_vtu_compression_level(*o.vtu_level);
+  return kOk;
+}
+
+// CreateJob, retried while the server restarts; --fault goes along as metadata (read only by a
+// server run with --allow-faults, server/faults.h).
+grpc::Status CreateJob(CliContext& ctx, const SubmitOptions& o, const v1::CreateJobRequest& req,
+                       v1::Job* job) {
+  auto jobs = v1::Jobs::NewStub(ctx.conn.channel);
+  return WithRetry(ctx, [&] {
+    auto call = ctx.conn.Context();
+    if (!o.fault.empty()) call->AddMetadata("decima-test-fault", o.fault);
+    return jobs->CreateJob(call.get(), req, job);
+  });
+}
+
+// Volumes made for a job the server refused (best effort: the refusal is what gets reported).
+// Only those this run's CreateVolume made: a reused volume is the caller's from before.
+void DeleteVolumes(CliContext& ctx, const std::vector<std::string>& names) {
+  auto vstub = v1::Volumes::NewStub(ctx.conn.channel);
+  for (const std::string& name : names) {
+    auto made = ctx.volumes.find(name);
+    if (name.empty() || made == ctx.volumes.end() || made->second.reused()) continue;
+    v1::DeleteVolumeRequest dreq;
+    dreq.set_name(name);
+    v1::DeleteVolumeResponse dresp;
+    (void)vstub->DeleteVolume(ctx.conn.Context().get(), dreq, &dresp);
+  }
+}
+
+int SubmitOne(CliContext& ctx, const SubmitOptions& o, const std::string& input) {
+  v1::CreateJobRequest req;
+  auto* spec = req.mutable_spec();
+  int rc = MakeVolume(ctx, input, o.series, o.request_id, spec->mutable_volume());
+  if (rc != kOk) return rc;
+  if (!o.label_map.empty()) {
+    rc = MakeVolume(ctx, o.label_map, "", o.request_id.empty() ? "" : o.request_id + "/label-map",
+                    spec->mutable_label_map());
+    if (rc != kOk) return rc;
+  }
+  if (int frc = FillSpec(o, spec); frc != kOk) return frc;
+  req.set_request_id(o.request_id.empty() ? NewRequestId() : o.request_id);
+  v1::Job job;
+  grpc::Status s = CreateJob(ctx, o, req, &job);
+  if (!s.ok()) {
+    // Volumes made for this job only (a fresh request id) are not left behind by a refused
+    // job; with --request-id they may belong to the job made first, so they stay.
+    if (o.request_id.empty()) DeleteVolumes(ctx, {spec->volume(), spec->label_map()});
+    return Report(ctx, s, "submit");
+  }
+  if (ctx.JsonOut()) {
+    std::printf("%s\n", ToJson(job).c_str());
+  } else {
+    std::printf("%s\n", job.name().c_str());
+  }
+  std::fflush(stdout);
+  if (!o.watch && o.out.empty()) return kOk;
+  v1::Job final;
+  rc = Watch(ctx, job.name(), &final);
+  if ((rc != kOk && rc != kTargetNotReached) || o.out.empty()) return rc;
+  const int frc = FetchArtifacts(ctx, final, o.out, o.only);
+  return frc != kOk ? frc : rc;
+}
+
+// The jobs a batch made, in table order.
+struct BatchJobs {
+  std::vector<StudyRow> rows;
+  std::vector<std::string> names;   // the jobs made
+  std::vector<size_t> job_rows;     // their rows
+  std::vector<std::string> labels;  // their studies' labels, for --out folders
+};
+
+// Uploads one study and queues its job: a row either way. Returns kOk, or the study's error
+// (kUnavailable and kUnauthenticated stop the batch).
+int QueueStudy(CliContext& ctx, const SubmitOptions& o, const v1::JobSpec& common,
+               const Study& study, BatchJobs* b) {
+  // A batch's request id gives each study its own, stable across retries of the batch.
+  const std::string rid =
+      o.request_id.empty() ? "" : o.request_id + "/" + Sha256HexOf(study.label).substr(0, 16);
+  ctx.last_error.clear();
+  v1::CreateJobRequest jreq;
+  *jreq.mutable_spec() = common;
+  int vrc = study.dicom()
+                ? UploadVolume(ctx, study.input, study.files, study.display_name, study.series_uid,
+                               rid, jreq.mutable_spec()->mutable_volume())
+                : MakeVolume(ctx, study.input, "", rid, jreq.mutable_spec()->mutable_volume());
+  if (vrc == kOk) {
+    jreq.set_request_id(rid.empty() ? NewRequestId() : rid);
+    v1::Job job;
+    grpc::Status s = CreateJob(ctx, o, jreq, &job);
+    if (s.ok()) {
+      b->rows.push_back({job.name(), study.label, v1::JobState_Name(job.state()), "", kOk});
+      b->names.push_back(job.name());
+      b->job_rows.push_back(b->rows.size() - 1);
+      b->labels.push_back(study.label);
+      return kOk;
+    }
+    vrc = Report(ctx, s, "submit " + study.label);
+    // As for one INPUT: no volume left behind by a refusal.
+    if (o.request_id.empty()) DeleteVolumes(ctx, {jreq.spec().volume()});
+  }
+  b->rows.push_back({"-", study.label, "REFUSED", ctx.last_error, kJobFailed});
+  return vrc;
+}
+
+// Every study of every source, queued one after the other; kOk, or the error that stopped it.
+int QueueBatch(CliContext& ctx, const SubmitOptions& o, const v1::JobSpec& common,
+               const std::vector<fs::path>& sources, BatchJobs* b) {
+  int number = 0;
+  std::string err;
+  for (const auto& source : sources) {
+    std::vector<Study> studies;
+    if (!FindStudies(source, &studies, &err) || studies.empty()) {
+      const std::string why = err.empty()
+                                  ? "no volume in it (no DICOM file, no .nii, .nii.gz, .mha, .mhd, "
+                                    ".nrrd or .nhdr)"
+                                  : err;
+      std::fprintf(stderr, "decima: skipped %s: %s\n", source.c_str(), why.c_str());
+      b->rows.push_back({"-", source.string(), "SKIPPED", why, kOk});
+      err.clear();
+      continue;
+    }
+    for (const Study& study : studies) {
+      if (!ctx.Quiet())
+        std::fprintf(stderr, "decima: study %d: %s\n", ++number, study.label.c_str());
+      const int rc = QueueStudy(ctx, o, common, study, b);
+      if (rc == kUnavailable || rc == kUnauthenticated) return rc;
+    }
+  }
+  return kOk;
+}
+
+int SubmitBatch(CliContext& ctx, const SubmitOptions& o) {
+  // One label map is on one volume's grid, one series UID picks within one folder: neither
+  // means anything for several studies.
+  if (!o.label_map.empty() || !o.series.empty()) {
+    std::fprintf(stderr, "decima: submit: --label-map and --series take one INPUT, not a batch\n");
+    return kUsage;
+  }
+  v1::JobSpec common;
+  if (int frc = FillSpec(o, &common); frc != kOk) return frc;
+  std::vector<fs::path> sources;
+  std::string err;
+  if (!o.each.empty() && !EachEntry(o.each, &sources, &err)) {
+    std::fprintf(stderr, "decima: %s\n", err.c_str());
+    return kUsage;
+  }
+  for (const auto& i : o.inputs) sources.emplace_back(i);
+  BatchJobs b;
+  // The server went away or refused the caller: stop, and show the table so far.
+  if (int fatal = QueueBatch(ctx, o, common, sources, &b); fatal != kOk) {
+    PrintStudyTable(ctx, b.rows);
+    std::fprintf(stderr, "decima: submit: stopped the batch after %zu stud%s: %s\n", b.rows.size(),
+                 b.rows.size() == 1 ? "y" : "ies", ctx.last_error.c_str());
+    return fatal;
+  }
+  if (b.names.empty() && std::none_of(b.rows.begin(), b.rows.end(),
+                                      [](const StudyRow& r) { return r.state == "REFUSED"; })) {
+    std::fprintf(stderr, "decima: submit: no volume found in any INPUT or --each entry\n");
+    return kUsage;
+  }
+  if ((o.watch || !o.out.empty()) && !b.names.empty()) {
+    const std::vector<WatchOutcome> outcomes = WatchMany(ctx, b.names);
+    std::vector<std::string> taken;
+    for (size_t k = 0; k < b.names.size(); ++k) {
+      StudyRow& row = b.rows[b.job_rows[k]];
+      SetOutcome(outcomes[k], &row);
+      if (o.out.empty() || outcomes[k].final.state() != v1::SUCCEEDED) continue;
+      // Each study's artifacts in a folder of its own, named after the study.
+      const int frc = FetchArtifacts(ctx, outcomes[k].final,
+                                     o.out / ArtifactFolderName(b.labels[k], &taken), o.only);
+      if (frc != kOk) {
+        row.rc = frc;
+        row.detail += "; fetch failed";
+      }
+    }
+  }
+  PrintStudyTable(ctx, b.rows);
+  PrintStudyCounts(ctx, b.rows);
+  std::vector<int> codes;
+  for (const auto& r : b.rows) {
+    if (r.state != "SKIPPED") codes.push_back(r.rc);
+  }
+  return BatchExitCode(codes);
+}
+
+// Removes the folder a --dicomweb submit pulled into, once the upload is done (or failed).
+struct RemovePulled {
+  fs::path dir;
+  ~RemovePulled() {
+    std::error_code ec;
+    if (!dir.empty()) fs::remove_all(dir, ec);
+  }
+};
+
+int RunSubmit(CliContext& ctx, SubmitOptions& o) {
+  std::string input;
+  RemovePulled pulled;
+  // DICOMweb: pull into a folder first, then upload it like any DICOM folder.
+  if (!o.dicomweb.web.base_url.empty()) {
+    if (!o.inputs.empty() || !o.each.empty()) {
+      std::fprintf(stderr, "decima: submit: give INPUT (or --each) or --dicomweb, not both\n");
+      return kUsage;
+    }
+    if (int rc = ReadDicomWebToken(o.dicomweb); rc != kOk) return rc;
+    o.dicomweb.web.series_uid = o.series;
+    char tmpl[] = "/tmp/decima-dicomweb-XXXXXX";
+    if (::mkdtemp(tmpl) == nullptr) {
+      std::fprintf(stderr, "decima: cannot create a temporary folder\n");
+      return kError;
+    }
+    const fs::path dir = tmpl;
+    if (int rc = PullDicomWebInto(ctx, o.dicomweb, dir, false, dir); rc != kOk) return rc;
+    pulled.dir = dir;
+    input = dir.string();
+  }
+  // Several inputs, or --each: a batch, one job per study (client/batch.h).
+  const bool batch = o.inputs.size() > 1 || !o.each.empty();
+  if (o.inputs.size() == 1 && !batch) input = o.inputs[0];
+  if (input.empty() && !batch) {
+    std::fprintf(stderr, "decima: submit: INPUT or --dicomweb URL --study UID is required\n");
+    return kUsage;
+  }
+  if (int rc = ConnectAndCheck(ctx, "submit"); rc != kOk) return rc;
+  return batch ? SubmitBatch(ctx, o) : SubmitOne(ctx, o, input);
+}
+
+void AddJobFlags(CLI::App* cmd, SubmitOptions& o) {
+  cmd->add_option("--regions,-k", o.regions, "K regions of the segmentation (2..8, default 3)");
+  cmd->add_option("--class-means", o.class_means, "K class means instead of k-means")
+      ->delimiter(',');
+  cmd->add_option("--label-map", o.label_map,
+                  "a label map on the same grid (replaces the level set)");
+  cmd->add_option("--reduction", o.reduction,
+                  "target_reduction: fraction of cells to remove (0..0.99, default 0.5; 0 = "
+                  "no target, stop on --tolerance)");
+  cmd->add_option("--policy", o.policy, "simplification policy: paper, tetfusion or field")
+      ->transform(CLI::IsMember({"paper", "tetfusion", "field"}, CLI::ignore_case))
+      ->capture_default_str();
+  cmd->add_option("--tolerance", o.tolerance, "error tolerance (>= 0; default 0 = none)");
+  cmd->add_option("--weight", o.weights,
+                  "weight override NAME=VALUE (w_r/regional, w_g/gradient, w_s/shape, "
+                  "w_v/volume, w_n/neighbour)");
+  cmd->add_option("--views", o.view_list,
+                  "render views, comma-separated: anterior, posterior, left, lateral, right, "
+                  "superior, inferior, oblique or AZIMUTH:ELEVATION (default anterior)")
+      ->delimiter(',');
+  cmd->add_option("--view", o.views, "one render view (repeatable), e.g. --view 30:20");
+  cmd->add_option("--image-size", o.image_size, "rendered image size, pixels (default 512)");
+  cmd->add_option("--transfer-function", o.transfer_function, "preset name, auto, or JSON");
+  cmd->add_option("--outputs", o.outputs,
+                  "artifacts to produce, comma-separated: vtu, msh, medit, stl, glb, levels, "
+                  "labels, images, segmentation, report, curve (default "
+                  "vtu,labels,images,segmentation,report; metrics.json always; stl = one "
+                  "closed surface per region, surface-region_<r>.stl; glb = all of them, named "
+                  "and coloured, in surfaces.glb; levels = mesh.levels, the collapse record "
+                  "down to 90 %, from which any level of detail can be extracted later (field "
+                  "policy; the run goes down to 90 %); curve = diff1 against cells removed, one "
+                  "more simplification per 10 % step)")
+      ->delimiter(',')
+      ->transform(CLI::IsMember({"vtu", "msh", "medit", "stl", "glb", "levels", "labels", "images",
+                                 "segmentation", "report", "curve"},
+                                CLI::ignore_case));
+  cmd->add_option("--vtu-level", o.vtu_level,
+                  "zlib level of mesh.vtu: 0 uncompressed, 1 fastest (default) .. 9 smallest")
+      ->check(CLI::Range(0, 9));
+}
+
+}  // namespace
+
+Command NewCmdSubmit(CLI::App& app, CliContext& ctx) {
+  auto o = std::make_shared<SubmitOptions>();
+  auto* cmd = app.add_subcommand(
+      "submit",
+      "upload a volume (file or DICOM folder) and queue a job; several INPUTs or --each: one "
+      "job per study found in them");
+  cmd->add_option("INPUT", o->inputs,
+                  "volume file (.nii, .nii.gz, .mha, .mhd + data, .nrrd, .nhdr + data) or "
+                  "DICOM folder (or --dicomweb); several: a batch, one job per study found "
+                  "in each (a volume file, or a DICOM series by SeriesInstanceUID)");
+  cmd->add_option("--each", o->each,
+                  "a batch of every entry of FOLDER (its subfolders and volume files), one "
+                  "job per study found; a subfolder with no volume is reported and skipped");
+  AddDicomWebFlags(cmd, o->dicomweb, /*is_pull=*/false);
+  AddJobFlags(cmd, *o);
+  cmd->add_option("--series", o->series,
+                  "DICOM: the SeriesInstanceUID to use when the folder holds several series "
+                  "(with --dicomweb: the series to pull)");
+  cmd->add_option("--request-id", o->request_id,
+                  "idempotency key (default: a new UUID); reused with other parameters it is "
+                  "refused (ALREADY_EXISTS)");
+  // Test seam (server/faults.h): sent as metadata, read only by a server run with --allow-faults.
+  cmd->add_option("--fault", o->fault, "test-only fault injection")->group("");
+  cmd->add_flag("--watch", o->watch, "watch the job until it ends");
+  cmd->add_option("--out", o->out,
+                  "download the artifacts here when it succeeds (implies --watch)");
+  cmd->add_option("--only", o->only, "with --out: download only these artifacts");
+  AddOutputFlags(cmd, ctx.flags);
+  return {cmd, [&ctx, o] { return RunSubmit(ctx, *o); }};
+}
+
+}  // namespace decima::client
