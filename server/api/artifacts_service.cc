@@ -5,6 +5,7 @@
 #include "absl/strings/str_split.h"
 #include "decima/v1/artifacts.grpc.pb.h"
 #include "server/api/grpc_util.h"
+#include "server/api/handler.h"
 #include "server/api/service.h"
 
 namespace decima::server {
@@ -69,27 +70,27 @@ class ArtifactsService final : public v1::Artifacts::Service {
 
   grpc::Status ReadArtifact(grpc::ServerContext* ctx, const v1::ReadArtifactRequest* req,
                             grpc::ServerWriter<v1::ReadArtifactResponse>* writer) override {
-    Principal caller;
-    if (auto g = d_.guard->Check(ctx, &caller); !g.ok()) return g;
-    auto r = OpenArtifact(d_, caller, req->name(), req->read_offset(), req->read_limit());
-    if (!r.ok()) return ToGrpc(r.status());
-    v1::ReadArtifactResponse chunk;
-    std::string buf;
-    int64_t pos = r->begin;
-    do {  // at least one message, also for an empty range
-      const auto n = static_cast<size_t>(std::min<int64_t>(kMaxChunkBytes, r->end - pos));
-      buf.resize(n);
-      if (n > 0 && !r->file.read(buf.data(), static_cast<std::streamsize>(n))) {
-        return grpc::Status(grpc::StatusCode::DATA_LOSS,
-                            absl::StrCat(req->name(), ": short read on the server"));
-      }
-      chunk.set_offset(pos);
-      chunk.set_total_size(r->total);
-      chunk.set_data(buf);
-      if (!writer->Write(chunk)) return grpc::Status::CANCELLED;
-      pos += static_cast<int64_t>(n);
-    } while (pos < r->end);
-    return grpc::Status::OK;
+    return Guarded(d_, ctx, [&](const Principal& caller) -> grpc::Status {
+      auto r = OpenArtifact(d_, caller, req->name(), req->read_offset(), req->read_limit());
+      if (!r.ok()) return ToGrpc(r.status());
+      v1::ReadArtifactResponse chunk;
+      std::string buf;
+      int64_t pos = r->begin;
+      do {  // at least one message, also for an empty range
+        const auto n = static_cast<size_t>(std::min<int64_t>(kMaxChunkBytes, r->end - pos));
+        buf.resize(n);
+        if (n > 0 && !r->file.read(buf.data(), static_cast<std::streamsize>(n))) {
+          return grpc::Status(grpc::StatusCode::DATA_LOSS,
+                              absl::StrCat(req->name(), ": short read on the server"));
+        }
+        chunk.set_offset(pos);
+        chunk.set_total_size(r->total);
+        chunk.set_data(buf);
+        if (!writer->Write(chunk)) return grpc::Status::CANCELLED;
+        pos += static_cast<int64_t>(n);
+      } while (pos < r->end);
+      return grpc::Status::OK;
+    });
   }
 
  private:

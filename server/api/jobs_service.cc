@@ -4,6 +4,7 @@
 #include "absl/strings/str_cat.h"
 #include "decima/v1/jobs.grpc.pb.h"
 #include "server/api/grpc_util.h"
+#include "server/api/handler.h"
 #include "server/api/service.h"
 #include "server/api/watch_loop.h"
 #include "server/dicom/dicom_receiver.h"
@@ -105,14 +106,11 @@ class JobsService final : public v1::Jobs::Service {
 
   grpc::Status CreateJob(grpc::ServerContext* ctx, const v1::CreateJobRequest* req,
                          v1::Job* resp) override {
-    Principal caller;
-    if (auto g = d_.guard->Check(ctx, &caller); !g.ok()) {
-      return d_.audit->Record(nullptr, "CreateJob", "", g);
-    }
-    // A change that cannot be audited is not made.
-    if (auto a = d_.audit->Ready(); !a.ok()) return a;
-    grpc::Status st = DoCreateJob(ctx, caller, *req, resp);
-    return d_.audit->Record(&caller, "CreateJob", st.ok() ? resp->name() : "", st);
+    return Audited(d_, ctx, "CreateJob", "", [&](const Principal& caller, std::string& resource) {
+      grpc::Status st = DoCreateJob(ctx, caller, *req, resp);
+      if (st.ok()) resource = resp->name();
+      return st;
+    });
   }
 
   grpc::Status DoCreateJob(grpc::ServerContext* ctx, const Principal& caller,
@@ -134,46 +132,42 @@ class JobsService final : public v1::Jobs::Service {
 
   grpc::Status GetJob(grpc::ServerContext* ctx, const v1::GetJobRequest* req,
                       v1::Job* resp) override {
-    Principal caller;
-    if (auto g = d_.guard->Check(ctx, &caller); !g.ok()) return g;
-    auto id = ParseName(req->name(), "jobs", "name");
-    if (!id.ok()) return ToGrpc(id.status());
-    auto job = d_.jobs->GetJob(*id);
-    if (!job.ok()) return ToGrpc(job.status());
-    if (auto may = CallGuard::MayRead(caller, job->creator(), req->name()); !may.ok()) return may;
-    *resp = std::move(*job);
-    return grpc::Status::OK;
+    return Guarded(d_, ctx, [&](const Principal& caller) -> grpc::Status {
+      auto id = ParseName(req->name(), "jobs", "name");
+      if (!id.ok()) return ToGrpc(id.status());
+      auto job = d_.jobs->GetJob(*id);
+      if (!job.ok()) return ToGrpc(job.status());
+      if (auto may = CallGuard::MayRead(caller, job->creator(), req->name()); !may.ok()) return may;
+      *resp = std::move(*job);
+      return grpc::Status::OK;
+    });
   }
 
   grpc::Status ListJobs(grpc::ServerContext* ctx, const v1::ListJobsRequest* req,
                         v1::ListJobsResponse* resp) override {
-    Principal caller;
-    if (auto g = d_.guard->Check(ctx, &caller); !g.ok()) return g;
-    if (req->page_size() < 0) return InvalidField(ctx, "page_size", "must be >= 0");
-    std::vector<v1::JobState> states;
-    for (int s : req->states()) {
-      if (s < v1::QUEUED || s > v1::CANCELLED) {
-        return InvalidField(ctx, "states", absl::StrCat(s, " is not a job state"));
+    return Guarded(d_, ctx, [&](const Principal& caller) -> grpc::Status {
+      if (req->page_size() < 0) return InvalidField(ctx, "page_size", "must be >= 0");
+      std::vector<v1::JobState> states;
+      for (int s : req->states()) {
+        if (s < v1::QUEUED || s > v1::CANCELLED) {
+          return InvalidField(ctx, "states", absl::StrCat(s, " is not a job state"));
+        }
+        states.push_back(static_cast<v1::JobState>(s));
       }
-      states.push_back(static_cast<v1::JobState>(s));
-    }
-    auto page = d_.jobs->ListJobs(states, CallGuard::ListFilter(caller), req->page_size(),
-                                  req->page_token());
-    if (!page.ok()) return ToGrpc(page.status());
-    for (auto& j : page->jobs) *resp->add_jobs() = std::move(j);
-    resp->set_next_page_token(page->next_page_token);
-    return grpc::Status::OK;
+      auto page = d_.jobs->ListJobs(states, CallGuard::ListFilter(caller), req->page_size(),
+                                    req->page_token());
+      if (!page.ok()) return ToGrpc(page.status());
+      for (auto& j : page->jobs) *resp->add_jobs() = std::move(j);
+      resp->set_next_page_token(page->next_page_token);
+      return grpc::Status::OK;
+    });
   }
 
   grpc::Status CancelJob(grpc::ServerContext* ctx, const v1::CancelJobRequest* req,
                          v1::Job* resp) override {
-    Principal caller;
-    if (auto g = d_.guard->Check(ctx, &caller); !g.ok()) {
-      return d_.audit->Record(nullptr, "CancelJob", "", g);
-    }
-    // A change that cannot be audited is not made.
-    if (auto a = d_.audit->Ready(); !a.ok()) return a;
-    return d_.audit->Record(&caller, "CancelJob", req->name(), DoCancelJob(caller, *req, resp));
+    return Audited(d_, ctx, "CancelJob", req->name(), [&](const Principal& caller, std::string&) {
+      return DoCancelJob(caller, *req, resp);
+    });
   }
 
   grpc::Status DoCancelJob(const Principal& caller, const v1::CancelJobRequest& request,
@@ -192,13 +186,9 @@ class JobsService final : public v1::Jobs::Service {
 
   grpc::Status RetryJob(grpc::ServerContext* ctx, const v1::RetryJobRequest* req,
                         v1::Job* resp) override {
-    Principal caller;
-    if (auto g = d_.guard->Check(ctx, &caller); !g.ok()) {
-      return d_.audit->Record(nullptr, "RetryJob", "", g);
-    }
-    // A change that cannot be audited is not made.
-    if (auto a = d_.audit->Ready(); !a.ok()) return a;
-    return d_.audit->Record(&caller, "RetryJob", req->name(), DoRetryJob(caller, *req, resp));
+    return Audited(d_, ctx, "RetryJob", req->name(), [&](const Principal& caller, std::string&) {
+      return DoRetryJob(caller, *req, resp);
+    });
   }
 
   grpc::Status DoRetryJob(const Principal& caller, const v1::RetryJobRequest& request,
@@ -217,13 +207,9 @@ class JobsService final : public v1::Jobs::Service {
 
   grpc::Status DeleteJob(grpc::ServerContext* ctx, const v1::DeleteJobRequest* req,
                          v1::DeleteJobResponse*) override {
-    Principal caller;
-    if (auto g = d_.guard->Check(ctx, &caller); !g.ok()) {
-      return d_.audit->Record(nullptr, "DeleteJob", "", g);
-    }
-    // A change that cannot be audited is not made.
-    if (auto a = d_.audit->Ready(); !a.ok()) return a;
-    return d_.audit->Record(&caller, "DeleteJob", req->name(), DoDeleteJob(caller, *req));
+    return Audited(d_, ctx, "DeleteJob", req->name(), [&](const Principal& caller, std::string&) {
+      return DoDeleteJob(caller, *req);
+    });
   }
 
   grpc::Status DoDeleteJob(const Principal& caller, const v1::DeleteJobRequest& request) {
@@ -240,23 +226,23 @@ class JobsService final : public v1::Jobs::Service {
 
   grpc::Status WatchJob(grpc::ServerContext* ctx, const v1::WatchJobRequest* req,
                         grpc::ServerWriter<v1::JobEvent>* writer) override {
-    Principal caller;
-    if (auto g = d_.guard->Check(ctx, &caller); !g.ok()) return g;
-    auto id = ParseName(req->name(), "jobs", "name");
-    if (!id.ok()) return ToGrpc(id.status());
-    {
-      auto job = d_.jobs->GetJob(*id);
-      if (!job.ok()) return ToGrpc(job.status());
-      if (auto may = CallGuard::MayRead(caller, job->creator(), req->name()); !may.ok()) {
-        return may;
+    return Guarded(d_, ctx, [&](const Principal& caller) -> grpc::Status {
+      auto id = ParseName(req->name(), "jobs", "name");
+      if (!id.ok()) return ToGrpc(id.status());
+      {
+        auto job = d_.jobs->GetJob(*id);
+        if (!job.ok()) return ToGrpc(job.status());
+        if (auto may = CallGuard::MayRead(caller, job->creator(), req->name()); !may.ok()) {
+          return may;
+        }
       }
-    }
-    if (req->after_sequence() < 0) return InvalidField(ctx, "after_sequence", "must be >= 0");
-    WatchControls controls;
-    controls.send = [writer](const v1::JobEvent& ev) { return writer->Write(ev); };
-    controls.cancelled = [ctx] { return ctx->IsCancelled(); };
-    controls.draining = [this] { return d_.guard->draining(); };
-    return ToGrpc(watch_.Run(*id, req->after_sequence(), controls));
+      if (req->after_sequence() < 0) return InvalidField(ctx, "after_sequence", "must be >= 0");
+      WatchControls controls;
+      controls.send = [writer](const v1::JobEvent& ev) { return writer->Write(ev); };
+      controls.cancelled = [ctx] { return ctx->IsCancelled(); };
+      controls.draining = [this] { return d_.guard->draining(); };
+      return ToGrpc(watch_.Run(*id, req->after_sequence(), controls));
+    });
   }
 
  private:

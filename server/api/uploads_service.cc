@@ -4,6 +4,7 @@
 #include "absl/strings/str_cat.h"
 #include "decima/v1/uploads.grpc.pb.h"
 #include "server/api/grpc_util.h"
+#include "server/api/handler.h"
 #include "server/api/service.h"
 #include "server/util/sha256.h"
 
@@ -94,46 +95,39 @@ class UploadsService final : public v1::Uploads::Service {
 
   grpc::Status Upload(grpc::ServerContext* ctx, grpc::ServerReader<v1::UploadRequest>* reader,
                       v1::Blob* blob) override {
-    Principal caller;
-    if (auto g = d_.guard->Check(ctx, &caller); !g.ok()) {
-      return d_.audit->Record(nullptr, "Upload", "", g);
-    }
-    // A change that cannot be audited is not made.
-    if (auto a = d_.audit->Ready(); !a.ok()) return a;
-    v1::UploadRequest first;
-    if (!reader->Read(&first)) {
-      return d_.audit->Record(
-          &caller, "Upload", "",
-          grpc::Status(grpc::StatusCode::INVALID_ARGUMENT, "empty upload stream"));
-    }
-    // Blobs are content-addressed and shared (deduplicated), so they have no creator; the
-    // volume made of them has.
-    const std::string resource = IsSha256Hex(first.sha256()) ? "blobs/" + first.sha256() : "";
-    if (auto may = CallGuard::MayCreate(caller, "uploads"); !may.ok()) {
-      return d_.audit->Record(&caller, "Upload", resource, may);
-    }
-    v1::ErrorDetail detail;
-    absl::Status st = ReceiveUpload(
-        *d_.blobs, *d_.disk, d_.options->max_upload_bytes, first,
-        [reader](v1::UploadRequest* r) { return reader->Read(r); }, blob, &detail);
-    return d_.audit->Record(&caller, "Upload", resource,
-                            st.ok() ? grpc::Status::OK : Fail(ctx, st, detail));
+    return Audited(
+        d_, ctx, "Upload", "", [&](const Principal& caller, std::string& resource) -> grpc::Status {
+          v1::UploadRequest first;
+          if (!reader->Read(&first)) {
+            return grpc::Status(grpc::StatusCode::INVALID_ARGUMENT, "empty upload stream");
+          }
+          // Blobs are content-addressed and shared (deduplicated), so they have no creator; the
+          // volume made of them has.
+          if (IsSha256Hex(first.sha256())) resource = "blobs/" + first.sha256();
+          if (auto may = CallGuard::MayCreate(caller, "uploads"); !may.ok()) return may;
+          v1::ErrorDetail detail;
+          absl::Status st = ReceiveUpload(
+              *d_.blobs, *d_.disk, d_.options->max_upload_bytes, first,
+              [reader](v1::UploadRequest* r) { return reader->Read(r); }, blob, &detail);
+          return st.ok() ? grpc::Status::OK : Fail(ctx, st, detail);
+        });
   }
 
   grpc::Status GetUploadStatus(grpc::ServerContext* ctx, const v1::GetUploadStatusRequest* req,
                                v1::UploadStatus* resp) override {
-    Principal caller;  // every role: it tells only whether bytes with this hash are stored
-    if (auto g = d_.guard->Check(ctx, &caller); !g.ok()) return g;
-    if (!IsSha256Hex(req->sha256())) {
-      return InvalidField(ctx, "sha256", "expected 64 lower-case hex digits");
-    }
-    const BlobStatus st = d_.blobs->Status(req->sha256(), req->size_bytes());
-    // A client that sees "complete" skips the upload and names the blob in CreateVolume next.
-    if (st.complete) d_.blobs->Claim(req->sha256());
-    resp->set_name("blobs/" + req->sha256());
-    resp->set_complete(st.complete);
-    resp->set_committed_size(st.committed_size);
-    return grpc::Status::OK;
+    // Every role: it tells only whether bytes with this hash are stored.
+    return Guarded(d_, ctx, [&](const Principal&) -> grpc::Status {
+      if (!IsSha256Hex(req->sha256())) {
+        return InvalidField(ctx, "sha256", "expected 64 lower-case hex digits");
+      }
+      const BlobStatus st = d_.blobs->Status(req->sha256(), req->size_bytes());
+      // A client that sees "complete" skips the upload and names the blob in CreateVolume next.
+      if (st.complete) d_.blobs->Claim(req->sha256());
+      resp->set_name("blobs/" + req->sha256());
+      resp->set_complete(st.complete);
+      resp->set_committed_size(st.committed_size);
+      return grpc::Status::OK;
+    });
   }
 
  private:

@@ -3,6 +3,7 @@
 #include "absl/strings/str_cat.h"
 #include "decima/v1/volumes.grpc.pb.h"
 #include "server/api/grpc_util.h"
+#include "server/api/handler.h"
 #include "server/api/service.h"
 #include "server/dicom/dicom_receiver.h"
 
@@ -15,14 +16,12 @@ class VolumesService final : public v1::Volumes::Service {
 
   grpc::Status CreateVolume(grpc::ServerContext* ctx, const v1::CreateVolumeRequest* req,
                             v1::Volume* resp) override {
-    Principal caller;
-    if (auto g = d_.guard->Check(ctx, &caller); !g.ok()) {
-      return d_.audit->Record(nullptr, "CreateVolume", "", g);
-    }
-    // A change that cannot be audited is not made.
-    if (auto a = d_.audit->Ready(); !a.ok()) return a;
-    grpc::Status st = DoCreateVolume(ctx, caller, *req, resp);
-    return d_.audit->Record(&caller, "CreateVolume", st.ok() ? resp->name() : "", st);
+    return Audited(d_, ctx, "CreateVolume", "",
+                   [&](const Principal& caller, std::string& resource) {
+                     grpc::Status st = DoCreateVolume(ctx, caller, *req, resp);
+                     if (st.ok()) resource = resp->name();
+                     return st;
+                   });
   }
 
   grpc::Status DoCreateVolume(grpc::ServerContext* ctx, const Principal& caller,
@@ -47,28 +46,28 @@ class VolumesService final : public v1::Volumes::Service {
 
   grpc::Status GetVolume(grpc::ServerContext* ctx, const v1::GetVolumeRequest* req,
                          v1::Volume* resp) override {
-    Principal caller;
-    if (auto g = d_.guard->Check(ctx, &caller); !g.ok()) return g;
-    auto id = ParseName(req->name(), "volumes", "name");
-    if (!id.ok()) return ToGrpc(id.status());
-    auto v = d_.jobs->GetVolume(*id);
-    if (!v.ok()) return ToGrpc(v.status());
-    if (auto may = CallGuard::MayRead(caller, v->creator(), req->name()); !may.ok()) return may;
-    *resp = std::move(*v);
-    return grpc::Status::OK;
+    return Guarded(d_, ctx, [&](const Principal& caller) -> grpc::Status {
+      auto id = ParseName(req->name(), "volumes", "name");
+      if (!id.ok()) return ToGrpc(id.status());
+      auto v = d_.jobs->GetVolume(*id);
+      if (!v.ok()) return ToGrpc(v.status());
+      if (auto may = CallGuard::MayRead(caller, v->creator(), req->name()); !may.ok()) return may;
+      *resp = std::move(*v);
+      return grpc::Status::OK;
+    });
   }
 
   grpc::Status ListVolumes(grpc::ServerContext* ctx, const v1::ListVolumesRequest* req,
                            v1::ListVolumesResponse* resp) override {
-    Principal caller;
-    if (auto g = d_.guard->Check(ctx, &caller); !g.ok()) return g;
-    if (req->page_size() < 0) return InvalidField(ctx, "page_size", "must be >= 0");
-    auto page =
-        d_.jobs->ListVolumes(CallGuard::ListFilter(caller), req->page_size(), req->page_token());
-    if (!page.ok()) return ToGrpc(page.status());
-    for (auto& v : page->volumes) *resp->add_volumes() = std::move(v);
-    resp->set_next_page_token(page->next_page_token);
-    return grpc::Status::OK;
+    return Guarded(d_, ctx, [&](const Principal& caller) -> grpc::Status {
+      if (req->page_size() < 0) return InvalidField(ctx, "page_size", "must be >= 0");
+      auto page =
+          d_.jobs->ListVolumes(CallGuard::ListFilter(caller), req->page_size(), req->page_token());
+      if (!page.ok()) return ToGrpc(page.status());
+      for (auto& v : page->volumes) *resp->add_volumes() = std::move(v);
+      resp->set_next_page_token(page->next_page_token);
+      return grpc::Status::OK;
+    });
   }
 
   // Readers and admins see every received series; a submitter those it owns (the principal
@@ -76,54 +75,48 @@ class VolumesService final : public v1::Volumes::Service {
   grpc::Status ListReceivedSeries(grpc::ServerContext* ctx,
                                   const v1::ListReceivedSeriesRequest* req,
                                   v1::ListReceivedSeriesResponse* resp) override {
-    Principal caller;
-    if (auto g = d_.guard->Check(ctx, &caller); !g.ok()) return g;
-    if (req->page_size() < 0) return InvalidField(ctx, "page_size", "must be >= 0");
-    auto page = server::ListReceivedSeries(d_.jobs, CallGuard::ListFilter(caller), req->page_size(),
-                                           req->page_token());
-    if (!page.ok()) return ToGrpc(page.status());
-    for (auto& r : page->series) *resp->add_received_series() = std::move(r);
-    resp->set_next_page_token(page->next_page_token);
-    return grpc::Status::OK;
+    return Guarded(d_, ctx, [&](const Principal& caller) -> grpc::Status {
+      if (req->page_size() < 0) return InvalidField(ctx, "page_size", "must be >= 0");
+      auto page = server::ListReceivedSeries(d_.jobs, CallGuard::ListFilter(caller),
+                                             req->page_size(), req->page_token());
+      if (!page.ok()) return ToGrpc(page.status());
+      for (auto& r : page->series) *resp->add_received_series() = std::move(r);
+      resp->set_next_page_token(page->next_page_token);
+      return grpc::Status::OK;
+    });
   }
 
   grpc::Status DeleteReceivedSeries(grpc::ServerContext* ctx,
                                     const v1::DeleteReceivedSeriesRequest* req,
                                     v1::DeleteReceivedSeriesResponse* resp) override {
     const std::string what = absl::StrCat("received series ", req->series_instance_uid());
-    Principal caller;
-    if (auto g = d_.guard->Check(ctx, &caller); !g.ok()) {
-      return d_.audit->Record(nullptr, "DeleteReceivedSeries", what, g);
-    }
-    // A reader may delete nothing, whatever waits (answered before NOT_FOUND could tell it
-    // what does); per sender below, whoever may change what it creates (its owner
-    // "dicom:<AE>", or an admin).
-    if (auto may = CallGuard::MayWrite(caller, caller.name, what); !may.ok()) {
-      return d_.audit->Record(&caller, "DeleteReceivedSeries", what, may);
-    }
-    auto removed = server::DeleteReceivedSeries(
-        d_.jobs, d_.blobs, req->series_instance_uid(), req->calling_ae(), caller.name,
-        [&](const std::string& owner) {
-          grpc::Status may = CallGuard::MayWrite(caller, owner, what);
-          return absl::Status(static_cast<absl::StatusCode>(may.error_code()), may.error_message());
-        });
-    if (removed.ok()) {
-      resp->set_deleted_instances(removed->instances);
-      resp->set_freed_bytes(removed->freed_bytes);
-    }
-    return d_.audit->Record(&caller, "DeleteReceivedSeries", what,
-                            removed.ok() ? grpc::Status::OK : ToGrpc(removed.status()));
+    return Audited(d_, ctx, "DeleteReceivedSeries", what,
+                   [&](const Principal& caller, std::string&) -> grpc::Status {
+                     // A reader may delete nothing, whatever waits (answered before NOT_FOUND
+                     // could tell it what does); per sender below, whoever may change what it
+                     // creates (its owner "dicom:<AE>", or an admin).
+                     if (auto may = CallGuard::MayWrite(caller, caller.name, what); !may.ok()) {
+                       return may;
+                     }
+                     auto removed = server::DeleteReceivedSeries(
+                         d_.jobs, d_.blobs, req->series_instance_uid(), req->calling_ae(),
+                         caller.name, [&](const std::string& owner) {
+                           grpc::Status may = CallGuard::MayWrite(caller, owner, what);
+                           return absl::Status(static_cast<absl::StatusCode>(may.error_code()),
+                                               may.error_message());
+                         });
+                     if (!removed.ok()) return ToGrpc(removed.status());
+                     resp->set_deleted_instances(removed->instances);
+                     resp->set_freed_bytes(removed->freed_bytes);
+                     return grpc::Status::OK;
+                   });
   }
 
   grpc::Status DeleteVolume(grpc::ServerContext* ctx, const v1::DeleteVolumeRequest* req,
                             v1::DeleteVolumeResponse*) override {
-    Principal caller;
-    if (auto g = d_.guard->Check(ctx, &caller); !g.ok()) {
-      return d_.audit->Record(nullptr, "DeleteVolume", "", g);
-    }
-    // A change that cannot be audited is not made.
-    if (auto a = d_.audit->Ready(); !a.ok()) return a;
-    return d_.audit->Record(&caller, "DeleteVolume", req->name(), DoDeleteVolume(caller, *req));
+    return Audited(
+        d_, ctx, "DeleteVolume", req->name(),
+        [&](const Principal& caller, std::string&) { return DoDeleteVolume(caller, *req); });
   }
 
   grpc::Status DoDeleteVolume(const Principal& caller, const v1::DeleteVolumeRequest& req) {

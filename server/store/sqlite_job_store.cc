@@ -147,45 +147,21 @@ class SqliteJobStore : public JobStore {
         association_id TEXT NOT NULL DEFAULT '');
     )sql";
     DECIMA_RETURN_IF_ERROR_LOCAL(Exec(kSchema));
-    // Data dirs created before leases had epochs: add the column (0 for every job).
-    Stmt cols(db_, "SELECT COUNT(*) FROM pragma_table_info('jobs') WHERE name='lease_epoch'");
-    if (cols.Step() != SQLITE_ROW) return cols.Error("reading the schema");
-    if (cols.Int(0) == 0) {
-      DECIMA_RETURN_IF_ERROR_LOCAL(
-          Exec("ALTER TABLE jobs ADD COLUMN lease_epoch INTEGER NOT NULL DEFAULT 0"));
-    }
-    // Data dirs created before jobs and volumes had creators: the column, "" for the old rows
-    // (only an admin or reader sees those). The proto carries the creator too; the column is
-    // the filter of a submitter's listing.
-    for (const char* table : {"jobs", "volumes"}) {
-      Stmt c(db_, absl::StrCat("SELECT COUNT(*) FROM pragma_table_info('", table,
-                               "') WHERE name='creator'")
-                      .c_str());
-      if (c.Step() != SQLITE_ROW) return c.Error("reading the schema");
-      if (c.Int(0) == 0) {
-        DECIMA_RETURN_IF_ERROR_LOCAL(
-            Exec(absl::StrCat("ALTER TABLE ", table, " ADD COLUMN creator TEXT NOT NULL DEFAULT ''")
-                     .c_str()));
-      }
-    }
-    // Data dirs created before volumes were found by content: the column, NULL for the old
-    // rows, which are then never reused (the next create of their content makes the row that
-    // later ones reuse). The index makes one row per creator and content (NULLs are distinct).
-    bool has_content_key = false;
-    {
-      Stmt c(db_, "SELECT COUNT(*) FROM pragma_table_info('volumes') WHERE name='content_key'");
-      if (c.Step() != SQLITE_ROW) return c.Error("reading the schema");
-      has_content_key = c.Int(0) > 0;
-    }
-    if (!has_content_key) {
-      DECIMA_RETURN_IF_ERROR_LOCAL(Exec("ALTER TABLE volumes ADD COLUMN content_key TEXT"));
-    }
-    DECIMA_RETURN_IF_ERROR_LOCAL(Exec(
-        "CREATE UNIQUE INDEX IF NOT EXISTS volumes_by_content ON volumes(creator, content_key)"));
-    // Data dirs whose receiver tables predate the persisted abort mark and the
-    // ReceivedSeries fields: the columns, zero / "" for the old rows (their state is then
-    // derived from job and reason, dicom_receiver.cc).
-    const char* const kDicomColumns[][2] = {
+    // Columns added since the first data dirs, each with the value its old rows get:
+    // - jobs.lease_epoch: before leases had epochs (0 for every job);
+    // - creator: before jobs and volumes had creators ("" for the old rows, which only an admin
+    //   or reader sees; the proto carries the creator too, the column is the filter of a
+    //   submitter's listing);
+    // - volumes.content_key: before volumes were found by content (NULL for the old rows, which
+    //   are then never reused: the next create of their content makes the row that later ones
+    //   reuse);
+    // - the receiver's: before the persisted abort mark and the ReceivedSeries fields (zero / ""
+    //   for the old rows, whose state is then derived from job and reason, received_series.cc).
+    const char* const kAddedColumns[][2] = {
+        {"jobs", "lease_epoch INTEGER NOT NULL DEFAULT 0"},
+        {"jobs", "creator TEXT NOT NULL DEFAULT ''"},
+        {"volumes", "creator TEXT NOT NULL DEFAULT ''"},
+        {"volumes", "content_key TEXT"},
         {"dicom_instances", "aborted_ms INTEGER NOT NULL DEFAULT 0"},
         {"dicom_series", "state INTEGER NOT NULL DEFAULT 0"},
         {"dicom_series", "calling_ae TEXT NOT NULL DEFAULT ''"},
@@ -193,7 +169,7 @@ class SqliteJobStore : public JobStore {
         {"dicom_series", "instance_count INTEGER NOT NULL DEFAULT 0"},
         {"dicom_series", "first_received_ms INTEGER NOT NULL DEFAULT 0"},
         {"dicom_series", "last_received_ms INTEGER NOT NULL DEFAULT 0"}};
-    for (const auto& [table, decl] : kDicomColumns) {
+    for (const auto& [table, decl] : kAddedColumns) {
       const std::string column(decl, std::string_view(decl).find(' '));
       Stmt c(db_, absl::StrCat("SELECT COUNT(*) FROM pragma_table_info('", table, "') WHERE name='",
                                column, "'")
@@ -204,6 +180,9 @@ class SqliteJobStore : public JobStore {
             Exec(absl::StrCat("ALTER TABLE ", table, " ADD COLUMN ", decl).c_str()));
       }
     }
+    // One row per creator and content (NULLs are distinct), so old rows never collide.
+    DECIMA_RETURN_IF_ERROR_LOCAL(Exec(
+        "CREATE UNIQUE INDEX IF NOT EXISTS volumes_by_content ON volumes(creator, content_key)"));
     return absl::OkStatus();
   }
 

@@ -1,4 +1,3 @@
-#include <chrono>
 #include <cmath>
 #include <limits>
 
@@ -13,6 +12,7 @@ namespace decima::io {
 namespace {
 
 namespace fs = std::filesystem;
+using testing::AddressSpaceCap;
 using testing::Compress;
 using testing::CorruptMiddle;
 using testing::ExpectError;
@@ -161,12 +161,14 @@ TEST(MetaImageBroken, DimensionsDoNotMatchDataSize) {
 TEST(MetaImageBroken, TrillionVoxelHeaderFailsFast) {
   const fs::path dir = decima::testing::MakeScratchDir("mha");
   const fs::path p = dir / "huge.mha";
-  const auto t0 = std::chrono::steady_clock::now();
+  // Refused from the header: a reader that allocated the declared voxels (2 GB and more)
+  // would run out of this headroom.
+  const AddressSpaceCap cap(uint64_t{1} << 30);
+  ASSERT_TRUE(cap.active());
   WriteText(p, Header("LOCAL", "", "10000 10000 10000") + "xx");
   ExpectError(ReadMetaImage(p).status(), p, "exceeds the limit");
   WriteText(p, Header("LOCAL", "CompressedData = True\n", "1000 1000 1000") + "xx");
   ExpectError(ReadMetaImage(p).status(), p, "truncated");
-  EXPECT_LT(std::chrono::steady_clock::now() - t0, std::chrono::seconds(2));
 }
 
 TEST(MetaImageBroken, ZeroOrNegativeSpacing) {

@@ -1,4 +1,3 @@
-#include <chrono>
 #include <cmath>
 #include <limits>
 
@@ -13,6 +12,7 @@ namespace decima::io {
 namespace {
 
 namespace fs = std::filesystem;
+using testing::AddressSpaceCap;
 using testing::Compress;
 using testing::CorruptMiddle;
 using testing::ExpectError;
@@ -325,14 +325,16 @@ TEST(NiftiBroken, TrillionVoxelHeaderFailsFastWithoutAllocating) {
   auto b = SmallNii(dir);
   for (int i = 1; i <= 3; ++i) Poke<int16_t>(b, kDim + 2 * i, 10000);
   const fs::path p = dir / "huge.nii";
-  const auto t0 = std::chrono::steady_clock::now();
+  // Refused from the header: a reader that allocated the declared voxels (2 GB and more)
+  // would run out of this headroom.
+  const AddressSpaceCap cap(uint64_t{1} << 30);
+  ASSERT_TRUE(cap.active());
   ExpectError(ReadBytesAs(p, b), p, "exceeds the limit");
   // Within the limit but far more than a tiny gzip can hold: rejected before inflating.
   for (int i = 1; i <= 3; ++i) Poke<int16_t>(b, kDim + 2 * i, 1200);
   const fs::path pg = dir / "huge.nii.gz";
   WriteAll(pg, Compress(b, true));
   ExpectError(ReadNifti(pg).status(), pg, "truncated");
-  EXPECT_LT(std::chrono::steady_clock::now() - t0, std::chrono::seconds(2));
 }
 
 TEST(NiftiBroken, ZeroOrNonFiniteSpacing) {

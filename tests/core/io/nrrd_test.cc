@@ -1,4 +1,3 @@
-#include <chrono>
 #include <cmath>
 #include <limits>
 
@@ -13,6 +12,7 @@ namespace decima::io {
 namespace {
 
 namespace fs = std::filesystem;
+using testing::AddressSpaceCap;
 using testing::Compress;
 using testing::CorruptMiddle;
 using testing::ExpectError;
@@ -173,14 +173,16 @@ TEST(NrrdBroken, DimensionsDoNotMatchDataSize) {
 TEST(NrrdBroken, TrillionVoxelHeaderFailsFast) {
   const fs::path dir = decima::testing::MakeScratchDir("nrrd");
   const fs::path p = dir / "h.nrrd";
-  const auto t0 = std::chrono::steady_clock::now();
+  // Refused from the header: a reader that allocated the declared voxels (2 GB and more)
+  // would run out of this headroom.
+  const AddressSpaceCap cap(uint64_t{1} << 30);
+  ASSERT_TRUE(cap.active());
   WriteAttached(p, Header("", "10000 10000 10000"), ShortData());
   ExpectError(ReadNrrd(p).status(), p, "exceeds the limit");
   WriteAttached(p, Header("", "1000 1000 1000", "gzip"), Compress(ShortData(), true));
   ExpectError(ReadNrrd(p).status(), p, "truncated");
   WriteAttached(p, Header("", "1000 1000 1000", "ascii"), ShortData());
   ExpectError(ReadNrrd(p).status(), p, "truncated");
-  EXPECT_LT(std::chrono::steady_clock::now() - t0, std::chrono::seconds(2));
 }
 
 TEST(NrrdBroken, ZeroOrNegativeSpacing) {

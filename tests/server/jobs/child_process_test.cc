@@ -2,6 +2,7 @@
 // the protocol descriptor reaches the child.
 #include "server/jobs/child_process.h"
 
+#include <poll.h>
 #include <signal.h>
 #include <sys/wait.h>
 #include <unistd.h>
@@ -9,9 +10,9 @@
 #include <gmock/gmock.h>
 #include <gtest/gtest.h>
 
+#include <cerrno>
 #include <chrono>
 #include <filesystem>
-#include <thread>
 
 namespace decima::server {
 namespace {
@@ -24,6 +25,22 @@ ChildOptions Shell(const std::string& script) {
   o.argv = {"/bin/sh", "-c", script};
   o.log = fs::temp_directory_path() / ("decima-child-test-" + std::to_string(::getpid()) + ".log");
   return o;
+}
+
+// Whether one byte arrived on `fd` within `timeout`.
+bool WaitForReadyByte(int fd, std::chrono::milliseconds timeout) {
+  const auto deadline = std::chrono::steady_clock::now() + timeout;
+  for (;;) {
+    const auto left = std::chrono::duration_cast<std::chrono::milliseconds>(
+        deadline - std::chrono::steady_clock::now());
+    if (left.count() <= 0) return false;
+    pollfd p{fd, POLLIN, 0};
+    const int n = ::poll(&p, 1, static_cast<int>(left.count()));
+    if (n < 0 && errno == EINTR) continue;
+    if (n <= 0) return false;
+    char byte = 0;
+    return ::read(fd, &byte, 1) == 1;
+  }
 }
 
 TEST(ChildProcess, ReportsTheExitCodeAndWritesTheProtocolFd) {
@@ -49,10 +66,11 @@ TEST(ChildProcess, TerminateEndsAPoliteChildWithSigterm) {
 }
 
 TEST(ChildProcess, TerminateKillsAChildThatIgnoresSigtermAfterTheGrace) {
-  // An ignored signal stays ignored across exec: the sleep ignores TERM.
-  auto child = ChildProcess::Spawn(Shell("trap '' TERM; exec sleep 30"));
+  // An ignored signal stays ignored across exec: the sleep ignores TERM. The byte on the
+  // protocol pipe says the trap is installed (a TERM before it would end the shell politely).
+  auto child = ChildProcess::Spawn(Shell("trap '' TERM; printf r >&3; exec sleep 30"));
   ASSERT_TRUE(child.ok());
-  std::this_thread::sleep_for(100ms);  // let the trap be installed
+  ASSERT_TRUE(WaitForReadyByte((*child)->fd(), 10s)) << "the child never said it was ready";
   const auto t0 = std::chrono::steady_clock::now();
   (*child)->Terminate(200ms);
   (*child)->Terminate(10s);  // a later request does not postpone the kill
