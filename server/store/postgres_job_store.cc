@@ -29,6 +29,7 @@
 #include <tuple>
 #include <utility>
 
+#include "absl/strings/match.h"
 #include "absl/strings/numbers.h"
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_join.h"
@@ -614,6 +615,12 @@ class PostgresJobStore : public JobStore {
             return absl::AbortedError("job store: volume conflict without a row; retry");
           }
           for (const auto& f : volume.files()) {
+            // The catalog checked the names; a store never trusts its caller with substr.
+            if (!absl::StartsWith(f.blob(), "blobs/")) {
+              return absl::InvalidArgumentError(absl::StrCat("job store: volume file ", f.path(),
+                                                             ": blob '", f.blob(),
+                                                             "' is not 'blobs/{sha256}'"));
+            }
             w.exec_params(
                 "INSERT INTO volume_blobs(volume_id, sha256) VALUES($1,$2) ON CONFLICT DO NOTHING",
                 id, f.blob().substr(6));

@@ -9,6 +9,7 @@
 #include <mutex>
 #include <utility>
 
+#include "absl/strings/match.h"
 #include "absl/strings/numbers.h"
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_join.h"
@@ -585,6 +586,12 @@ class SqliteJobStore : public JobStore {
     }
     if (ins.Step() != SQLITE_DONE) return ins.Error("inserting volume");
     for (const auto& f : volume.files()) {
+      // The catalog checked the names; a store never trusts its caller with substr.
+      if (!absl::StartsWith(f.blob(), "blobs/")) {
+        return absl::InvalidArgumentError(absl::StrCat("job store: volume file ", f.path(),
+                                                       ": blob '", f.blob(),
+                                                       "' is not 'blobs/{sha256}'"));
+      }
       Stmt b(db_, "INSERT OR IGNORE INTO volume_blobs(volume_id, sha256) VALUES(?,?)");
       b.Bind(1, id).Bind(2, f.blob().substr(6));
       if (b.Step() != SQLITE_DONE) return b.Error("inserting volume blob");

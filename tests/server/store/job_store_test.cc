@@ -316,6 +316,21 @@ TEST_P(JobStoreTest, LabelMapOfAQueuedJobCannotBeDeleted) {
 // CreateVolume by content (issue 35 part 7): the same creator and key answer the first row,
 // another creator's key is another row, a deleted volume is not answered again, and the key
 // survives reopening the store.
+TEST_P(JobStoreTest, AVolumeFileThatNamesNoBlobIsRefusedAndNothingIsKept) {
+  v1::Volume v;
+  v.add_files()->set_path("a.nii");
+  v.set_creator("alice");
+  for (const std::string blob : {"", "blob", "files/x"}) {
+    v.mutable_files(0)->set_blob(blob);
+    bool created = true;
+    auto made = store_->CreateVolume("vbad", v, "", "", &created);
+    EXPECT_EQ(made.status().code(), absl::StatusCode::kInvalidArgument) << "'" << blob << "'";
+    EXPECT_THAT(std::string(made.status().message()), HasSubstr("a.nii"));
+    EXPECT_FALSE(created);
+    EXPECT_EQ(store_->GetVolume("vbad").status().code(), absl::StatusCode::kNotFound);
+  }
+}
+
 TEST_P(JobStoreTest, VolumesAreFoundByCreatorAndContentKeyUntilDeleted) {
   const std::string key(64, 'c');
   v1::Volume v;
