@@ -69,7 +69,7 @@ std::optional<v1::Job> GetJob(const std::string& address, const std::string& nam
 bool Final(v1::JobState s) { return s == v1::SUCCEEDED || s == v1::FAILED || s == v1::CANCELLED; }
 
 struct Cluster {
-  testing::PostgresServer* pg;
+  decima::testing::PostgresServer* pg;
   std::string db;
   fs::path data;
   double lease_seconds;
@@ -112,7 +112,7 @@ struct Cluster {
   }
 };
 
-std::string NewDatabase(testing::PostgresServer& pg) {
+std::string NewDatabase(decima::testing::PostgresServer& pg) {
   static int n = 0;
   std::string db = "bench" + std::to_string(n++);
   std::string err = pg.CreateDatabase(db);
@@ -120,7 +120,7 @@ std::string NewDatabase(testing::PostgresServer& pg) {
   return db;
 }
 
-nlohmann::json Failover(testing::PostgresServer& pg, const fs::path& scratch,
+nlohmann::json Failover(decima::testing::PostgresServer& pg, const fs::path& scratch,
                         const fs::path& volume, int runs, double lease) {
   std::vector<double> secs;
   for (int run = 0; run < runs; ++run) {
@@ -151,7 +151,7 @@ nlohmann::json Failover(testing::PostgresServer& pg, const fs::path& scratch,
           {"within_bound", !secs.empty() && worst <= lease * 1.25}};
 }
 
-nlohmann::json Claims(testing::PostgresServer& pg, int jobs) {
+nlohmann::json Claims(decima::testing::PostgresServer& pg, int jobs) {
   const std::string dsn = pg.Dsn(NewDatabase(pg));
   std::vector<std::unique_ptr<server::JobStore>> stores;
   for (int i = 0; i < 3; ++i) {
@@ -197,7 +197,7 @@ nlohmann::json Claims(testing::PostgresServer& pg, int jobs) {
 
 // Watchers on replicas that do not run the job; the delay from each event's time to its
 // arrival. Also samples the connections each replica holds meanwhile.
-nlohmann::json WatchDelivery(testing::PostgresServer& pg, const fs::path& scratch,
+nlohmann::json WatchDelivery(decima::testing::PostgresServer& pg, const fs::path& scratch,
                              const fs::path& volume, nlohmann::json* connections) {
   Cluster c{&pg, NewDatabase(pg), scratch / "watch", 15, {}};
   for (int i = 0; i < 3; ++i) c.Add(2);
@@ -280,7 +280,7 @@ double JobSeconds(const std::string& address, const std::string& job) {
   return Seconds(j->end_time()) - Seconds(j->create_time());
 }
 
-nlohmann::json CtHead(testing::PostgresServer& pg, const fs::path& scratch, const fs::path& ct,
+nlohmann::json CtHead(decima::testing::PostgresServer& pg, const fs::path& scratch, const fs::path& ct,
                       int repeat) {
   std::vector<double> sqlite, postgres;
   // Both set-ups are up at once and their jobs alternate, one at a time, so a change of the
@@ -316,18 +316,18 @@ int main(int argc, char** argv) {
     if (k == "--lease-seconds") lease = std::atof(argv[i + 1]);
   }
   if (ct.empty()) {
-    if (auto f = testing::SharedDataFile("ct-head-128x128x53.nii.gz")) ct = *f;
+    if (auto f = decima::testing::SharedDataFile("ct-head-128x128x53.nii.gz")) ct = *f;
   }
-  if (!testing::PostgresServer::BinDir()) {
-    std::fprintf(stderr, "%s\n", testing::PostgresServer::WhyAbsent().c_str());
+  if (!decima::testing::PostgresServer::BinDir()) {
+    std::fprintf(stderr, "%s\n", decima::testing::PostgresServer::WhyAbsent().c_str());
     return 1;
   }
-  testing::PostgresServer pg(/*durable=*/true);
+  decima::testing::PostgresServer pg(/*durable=*/true);
   if (!pg.error().empty()) {
     std::fprintf(stderr, "%s\n", pg.error().c_str());
     return 1;
   }
-  const fs::path scratch = testing::MakeScratchDir("scale_bench");
+  const fs::path scratch = decima::testing::MakeScratchDir("scale_bench");
   const fs::path tiny = scratch / "tiny.nii";
   e2e::WriteTinyNifti(tiny, 12, 10, 8);
   nlohmann::json out;
