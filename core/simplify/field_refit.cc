@@ -8,6 +8,7 @@
 #include <optional>
 #include <vector>
 
+#include "absl/strings/str_format.h"
 #include "core/common/parallel.h"
 #include "core/common/status.h"
 
@@ -350,6 +351,15 @@ absl::Status RefitValues(const TetMesh& original, const std::vector<int32_t>& ve
   for (int64_t v = 0; v < nv; ++v) simplified->scalars[v] = static_cast<float>(s[v]);
   if (stats) *stats = st;
   return absl::OkStatus();
+}
+
+void ReportRefit(const ProgressFn& progress, const RefitStats& refit) {
+  Report(progress,
+         {"simplify",
+          1.0,
+          absl::StrFormat("values refit to %d samples in %d steps: RMS %.3g -> %.3g", refit.samples,
+                          refit.iterations, refit.rms_before, refit.rms_after),
+          {{"refit_rms_before", refit.rms_before}, {"refit_rms_after", refit.rms_after}}});
 }
 
 }  // namespace decima::simplify_internal

@@ -34,4 +34,8 @@ absl::Status RefitValues(const TetMesh& original, const std::vector<int32_t>& ve
                          TetMesh* simplified, int iterations, int threads,
                          const CancelToken* cancel, RefitStats* stats);
 
+// The progress event of a finished refit (stage "simplify", at 1.0), as a job and a level
+// extraction report it.
+void ReportRefit(const ProgressFn& progress, const RefitStats& refit);
+
 }  // namespace decima::simplify_internal

@@ -180,12 +180,7 @@ absl::StatusOr<SimplifyResult> ExtractLevel(const TetMesh& base, const SimplifyL
     simplify_internal::RefitStats refit;
     DECIMA_RETURN_IF_ERROR(simplify_internal::RefitValues(
         base, result.vertex_map, &out, levels.refit_iterations, threads, cancel, &refit));
-    Report(progress,
-           {"simplify",
-            1.0,
-            absl::StrFormat("values refit to %d samples in %d steps: RMS %.3g -> %.3g",
-                            refit.samples, refit.iterations, refit.rms_before, refit.rms_after),
-            {{"refit_rms_before", refit.rms_before}, {"refit_rms_after", refit.rms_after}}});
+    simplify_internal::ReportRefit(progress, refit);
   }
   result.output_cells = cells;
   result.achieved_reduction = nt > 0 ? 1.0 - double(cells) / double(nt) : 0;

@@ -299,12 +299,7 @@ absl::StatusOr<SimplifyResult> Simplify(const TetMesh& mesh, const SimplifyOptio
       DECIMA_RETURN_IF_ERROR(simplify_internal::RefitValues(mesh, result.vertex_map, &result.mesh,
                                                             options.refit_iterations, threads,
                                                             cancel, &refit));
-      Report(progress,
-             {"simplify",
-              1.0,
-              absl::StrFormat("values refit to %d samples in %d steps: RMS %.3g -> %.3g",
-                              refit.samples, refit.iterations, refit.rms_before, refit.rms_after),
-              {{"refit_rms_before", refit.rms_before}, {"refit_rms_after", refit.rms_after}}});
+      simplify_internal::ReportRefit(progress, refit);
     }
   } else {
     DECIMA_RETURN_IF_ERROR(

@@ -81,6 +81,28 @@ class Stmt {
   int rc_;
 };
 
+// One keyset page from `q`, whose rows are (ord, serialized message) newest first and which asked
+// for `limit` + 1 rows: at most `limit` parsed into `items`, and the token of the next page when
+// the extra row came. Jobs and volumes page alike.
+template <typename T, typename Parse>
+absl::Status ReadPage(Stmt& q, int limit, Parse parse, const char* what, std::vector<T>* items,
+                      std::string* next_page_token) {
+  int64_t last_ord = 0;
+  int rc;
+  while ((rc = q.Step()) == SQLITE_ROW) {
+    if (static_cast<int>(items->size()) == limit) {
+      *next_page_token = EncodePageToken(last_ord);
+      break;
+    }
+    last_ord = q.Int(0);
+    auto item = parse(q.Text(1));
+    if (!item.ok()) return item.status();
+    items->push_back(std::move(*item));
+  }
+  if (rc != SQLITE_ROW && rc != SQLITE_DONE) return q.Error(what);
+  return absl::OkStatus();
+}
+
 class SqliteJobStore : public JobStore {
  public:
   explicit SqliteJobStore(sqlite3* db) : db_(db) {}
@@ -349,19 +371,9 @@ class SqliteJobStore : public JobStore {
     if (!creator.empty()) q.Bind(arg++, creator);
     q.Bind(arg, int64_t{limit} + 1);
     JobPage page;
-    int64_t last_ord = 0;
-    int rc;
-    while ((rc = q.Step()) == SQLITE_ROW) {
-      if (static_cast<int>(page.jobs.size()) == limit) {
-        page.next_page_token = EncodePageToken(last_ord);
-        break;
-      }
-      last_ord = q.Int(0);
-      auto job = ParseJob(q.Text(1));
-      if (!job.ok()) return job.status();
-      page.jobs.push_back(std::move(*job));
-    }
-    if (rc != SQLITE_ROW && rc != SQLITE_DONE) return q.Error("listing jobs");
+    DECIMA_RETURN_IF_ERROR_LOCAL(ReadPage(
+        q, limit, [](const std::string& row) { return ParseJob(row); }, "listing jobs", &page.jobs,
+        &page.next_page_token));
     return page;
   }
 
@@ -626,19 +638,9 @@ class SqliteJobStore : public JobStore {
     if (!creator.empty()) q.Bind(arg++, creator);
     q.Bind(arg, int64_t{limit} + 1);
     VolumePage page;
-    int64_t last_ord = 0;
-    int rc;
-    while ((rc = q.Step()) == SQLITE_ROW) {
-      if (static_cast<int>(page.volumes.size()) == limit) {
-        page.next_page_token = EncodePageToken(last_ord);
-        break;
-      }
-      last_ord = q.Int(0);
-      auto v = ParseVolume(q.Text(1));
-      if (!v.ok()) return v.status();
-      page.volumes.push_back(std::move(*v));
-    }
-    if (rc != SQLITE_ROW && rc != SQLITE_DONE) return q.Error("listing volumes");
+    DECIMA_RETURN_IF_ERROR_LOCAL(ReadPage(
+        q, limit, [](const std::string& row) { return ParseVolume(row); }, "listing volumes",
+        &page.volumes, &page.next_page_token));
     return page;
   }
 
