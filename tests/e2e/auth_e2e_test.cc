@@ -44,13 +44,9 @@ std::string Sha256Hex(const std::string& s) {
   return h.HexDigest();
 }
 
-class AuthE2E : public ::testing::Test {
+class AuthE2E : public ScratchTest {
  protected:
-  void SetUp() override {
-    scratch_ = testing::MakeScratchDir("auth_e2e");
-    volume_ = scratch_ / "phantom.nii";
-    WriteTinyNifti(volume_, 12, 10, 8);
-  }
+  AuthE2E() : ScratchTest("auth_e2e") {}
   // Skips the test when openssl is absent.
   bool MakePki() {
     std::string err = MakeTestPki(scratch_ / "pki", {"alice", "rita"}, &pki_);
@@ -68,7 +64,6 @@ class AuthE2E : public ::testing::Test {
     }
     return grpc::CreateChannel(address, grpc::SslCredentials(o));
   }
-  fs::path scratch_, volume_;
   TestPki pki_;
 };
 
@@ -883,12 +878,11 @@ testing::PostgresServer* SharedPostgres() {
 // submit of a file it already has as a live volume reuses that volume (the CLI says so), another
 // principal's identical bytes are a record of its own, and a deleted volume is not reused. In
 // both job stores (the volume rows live there), with the real server and CLI.
-class VolumeReuseE2E : public ::testing::TestWithParam<std::string> {
+class VolumeReuseE2E : public ScratchTest, public ::testing::WithParamInterface<std::string> {
  protected:
+  VolumeReuseE2E() : ScratchTest("volume_reuse_e2e") {}
   void SetUp() override {
-    scratch_ = testing::MakeScratchDir("volume_reuse_e2e");
-    volume_ = scratch_ / "phantom.nii";
-    WriteTinyNifti(volume_, 12, 10, 8);
+    ScratchTest::SetUp();
     tokens_ = scratch_ / "tokens";
     std::ofstream(tokens_) << "token " << Sha256Hex("alice-token") << " alice submitter\n"
                            << "token " << Sha256Hex("bob-token") << " bob submitter\n";
@@ -927,7 +921,7 @@ class VolumeReuseE2E : public ::testing::TestWithParam<std::string> {
     return names;
   }
 
-  fs::path scratch_, volume_, tokens_;
+  fs::path tokens_;
   std::vector<std::string> store_;
 };
 

@@ -145,18 +145,19 @@ std::string FirstLine(const std::string& s);
 // and, unless `phantom` is false, the tiny volume `phantom.nii` in it that they submit.
 class ScratchTest : public ::testing::Test {
  protected:
-  explicit ScratchTest(std::string tag, bool phantom = true)
-      : tag_(std::move(tag)), phantom_(phantom) {}
+  // A phantom of nx x ny x nz voxels (none when nx is 0).
+  explicit ScratchTest(std::string tag, bool phantom = true, int nx = 12, int ny = 10, int nz = 8)
+      : tag_(std::move(tag)), dims_{phantom ? nx : 0, ny, nz} {}
   void SetUp() override {
     scratch_ = testing::MakeScratchDir(tag_);
     volume_ = scratch_ / "phantom.nii";
-    if (phantom_) WriteTinyNifti(volume_, 12, 10, 8);
+    if (dims_[0] > 0) WriteTinyNifti(volume_, dims_[0], dims_[1], dims_[2]);
   }
   std::filesystem::path scratch_, volume_;
 
  private:
   std::string tag_;
-  bool phantom_;
+  int dims_[3];
 };
 
 std::filesystem::path ServerBinary();

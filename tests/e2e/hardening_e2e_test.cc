@@ -139,14 +139,9 @@ void WriteNiftiGzBomb(const fs::path& path, int nx, int ny, int nz) {
   gzclose(gz);
 }
 
-class HardeningE2E : public ::testing::Test {
+class HardeningE2E : public ScratchTest {
  protected:
-  void SetUp() override {
-    scratch_ = testing::MakeScratchDir("hardening_e2e");
-    volume_ = scratch_ / "phantom.nii";
-    WriteTinyNifti(volume_, 24, 24, 16);
-  }
-  fs::path scratch_, volume_;
+  HardeningE2E() : ScratchTest("hardening_e2e", /*phantom=*/true, 24, 24, 16) {}
 };
 
 // Issue case 3: a CreateVolume whose header check fails used to delete every blob of its

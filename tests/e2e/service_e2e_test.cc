@@ -52,15 +52,9 @@ std::unique_ptr<grpc::ClientContext> Ctx(const std::string& token = "") {
   return ctx;
 }
 
-class ServiceE2E : public ::testing::Test {
+class ServiceE2E : public ScratchTest {
  protected:
-  void SetUp() override {
-    scratch_ = testing::MakeScratchDir("service_e2e");
-    volume_ = scratch_ / "phantom.nii";
-    WriteTinyNifti(volume_, 12, 10, 8);
-  }
-  fs::path scratch_;
-  fs::path volume_;
+  ServiceE2E() : ScratchTest("service_e2e") {}
 };
 
 TEST_F(ServiceE2E, HealthServesAndReportsUnavailableWhenNoServer) {
