@@ -110,7 +110,7 @@ int FillSpec(const SubmitOptions& o, v1::JobSpec* spec) {
 }
 
 // CreateJob, retried while the server restarts; --fault goes along as metadata (read only by a
-// server run with --allow-faults, server/faults.h).
+// server run with --allow-faults, server/jobs/faults.h).
 grpc::Status CreateJob(CliContext& ctx, const SubmitOptions& o, const v1::CreateJobRequest& req,
                        v1::Job* job) {
   auto jobs = v1::Jobs::NewStub(ctx.conn.channel);
@@ -396,7 +396,7 @@ Command NewCmdSubmit(CLI::App& app, CliContext& ctx) {
   cmd->add_option("--request-id", o->request_id,
                   "idempotency key (default: a new UUID); reused with other parameters it is "
                   "refused (ALREADY_EXISTS)");
-  // Test seam (server/faults.h): sent as metadata, read only by a server run with --allow-faults.
+  // Test seam (server/jobs/faults.h): sent as metadata, read only by a server run with --allow-faults.
   cmd->add_option("--fault", o->fault, "test-only fault injection")->group("");
   cmd->add_flag("--watch", o->watch, "watch the job until it ends");
   cmd->add_option("--out", o->out,

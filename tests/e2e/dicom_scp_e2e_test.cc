@@ -1,7 +1,7 @@
 // The DICOM receiver of a real decima-server process under attack (issue 35): real storescu and
 // echoscu (Debian's dcmtk), hand-made connections from other loopback addresses, and the
 // server's own memory read from /proc. The pieces are tested in-process in
-// tests/server/dicom_test.cc; tests/e2e/dicom_scp_figures.py measures the figures.
+// tests/server/dicom/dicom_test.cc; tests/e2e/dicom_scp_figures.py measures the figures.
 #include <unistd.h>
 
 #include <fstream>

@@ -1,4 +1,4 @@
-// A DICOM peer's raw side for the receiver's tests (tests/server/dicom_test.cc,
+// A DICOM peer's raw side for the receiver's tests (tests/server/dicom/dicom_test.cc,
 // tests/e2e/dicom_scp_e2e_test.cc): loopback connections from any 127.x address, a hand-made
 // A-ASSOCIATE-RQ, a deflate bomb, a process's memory from /proc.
 #pragma once
