@@ -17,10 +17,9 @@ function(decima_sanitize target)
     target_compile_options(${target} PRIVATE -fsanitize=address,undefined -fno-omit-frame-pointer
                                               -fno-sanitize-recover=undefined)
     # GCC 12 reports std::regex's std::function members as maybe-uninitialized once ASan's
-    # instrumentation is in (a false positive in libstdc++ headers; cli_e2e_test), and at -O1
-    # (the sanitizer CI's level) code in nrrd_test as a stringop-overflow.
+    # instrumentation is in (a false positive in libstdc++ headers; cli_e2e_test).
     if(CMAKE_CXX_COMPILER_ID STREQUAL "GNU")
-      target_compile_options(${target} PRIVATE -Wno-maybe-uninitialized -Wno-stringop-overflow)
+      target_compile_options(${target} PRIVATE -Wno-maybe-uninitialized)
     endif()
     target_link_options(${target} PRIVATE -fsanitize=address,undefined)
     if(DECIMA_FUZZ)
