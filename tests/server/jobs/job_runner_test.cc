@@ -89,6 +89,15 @@ class JobRunnerTest : public ::testing::Test {
     return c.ok() && c->has_value() ? **c : Claim{};
   }
 
+  // Claims the oldest queued job and runs it to its end with a runner of the default options.
+  Claim RunOne() {
+    Claim claim = ClaimOne();
+    JobRunner runner(store_.get(), Options());
+    StopFlags stop;
+    runner.Run(claim, stop);
+    return claim;
+  }
+
   v1::Job Job(const std::string& id) {
     auto j = store_->GetJob(id);
     EXPECT_TRUE(j.ok()) << j.status();
@@ -129,10 +138,7 @@ class JobRunnerTest : public ::testing::Test {
 
 TEST_F(JobRunnerTest, AJobThatRunsToTheEndSucceedsWithItsArtifactsHashed) {
   Queue("ok");
-  Claim claim = ClaimOne();
-  JobRunner runner(store_.get(), Options());
-  StopFlags stop;
-  runner.Run(claim, stop);
+  const Claim claim = RunOne();
   const v1::Job job = Job("ok");
   ASSERT_EQ(job.state(), v1::SUCCEEDED) << job.error().message();
   ASSERT_GE(job.artifacts_size(), 2);
@@ -147,10 +153,7 @@ TEST_F(JobRunnerTest, AJobThatRunsToTheEndSucceedsWithItsArtifactsHashed) {
 
 TEST_F(JobRunnerTest, AChildThatCrashesFailsTheJobWithTheSignalAndTheStage) {
   Queue("crash", "crash");
-  Claim claim = ClaimOne();
-  JobRunner runner(store_.get(), Options());
-  StopFlags stop;
-  runner.Run(claim, stop);
+  const Claim claim = RunOne();
   const v1::Job job = Job("crash");
   ASSERT_EQ(job.state(), v1::FAILED);
   EXPECT_EQ(job.error().code(), static_cast<int>(absl::StatusCode::kInternal));
@@ -163,10 +166,7 @@ TEST_F(JobRunnerTest, AChildThatCrashesFailsTheJobWithTheSignalAndTheStage) {
 TEST_F(JobRunnerTest, AnErrorFrameFailsTheJobWithThePipelinesCodeAndMessage) {
   // A fault the child refuses to parse reaches it only through the data dir, never CreateJob.
   Queue("bad-fault", "sleep:99999");
-  Claim claim = ClaimOne();
-  JobRunner runner(store_.get(), Options());
-  StopFlags stop;
-  runner.Run(claim, stop);
+  RunOne();
   const v1::Job job = Job("bad-fault");
   ASSERT_EQ(job.state(), v1::FAILED);
   EXPECT_EQ(job.error().code(), static_cast<int>(absl::StatusCode::kInvalidArgument));
@@ -271,10 +271,7 @@ TEST_F(JobRunnerTest, AVolumeThatIsGoneFailsTheJobWithoutAChild) {
   // (it was deleted on another replica between CreateJob's check and the insert).
   ASSERT_TRUE(store_->DeleteVolume("v").ok());
   Queue("orphan");
-  Claim claim = ClaimOne();
-  JobRunner runner(store_.get(), Options());
-  StopFlags stop;
-  runner.Run(claim, stop);
+  const Claim claim = RunOne();
   const v1::Job job = Job("orphan");
   ASSERT_EQ(job.state(), v1::FAILED);
   EXPECT_EQ(job.error().code(), static_cast<int>(absl::StatusCode::kNotFound));
