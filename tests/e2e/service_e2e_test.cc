@@ -410,8 +410,10 @@ TEST_F(ServiceE2E, BadRequestsGetTheirCodesAndStoreNothing) {
 }
 
 TEST_F(ServiceE2E, FullQueueIsResourceExhaustedDrainingIsUnavailableAndSigtermRequeues) {
+  // The drain window must outlast the health and list calls below even under ThreadSanitizer on
+  // a loaded machine (at 3 s it closed before them: "connection refused", or CANCELLED mid-call).
   ServerProcess server(scratch_ / "data", {"--workers", "1", "--max-queued", "1", "--allow-faults",
-                                           "--drain-seconds", "3"});
+                                           "--drain-seconds", "12"});
   CliResult a = RunCli(server.address(), {"submit", volume_.string(), "--fault", "sleep:30"});
   ASSERT_EQ(a.rc, 0) << a.err;
   ASSERT_TRUE(WaitFor(
