@@ -8,7 +8,12 @@ cd "$(dirname "$0")/.."
 out_dir=$(realpath -m "${1:-decima-demo}")
 bash deploy/install-deps.sh
 build_dir=${BUILD_DIR:-build}
-cmake -S . -B "$build_dir" -G Ninja -DCMAKE_BUILD_TYPE=RelWithDebInfo >/dev/null
+# A build folder made earlier (by deploy/build-and-test.sh, say) keeps its generator and flags.
+if [ -f "$build_dir/CMakeCache.txt" ]; then
+  cmake -S . -B "$build_dir" >/dev/null
+else
+  cmake -S . -B "$build_dir" -DCMAKE_BUILD_TYPE=RelWithDebInfo >/dev/null
+fi
 cmake --build "$build_dir" -j "$(nproc)" --target decima decima-server
 
 input=/usr/share/mricron/templates/ch2.nii.gz

@@ -5,8 +5,8 @@
 set -euo pipefail
 
 packages=(
-  # toolchain; ccache lets deploy/build-and-test.sh's second build (the default generator,
-  # Unix Makefiles) and repeated CI runs reuse compiled objects instead of compiling again
+  # toolchain (ninja for the sanitizer builds); ccache lets repeated builds reuse compiled
+  # objects instead of compiling again
   build-essential cmake ninja-build pkg-config git ca-certificates ccache
   # service: gRPC + Protobuf (Debian ships CMake configs), abseil for Status/StatusOr
   libgrpc++-dev protobuf-compiler-grpc libprotobuf-dev protobuf-compiler libabsl-dev

@@ -2,6 +2,7 @@
 
 #include <sys/types.h>
 
+#include <CLI/CLI.hpp>
 #include <algorithm>
 #include <cstdio>
 #include <cstdlib>

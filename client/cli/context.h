@@ -4,7 +4,6 @@
 // passed to each verb; nothing of it is global.
 #pragma once
 
-#include <CLI/CLI.hpp>
 #include <atomic>
 #include <chrono>
 #include <map>
@@ -13,6 +12,12 @@
 #include <vector>
 
 #include "client/client_lib.h"
+
+// CLI11 is header-only and costs about 8 s of compile time per file that includes it: only the
+// files that declare flags (client/cmd/, context.cc, dicomweb_flags.cc) do.
+namespace CLI {
+class App;
+}  // namespace CLI
 
 namespace decima::client {
 

@@ -1,5 +1,6 @@
 #include "client/cli/dicomweb_flags.h"
 
+#include <CLI/CLI.hpp>
 #include <cstdio>
 #include <fstream>
 
