@@ -50,4 +50,11 @@ void RegionSignedDistance(const uint8_t* labels, const std::array<int64_t, 3>& d
 // Fills region_voxels and region_volumes_mm3 of `result` from result->labels (K regions).
 void CountRegions(int k, SegmentResult* result);
 
+// How many iterations the level set will run in all, forecast after the iterations whose
+// interface changed fractions are `history` (oldest first) with `quiet` of the last ones below
+// the threshold: the remaining ones from the geometric decay of the last few fractions toward
+// options.convergence_threshold, plus the quiet window. options.max_iterations when no decay is
+// seen yet (or none can converge); never more than that, never less than those done.
+int ForecastIterations(const std::vector<double>& history, int quiet, const SegmentOptions& o);
+
 }  // namespace decima::segment_internal

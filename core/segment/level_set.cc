@@ -31,6 +31,9 @@
 namespace decima {
 namespace {
 
+// The share of the "segment" stage's progress given to its set-up (k-means, initial level sets).
+constexpr double kSetupShare = 0.05;
+
 using segment_internal::ResolveThreads;
 
 constexpr int kBlock = 8;  // block edge in voxels (the unit of the narrow band lists)
@@ -878,6 +881,46 @@ double MaxStableTimeStep(const SegmentOptions& o, const Volume& image) {
   return rate > 0 ? 1.0 / rate : std::numeric_limits<double>::infinity();
 }
 
+namespace segment_internal {
+
+int ForecastIterations(const std::vector<double>& history, int quiet, const SegmentOptions& o) {
+  const int done = static_cast<int>(history.size());
+  const int at_most = std::max(o.max_iterations, done + 1);
+  if (quiet >= o.convergence_window) return std::min(done, at_most);  // converged
+  // The first iterations say little: the first changes few labels (the interfaces have not
+  // started to move), so a quiet start would promise convergence at the third.
+  if (done < 4) return at_most;
+  if (quiet > 0) return std::clamp(done + o.convergence_window - quiet, done + 1, at_most);
+  if (!(o.convergence_threshold > 0)) return at_most;
+  // The changes shrink roughly geometrically once the interfaces have found their edges, with
+  // spikes after each re-initialization: the rate is the least-squares slope of log(fraction)
+  // over the last few iterations (the first, before the interfaces moved, left out).
+  const int span = std::min(8, done - 1);
+  if (span < 3) return at_most;
+  double mean_x = 0, mean_y = 0;
+  for (int i = 0; i < span; ++i) {
+    mean_x += i;
+    mean_y += std::log(std::max(history[done - span + i], 1e-12));
+  }
+  mean_x /= span;
+  mean_y /= span;
+  double sxy = 0, sxx = 0;
+  for (int i = 0; i < span; ++i) {
+    const double dx = i - mean_x;
+    sxy += dx * (std::log(std::max(history[done - span + i], 1e-12)) - mean_y);
+    sxx += dx * dx;
+  }
+  const double slope = sxy / sxx;  // log of the rate per iteration
+  if (!(slope < std::log(0.98))) return at_most;
+  const double fitted_last = mean_y + slope * (span - 1 - mean_x);
+  const double to_threshold =
+      std::max(0.0, std::ceil((std::log(o.convergence_threshold) - fitted_last) / slope));
+  const double forecast = done + to_threshold + o.convergence_window;
+  return static_cast<int>(std::clamp<double>(forecast, done + 1, at_most));
+}
+
+}  // namespace segment_internal
+
 absl::StatusOr<SegmentResult> Segment(const Volume& image, const SegmentOptions& o,
                                       const ProgressFn& progress, const CancelToken* cancel) {
   DECIMA_RETURN_IF_ERROR(ValidateOptions(o, image));
@@ -905,6 +948,17 @@ absl::StatusOr<SegmentResult> Segment(const Volume& image, const SegmentOptions&
   result.labels.modality = "SEG";
   ctx.labels = result.labels.mutable_data<uint8_t>();
 
+  // The set-up (k-means, the initial level sets) is reported as the first few percent of the
+  // stage, so a watcher sees it moving before the first iteration.
+  auto report_setup = [&](double fraction, const char* message) {
+    Progress p;
+    p.stage = "segment";
+    p.fraction = fraction;
+    p.message = message;
+    p.metrics = {{"iteration", 0}};
+    Report(progress, p);
+  };
+  report_setup(0, "k-means of the intensities");
   // Class means: given (and fixed), or k-means (then updated unless fix_class_means).
   bool fixed = true;
   if (o.class_means.empty()) {
@@ -973,6 +1027,7 @@ absl::StatusOr<SegmentResult> Segment(const Volume& image, const SegmentOptions&
   bool converged = false;
   double energy = 0.0;
   if (o.max_iterations > 0) {
+    report_setup(kSetupShare / 2, "initial level sets");
     ctx.ls.resize(k);
     InitializeFromLabels(ctx);
     DECIMA_RETURN_IF_ERROR(CheckCancelled(cancel, "segment"));
@@ -981,6 +1036,8 @@ absl::StatusOr<SegmentResult> Segment(const Volume& image, const SegmentOptions&
     std::vector<int64_t> label_blocks = BandUnion(ctx, nullptr);
     int quiet = 0;
     int64_t reinit_changed = 0;  // labels the last re-initialization changed (0 by design)
+    std::vector<double> interface_history;  // for the forecast of the iteration count
+    double reported_fraction = kSetupShare;
     while (iteration < o.max_iterations) {
       ++iteration;
       for (int i = 0; i < k; ++i) EvolveLevelSet(ctx, i, next);
@@ -1007,20 +1064,26 @@ absl::StatusOr<SegmentResult> Segment(const Volume& image, const SegmentOptions&
       // and shape.
       const double interface_fraction =
           static_cast<double>(changed) / static_cast<double>(std::max<int64_t>(1, faces));
+      quiet = interface_fraction < o.convergence_threshold ? quiet + 1 : 0;
+      interface_history.push_back(interface_fraction);
+      const int expected = segment_internal::ForecastIterations(interface_history, quiet, o);
+      // Never backwards: a forecast that grows holds the bar until the iterations catch up.
+      reported_fraction =
+          std::max(reported_fraction, kSetupShare + (1 - kSetupShare) * iteration / expected);
       Progress p;
       p.stage = "segment";
-      p.fraction = static_cast<double>(iteration) / o.max_iterations;
-      p.message = absl::StrFormat("iteration %d: %d labels changed, energy %.6g", iteration,
-                                  changed, energy);
+      p.fraction = std::min(reported_fraction, 0.99);
+      p.message = absl::StrFormat("iteration %d of about %d: %d labels changed, energy %.6g",
+                                  iteration, expected, changed, energy);
       p.metrics = {{"iteration", iteration},
                    {"energy", energy},
                    {"changed_fraction", changed_fraction},
                    {"interface_changed_fraction", interface_fraction},
-                   {"reinit_changed_labels", static_cast<double>(reinit_changed)}};
+                   {"reinit_changed_labels", static_cast<double>(reinit_changed)},
+                   {"expected_iterations", expected}};
       reinit_changed = 0;
       Report(progress, p);
       DECIMA_RETURN_IF_ERROR(CheckCancelled(cancel, "segment"));
-      quiet = interface_fraction < o.convergence_threshold ? quiet + 1 : 0;
       if (quiet >= o.convergence_window) {
         converged = true;
         break;

@@ -3,9 +3,12 @@
 #include <algorithm>
 #include <cmath>
 #include <queue>
+#include <string>
+#include <vector>
 
 #include <gtest/gtest.h>
 
+#include "core/segment/internal.h"
 #include "core/segment/segment.h"
 #include "core/volume/phantom.h"
 
@@ -253,16 +256,19 @@ TEST(Segment, ReportsEveryIterationAndStopsWithinOneIterationWhenCancelled) {
   auto r = Segment(
       c.phantom.image, so,
       [&](const Progress& p) {
+        EXPECT_EQ(p.stage, "segment");
+        ASSERT_FALSE(p.metrics.empty());
+        if (p.metrics[0].second == 0) return;  // the set-up's reports
         ++calls;
         if (token.cancelled()) ++calls_after_cancel;
-        EXPECT_EQ(p.stage, "segment");
-        ASSERT_EQ(p.metrics.size(), 5u);
+        ASSERT_EQ(p.metrics.size(), 6u);
         EXPECT_EQ(p.metrics[0].first, "iteration");
         EXPECT_EQ(p.metrics[2].first, "changed_fraction");
         EXPECT_GE(p.metrics[2].second, 0.0);
         EXPECT_LE(p.metrics[2].second, 1.0);
         EXPECT_EQ(p.metrics[3].first, "interface_changed_fraction");
         EXPECT_EQ(p.metrics[4].first, "reinit_changed_labels");
+        EXPECT_EQ(p.metrics[5].first, "expected_iterations");
         iterations.push_back(p.metrics[0].second);
         if (p.metrics[0].second == 2) token.Cancel();
       },
@@ -309,6 +315,7 @@ TEST(Segment, ReinitializationKeepsEveryLabelOnANoisyPhantom) {
     auto r = Segment(
         c.phantom.image, so,
         [&](const Progress& p) {
+          if (p.metrics[0].second == 0) return;  // the set-up's reports
           moved += p.metrics[2].second;
           if (static_cast<int>(p.metrics[0].second) % interval == 1 || interval == 1)
             reinit_changed.push_back(p.metrics[4].second);
@@ -332,6 +339,7 @@ TEST(Segment, ConvergenceFractionIsRelativeToTheInterface) {
   auto r = Segment(
       c.phantom.image, so,
       [&](const Progress& p) {
+        if (p.metrics[0].second == 0) return;  // the set-up's reports
         volume_fraction = p.metrics[2].second;
         interface_fraction = p.metrics[3].second;
       },
@@ -359,10 +367,74 @@ TEST(Segment, EnergyDecreasesOverall) {
   std::vector<double> energy;
   auto r = Segment(
       c.phantom.image, SegmentOptions{},
-      [&](const Progress& p) { energy.push_back(p.metrics[1].second); }, nullptr);
+      [&](const Progress& p) {
+        if (p.metrics[0].second > 0) energy.push_back(p.metrics[1].second);
+      },
+      nullptr);
   ASSERT_TRUE(r.ok());
   ASSERT_GE(energy.size(), 3u);
   EXPECT_LT(energy.back(), energy.front());
+}
+
+// Issue 32, honest progress: the stage's fraction counts the iterations against a forecast of
+// how many there will be (not against max_iterations, which a converging run never reaches), so
+// it is past the middle when half the iterations are done and never goes backwards.
+TEST(Segment, ProgressCountsIterationsAgainstTheForecastAndNeverGoesBack) {
+  HeadCase c = NoisyHead({40, 40, 40});
+  std::vector<double> fractions;
+  std::vector<int> expected;
+  std::vector<std::string> setup;
+  auto r = Segment(
+      c.phantom.image, SegmentOptions{},
+      [&](const Progress& p) {
+        fractions.push_back(p.fraction);
+        if (p.metrics[0].second == 0) {
+          setup.push_back(p.message);
+        } else {
+          expected.push_back(static_cast<int>(p.metrics[5].second));
+        }
+      },
+      nullptr);
+  ASSERT_TRUE(r.ok()) << r.status();
+  ASSERT_TRUE(r->converged);
+  const int n = r->iterations;
+  ASSERT_GE(n, 6) << "too short a run to test a forecast";
+  EXPECT_EQ(setup, (std::vector<std::string>{"k-means of the intensities", "initial level sets"}));
+  for (size_t i = 1; i < fractions.size(); ++i) EXPECT_GE(fractions[i], fractions[i - 1]) << i;
+  EXPECT_GE(fractions.back(), 0.95);
+  EXPECT_LT(fractions.back(), 1.0);
+  // Half-way through the iterations the bar is well past the start (0.27 here against 0.07 when
+  // it counted against max_iterations = 300), and from three quarters on the forecast is within
+  // a factor of two of the truth.
+  const double half = fractions[setup.size() + n / 2 - 1];
+  EXPECT_GT(half, 0.2) << n << " iterations";
+  for (int i = 3 * n / 4; i <= n; ++i) {
+    EXPECT_GE(expected[i - 1], i);
+    EXPECT_LE(expected[i - 1], 2 * n) << "iteration " << i;
+  }
+  EXPECT_EQ(expected.back(), n);
+}
+
+TEST(Segment, TheForecastFollowsTheDecayAndFallsBackToTheLimit) {
+  using segment_internal::ForecastIterations;
+  SegmentOptions o;  // threshold 4e-3, window 3, at most 300
+  EXPECT_EQ(ForecastIterations({}, 0, o), 300);
+  EXPECT_EQ(ForecastIterations({0.5, 0.4, 0.3}, 0, o), 300) << "too few values for a rate";
+  EXPECT_EQ(ForecastIterations({0.2, 0.2, 0.2, 0.2}, 0, o), 300) << "no decay, no forecast";
+  // Halving every iteration (the first value is left out): 0.05 is below 0.004 after 4 more
+  // (0.003125), then the quiet window.
+  EXPECT_EQ(ForecastIterations({0.01, 0.2, 0.1, 0.05}, 0, o), 4 + 4 + 3);
+  // A spike (a re-initialization) among the halvings moves the forecast by little.
+  const int spiked = ForecastIterations({0.01, 0.4, 0.2, 0.1, 0.3, 0.025}, 0, o);
+  EXPECT_GE(spiked, 6 + 2);
+  EXPECT_LE(spiked, 6 + 8);
+  EXPECT_EQ(ForecastIterations({0.001}, 1, o), 300) << "a quiet first iteration says little";
+  EXPECT_EQ(ForecastIterations({0.01, 0.2, 0.1, 0.003}, 1, o), 4 + 2) << "in the quiet window";
+  EXPECT_EQ(ForecastIterations({0.01, 0.003, 0.002, 0.001}, 3, o), 4) << "converged";
+  o.max_iterations = 8;
+  EXPECT_EQ(ForecastIterations({0.01, 0.2, 0.1, 0.05}, 0, o), 8) << "never above the limit";
+  o.convergence_threshold = 0;
+  EXPECT_EQ(ForecastIterations({0.01, 0.2, 0.1, 0.05}, 0, o), 8) << "cannot converge";
 }
 
 TEST(SegmentOptionsValidation, RejectsBadParametersByName) {

@@ -109,7 +109,7 @@ int main(int argc, char** argv) {
     r = Segment(
         image, o,
         [&](const Progress& p) {
-          if (verbose && i == 0)
+          if (verbose && i == 0 && p.metrics.size() >= 5)  // not the set-up's reports
             std::printf(
                 "  iteration %g energy %.6g changed %.3g of volume, %.3g of interface, "
                 "%g by the previous re-initialization\n",
