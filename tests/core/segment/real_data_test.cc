@@ -15,13 +15,16 @@ TEST(SegmentRealData, CtHead128ConvergesWithDefaultsIntoAirSoftTissueAndBone) {
   auto image = io::ReadVolume(path);
   ASSERT_TRUE(image.ok()) << image.status();
   SegmentOptions o;  // defaults, K = 3
-  int reports = 0;
+  int reports = 0, setup_reports = 0;
   auto r = Segment(
-      *image, o, [&](const Progress&) { ++reports; }, nullptr);
+      *image, o,
+      [&](const Progress& p) { ++(p.metrics.at(0).second > 0 ? reports : setup_reports); },
+      nullptr);
   ASSERT_TRUE(r.ok()) << r.status();
   EXPECT_TRUE(r->converged);
   EXPECT_LT(r->iterations, o.max_iterations);
   EXPECT_EQ(reports, r->iterations);
+  EXPECT_EQ(setup_reports, 2);  // k-means, initial level sets
   ASSERT_EQ(r->class_means.size(), 3u);
   // Darkest to brightest: air, soft tissue, bone, each a real part of the head.
   EXPECT_LT(r->class_means[0], r->class_means[1]);
