@@ -895,20 +895,20 @@ int ForecastIterations(const std::vector<double>& history, int quiet, const Segm
   // The changes shrink roughly geometrically once the interfaces have found their edges, with
   // spikes after each re-initialization: the rate is the least-squares slope of log(fraction)
   // over the last few iterations (the first, before the interfaces moved, left out).
-  const int span = std::min(8, done - 1);
-  if (span < 3) return at_most;
+  const int span = std::min(8, done - 1);  // at least 3, as done >= 4
+  std::array<double, 8> y;
   double mean_x = 0, mean_y = 0;
   for (int i = 0; i < span; ++i) {
+    y[i] = std::log(std::max(history[done - span + i], 1e-12));
     mean_x += i;
-    mean_y += std::log(std::max(history[done - span + i], 1e-12));
+    mean_y += y[i];
   }
   mean_x /= span;
   mean_y /= span;
   double sxy = 0, sxx = 0;
   for (int i = 0; i < span; ++i) {
-    const double dx = i - mean_x;
-    sxy += dx * (std::log(std::max(history[done - span + i], 1e-12)) - mean_y);
-    sxx += dx * dx;
+    sxy += (i - mean_x) * (y[i] - mean_y);
+    sxx += (i - mean_x) * (i - mean_x);
   }
   const double slope = sxy / sxx;  // log of the rate per iteration
   if (!(slope < std::log(0.98))) return at_most;

@@ -15,6 +15,9 @@
 namespace decima {
 namespace {
 
+// Segment's set-up reports (k-means, initial level sets) carry iteration 0, before the first.
+bool IsSetupReport(const Progress& p) { return p.metrics.at(0).second == 0; }
+
 // Dice of region `a` in `seg` against region `b` in `truth`.
 double Dice(const Volume& seg, int a, const Volume& truth, int b) {
   int64_t both = 0, ns = 0, nt = 0;
@@ -258,7 +261,7 @@ TEST(Segment, ReportsEveryIterationAndStopsWithinOneIterationWhenCancelled) {
       [&](const Progress& p) {
         EXPECT_EQ(p.stage, "segment");
         ASSERT_FALSE(p.metrics.empty());
-        if (p.metrics[0].second == 0) return;  // the set-up's reports
+        if (IsSetupReport(p)) return;
         ++calls;
         if (token.cancelled()) ++calls_after_cancel;
         ASSERT_EQ(p.metrics.size(), 6u);
@@ -315,7 +318,7 @@ TEST(Segment, ReinitializationKeepsEveryLabelOnANoisyPhantom) {
     auto r = Segment(
         c.phantom.image, so,
         [&](const Progress& p) {
-          if (p.metrics[0].second == 0) return;  // the set-up's reports
+          if (IsSetupReport(p)) return;
           moved += p.metrics[2].second;
           if (static_cast<int>(p.metrics[0].second) % interval == 1 || interval == 1)
             reinit_changed.push_back(p.metrics[4].second);
@@ -339,7 +342,7 @@ TEST(Segment, ConvergenceFractionIsRelativeToTheInterface) {
   auto r = Segment(
       c.phantom.image, so,
       [&](const Progress& p) {
-        if (p.metrics[0].second == 0) return;  // the set-up's reports
+        if (IsSetupReport(p)) return;
         volume_fraction = p.metrics[2].second;
         interface_fraction = p.metrics[3].second;
       },
@@ -368,7 +371,7 @@ TEST(Segment, EnergyDecreasesOverall) {
   auto r = Segment(
       c.phantom.image, SegmentOptions{},
       [&](const Progress& p) {
-        if (p.metrics[0].second > 0) energy.push_back(p.metrics[1].second);
+        if (!IsSetupReport(p)) energy.push_back(p.metrics[1].second);
       },
       nullptr);
   ASSERT_TRUE(r.ok());
@@ -388,7 +391,7 @@ TEST(Segment, ProgressCountsIterationsAgainstTheForecastAndNeverGoesBack) {
       c.phantom.image, SegmentOptions{},
       [&](const Progress& p) {
         fractions.push_back(p.fraction);
-        if (p.metrics[0].second == 0) {
+        if (IsSetupReport(p)) {
           setup.push_back(p.message);
         } else {
           expected.push_back(static_cast<int>(p.metrics[5].second));
