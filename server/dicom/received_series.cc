@@ -145,11 +145,6 @@ absl::StatusOr<RemovedSeries> RemoveWaiting(JobStore* store, BlobStore* blobs,
   rec.reason = reason;
   rec.job.clear();
   rec.results_pending = false;
-  rec.update_ms = WallMs();
-  if (auto st = store->PutDicomSeries(rec, {}); !st.ok()) {
-    spdlog::error("dicom: recording series {}: {}", series_uid, st.ToString());
-  }
-  CloseEarlierReceives(store, calling_ae, series_uid, rec.receive_key, state, "", reason);
   std::sort(shas.begin(), shas.end());
   shas.erase(std::unique(shas.begin(), shas.end()), shas.end());
   BlobSweepPolicy now;
@@ -163,6 +158,12 @@ absl::StatusOr<RemovedSeries> RemoveWaiting(JobStore* store, BlobStore* blobs,
       },
       &shas);
   out.freed_bytes = swept.bytes_freed;
+  // Recorded after the sweep: whoever reads the EXPIRED or DELETED row finds its bytes gone.
+  rec.update_ms = WallMs();
+  if (auto st = store->PutDicomSeries(rec, {}); !st.ok()) {
+    spdlog::error("dicom: recording series {}: {}", series_uid, st.ToString());
+  }
+  CloseEarlierReceives(store, calling_ae, series_uid, rec.receive_key, state, "", reason);
   spdlog::info("dicom: series {} from {}: {} instances removed ({} bytes freed): {}", series_uid,
                absl::CHexEscape(calling_ae), out.instances, out.freed_bytes, reason);
   return out;
