@@ -29,6 +29,8 @@
 #include "core/render/renderer.h"
 #include "core/render/transfer_function.h"
 #include "core/segment/segment.h"
+#include "core/simplify/levels.h"
+#include "core/simplify/levels_io.h"
 #include "core/simplify/simplify.h"
 #include "core/simplify/simplify_json.h"
 
@@ -193,7 +195,9 @@ absl::StatusOr<SegmentResult> SegmentStage(const JobSpec& spec, const Volume& im
   }
   stage.End();  // the stage's figures are the segmentation's, not the label map file's
   run.metrics()["segmentation"] = SegmentJson(seg, spec.label_map.has_value());
-  if (Wants(spec, "labels")) {
+  // A level record is applied to the mesh of this segmentation (levels_output.h), so it comes
+  // with the labels it needs even when they were not asked for.
+  if (Wants(spec, "labels") || LevelFloor(spec) > 0) {
     DECIMA_RETURN_IF_ERROR(io::WriteNifti(seg.labels, run.OutputPath("labels.nii.gz")));
     run.AddArtifact("labels.nii.gz");
   }
@@ -230,6 +234,15 @@ absl::StatusOr<SimplifyResult> SimplifyStage(const JobSpec& spec, const TetMesh&
   if (auto saved = Resume(checkpoints, stage, key, &ParseSimplifyResult)) {
     simplified = std::move(*saved);
     run.Resumed("simplify");
+  } else if (spec.levels_file) {
+    // A level of an earlier job's record: one pass over the cells and the refit, so no
+    // checkpoint (reading it back would cost about as much).
+    stage.Report(0, absl::StrCat("level ", spec.target_reduction, " of ",
+                                 spec.levels_file->filename().string()));
+    DECIMA_ASSIGN_OR_RETURN(const SimplifyLevels levels, ReadLevels(*spec.levels_file));
+    DECIMA_ASSIGN_OR_RETURN(simplified,
+                            ExtractLevel(original, levels, spec.target_reduction, options.threads,
+                                         stage.Forward(), stage.cancel()));
   } else {
     DECIMA_ASSIGN_OR_RETURN(simplified,
                             Simplify(original, options, stage.Forward(), stage.cancel()));
@@ -238,6 +251,7 @@ absl::StatusOr<SimplifyResult> SimplifyStage(const JobSpec& spec, const TetMesh&
   stage.End();
   run.metrics()["simplification"] =
       SimplifyResultToJson(simplified, options, original.vertex_count());
+  if (spec.levels_file) run.metrics()["simplification"]["from_levels"] = true;
   return simplified;
 }
 
@@ -575,6 +589,23 @@ absl::Status ValidateJobSpec(const JobSpec& spec, std::string* field) {
                                          "the levels are recorded")));
   }
 
+  if (spec.levels_file) {
+    if (spec.policy != SimplifyPolicy::kField) {
+      return check("policy", absl::InvalidArgumentError(absl::StrCat(
+                                 SimplifyPolicyName(spec.policy),
+                                 ": a level record is made by the field policy only")));
+    }
+    if (std::find(spec.outputs.begin(), spec.outputs.end(), "levels") != spec.outputs.end()) {
+      return check("outputs", absl::InvalidArgumentError(
+                                  "'levels': this job's mesh comes from a level record; it "
+                                  "records none of its own"));
+    }
+    if (!(spec.target_reduction > 0)) {
+      return check("target_reduction",
+                   absl::InvalidArgumentError(absl::StrCat(
+                       spec.target_reduction, ": a level is taken at a reduction in (0, 0.99]")));
+    }
+  }
   if (spec.views.empty() || spec.views.size() > 16) {
     return check("views", absl::InvalidArgumentError(
                               absl::StrCat(spec.views.size(), " views, expected 1..16")));

@@ -38,6 +38,11 @@ struct JobSpec {
   // mesh at any reduction down to it can be had later without another job. The run then goes to
   // this floor (or to target_reduction if deeper), and the job's mesh is the level of the record.
   double record_levels_to = 0.9;
+  // A level record (mesh.levels of an earlier job on the same volume and segmentation): the
+  // simplify stage extracts its level at target_reduction (ExtractLevel) instead of simplifying.
+  // The record's digest refuses a base mesh other than the one it was made on. Field policy
+  // only, and no "levels" output of its own.
+  std::optional<std::filesystem::path> levels_file;
   // Rendering.
   std::vector<std::string> views{"anterior"};  // 1..16 names ParseView accepts
   int image_size = 512;                        // pixels, 16..4096

@@ -117,7 +117,9 @@ TEST(RunJob, LevelsOutputIsOneRecordWhateverTheTarget) {
     ASSERT_TRUE(result.ok()) << result.status();
     std::set<std::string> names;
     for (const auto& a : result->artifacts) names.insert(a.name);
-    EXPECT_EQ(names, (std::set<std::string>{"mesh.vtu", "mesh.levels", "metrics.json"}));
+    // The labels come along: the record is only applied to the mesh of this segmentation.
+    EXPECT_EQ(names, (std::set<std::string>{"mesh.vtu", "mesh.levels", "labels.nii.gz",
+                                            "metrics.json"}));
     auto levels = ReadLevels(out / "mesh.levels");
     ASSERT_TRUE(levels.ok()) << levels.status();
     EXPECT_TRUE(levels->exhausted || levels->deepest_reduction() >= 0.7);
@@ -140,6 +142,75 @@ TEST(RunJob, LevelsOutputIsOneRecordWhateverTheTarget) {
   std::string field;
   EXPECT_FALSE(ValidateJobSpec(spec, &field).ok());
   EXPECT_EQ(field, "record_levels_to");
+}
+
+std::string FileBytes(const fs::path& p) {
+  std::ifstream in(p, std::ios::binary);
+  return {std::istreambuf_iterator<char>(in), std::istreambuf_iterator<char>()};
+}
+
+// A job on an earlier job's record (its labels as the label map, its mesh.levels): the mesh at
+// another reduction without simplifying again, byte for byte the mesh of a job run there with
+// the same floor, and its fidelity the same. Past the record's range, or on another
+// segmentation, it is refused with the reason.
+TEST(RunJob, ALevelOfAnEarlierJobIsTheMeshOfAJobAtThatReduction) {
+  const fs::path dir = decima::testing::MakeScratchDir("pipeline");
+  JobSpec spec = SmallSpec(PhantomFile(dir));
+  spec.outputs = {"vtu", "levels"};
+  spec.record_levels_to = 0.7;
+  spec.target_reduction = 0.3;
+  auto first = RunJob(spec, dir / "first", nullptr, nullptr);
+  ASSERT_TRUE(first.ok()) << first.status();
+  spec.target_reduction = 0.6;
+  auto direct = RunJob(spec, dir / "direct", nullptr, nullptr);
+  ASSERT_TRUE(direct.ok()) << direct.status();
+
+  JobSpec level = SmallSpec(spec.input);
+  level.outputs = {"vtu"};
+  level.label_map = dir / "first" / "labels.nii.gz";
+  level.levels_file = dir / "first" / "mesh.levels";
+  level.target_reduction = 0.6;
+  std::vector<std::string> stages;
+  auto fetched = RunJob(level, dir / "level", StageRecorder(&stages), nullptr);
+  ASSERT_TRUE(fetched.ok()) << fetched.status();
+  EXPECT_EQ(FileBytes(dir / "level" / "mesh.vtu"), FileBytes(dir / "direct" / "mesh.vtu"));
+  auto a = nlohmann::json::parse(fetched->metrics_json);
+  auto b = nlohmann::json::parse(direct->metrics_json);
+  EXPECT_EQ(a["simplification"]["cells"], b["simplification"]["cells"]);
+  EXPECT_EQ(a["simplification"]["from_levels"], true);
+  EXPECT_EQ(a["fidelity"]["psnr_db"], b["fidelity"]["psnr_db"]) << a["fidelity"].dump();
+  EXPECT_EQ(a["fidelity"]["label_mismatch"], b["fidelity"]["label_mismatch"]);
+
+  // Deeper than the record (which stopped at its floor, not for want of collapses): refused
+  // with the range.
+  auto record = ReadLevels(level.levels_file.value());
+  ASSERT_TRUE(record.ok()) << record.status();
+  ASSERT_FALSE(record->exhausted);
+  level.target_reduction = 0.95;
+  auto deep = RunJob(level, dir / "deep", nullptr, nullptr);
+  ASSERT_FALSE(deep.ok());
+  EXPECT_THAT(deep.status().message(), HasSubstr("outside the recorded range (0, 0.7"))
+      << deep.status();
+  // Another segmentation (two regions): another base mesh, refused by the record's digest.
+  JobSpec two = SmallSpec(spec.input);
+  two.regions = 2;
+  two.outputs = {"labels"};
+  ASSERT_TRUE(RunJob(two, dir / "two", nullptr, nullptr).ok());
+  level.target_reduction = 0.5;
+  level.label_map = dir / "two" / "labels.nii.gz";
+  auto other = RunJob(level, dir / "other", nullptr, nullptr);
+  ASSERT_FALSE(other.ok());
+  EXPECT_THAT(other.status().message(), HasSubstr("digest")) << other.status();
+
+  // A record comes from the field policy, and a level job records none of its own.
+  std::string field;
+  level.policy = SimplifyPolicy::kPaper;
+  EXPECT_FALSE(ValidateJobSpec(level, &field).ok());
+  EXPECT_EQ(field, "policy");
+  level.policy = SimplifyPolicy::kField;
+  level.outputs = {"vtu", "levels"};
+  EXPECT_FALSE(ValidateJobSpec(level, &field).ok());
+  EXPECT_EQ(field, "outputs");
 }
 
 TEST(RunJob, WritesOnlyTheOutputsAskedFor) {
