@@ -1,9 +1,15 @@
-// decima fetch JOB --out DIR [--only NAME...]: a succeeded job's artifacts, resumed and
-// checked (size, sha256); also the download of `submit --out`.
+// decima fetch JOB --out DIR [--only NAME...] [--reduction R]: a succeeded job's artifacts,
+// resumed and checked (size, sha256); also the download of `submit --out`. With --reduction,
+// the mesh at R from the job's level record: a level job (spec.levels_of) is queued, watched
+// and its artifacts fetched.
+#include <algorithm>
 #include <fstream>
+#include <optional>
 
 #include "client/cli/output.h"
+#include "client/cli/watch.h"
 #include "client/cmd/commands.h"
+#include "decima/v1/jobs.grpc.pb.h"
 
 namespace decima::client {
 
@@ -15,6 +21,7 @@ struct FetchOptions {
   std::string job;
   fs::path out;
   std::vector<std::string> only;
+  std::optional<double> reduction;
 };
 
 // Whether `file` is one of `only`: a file name, or a kind (as in --outputs) that produces it.
@@ -102,10 +109,55 @@ int FetchArtifacts(CliContext& ctx, const v1::Job& job, const fs::path& out,
 
 namespace {
 
+// The level job of `parent` at `reduction`: its outputs are the mesh kinds --only names (the
+// mesh.vtu alone when it names none), its pictures drawn as the parent's were.
+v1::CreateJobRequest LevelJobRequest(const v1::Job& parent, double reduction,
+                                     const std::vector<std::string>& only) {
+  v1::CreateJobRequest req;
+  v1::JobSpec* spec = req.mutable_spec();
+  spec->set_levels_of(parent.name());
+  spec->set_target_reduction(reduction);
+  for (std::string o : only) {
+    std::transform(o.begin(), o.end(), o.begin(),
+                   [](unsigned char c) { return static_cast<char>(std::tolower(c)); });
+    for (const char* kind : {"vtu", "msh", "medit", "stl", "glb", "labels", "images",
+                             "segmentation", "report"}) {
+      const bool listed = std::find(spec->outputs().begin(), spec->outputs().end(), o) !=
+                          spec->outputs().end();
+      if (o == kind && !listed) spec->add_outputs(o);
+    }
+  }
+  if (spec->outputs().empty()) spec->add_outputs("vtu");
+  *spec->mutable_views() = parent.spec().views();
+  if (parent.spec().has_image_size()) spec->set_image_size(parent.spec().image_size());
+  spec->set_transfer_function(parent.spec().transfer_function());
+  req.set_request_id(NewRequestId());
+  return req;
+}
+
+int FetchLevel(CliContext& ctx, const v1::Job& parent, const FetchOptions& o) {
+  const v1::CreateJobRequest req = LevelJobRequest(parent, *o.reduction, o.only);
+  auto jobs = v1::Jobs::NewStub(ctx.conn.channel);
+  v1::Job job;
+  grpc::Status s =
+      WithRetry(ctx, [&] { return jobs->CreateJob(ctx.conn.Context().get(), req, &job); });
+  if (!s.ok()) return Report(ctx, s, "fetch " + parent.name() + " --reduction");
+  if (!ctx.Quiet()) {
+    std::fprintf(stderr, "decima: the level %g of %s is taken from its record by %s\n",
+                 *o.reduction, parent.name().c_str(), job.name().c_str());
+  }
+  v1::Job final;
+  const int rc = Watch(ctx, job.name(), &final);
+  if (rc != kOk && rc != kTargetNotReached) return rc;
+  const int frc = FetchArtifacts(ctx, final, o.out, o.only);
+  return frc != kOk ? frc : rc;
+}
+
 int RunFetch(CliContext& ctx, const FetchOptions& o) {
   if (int rc = ConnectAndCheck(ctx, "fetch"); rc != kOk) return rc;
   v1::Job job;
   if (int rc = GetJobOf(ctx, o.job, "fetch", &job); rc != kOk) return rc;
+  if (o.reduction) return FetchLevel(ctx, job, o);
   return FetchArtifacts(ctx, job, o.out, o.only);
 }
 
@@ -119,6 +171,12 @@ Command NewCmdFetch(CLI::App& app, CliContext& ctx) {
   cmd->add_option("--only", o->only,
                   "only these artifacts: file names (mesh.vtu) or kinds (vtu, msh, medit, "
                   "labels, images, segmentation, report, curve, metrics)");
+  cmd->add_option("--reduction", o->reduction,
+                  "the mesh at this reduction (0..0.99] from the job's level record (a job "
+                  "submitted with --outputs ...,levels), without simplifying again: a level job "
+                  "is queued and its artifacts fetched; --only mesh kinds choose its outputs "
+                  "(default vtu)")
+      ->check(CLI::Range(0.0, 0.99));
   AddOutputFlags(cmd, ctx.flags);
   return {cmd, [&ctx, o] { return RunFetch(ctx, *o); }};
 }

@@ -32,7 +32,33 @@ absl::StatusOr<v1::Job> SubmitJob(const ServiceDeps& d, const Principal& caller,
     return st;
   }
   std::string field;
-  auto spec = NormalizeJobSpec(req.spec(), &field);
+  v1::JobSpec asked = req.spec();
+  if (!asked.levels_of().empty()) {
+    // A level of another job: that job must be the caller's to read, and its spec completes
+    // this one (volume, segmentation).
+    auto pid = ParseName(asked.levels_of(), "jobs", "spec.levels_of");
+    if (!pid.ok()) {
+      detail->set_field("spec.levels_of");
+      return pid.status();
+    }
+    auto parent = d.jobs->GetJob(*pid);
+    if (absl::IsNotFound(parent.status())) {
+      detail->set_field("spec.levels_of");
+      return absl::NotFoundError(absl::StrCat("spec.levels_of: ", asked.levels_of(), " not found"));
+    }
+    if (!parent.ok()) return parent.status();
+    if (auto may = CallGuard::MayRead(caller, parent->creator(), asked.levels_of()); !may.ok()) {
+      detail->set_field("spec.levels_of");
+      return absl::PermissionDeniedError(may.error_message());
+    }
+    auto completed = LevelJobSpec(asked, *parent, &field);
+    if (!completed.ok()) {
+      detail->set_field(field);
+      return completed.status();
+    }
+    asked = std::move(*completed);
+  }
+  auto spec = NormalizeJobSpec(asked, &field);
   if (!spec.ok()) {
     detail->set_field(field);
     return spec.status();

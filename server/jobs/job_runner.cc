@@ -12,6 +12,7 @@
 #include <thread>
 
 #include "absl/strings/str_cat.h"
+#include "core/pipeline/levels_output.h"
 #include "server/files/disk_space.h"
 #include "server/files/volume_probe.h"
 #include "server/jobs/child_process.h"
@@ -67,6 +68,7 @@ std::string CheckpointKey(const v1::Job& job, JobStore* store) {
     for (const auto& f : vol->files()) absl::StrAppend(&key, f.path(), "=", f.blob(), ";");
     absl::StrAppend(&key, "series=", vol->series_instance_uid(), "|");
   }
+  if (!job.spec().levels_of().empty()) absl::StrAppend(&key, "levels_of=", job.spec().levels_of());
   return key;
 }
 
@@ -133,6 +135,23 @@ absl::StatusOr<JobRunner::Prepared> JobRunner::Prepare(const v1::Job& job, int64
     auto label_map = resolve(job.spec().label_map(), "spec.label_map");
     if (!label_map.ok()) return label_map.status();
     request.set_label_map(label_map->string());
+  }
+  if (!job.spec().levels_of().empty()) {
+    // The record and the segmentation it was made on, read in place from the other job's
+    // artifacts (a shared data dir has them for every replica).
+    auto pid = ParseName(job.spec().levels_of(), "jobs", "spec.levels_of");
+    if (!pid.ok()) return pid.status();
+    const fs::path dir = dd.ArtifactsDir(*pid);
+    for (const char* file : {pipeline::kLevelsFileName, "labels.nii.gz"}) {
+      std::error_code ec;
+      if (!fs::is_regular_file(dir / file, ec)) {
+        return absl::FailedPreconditionError(
+            absl::StrCat(job.spec().levels_of(), " has no ", file, " any more (deleted?); ",
+                         "nothing was run"));
+      }
+    }
+    request.set_levels_file((dir / pipeline::kLevelsFileName).string());
+    request.set_label_map((dir / "labels.nii.gz").string());
   }
   request.set_out_dir(dd.job_out(id, epoch).string());
   // Checkpoints outlive the attempt (and, in a shared data dir, the replica): a requeued or

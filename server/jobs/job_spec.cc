@@ -1,9 +1,15 @@
 #include "server/jobs/job_spec.h"
 
 #include <algorithm>
+#include <cmath>
+#include <filesystem>
+
+#include <nlohmann/json.hpp>
 
 #include "absl/strings/ascii.h"
 #include "absl/strings/str_cat.h"
+#include "absl/strings/str_format.h"
+#include "core/pipeline/levels_output.h"
 #include "server/store/job_store.h"
 
 namespace decima::server {
@@ -48,6 +54,15 @@ absl::StatusOr<pipeline::JobSpec> JobSpecFromProto(const v1::JobSpec& spec, std:
     }
   }
   pipeline::JobSpec p;
+  if (!spec.levels_of().empty()) {
+    if (auto id = ParseName(spec.levels_of(), "jobs", "spec.levels_of"); !id.ok()) {
+      if (field != nullptr) *field = "spec.levels_of";
+      return id.status();
+    }
+    // Stands for the record until the job runner resolves it, so the validator checks what a
+    // level job may not ask for (another policy, a "levels" output of its own).
+    p.levels_file = std::filesystem::path(spec.levels_of()) / "mesh.levels";
+  }
   // Defaults: pipeline::JobSpec's member initializers are the documented ones; only fields the
   // client set override them.
   if (spec.has_regions()) p.regions = spec.regions();
@@ -154,6 +169,66 @@ absl::StatusOr<v1::JobSpec> NormalizeJobSpec(const v1::JobSpec& spec, std::strin
   out.set_transfer_function(p->transfer_function);
   for (const auto& o : p->outputs) out.add_outputs(o);
   out.set_vtu_compression_level(p->vtu_compression_level);
+  out.set_levels_of(spec.levels_of());
+  return out;
+}
+
+absl::StatusOr<v1::JobSpec> LevelJobSpec(const v1::JobSpec& spec, const v1::Job& parent,
+                                         std::string* field) {
+  const std::string& of = spec.levels_of();
+  if (parent.state() != v1::SUCCEEDED) {
+    if (field != nullptr) *field = "spec.levels_of";
+    return absl::FailedPreconditionError(
+        absl::StrCat("spec.levels_of: ", of, " is ", v1::JobState_Name(parent.state()),
+                     "; a level is taken from the record of a job that succeeded"));
+  }
+  bool has_levels = false, has_labels = false;
+  for (const auto& a : parent.artifacts()) {
+    has_levels = has_levels || a.file_name() == pipeline::kLevelsFileName;
+    has_labels = has_labels || a.file_name() == "labels.nii.gz";
+  }
+  if (!has_levels || !has_labels) {
+    if (field != nullptr) *field = "spec.levels_of";
+    return absl::FailedPreconditionError(absl::StrCat(
+        "spec.levels_of: ", of, " kept no level record (", !has_levels ? "mesh.levels" : "",
+        !has_levels && !has_labels ? " and " : "", !has_labels ? "labels.nii.gz" : "",
+        "); submit the volume again with the \"levels\" output (decima submit --outputs "
+        "vtu,levels ...), then take any level from that job"));
+  }
+  if (!spec.volume().empty() && spec.volume() != parent.spec().volume()) {
+    return Invalid(field, "spec.volume",
+                   absl::StrCat(spec.volume(), " is not the volume of ", of, " (",
+                                parent.spec().volume(), "); leave it empty"));
+  }
+  if (!spec.label_map().empty()) {
+    return Invalid(field, "spec.label_map",
+                   absl::StrCat("a level job uses the segmentation of ", of, "; leave it empty"));
+  }
+  if (spec.has_regions() || spec.class_means_size() > 0) {
+    return Invalid(field, spec.has_regions() ? "spec.regions" : "spec.class_means",
+                   absl::StrCat("a level job uses the segmentation of ", of, "; leave it unset"));
+  }
+  if (spec.policy() != v1::SIMPLIFY_POLICY_UNSPECIFIED && spec.policy() != v1::FIELD) {
+    return Invalid(field, "spec.policy", "a level record is made by the FIELD policy only");
+  }
+  // The range the parent recorded (metrics.json "levels", written with the record).
+  const double target = spec.has_target_reduction() ? spec.target_reduction()
+                                                    : pipeline::JobSpec{}.target_reduction;
+  const auto metrics = nlohmann::json::parse(parent.metrics_json(), nullptr, false);
+  const auto levels = metrics.is_object() ? metrics.value("levels", nlohmann::json::object())
+                                          : nlohmann::json::object();
+  const double deepest = levels.value("deepest_reduction", 0.0);
+  const bool exhausted = levels.value("exhausted", false);
+  if (std::isfinite(target) && target > deepest && !exhausted) {
+    return Invalid(field, "spec.target_reduction",
+                   absl::StrFormat("%g is outside the range %s recorded, (0, %.4f]", target, of,
+                                   deepest));
+  }
+  v1::JobSpec out = spec;
+  out.set_volume(parent.spec().volume());
+  out.set_regions(parent.spec().regions());
+  *out.mutable_class_means() = parent.spec().class_means();
+  out.set_policy(v1::FIELD);
   return out;
 }
 

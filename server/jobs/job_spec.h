@@ -29,6 +29,15 @@ absl::StatusOr<pipeline::JobSpec> JobSpecFromProto(const v1::JobSpec& spec,
 // the JobSpecFromProto error. What CreateJob stores and GetJob shows.
 absl::StatusOr<v1::JobSpec> NormalizeJobSpec(const v1::JobSpec& spec, std::string* field = nullptr);
 
+// A spec with levels_of, completed from `parent` (the job it names, which the caller may read):
+// the parent's volume, regions and class means, the field policy. FAILED_PRECONDITION when the
+// parent did not succeed or kept no level record (mesh.levels and labels.nii.gz);
+// INVALID_ARGUMENT naming the field for a volume other than the parent's, a label map, regions
+// or class means of its own, another policy, or a reduction outside the range the parent
+// recorded (the message gives the range). NormalizeJobSpec checks the rest.
+absl::StatusOr<v1::JobSpec> LevelJobSpec(const v1::JobSpec& spec, const v1::Job& parent,
+                                         std::string* field = nullptr);
+
 // pipeline enum <-> API enum.
 v1::SimplifyPolicy PolicyToProto(SimplifyPolicy policy);
 

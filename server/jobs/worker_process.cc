@@ -76,6 +76,7 @@ int RunJobProcess(const std::filesystem::path& request_file, int fd) {
   spec->job_name = request.job_name();
   spec->input_name = request.input_name();
   if (!request.label_map().empty()) spec->label_map = request.label_map();
+  if (!request.levels_file().empty()) spec->levels_file = request.levels_file();
 
   auto progress = [fd](const Progress& p) { SendProgress(fd, p); };
   bool crash = false;

@@ -130,5 +130,94 @@ TEST(JobSpecFromProto, EveryBadSpecIsInvalidArgumentNamingItsField) {
   }
 }
 
+// A job with a level record, as LevelJobSpec finds it: succeeded, mesh.levels and its labels,
+// the range it recorded in metrics.json.
+v1::Job RecordedParent() {
+  v1::Job p;
+  p.set_name("jobs/parent");
+  p.set_state(v1::SUCCEEDED);
+  p.mutable_spec()->set_volume("volumes/abc");
+  p.mutable_spec()->set_regions(2);
+  p.mutable_spec()->add_class_means(-1000);
+  p.mutable_spec()->add_class_means(40);
+  for (const char* f : {"mesh.vtu", "mesh.levels", "labels.nii.gz"}) {
+    p.add_artifacts()->set_file_name(f);
+  }
+  p.set_metrics_json(R"({"levels":{"file":"mesh.levels","deepest_reduction":0.9,"exhausted":false}})");
+  return p;
+}
+
+v1::JobSpec LevelOf(double reduction) {
+  v1::JobSpec s;
+  s.set_levels_of("jobs/parent");
+  s.set_target_reduction(reduction);
+  return s;
+}
+
+TEST(LevelJobSpec, TakesTheParentsVolumeAndSegmentationAndNormalizes) {
+  auto spec = LevelJobSpec(LevelOf(0.8), RecordedParent());
+  ASSERT_TRUE(spec.ok()) << spec.status();
+  EXPECT_EQ(spec->volume(), "volumes/abc");
+  EXPECT_EQ(spec->regions(), 2);
+  EXPECT_EQ(spec->class_means_size(), 2);
+  EXPECT_EQ(spec->policy(), v1::FIELD);
+  auto normal = NormalizeJobSpec(*spec);
+  ASSERT_TRUE(normal.ok()) << normal.status();
+  EXPECT_EQ(normal->levels_of(), "jobs/parent");
+  auto p = JobSpecFromProto(*normal);
+  ASSERT_TRUE(p.ok()) << p.status();
+  EXPECT_TRUE(p->levels_file.has_value());
+}
+
+TEST(LevelJobSpec, RefusesWhatTheRecordCannotGiveNamingTheField) {
+  std::string field;
+  // Deeper than the record: the range in the message.
+  auto deep = LevelJobSpec(LevelOf(0.95), RecordedParent(), &field);
+  EXPECT_EQ(deep.status().code(), absl::StatusCode::kInvalidArgument);
+  EXPECT_THAT(deep.status().message(), HasSubstr("(0, 0.9000]"));
+  EXPECT_EQ(field, "spec.target_reduction");
+  // ... unless the run ran out of collapses: then the last level.
+  v1::Job exhausted = RecordedParent();
+  exhausted.set_metrics_json(R"({"levels":{"deepest_reduction":0.886,"exhausted":true}})");
+  EXPECT_TRUE(LevelJobSpec(LevelOf(0.95), exhausted).ok());
+  // No record, or a job that did not succeed: FAILED_PRECONDITION.
+  v1::Job plain = RecordedParent();
+  plain.mutable_artifacts()->DeleteSubrange(1, 1);
+  auto none = LevelJobSpec(LevelOf(0.5), plain, &field);
+  EXPECT_EQ(none.status().code(), absl::StatusCode::kFailedPrecondition);
+  EXPECT_THAT(none.status().message(), HasSubstr("kept no level record (mesh.levels)"));
+  v1::Job running = RecordedParent();
+  running.set_state(v1::RUNNING);
+  EXPECT_EQ(LevelJobSpec(LevelOf(0.5), running).status().code(),
+            absl::StatusCode::kFailedPrecondition);
+  // What the record fixes cannot be asked otherwise.
+  struct Case {
+    const char* field;
+    std::function<void(v1::JobSpec*)> set;
+  };
+  for (const Case& c : std::vector<Case>{
+           {"spec.volume", [](v1::JobSpec* s) { s->set_volume("volumes/other"); }},
+           {"spec.label_map", [](v1::JobSpec* s) { s->set_label_map("volumes/lm"); }},
+           {"spec.regions", [](v1::JobSpec* s) { s->set_regions(3); }},
+           {"spec.class_means", [](v1::JobSpec* s) { s->add_class_means(2); }},
+           {"spec.policy", [](v1::JobSpec* s) { s->set_policy(v1::PAPER); }}}) {
+    v1::JobSpec s = LevelOf(0.5);
+    c.set(&s);
+    field.clear();
+    auto r = LevelJobSpec(s, RecordedParent(), &field);
+    EXPECT_EQ(r.status().code(), absl::StatusCode::kInvalidArgument) << c.field;
+    EXPECT_EQ(field, c.field);
+  }
+  // A level job records no levels of its own, and its parent must be named as a job.
+  v1::JobSpec again = *LevelJobSpec(LevelOf(0.5), RecordedParent());
+  again.add_outputs("levels");
+  EXPECT_FALSE(NormalizeJobSpec(again, &field).ok());
+  EXPECT_EQ(field, "spec.outputs");
+  again = *LevelJobSpec(LevelOf(0.5), RecordedParent());
+  again.set_levels_of("volumes/abc");
+  EXPECT_FALSE(NormalizeJobSpec(again, &field).ok());
+  EXPECT_EQ(field, "spec.levels_of");
+}
+
 }  // namespace
 }  // namespace decima::server
