@@ -249,6 +249,52 @@ TEST_F(CliE2E, DefaultArtifactsAreSmallOutputsAreChosenAndFetchOnlyPicks) {
   EXPECT_THAT(r.err, HasSubstr("it has: mesh.vtu mesh.msh metrics.json"));
 }
 
+// fetch --reduction: the mesh at another reduction from a job's level record, through a level
+// job of the server; byte for byte the mesh of a job run at that reduction with the record.
+// A job without a record is refused with what to do.
+TEST_F(CliE2E, FetchAReductionFromTheLevelRecordWithoutSimplifyingAgain) {
+  ServerProcess server(scratch_ / "data");
+  CliResult r = RunCli(server.address(), {"-q", "submit", volume_.string(), "--outputs",
+                                          "vtu,levels", "--reduction", "0.3", "--watch"});
+  ASSERT_EQ(r.rc, 0) << r.err << server.Log();
+  const std::string recorded = FirstLine(r.out);
+  const fs::path direct = scratch_ / "direct";
+  r = RunCli(server.address(), {"-q", "submit", volume_.string(), "--outputs", "vtu,levels",
+                                "--reduction", "0.6", "--out", direct.string()});
+  ASSERT_EQ(r.rc, 0) << r.err;
+
+  const fs::path level = scratch_ / "level";
+  r = RunCli(server.address(),
+             {"fetch", recorded, "--reduction", "0.6", "--out", level.string()});
+  ASSERT_EQ(r.rc, 0) << r.err << server.Log();
+  EXPECT_THAT(r.err, HasSubstr("the level 0.6 of " + recorded + " is taken from its record by"));
+  EXPECT_EQ(FilesIn(level), (std::set<std::string>{"mesh.vtu", "metrics.json"}));
+  EXPECT_EQ(ReadFile(level / "mesh.vtu"), ReadFile(direct / "mesh.vtu"));
+  auto m = nlohmann::json::parse(ReadFile(level / "metrics.json"));
+  EXPECT_TRUE(m["simplification"]["from_levels"].get<bool>());
+  EXPECT_EQ(m["fidelity"]["label_mismatch"].get<double>(), 0.0);
+
+  // The record's mesh kinds are chosen with --only.
+  const fs::path both = scratch_ / "both";
+  r = RunCli(server.address(), {"-q", "fetch", recorded, "--reduction", "0.5", "--only", "vtu",
+                                "--only", "msh", "--out", both.string()});
+  ASSERT_EQ(r.rc, 0) << r.err;
+  EXPECT_EQ(FilesIn(both), (std::set<std::string>{"mesh.vtu", "mesh.msh"}));
+
+  // A job that kept no record: refused before anything is queued, saying how to get one.
+  r = RunCli(server.address(), {"-q", "submit", volume_.string(), "--outputs", "vtu",
+                                "--reduction", "0.3", "--watch"});
+  ASSERT_EQ(r.rc, 0) << r.err;
+  const std::string plain = FirstLine(r.out);
+  r = RunCli(server.address(),
+             {"fetch", plain, "--reduction", "0.5", "--out", (scratch_ / "none").string()});
+  EXPECT_NE(r.rc, 0);
+  EXPECT_THAT(r.err, HasSubstr("kept no level record (mesh.levels and labels.nii.gz)"));
+  EXPECT_THAT(r.err, HasSubstr("--outputs vtu,levels"));
+  r = RunCli(server.address(), {"list"});
+  EXPECT_EQ(Lines(r.out).size(), 1u + 5u) << r.out;  // three submits, two level jobs
+}
+
 TEST_F(CliE2E, MissedReductionTargetWarnsAndExitsTen) {
   ServerProcess server(scratch_ / "data");
   // 99 % of a 12x10x8 phantom cannot go: the hull and the region interfaces stay.

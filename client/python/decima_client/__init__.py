@@ -14,10 +14,10 @@ decima_client.proto (jobs_pb2, volumes_pb2, ...).
 """
 from . import errors
 from ._client import DEFAULT_SERVER, Client, Job, overall_fraction
-from .errors import (DecimaError, InputError, JobCancelled, JobFailed, LevelsNotOffered,
-                     MissingDependencyError, MissingInputError, ServerUnreachable)
+from .errors import (DecimaError, InputError, JobCancelled, JobFailed, MissingDependencyError,
+                     MissingInputError, ServerUnreachable)
 
 __version__ = "0.1.0"
 __all__ = ["Client", "Job", "DEFAULT_SERVER", "overall_fraction", "errors", "DecimaError",
            "InputError", "MissingInputError", "ServerUnreachable", "JobFailed", "JobCancelled",
-           "LevelsNotOffered", "MissingDependencyError"]
+           "MissingDependencyError"]

@@ -60,6 +60,10 @@ _STAGE_WEIGHTS = (("load", 0.03), ("segment", 2.24), ("tetra", 1.74), ("simplify
                   ("write", 0.85), ("render", 7.16), ("curve", 41.4), ("diff", 0.05))
 
 
+# The kinds a level job can write (its mesh comes from a record, so no "levels" or "curve").
+_LEVEL_KINDS = ("vtu", "msh", "medit", "stl", "glb", "labels", "images", "segmentation", "report")
+
+
 def overall_fraction(progress, with_curve=False):
     """A job's overall progress, 0..1, from a decima.v1.Progress (its stage and the fraction
     within it), weighting the stages as the CLI's bar does; 0 for an unknown stage."""
@@ -764,6 +768,27 @@ class Job:
     def delete(self, volume=False):
         self._client.delete(self, volume=volume)
 
+    def level(self, reduction, outputs=None, timeout=None):
+        """This job's mesh at another reduction, taken from its level record (a job submitted
+        with the "levels" output) without simplifying again: the server runs a level job
+        (spec.levels_of) on the same volume and segmentation. Waits for it (timeout seconds,
+        None = no limit) and returns it. outputs: the kinds it writes ("vtu", "msh", "medit",
+        "stl", "glb", "labels", "images", "segmentation", "report"; default ["vtu"]).
+        FailedPrecondition when this job kept no record, InvalidArgument (with the recorded
+        range) for a reduction past it."""
+        c = self._client
+        kinds = [o.lower() for o in _names(outputs, "outputs") if o.lower() in _LEVEL_KINDS]
+        spec = jobs_pb2.JobSpec(levels_of=self.name, target_reduction=float(reduction),
+                                outputs=list(dict.fromkeys(kinds)) or ["vtu"],
+                                views=list(self.proto.spec.views),
+                                transfer_function=self.proto.spec.transfer_function)
+        if self.proto.spec.HasField("image_size"):
+            spec.image_size = self.proto.spec.image_size
+        req = jobs_pb2.CreateJobRequest(spec=spec, request_id=str(uuid.uuid4()))
+        job = Job(c, c._unary(f"fetch {self.name} --reduction", c._jobs.CreateJob, req,
+                              extra_metadata=c._create_job_metadata))
+        return job.wait(timeout=timeout)
+
     def fetch(self, out_dir, outputs=None, reduction=None):
         """Downloads the artifacts of a succeeded job into out_dir (created if needed) and
         returns their paths. outputs: file names ("mesh.vtu") or kinds ("vtu", "msh",
@@ -772,16 +797,12 @@ class Job:
         fetch resumes from its size), is checked against the server's size and sha256, then
         renamed.
 
-        reduction: only None. The server offers no level of detail per fetch yet; a job's mesh
-        is the one its target_reduction made, so any other value raises LevelsNotOffered
-        (submit another job with that target_reduction instead)."""
-        c = self._client
+        reduction: None for this job's own artifacts; a value takes the mesh at that reduction
+        from the job's level record (level(), as `decima fetch JOB --reduction R`) and fetches
+        the level job's artifacts, its outputs chosen by the kinds in outputs (default vtu)."""
         if reduction is not None:
-            raise errors.LevelsNotOffered(
-                f"fetch {self.name}: reduction={reduction!r}: the server does not offer levels "
-                "of detail yet (a job's mesh is the one its target_reduction made); fetch with "
-                f"reduction=None, or submit a job with target_reduction={reduction!r}",
-                what="fetch " + self.name)
+            return self.level(reduction, outputs).fetch(out_dir, outputs)
+        c = self._client
         only = _names(outputs, "outputs")
         if self.proto.state != jobs_pb2.SUCCEEDED or not self.proto.artifacts:
             self.refresh()

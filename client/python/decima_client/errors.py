@@ -125,14 +125,6 @@ class Unknown(RpcError):
     pass
 
 
-class LevelsNotOffered(DecimaError):
-    """fetch(reduction=...) asked for a level of detail; the server does not offer levels yet
-    (a job's mesh is the one level its target_reduction made)."""
-
-    code = grpc.StatusCode.UNIMPLEMENTED
-    exit_code = EXIT_USAGE
-
-
 class JobError(DecimaError):
     """A job ended in a state other than SUCCEEDED. `job` is its last decima.v1.Job."""
 

@@ -194,12 +194,25 @@ def test_series_carry_the_id_of_the_association_that_brought_them(server_bin, tm
         srv.stop()
 
 
-def test_fetch_with_a_reduction_says_the_server_offers_no_levels(client, tmp_path):
-    job = client.submit(write_tiny_nifti(tmp_path / "f.nii", seed=9), **QUICK).wait(timeout=120)
-    with pytest.raises(errors.LevelsNotOffered, match="does not offer levels of detail yet"):
-        job.fetch(tmp_path / "lod", reduction=0.8)
-    assert not (tmp_path / "lod").exists()
-    assert job.fetch(tmp_path / "lod", reduction=None)
+def test_fetch_with_a_reduction_takes_the_level_from_the_jobs_record(client, tmp_path):
+    path = write_tiny_nifti(tmp_path / "f.nii", seed=9)
+    spec = dict(QUICK, outputs=["vtu", "levels"])
+    recorded = client.submit(path, **dict(spec, target_reduction=0.3)).wait(timeout=120)
+    direct = client.submit(path, **dict(spec, target_reduction=0.6)).wait(timeout=120)
+    paths = recorded.fetch(tmp_path / "lod", ["vtu", "metrics"], reduction=0.6)
+    assert sorted(os.path.basename(p) for p in paths) == ["mesh.vtu", "metrics.json"]
+    direct_paths = direct.fetch(tmp_path / "direct", ["vtu"])
+    with open(tmp_path / "lod" / "mesh.vtu", "rb") as a, open(direct_paths[0], "rb") as b:
+        assert a.read() == b.read()
+    level = recorded.level(0.5, ["msh"])
+    assert level.proto.spec.levels_of == recorded.name
+    assert level.metrics["simplification"]["from_levels"] is True
+    assert [a.file_name for a in level.proto.artifacts] == ["mesh.msh", "metrics.json"]
+    # A job without a record: refused by the server, saying how to get one.
+    plain = client.submit(path, **QUICK).wait(timeout=120)
+    with pytest.raises(errors.FailedPrecondition, match="kept no level record"):
+        plain.fetch(tmp_path / "none", reduction=0.5)
+    assert not (tmp_path / "none").exists()
 
 
 def test_a_failed_job_raises_job_failed_with_the_server_reason(client, tmp_path):
