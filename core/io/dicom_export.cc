@@ -18,6 +18,7 @@
 #include <algorithm>
 #include <cmath>
 #include <cstdio>
+#include <cstring>
 #include <ctime>
 #include <memory>
 #include <random>
@@ -177,23 +178,27 @@ const DcmTagKey kCopiedTags[] = {DCM_SpecificCharacterSet,
                                  DCM_AccessionNumber,
                                  DCM_StudyDescription};
 
+// Attributes of the Patient, General Study and (type 2) empty ones every object of the study
+// carries, copied from the source.
+void CopyPatientAndStudy(DcmDataset* source, DcmDataset* d) {
+  for (const DcmTagKey& tag : kCopiedTags) {
+    OFString v;
+    if (source->findAndGetOFStringArray(tag, v).good()) d->putAndInsertOFStringArray(tag, v);
+  }
+  for (const DcmTagKey& tag :
+       {DCM_PatientName, DCM_PatientID, DCM_PatientBirthDate, DCM_PatientSex, DCM_StudyDate,
+        DCM_StudyTime, DCM_ReferringPhysicianName, DCM_StudyID, DCM_AccessionNumber}) {
+    if (!d->tagExists(tag)) d->insertEmptyElement(tag);
+  }
+}
+
 absl::Status WriteSecondaryCapture(const SourceSeries& src, const fs::path& png,
                                    const std::string& series_uid, int number, const fs::path& out) {
   auto image = ReadPng(png);
   if (!image.ok()) return image.status();
   DcmFileFormat ff;
   DcmDataset* d = ff.getDataset();
-  DcmDataset* source = src.first->getDataset();
-  for (const DcmTagKey& tag : kCopiedTags) {
-    OFString v;
-    if (source->findAndGetOFStringArray(tag, v).good()) d->putAndInsertOFStringArray(tag, v);
-  }
-  // Type 2 attributes of the Patient and General Study modules: present, possibly empty.
-  for (const DcmTagKey& tag :
-       {DCM_PatientName, DCM_PatientID, DCM_PatientBirthDate, DCM_PatientSex, DCM_StudyDate,
-        DCM_StudyTime, DCM_ReferringPhysicianName, DCM_StudyID, DCM_AccessionNumber}) {
-    if (!d->tagExists(tag)) d->insertEmptyElement(tag);
-  }
+  CopyPatientAndStudy(src.first->getDataset(), d);
   std::string date, time;
   Now(&date, &time);
   const std::string sop_uid = NewDicomUid();
@@ -233,6 +238,96 @@ absl::Status WriteSecondaryCapture(const SourceSeries& src, const fs::path& png,
   }
   d->putAndInsertUint8Array(DCM_PixelData, image->pixels.data(),
                             static_cast<unsigned long>(image->pixels.size()));
+  OFCondition c = ff.saveFile(out.c_str(), EXS_LittleEndianExplicit);
+  if (c.bad()) return DcmError(out.string(), c);
+  return absl::OkStatus();
+}
+
+constexpr const char* kEncapsulatedStlSopClass = "1.2.840.10008.5.1.4.1.1.104.3";
+
+// The bytes of a binary STL, checked to be one (84-byte header and count, 50 bytes a triangle).
+absl::StatusOr<std::string> ReadBinaryStl(const fs::path& path) {
+  std::FILE* f = std::fopen(path.c_str(), "rb");
+  if (f == nullptr) return absl::NotFoundError(absl::StrCat(path.string(), ": cannot open"));
+  std::string bytes;
+  char buf[1 << 16];
+  for (size_t n; (n = std::fread(buf, 1, sizeof buf, f)) > 0;) bytes.append(buf, n);
+  std::fclose(f);
+  uint32_t triangles = 0;
+  if (bytes.size() >= 84) std::memcpy(&triangles, bytes.data() + 80, 4);
+  // OB values are at most 2^32 - 2 bytes; a surface that large is no job's.
+  if (bytes.size() < 84 || bytes.size() != 84 + 50 * uint64_t{triangles} ||
+      bytes.size() >= (uint64_t{1} << 32) - 2) {
+    return absl::InvalidArgumentError(absl::StrCat(
+        path.string(), ": not a binary STL (", bytes.size(), " bytes for ", triangles,
+        " triangles; expected 84 + 50 per triangle)"));
+  }
+  return bytes;
+}
+
+// One Encapsulated STL instance (PS3.3 A.85): the Encapsulated Document Series, Frame of
+// Reference, Enhanced General Equipment and Manufacturing 3D Model modules around the file.
+absl::Status WriteEncapsulatedStl(const SourceSeries& src, const std::string& frame_of_reference,
+                                  const DicomExportOptions::Surface& surface,
+                                  const std::string& series_uid, int number, const fs::path& out) {
+  auto stl = ReadBinaryStl(surface.stl);
+  if (!stl.ok()) return stl.status();
+  DcmFileFormat ff;
+  DcmDataset* d = ff.getDataset();
+  CopyPatientAndStudy(src.first->getDataset(), d);
+  std::string date, time;
+  Now(&date, &time);
+  d->putAndInsertString(DCM_SOPClassUID, kEncapsulatedStlSopClass);
+  d->putAndInsertString(DCM_SOPInstanceUID, NewDicomUid().c_str());
+  d->putAndInsertString(DCM_SeriesInstanceUID, series_uid.c_str());
+  d->putAndInsertString(DCM_Modality, "M3D");
+  d->putAndInsertString(DCM_SeriesNumber, "9003");
+  d->putAndInsertString(DCM_SeriesDescription, "Decima region surfaces");
+  d->putAndInsertString(DCM_InstanceNumber, std::to_string(number).c_str());
+  d->putAndInsertString(DCM_FrameOfReferenceUID, frame_of_reference.c_str());
+  d->insertEmptyElement(DCM_PositionReferenceIndicator);
+  d->putAndInsertString(DCM_Manufacturer, "Decima");
+  d->putAndInsertString(DCM_ManufacturerModelName, "decima-server");
+  d->putAndInsertString(DCM_DeviceSerialNumber, "0");
+  d->putAndInsertString(DCM_SoftwareVersions, "decima");
+  DcmItem* unit = nullptr;
+  if (d->findOrCreateSequenceItem(DCM_MeasurementUnitsCodeSequence, unit, -2).good() &&
+      unit != nullptr) {
+    unit->putAndInsertString(DCM_CodeValue, "mm");
+    unit->putAndInsertString(DCM_CodingSchemeDesignator, "UCUM");
+    unit->putAndInsertString(DCM_CodeMeaning, "millimeter");
+  }
+  d->putAndInsertString(DCM_ContentDate, date.c_str());
+  d->putAndInsertString(DCM_ContentTime, time.c_str());
+  d->putAndInsertString(DCM_AcquisitionDateTime, (date + time).c_str());
+  d->putAndInsertString(DCM_BurnedInAnnotation, "NO");
+  d->putAndInsertString(DCM_DocumentTitle, surface.name.c_str());
+  d->insertEmptyElement(DCM_ConceptNameCodeSequence);
+  // The series the surface was made from.
+  DcmItem* ref = nullptr;
+  if (d->findOrCreateSequenceItem(DCM_SourceInstanceSequence, ref, -2).good() && ref != nullptr) {
+    ref->putAndInsertString(DCM_ReferencedSOPClassUID, src.slices[0].sop_class_uid.c_str());
+    ref->putAndInsertString(DCM_ReferencedSOPInstanceUID, src.slices[0].sop_instance_uid.c_str());
+  }
+  // Common Instance Reference: where that instance is (its series, in this study).
+  DcmItem* series = nullptr;
+  if (d->findOrCreateSequenceItem(DCM_ReferencedSeriesSequence, series, -2).good() &&
+      series != nullptr) {
+    series->putAndInsertString(DCM_SeriesInstanceUID, src.series_uid.c_str());
+    DcmItem* instance = nullptr;
+    if (series->findOrCreateSequenceItem(DCM_ReferencedInstanceSequence, instance, -2).good() &&
+        instance != nullptr) {
+      instance->putAndInsertString(DCM_ReferencedSOPClassUID, src.slices[0].sop_class_uid.c_str());
+      instance->putAndInsertString(DCM_ReferencedSOPInstanceUID,
+                                   src.slices[0].sop_instance_uid.c_str());
+    }
+  }
+  d->putAndInsertString(DCM_MIMETypeOfEncapsulatedDocument, "model/stl");
+  // The value is padded to even length; the length attribute keeps the file's own.
+  d->putAndInsertUint32(DCM_EncapsulatedDocumentLength, static_cast<Uint32>(stl->size()));
+  if (stl->size() % 2 != 0) stl->push_back('\0');
+  d->putAndInsertUint8Array(DCM_EncapsulatedDocument, reinterpret_cast<const Uint8*>(stl->data()),
+                            static_cast<unsigned long>(stl->size()));
   OFCondition c = ff.saveFile(out.c_str(), EXS_LittleEndianExplicit);
   if (c.bad()) return DcmError(out.string(), c);
   return absl::OkStatus();
@@ -474,6 +569,20 @@ absl::StatusOr<DicomExportResult> WriteDicomResults(const DicomExportOptions& o)
       return st;
     }
     result.secondary.push_back(out);
+  }
+
+  // The region surfaces, one Encapsulated STL series in the SEG's frame of reference.
+  OFString frame_of_reference;
+  source_header.findAndGetOFString(DCM_FrameOfReferenceUID, frame_of_reference);
+  const std::string model_series = NewDicomUid();
+  for (size_t i = 0; i < o.surfaces.size(); ++i) {
+    const fs::path out = o.out_dir / absl::StrCat("model-", i + 1, ".dcm");
+    if (auto st = WriteEncapsulatedStl(src, frame_of_reference.c_str(), o.surfaces[i],
+                                       model_series, static_cast<int>(i + 1), out);
+        !st.ok()) {
+      return st;
+    }
+    result.models.push_back(out);
   }
   return result;
 }

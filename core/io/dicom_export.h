@@ -5,7 +5,11 @@
 //    and Frame Content functional groups, Plane Position = the source slice's position) and the
 //    source series listed in ReferencedSeriesSequence (OHIF does not overlay a SEG without it);
 //  - Secondary Capture images (SC, 1.2.840.10008.5.1.4.1.1.7, RGB) of rendered PNGs, for the
-//    many viewers that cannot display a SEG.
+//    many viewers that cannot display a SEG;
+//  - Encapsulated STL (1.2.840.10008.5.1.4.1.1.104.3, modality M3D) of the region surfaces, one
+//    instance per region named after it, in the source's frame of reference (the surfaces are
+//    LPS mm, the patient coordinates DICOM uses), for 3D printing and planning software that
+//    takes models from the PACS.
 // Both go in the source's study: patient and study attributes are copied from the source
 // instances; every new UID (series, instance) is a UUID-derived "2.25." UID (ISO/IEC 9834-8,
 // no registered root needed).
@@ -36,21 +40,30 @@ struct DicomExportOptions {
   // Rendered PNGs (any PNG libpng reads) written as Secondary Capture, one instance each, in one
   // new series, in this order (InstanceNumber 1, 2, ...).
   std::vector<std::filesystem::path> renders;
+  // Closed region surfaces (binary STL in LPS mm, as the job's surface-<name>.stl), written as
+  // Encapsulated STL, one instance each (DocumentTitle = name), in one new series, in this order.
+  struct Surface {
+    std::string name;
+    std::filesystem::path stl;
+  };
+  std::vector<Surface> surfaces;
   std::filesystem::path out_dir;  // created if missing
 };
 
 struct DicomExportResult {
   std::filesystem::path segmentation;            // out_dir/segmentation.dcm
   std::vector<std::filesystem::path> secondary;  // out_dir/sc-<n>.dcm
+  std::vector<std::filesystem::path> models;     // out_dir/model-<n>.dcm (Encapsulated STL)
   std::string study_instance_uid;                // of the source, shared by all outputs
   int segments = 0;                              // regions present in the label map
   int frames = 0;                                // SEG frames written
 };
 
-// Writes the SEG and the SC files. InvalidArgument (naming the file and field) when the source
+// Writes the SEG, the SC and the Encapsulated STL files. InvalidArgument (naming the file and field) when the source
 // folder holds no single-frame image series with that uid, slices lack ImagePositionPatient /
 // ImageOrientationPatient, the label map's grid differs from the source (dims, orientation, a
-// source slice not on a label slice), or a label is outside 0..254; Internal for DCMTK errors
+// source slice not on a label slice), a label is outside 0..254, or a surface file is no binary
+// STL (its size is not 84 + 50 x its triangle count); Internal for DCMTK errors
 // (its message included).
 absl::StatusOr<DicomExportResult> WriteDicomResults(const DicomExportOptions& options);
 

@@ -328,6 +328,12 @@ void DicomReceiver::SettleSeries(const std::string& series_uid,
   }
   v1::JobSpec spec = route->spec;
   spec.set_volume(volume->name());
+  // A route that chose no outputs: the defaults, plus the region surfaces, which go back to
+  // the PACS as Encapsulated STL beside the SEG (jobs/dicom_results.h).
+  if (spec.outputs().empty()) {
+    for (const std::string& o : pipeline::JobSpec{}.outputs) spec.add_outputs(o);
+    spec.add_outputs("stl");
+  }
   auto normalized = NormalizeJobSpec(spec);
   if (!normalized.ok()) {
     return not_queued(kNotQueued, absl::StrCat("spec: ", normalized.status().message()));

@@ -29,6 +29,10 @@ absl::Status AddDicomResults(const pipeline::JobSpec& spec, const fs::path& out_
         absl::EndsWith(a.name, ".png")) {
       o.renders.push_back(a.path);
     }
+    // surface-<name>.stl: the region surfaces the job wrote ("stl" output), as models.
+    if (absl::StartsWith(a.name, "surface-") && absl::EndsWith(a.name, ".stl")) {
+      o.surfaces.push_back({a.name.substr(8, a.name.size() - 12), a.path});
+    }
   }
   auto written = io::WriteDicomResults(o);
   if (!written.ok()) {
@@ -40,6 +44,7 @@ absl::Status AddDicomResults(const pipeline::JobSpec& spec, const fs::path& out_
   };
   add(written->segmentation);
   for (const auto& p : written->secondary) add(p);
+  for (const auto& p : written->models) add(p);
   return absl::OkStatus();
 }
 

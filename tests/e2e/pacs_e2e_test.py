@@ -16,7 +16,8 @@ and stopped by its PID; every wait is bounded.
        - `decima series` keeps the history: the receive that completed the series went up to
          SENT, the INCOMPLETE one before it became COMPLETE;
        - an unknown calling AE title: the association is refused;
-       - the job's SEG and SC come back into Orthanc (QIDO-RS) in the source study; the SEG
+       - the job's SEG, SC and Encapsulated STL models (one per region, dciodvfy-clean, in the
+         source's frame of reference) come back into Orthanc (QIDO-RS) in the source study; the SEG
          passes dciodvfy without errors, and pydicom reads its segments back onto the source
          geometry with Dice 1.0 against the job's own label map (labels.nii.gz artifact: the
          shared data has no label map of this series);
@@ -441,9 +442,9 @@ def main():
             answer = orthanc.request("GET", f"/dicom-web/studies/{study_uid}/series",
                                      accept="application/dicom+json")
             mods = [s["00080060"]["Value"][0] for s in json.loads(answer)]
-            return mods if "SEG" in mods and "OT" in mods else None
+            return mods if "SEG" in mods and "OT" in mods and "M3D" in mods else None
 
-        mods = wait_for("SEG and SC in Orthanc", qido_series, 120, 0.05)
+        mods = wait_for("SEG, SC and STL models in Orthanc", qido_series, 120, 0.05)
         t_back = time.monotonic() - t_send
         start = final["start_time"], final["end_time"]
 
@@ -510,8 +511,27 @@ def main():
         figures["dciodvfy_sc_errors"] = len(sc_errors)
         check(not sc_errors, "dciodvfy errors on SC:\n" + "\n".join(sc_errors))
         sent = b.db(f"SELECT send_status FROM dicom_series WHERE job='{job_name}'")
-        check([r for r in sent if r[0].startswith("sent: 3 instances stored by STOW-RS")],
-              f"{sent}")
+        # The region surfaces: one Encapsulated STL per region of the SEG, named, dciodvfy-clean.
+        models = orthanc.json("POST", "/tools/find", {"Level": "Instance", "Expand": True,
+                                                      "Query": {"StudyInstanceUID": study_uid,
+                                                                "Modality": "M3D"}})
+        check(len(models) == segments, f"{len(models)} STL models for {segments} segments")
+        model_path = os.path.join(tmp, "model.dcm")
+        with open(model_path, "wb") as f:
+            f.write(orthanc.request("GET", f"/instances/{models[0]['ID']}/file"))
+        model_errors, _ = dciodvfy_errors(model_path)
+        figures["stl_models"] = len(models)
+        figures["dciodvfy_stl_errors"] = len(model_errors)
+        check(not model_errors, "dciodvfy errors on the STL model:\n" + "\n".join(model_errors))
+        stl = pydicom.dcmread(model_path)
+        check(stl.SOPClassUID == "1.2.840.10008.5.1.4.1.1.104.3"
+              and stl.MIMETypeOfEncapsulatedDocument == "model/stl"
+              and stl.FrameOfReferenceUID == pydicom.dcmread(small_files[0]).FrameOfReferenceUID
+              and len(stl.EncapsulatedDocument) >= stl.EncapsulatedDocumentLength > 84,
+              f"STL model: {stl.SOPClassUID} {stl.MIMETypeOfEncapsulatedDocument}")
+        sent_count = 3 + len(models)
+        check([r for r in sent
+               if r[0].startswith(f"sent: {sent_count} instances stored by STOW-RS")], f"{sent}")
 
         # Results by C-STORE: another copy (new UIDs) through the route of calling AE ORTHANC2.
         files2, study2, _ = make_small_series(series_dir, os.path.join(tmp, "small2"), 8)
@@ -524,12 +544,12 @@ def main():
         sent2 = wait_for("results sent by C-STORE", lambda: [
             r for r in b.db(f"SELECT send_status FROM dicom_series WHERE job='{job2}'")
             if r[0]], 600, 0.2)
-        check(sent2[0][0].startswith("sent: 3 instances stored by C-STORE at ORTHANC@"),
+        check(sent2[0][0].startswith(f"sent: {sent_count} instances stored by C-STORE at ORTHANC@"),
               f"C-STORE send: {sent2}")
         mods2 = json.loads(orthanc.request("GET", f"/dicom-web/studies/{study2}/series",
                                            accept="application/dicom+json"))
         mods2 = sorted(x["00080060"]["Value"][0] for x in mods2)
-        check(mods2 == ["CT", "OT", "SEG"], f"series after C-STORE: {mods2}")
+        check(mods2 == ["CT", "M3D", "OT", "SEG"], f"series after C-STORE: {mods2}")
 
         # --- C: DICOMweb pull ---------------------------------------------------------------------
         base = f"{orthanc.url}/dicom-web"

@@ -119,6 +119,72 @@ TEST(DicomExportTest, RefusesALabelMapOnAnotherGrid) {
   EXPECT_THAT(r.status().message(), HasSubstr("does not match the source series"));
 }
 
+std::string ReadBytes(const fs::path& p) {
+  std::ifstream in(p, std::ios::binary);
+  return {std::istreambuf_iterator<char>(in), std::istreambuf_iterator<char>()};
+}
+
+// A binary STL of `triangles` triangles (header, count, 50 bytes each; coordinates 0..).
+std::string BinaryStl(uint32_t triangles) {
+  std::string b(80, ' ');
+  b.append(reinterpret_cast<const char*>(&triangles), 4);
+  for (uint32_t t = 0; t < triangles; ++t) {
+    for (int f = 0; f < 12; ++f) {
+      const float v = static_cast<float>(t + f);
+      b.append(reinterpret_cast<const char*>(&v), 4);
+    }
+    b.append(2, '\0');
+  }
+  return b;
+}
+
+// The region surfaces go to the PACS as Encapsulated STL, one instance per region named after
+// it, the STL bytes unchanged; dciodvfy (dicom3tools, when installed) finds no error. A surface
+// file that is no binary STL is refused by name.
+TEST(DicomExportTest, RegionSurfacesAreEncapsulatedStlInstancesDciodvfyAccepts) {
+  const fs::path dir = testing::MakeScratchDir("dicom_export");
+  testing::SliceSpec spec;
+  fs::create_directories(dir / "series");
+  testing::WriteSeries(dir / "series", spec, {1, 1, 1});
+  auto labels = MakeVolume({spec.columns, spec.rows, 4}, VoxelType::kUInt8);
+  ASSERT_TRUE(labels.ok());
+  labels->spacing = {0.8, 0.5, 1};
+  for (int64_t i = 0; i < labels->voxel_count(); ++i) labels->mutable_data<uint8_t>()[i] = i % 2;
+  const std::string stl = BinaryStl(3);
+  std::ofstream(dir / "surface-bone.stl", std::ios::binary) << stl;
+  std::ofstream(dir / "surface-air.stl", std::ios::binary) << BinaryStl(1);
+  io::DicomExportOptions o;
+  o.source_dir = dir / "series";
+  o.labels = &*labels;
+  o.surfaces = {{"bone", dir / "surface-bone.stl"}, {"air", dir / "surface-air.stl"}};
+  o.out_dir = dir / "out";
+  auto r = io::WriteDicomResults(o);
+  ASSERT_TRUE(r.ok()) << r.status();
+  ASSERT_EQ(r->models.size(), 2u);
+  const std::string model = ReadBytes(r->models[0]);
+  EXPECT_NE(model.find(stl), std::string::npos) << "the STL bytes are not in the instance";
+  EXPECT_NE(model.find("1.2.840.10008.5.1.4.1.1.104.3"), std::string::npos);
+  EXPECT_NE(model.find("model/stl"), std::string::npos);
+  EXPECT_NE(model.find("M3D"), std::string::npos);
+  EXPECT_NE(model.find("bone"), std::string::npos);
+  EXPECT_NE(ReadBytes(r->models[1]).find("air"), std::string::npos);
+  if (fs::exists("/usr/bin/dciodvfy")) {
+    const std::string cmd =
+        "/usr/bin/dciodvfy " + r->models[0].string() + " > " + (dir / "dciodvfy.txt").string() + " 2>&1";
+    (void)std::system(cmd.c_str());
+    const std::string report = ReadBytes(dir / "dciodvfy.txt");
+    EXPECT_THAT(report, HasSubstr("EncapsulatedSTL")) << report;
+    EXPECT_THAT(report, Not(HasSubstr("Error"))) << report;
+  }
+  // Not an STL: refused naming the file.
+  std::ofstream(dir / "surface-bad.stl", std::ios::binary) << "solid ascii\n";
+  o.surfaces = {{"bad", dir / "surface-bad.stl"}};
+  o.out_dir = dir / "out2";
+  auto bad = io::WriteDicomResults(o);
+  EXPECT_EQ(bad.status().code(), absl::StatusCode::kInvalidArgument);
+  EXPECT_THAT(bad.status().message(), HasSubstr("surface-bad.stl: not a binary STL"));
+}
+
 TEST(DicomExportTest, NewUidsAreUuidDerivedAndDistinct) {
   const std::string a = io::NewDicomUid(), b = io::NewDicomUid();
   EXPECT_NE(a, b);
