@@ -114,9 +114,10 @@ TEST_F(DicomSenderTest, StorescpOnLoopbackStoresEveryFile) {
       {kStorescp.string(), "-aet", "STORESCP", "-od", received.string(), std::to_string(port)},
       (dir_ / "storescp.log").string());
   ASSERT_GT(pid, 0);
-  // storescp has no readiness signal: try until it listens (connection refused until then).
+  // storescp has no readiness signal: try until it listens (connection refused until then), for
+  // at most 30 s (10 s was once too short on a loaded machine).
   absl::StatusOr<std::string> sent = absl::UnavailableError("not tried");
-  for (int i = 0; i < 100 && absl::IsUnavailable(sent.status()); ++i) {
+  for (int i = 0; i < 300 && absl::IsUnavailable(sent.status()); ++i) {
     std::this_thread::sleep_for(100ms);
     sent = SendDicomFiles(Peer(port), files_);
   }
