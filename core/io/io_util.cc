@@ -1,10 +1,8 @@
 #include "core/io/io_util.h"
 
-#include <unistd.h>
 #include <zlib.h>
 
 #include <algorithm>
-#include <atomic>
 #include <cctype>
 #include <cerrno>
 #include <cstring>
@@ -370,60 +368,6 @@ absl::StatusOr<std::vector<uint8_t>> Deflate(const std::vector<ByteSpan>& parts,
   deflateEnd(&zs);
   out.resize(out_done);
   return out;
-}
-
-AtomicFile::AtomicFile(fs::path path, fs::path tmp, std::FILE* f)
-    : path_(std::move(path)), tmp_(std::move(tmp)), file_(f) {}
-
-AtomicFile::AtomicFile(AtomicFile&& o) noexcept
-    : path_(std::move(o.path_)), tmp_(std::move(o.tmp_)), file_(o.file_), committed_(o.committed_) {
-  o.file_ = nullptr;
-  o.committed_ = true;  // the moved-from object owns nothing to clean up
-}
-
-AtomicFile::~AtomicFile() {
-  if (file_ != nullptr) std::fclose(file_);
-  if (!committed_) {
-    std::error_code ec;
-    fs::remove(tmp_, ec);
-  }
-}
-
-absl::StatusOr<AtomicFile> AtomicFile::Create(const fs::path& path) {
-  static std::atomic<uint64_t> counter{0};
-  const fs::path dir = path.has_parent_path() ? path.parent_path() : fs::path(".");
-  const fs::path tmp =
-      dir / absl::StrCat(".", path.filename().string(), ".tmp-", ::getpid(), "-", counter++);
-  std::FILE* f = std::fopen(tmp.c_str(), "wb");
-  if (f == nullptr) {
-    return absl::ErrnoToStatus(errno,
-                               absl::StrCat(path.string(), ": cannot create ", tmp.string()));
-  }
-  return AtomicFile(path, tmp, f);
-}
-
-absl::Status AtomicFile::Write(const void* data, size_t n) {
-  if (n == 0) return absl::OkStatus();
-  if (std::fwrite(data, 1, n, file_) != n) {
-    return absl::ErrnoToStatus(errno, absl::StrCat(path_.string(), ": write failed"));
-  }
-  return absl::OkStatus();
-}
-
-absl::Status AtomicFile::Commit() {
-  std::FILE* f = file_;
-  file_ = nullptr;
-  if (std::fflush(f) != 0 || std::fclose(f) != 0) {
-    return absl::ErrnoToStatus(errno, absl::StrCat(path_.string(), ": write failed"));
-  }
-  std::error_code ec;
-  fs::rename(tmp_, path_, ec);
-  if (ec) {
-    return absl::ErrnoToStatus(
-        ec.value(), absl::StrCat(path_.string(), ": cannot rename ", tmp_.string(), " into place"));
-  }
-  committed_ = true;
-  return absl::OkStatus();
 }
 
 }  // namespace decima::io::internal

@@ -128,23 +128,4 @@ struct ByteSpan {
 absl::StatusOr<std::vector<uint8_t>> Deflate(const std::vector<ByteSpan>& parts, bool gzip,
                                              int level, const std::filesystem::path& path);
 
-// A file written under a temporary name in the destination folder and renamed to `path` by
-// Commit(); destroyed uncommitted, it removes the temporary.
-class AtomicFile {
- public:
-  static absl::StatusOr<AtomicFile> Create(const std::filesystem::path& path);
-  AtomicFile(AtomicFile&&) noexcept;
-  AtomicFile& operator=(AtomicFile&&) = delete;
-  ~AtomicFile();
-  absl::Status Write(const void* data, size_t n);
-  absl::Status Commit();
-
- private:
-  AtomicFile(std::filesystem::path path, std::filesystem::path tmp, std::FILE* f);
-  std::filesystem::path path_;
-  std::filesystem::path tmp_;
-  std::FILE* file_ = nullptr;
-  bool committed_ = false;
-};
-
 }  // namespace decima::io::internal

@@ -12,6 +12,7 @@
 #include "absl/strings/ascii.h"
 #include "absl/strings/numbers.h"
 #include "absl/strings/str_split.h"
+#include "core/common/atomic_file.h"
 #include "core/common/status.h"
 #include "core/io/io_util.h"
 #include "core/io/volume_io.h"
@@ -291,7 +292,7 @@ absl::Status WriteMetaImage(const Volume& volume, const fs::path& path,
   if (options.compress) header += absl::StrCat("CompressedDataSize = ", data_size, "\n");
   header += "TransformMatrix =";
   for (int c = 0; c < 3; ++c) {
-    for (int r = 0; r < 3; ++r) header += " " + Num(volume.direction(r, c));
+    for (int r = 0; r < 3; ++r) absl::StrAppend(&header, " ", Num(volume.direction(r, c)));
   }
   header += absl::StrCat("\nOffset = ", Num(volume.origin[0]), " ", Num(volume.origin[1]), " ",
                          Num(volume.origin[2]), "\nCenterOfRotation = 0 0 0\n");
@@ -303,14 +304,15 @@ absl::Status WriteMetaImage(const Volume& volume, const fs::path& path,
   if (volume.modality == "MR") header += "Modality = MET_MOD_MR\n";
   header += absl::StrCat("ElementType = ", element_type, "\nElementDataFile = ", data_name, "\n");
 
-  DECIMA_ASSIGN_OR_RETURN(internal::AtomicFile out, internal::AtomicFile::Create(path));
+  AtomicFile out;
+  DECIMA_RETURN_IF_ERROR(out.Open(path));
   DECIMA_RETURN_IF_ERROR(out.Write(header.data(), header.size()));
   if (mha) {
     DECIMA_RETURN_IF_ERROR(out.Write(data, data_size));
   } else {
     // Data first, header last: a reader never finds a header whose data is not complete.
-    DECIMA_ASSIGN_OR_RETURN(internal::AtomicFile raw,
-                            internal::AtomicFile::Create(path.parent_path() / data_name));
+    AtomicFile raw;
+    DECIMA_RETURN_IF_ERROR(raw.Open(path.parent_path() / data_name));
     DECIMA_RETURN_IF_ERROR(raw.Write(data, data_size));
     DECIMA_RETURN_IF_ERROR(raw.Commit());
   }

@@ -6,6 +6,7 @@
 #include <cmath>
 #include <cstring>
 
+#include "core/common/atomic_file.h"
 #include "core/common/status.h"
 #include "core/io/io_util.h"
 #include "core/io/volume_io.h"
@@ -475,7 +476,8 @@ absl::Status WriteNifti(const Volume& volume, const fs::path& path) {
   }
   std::memcpy(hdr + 344, "n+1\0", 4);
 
-  DECIMA_ASSIGN_OR_RETURN(internal::AtomicFile out, internal::AtomicFile::Create(path));
+  AtomicFile out;
+  DECIMA_RETURN_IF_ERROR(out.Open(path));
   if (gz) {
     DECIMA_ASSIGN_OR_RETURN(
         const std::vector<uint8_t> z,

@@ -29,7 +29,7 @@
 #include "absl/strings/str_cat.h"
 #include "core/common/parallel.h"
 #include "core/common/status.h"
-#include "core/mesh/atomic_file.h"
+#include "core/common/atomic_file.h"
 
 namespace decima {
 namespace {
@@ -40,8 +40,6 @@ constexpr int kMaxRegions = 8;                          // labels and regions ar
 
 std::string PathString(const std::filesystem::path& path) { return path.string(); }
 
-using mesh_detail::AtomicFile;
-using mesh_detail::IoError;
 
 // Checks the size invariants of tet_mesh.h that a writer relies on (indices are checked too, so a
 // file never references a missing vertex).

@@ -11,7 +11,7 @@
 #include <tuple>
 
 #include "absl/strings/str_cat.h"
-#include "core/mesh/atomic_file.h"
+#include "core/common/atomic_file.h"
 
 namespace decima {
 namespace {
@@ -19,7 +19,7 @@ namespace {
 // Writes `bytes` to `path` through a temporary file renamed over it (mesh_io's writers do the
 // same), so a failed write leaves nothing behind.
 absl::Status WriteFileAtomically(const std::filesystem::path& path, const std::string& bytes) {
-  mesh_detail::AtomicFile file;
+  AtomicFile file;
   if (absl::Status s = file.Open(path); !s.ok()) return s;
   if (absl::Status s = file.Write(bytes); !s.ok()) return s;
   return file.Commit();

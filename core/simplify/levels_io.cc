@@ -11,7 +11,7 @@
 
 #include "absl/strings/str_cat.h"
 #include "core/common/status.h"
-#include "core/mesh/atomic_file.h"
+#include "core/common/atomic_file.h"
 #include "core/simplify/levels.h"
 
 namespace decima {
@@ -211,7 +211,7 @@ absl::StatusOr<SimplifyLevels> ParseLevels(std::string_view bytes, std::string_v
 }
 
 absl::Status WriteLevels(const SimplifyLevels& levels, const std::filesystem::path& path) {
-  mesh_detail::AtomicFile file;
+  AtomicFile file;
   DECIMA_RETURN_IF_ERROR(file.Open(path));
   DECIMA_RETURN_IF_ERROR(file.Write(SerializeLevels(levels)));
   return file.Commit();
