@@ -23,6 +23,8 @@ absl::Status AddDicomResults(const pipeline::JobSpec& spec, const fs::path& out_
   o.source_dir = spec.input;
   o.series_instance_uid = spec.series_instance_uid;
   o.labels = &*labels;
+  // The job's names, colours and codes, so the SEG says what every other artifact says.
+  if (!result->regions.regions.empty()) o.regions = &result->regions;
   o.out_dir = out_dir;
   for (const auto& a : result->artifacts) {
     if ((absl::StartsWith(a.name, "comparison") || absl::StartsWith(a.name, "diff")) &&
