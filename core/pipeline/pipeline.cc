@@ -214,8 +214,8 @@ absl::StatusOr<RegionTable> RegionTableOf(const JobSpec& spec, const Volume& ima
                                                    " regions of the label map"));
   }
   RegionTable table;
-  DECIMA_RETURN_IF_ERROR(
-      MakeRegionTable(seg.class_means, seg.region_voxels, hu, spec.region_names, &table));
+  DECIMA_RETURN_IF_ERROR(MakeRegionTable(seg.class_means, seg.region_voxels, hu, spec.region_names,
+                                         &table, hu ? HuOffset(lo) : 0));
   Json regions = Json::array();
   for (const RegionInfo& r : table.regions) {
     char colour[8];
@@ -228,6 +228,7 @@ absl::StatusOr<RegionTable> RegionTableOf(const JobSpec& spec, const Volume& ima
               {"dicom_seg", r.in_seg},
               {"dicom_type", r.type.meaning}};
     if (r.label < seg.region_volumes_mm3.size()) j["volume_mm3"] = seg.region_volumes_mm3[r.label];
+    if (hu) j["mean_hu"] = r.mean_hu;
     regions.push_back(std::move(j));
   }
   run.metrics()["regions"] = std::move(regions);

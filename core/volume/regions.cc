@@ -50,9 +50,11 @@ bool PlausiblyHu(const std::string& modality, double min_value, double max_value
   return min_value < -500 && min_value >= -32768 && max_value <= 40000;
 }
 
+double HuOffset(double min_value) { return min_value >= -100 ? -1024 : 0; }
+
 absl::Status MakeRegionTable(const std::vector<double>& means, const std::vector<int64_t>& voxels,
                              bool hounsfield, const std::vector<std::string>& user_names,
-                             RegionTable* table) {
+                             RegionTable* table, double hu_offset) {
   const size_t k = means.size();
   if (k == 0 || k > 255 || voxels.size() != k) {
     return absl::InvalidArgumentError(
@@ -76,9 +78,10 @@ absl::Status MakeRegionTable(const std::vector<double>& means, const std::vector
     ri.voxels = voxels[r];
     ri.mean = means[r];
     if (hounsfield) {
-      ri.tissue = means[r] < kAirBelowHu   ? TissueClass::kAir
-                  : means[r] < kBoneFromHu ? TissueClass::kSoftTissue
-                                           : TissueClass::kBone;
+      ri.mean_hu = means[r] + hu_offset;
+      ri.tissue = ri.mean_hu < kAirBelowHu   ? TissueClass::kAir
+                  : ri.mean_hu < kBoneFromHu ? TissueClass::kSoftTissue
+                                             : TissueClass::kBone;
     }
     ++class_count[static_cast<int>(ri.tissue)];
   }

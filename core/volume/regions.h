@@ -64,7 +64,8 @@ struct RegionInfo {
   Code category, type;
   bool in_seg = true;
   int64_t voxels = 0;
-  double mean = 0;  // image units
+  double mean = 0;     // image units
+  double mean_hu = 0;  // mean + the HU offset, when the table was made from HU (else 0)
 };
 
 struct RegionTable {
@@ -76,11 +77,18 @@ struct RegionTable {
 // range from below -500 (only CT has air at -1000; MR magnitudes are >= 0) up to at most 40000.
 bool PlausiblyHu(const std::string& modality, double min_value, double max_value);
 
+// What to add to a CT's values to get HU: -1024 when nothing is below -100, else 0. A CT always
+// has air (around the patient, in the airways) at -1000 HU; values that never go below -100
+// are stored with the usual unsigned offset of 1024 and no RescaleIntercept to undo it (the
+// shared CT head: RescaleIntercept 0, air at ~0, WindowCenter 1040 for soft tissue).
+double HuOffset(double min_value);
+
 // The table of K = means.size() regions (voxels.size() == K). `user_names` is empty or has K
-// entries (checked by ValidateRegionNames; InvalidArgument here otherwise).
+// entries (checked by ValidateRegionNames; InvalidArgument here otherwise). With `hounsfield`,
+// mean + hu_offset is compared with the HU thresholds.
 absl::Status MakeRegionTable(const std::vector<double>& means, const std::vector<int64_t>& voxels,
                              bool hounsfield, const std::vector<std::string>& user_names,
-                             RegionTable* table);
+                             RegionTable* table, double hu_offset = 0);
 
 // Longest region name, bytes: DICOM's SegmentLabel is LO (64 characters).
 inline constexpr size_t kMaxRegionNameBytes = 64;

@@ -30,6 +30,18 @@ TEST(RegionsTest, HounsfieldMeansGetAirSoftTissueBone) {
   EXPECT_NE(t.regions[0].rgb, t.regions[2].rgb);
 }
 
+// The shared CT head stores HU + 1024 with RescaleIntercept 0: air near 0.
+TEST(RegionsTest, ACtWithoutNegativeValuesIsReadWithTheUsualOffset) {
+  EXPECT_EQ(HuOffset(0), -1024);
+  EXPECT_EQ(HuOffset(-1024), 0);
+  RegionTable t;
+  ASSERT_TRUE(MakeRegionTable({40, 1060, 1900}, {1, 1, 1}, true, {}, &t, HuOffset(0)).ok());
+  EXPECT_EQ(t.regions[0].name, "air");
+  EXPECT_EQ(t.regions[1].name, "soft tissue");
+  EXPECT_EQ(t.regions[2].name, "bone");
+  EXPECT_DOUBLE_EQ(t.regions[1].mean_hu, 36);
+}
+
 TEST(RegionsTest, ThresholdsAreWhereDocumented) {
   const RegionTable t = Table({kAirBelowHu - 1, kAirBelowHu, kBoneFromHu - 1, kBoneFromHu}, true);
   EXPECT_EQ(t.regions[0].name, "air");
