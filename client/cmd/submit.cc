@@ -28,9 +28,53 @@ struct SubmitOptions {
   std::optional<int> regions, image_size, vtu_level;
   std::optional<double> reduction, tolerance;
   std::vector<double> class_means;
-  std::vector<std::string> weights, views, view_list, outputs, only;
+  std::vector<std::string> weights, views, view_list, outputs, only, region_names;
+  std::string region_names_flag;  // split by CheckRegionNames, keeping empty names to refuse
   bool watch = false;
 };
+
+// --region-names, checked before anything is uploaded with the server's rule
+// (core/volume/regions.h ValidateRegionNames; the client does not link core, so it is restated
+// here and CreateJob checks again). Without --regions the names set K.
+int CheckRegionNames(SubmitOptions& o) {
+  // Split here, not by CLI11's delimiter, which drops empty items: "air,,bone" must be refused,
+  // not become two names.
+  o.region_names.clear();
+  if (o.region_names_flag.empty()) return kOk;
+  for (size_t at = 0;;) {
+    const size_t comma = o.region_names_flag.find(',', at);
+    o.region_names.push_back(o.region_names_flag.substr(at, comma - at));
+    if (comma == std::string::npos) break;
+    at = comma + 1;
+  }
+  if (o.regions && static_cast<size_t>(*o.regions) != o.region_names.size()) {
+    std::fprintf(stderr, "decima: --region-names: %zu names for --regions %d\n",
+                 o.region_names.size(), *o.regions);
+    return kUsage;
+  }
+  for (size_t i = 0; i < o.region_names.size(); ++i) {
+    const std::string& n = o.region_names[i];
+    const char* problem = nullptr;
+    if (n.find_first_not_of(' ') == std::string::npos) problem = "is empty";
+    if (n.size() > 64) problem = "is longer than 64 bytes";
+    for (size_t j = 0; j < n.size() && problem == nullptr; ++j) {
+      const auto c = static_cast<unsigned char>(n[j]);
+      if (c < 0x20 || c == 0x7f) problem = "holds a control character";
+      if (c == '\\') problem = "holds a backslash";
+    }
+    for (size_t k = 0; k < i && problem == nullptr; ++k) {
+      std::string a = n, b = o.region_names[k];
+      for (char& c : a) c = static_cast<char>(std::tolower(static_cast<unsigned char>(c)));
+      for (char& c : b) c = static_cast<char>(std::tolower(static_cast<unsigned char>(c)));
+      if (a == b) problem = "appears twice";
+    }
+    if (problem != nullptr) {
+      std::fprintf(stderr, "decima: --region-names: name %zu %s\n", i + 1, problem);
+      return kUsage;
+    }
+  }
+  return kOk;
+}
 
 // --views and the repeated --view, in order. "--views 30,20" splits into "30" and "20", never
 // views on their own: such pairs are joined.
@@ -92,6 +136,10 @@ int SetWeights(const std::vector<std::string>& weights, v1::ErrorWeights* ew) {
 // Everything of the spec but its volume, from the flags (the same for every study of a batch).
 int FillSpec(const SubmitOptions& o, v1::JobSpec* spec) {
   if (o.regions) spec->set_regions(*o.regions);
+  if (!o.regions && !o.region_names.empty()) {
+    spec->set_regions(static_cast<int>(o.region_names.size()));
+  }
+  for (const auto& n : o.region_names) spec->add_region_names(n);
   for (double m : o.class_means) spec->add_class_means(m);
   if (o.reduction) spec->set_target_reduction(*o.reduction);
   spec->set_policy(o.policy == "paper"       ? v1::PAPER
@@ -301,6 +349,7 @@ struct RemovePulled {
 };
 
 int RunSubmit(CliContext& ctx, SubmitOptions& o) {
+  if (int rc = CheckRegionNames(o); rc != kOk) return rc;
   std::string input;
   RemovePulled pulled;
   // DICOMweb: pull into a folder first, then upload it like any DICOM folder.
@@ -336,6 +385,10 @@ void AddJobFlags(CLI::App* cmd, SubmitOptions& o) {
   cmd->add_option("--regions,-k", o.regions, "K regions of the segmentation (2..8, default 3)");
   cmd->add_option("--class-means", o.class_means, "K class means instead of k-means")
       ->delimiter(',');
+  cmd->add_option("--region-names", o.region_names_flag,
+                  "names of the regions in label order, comma-separated, e.g. air,brain,bone "
+                  "(sets K when --regions is not given; each 1..64 bytes, unique; default: "
+                  "air/soft tissue/bone by HU for CT, else region 1 (darkest) ...)");
   cmd->add_option("--label-map", o.label_map,
                   "a label map on the same grid (replaces the level set)");
   cmd->add_option("--reduction", o.reduction,
@@ -359,7 +412,7 @@ void AddJobFlags(CLI::App* cmd, SubmitOptions& o) {
                   "artifacts to produce, comma-separated: vtu, msh, medit, stl, glb, levels, "
                   "labels, images, segmentation, report, curve (default "
                   "vtu,labels,images,segmentation,report; metrics.json always; stl = one "
-                  "closed surface per region, surface-region_<r>.stl; glb = all of them, named "
+                  "closed surface per region, surface-<name>.stl; glb = all of them, named "
                   "and coloured, in surfaces.glb; levels = mesh.levels, the collapse record "
                   "down to 90 %, from which any level of detail can be extracted later (field "
                   "policy; the run goes down to 90 %); curve = diff1 against cells removed, one "
@@ -396,7 +449,8 @@ Command NewCmdSubmit(CLI::App& app, CliContext& ctx) {
   cmd->add_option("--request-id", o->request_id,
                   "idempotency key (default: a new UUID); reused with other parameters it is "
                   "refused (ALREADY_EXISTS)");
-  // Test seam (server/jobs/faults.h): sent as metadata, read only by a server run with --allow-faults.
+  // Test seam (server/jobs/faults.h): sent as metadata, read only by a server run with
+  // --allow-faults.
   cmd->add_option("--fault", o->fault, "test-only fault injection")->group("");
   cmd->add_flag("--watch", o->watch, "watch the job until it ends");
   cmd->add_option("--out", o->out,

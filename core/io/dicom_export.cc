@@ -11,6 +11,7 @@
 #include "dcmtk/dcmfg/fgpixmsr.h"
 #include "dcmtk/dcmfg/fgplanor.h"
 #include "dcmtk/dcmfg/fgplanpo.h"
+#include "dcmtk/dcmiod/cielabutil.h"
 #include "dcmtk/dcmiod/iodreferences.h"
 #include "dcmtk/dcmseg/segdoc.h"
 #include "dcmtk/dcmseg/segment.h"
@@ -481,27 +482,48 @@ absl::StatusOr<DicomExportResult> WriteDicomResults(const DicomExportOptions& o)
     return st;
   }
 
-  // Segments: every region present in the map. Category and type "Tissue" (SCT 85756007): the
-  // level set finds intensity classes, not named anatomy.
+  // Segments: every region present in the map that the table keeps in the SEG (air is not a
+  // tissue; the space around the patient is what viewers show where no segment is). Category and
+  // type from the table (the tissue class by HU for CT, else "Tissue": the level set finds
+  // intensity classes, not named anatomy).
   std::vector<Uint16> segment_of_label(256, 0);
   for (int r = 0; r <= max_label; ++r) {
     if (count[r] == 0) continue;
-    const std::string name = static_cast<size_t>(r) < o.region_names.size()
-                                 ? o.region_names[r]
-                                 : absl::StrCat("region ", r + 1);
+    const RegionInfo* info =
+        o.regions != nullptr && static_cast<size_t>(r) < o.regions->regions.size()
+            ? &o.regions->regions[r]
+            : nullptr;
+    if (info != nullptr && !info->in_seg) continue;
+    const std::string name = info != nullptr ? info->name : absl::StrCat("region ", r + 1);
+    const Code tissue{"85756007", "SCT", "Tissue"};
+    const Code& cat = info != nullptr ? info->category : tissue;
+    const Code& typ = info != nullptr ? info->type : tissue;
     DcmSegment* segment = nullptr;
-    CodeSequenceMacro category("85756007", "SCT", "Tissue");
-    CodeSequenceMacro type("85756007", "SCT", "Tissue");
+    CodeSequenceMacro category(cat.value.c_str(), cat.scheme.c_str(), cat.meaning.c_str());
+    CodeSequenceMacro type(typ.value.c_str(), typ.scheme.c_str(), typ.meaning.c_str());
     if (OFCondition c = DcmSegment::create(segment, name.c_str(), category, type,
                                            DcmSegTypes::SAT_AUTOMATIC, "Decima level set");
         c.bad()) {
       return DcmError("segment " + name, c);
     }
+    std::unique_ptr<DcmSegment> owned(segment);
+    if (info != nullptr) {
+      double l = 0, a = 0, b = 0;
+      IODCIELabUtil::rgb2DicomLab(l, a, b, info->rgb[0] / 255.0, info->rgb[1] / 255.0,
+                                  info->rgb[2] / 255.0);
+      auto u16 = [](double v) {
+        return static_cast<Uint16>(std::clamp(std::lround(v), 0L, 65535L));
+      };
+      if (OFCondition c = segment->setRecommendedDisplayCIELabValue(u16(l), u16(a), u16(b));
+          c.bad()) {
+        return DcmError("colour of segment " + name, c);
+      }
+    }
     Uint16 number = 0;
     if (OFCondition c = seg->addSegment(segment, number); c.bad()) {
-      delete segment;
       return DcmError("adding segment " + name, c);
     }
+    owned.release();  // the segmentation owns it now
     segment_of_label[r] = number;
     ++result.segments;
   }

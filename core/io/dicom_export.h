@@ -21,6 +21,7 @@
 #include <vector>
 
 #include "absl/status/statusor.h"
+#include "core/volume/regions.h"
 #include "core/volume/volume.h"
 
 namespace decima::io {
@@ -33,10 +34,14 @@ struct DicomExportOptions {
   // series in the folder).
   std::filesystem::path source_dir;
   std::string series_instance_uid;
-  // Region labels (uint8, 0..K-1, as the job's labels.nii.gz) on the source's grid. Region r
-  // becomes segment r+1 labelled `region_names[r]` (default "region r+1").
+  // Region labels (uint8, 0..K-1, as the job's labels.nii.gz) on the source's grid.
   const Volume* labels = nullptr;
-  std::vector<std::string> region_names;
+  // The job's region table (core/volume/regions.h): region r present in the map becomes a
+  // segment labelled with its name, its category/type codes (Tissue / Soft tissue, Tissue /
+  // Bone, Tissue / Tissue) and its colour as RecommendedDisplayCIELabValue; a region the table
+  // leaves out of the SEG (in_seg false: air) gets no segment. Without a table (or for a label
+  // past its end): "region r+1", Tissue / Tissue, no colour.
+  const RegionTable* regions = nullptr;
   // Rendered PNGs (any PNG libpng reads) written as Secondary Capture, one instance each, in one
   // new series, in this order (InstanceNumber 1, 2, ...).
   std::vector<std::filesystem::path> renders;
@@ -55,7 +60,7 @@ struct DicomExportResult {
   std::vector<std::filesystem::path> secondary;  // out_dir/sc-<n>.dcm
   std::vector<std::filesystem::path> models;     // out_dir/model-<n>.dcm (Encapsulated STL)
   std::string study_instance_uid;                // of the source, shared by all outputs
-  int segments = 0;                              // regions present in the label map
+  int segments = 0;                              // regions present and written as segments
   int frames = 0;                                // SEG frames written
 };
 

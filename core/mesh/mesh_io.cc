@@ -176,6 +176,34 @@ absl::Status CompressArrays(const std::vector<VtuArray>& arrays, std::vector<Enc
 
 }  // namespace
 
+namespace {
+
+// The region table as VTK field data, inline ASCII (a few bytes; the appended block stays the
+// mesh's). A String array in VTK's ASCII form is each string's bytes as numbers, each string
+// ended by a 0 (vtkXMLWriter's encoding), so names need no XML escaping.
+std::string RegionFieldData(const RegionTable* table) {
+  if (table == nullptr || table->regions.empty()) return "";
+  const size_t n = table->regions.size();
+  std::string names, labels, colours;
+  for (const RegionInfo& r : table->regions) {
+    for (char c : r.name) absl::StrAppend(&names, int{static_cast<unsigned char>(c)}, " ");
+    absl::StrAppend(&names, "0 ");
+    absl::StrAppend(&labels, int{r.label}, " ");
+    absl::StrAppend(&colours, int{r.rgb[0]}, " ", int{r.rgb[1]}, " ", int{r.rgb[2]}, " ");
+  }
+  return absl::StrCat(
+      "    <FieldData>\n      <Array type=\"String\" Name=\"region_names\" NumberOfTuples=\"", n,
+      "\" format=\"ascii\">\n        ", names,
+      "\n      </Array>\n      <DataArray type=\"UInt8\" Name=\"region_labels\" "
+      "NumberOfTuples=\"",
+      n, "\" format=\"ascii\">\n        ", labels,
+      "\n      </DataArray>\n      <DataArray type=\"UInt8\" Name=\"region_colors\" "
+      "NumberOfComponents=\"3\" NumberOfTuples=\"",
+      n, "\" format=\"ascii\">\n        ", colours, "\n      </DataArray>\n    </FieldData>\n");
+}
+
+}  // namespace
+
 absl::Status WriteVtu(const TetMesh& mesh, const std::filesystem::path& path,
                       const VtuWriteOptions& options) {
   DECIMA_RETURN_IF_ERROR(CheckMeshForWriting(mesh, path));
@@ -242,9 +270,9 @@ absl::Status WriteVtu(const TetMesh& mesh, const std::filesystem::path& path,
       "<?xml version=\"1.0\"?>\n"
       "<VTKFile type=\"UnstructuredGrid\" version=\"1.0\" byte_order=\"LittleEndian\" "
       "header_type=\"UInt64\"",
-      options.compress ? " compressor=\"vtkZLibDataCompressor\"" : "",
-      ">\n  <UnstructuredGrid>\n    <Piece NumberOfPoints=\"", nv, "\" NumberOfCells=\"", nt,
-      "\">\n");
+      options.compress ? " compressor=\"vtkZLibDataCompressor\"" : "", ">\n  <UnstructuredGrid>\n",
+      RegionFieldData(options.regions), "    <Piece NumberOfPoints=\"", nv, "\" NumberOfCells=\"",
+      nt, "\">\n");
   const char* open_section = nullptr;
   for (size_t i = 0; i < arrays.size(); ++i) {
     const VtuArray& a = arrays[i];
@@ -288,6 +316,7 @@ struct RegionGroups {
   std::vector<int> regions;                 // regions present, increasing
   std::vector<std::vector<int64_t>> tets;   // per entry of `regions`: tet ids, increasing
   std::vector<std::array<double, 6>> bbox;  // per entry: min xyz, max xyz
+  std::vector<std::string> names;           // per entry: the physical group's name
 };
 
 RegionGroups GroupByRegion(const TetMesh& mesh) {
@@ -335,11 +364,28 @@ RegionGroups GroupByRegion(const TetMesh& mesh) {
   return g;
 }
 
-// $PhysicalNames (ASCII in both variants): region r is the volume group r + 1 "region_<r>".
+// $PhysicalNames (ASCII in both variants): region r is the volume group r + 1, named as the
+// region table says (or "region_<r>" without one).
 std::string PhysicalNames(const RegionGroups& g) {
   std::string s = absl::StrCat("$PhysicalNames\n", g.regions.size(), "\n");
-  for (int r : g.regions) absl::StrAppend(&s, "3 ", r + 1, " \"region_", r, "\"\n");
+  for (size_t e = 0; e < g.regions.size(); ++e) {
+    absl::StrAppend(&s, "3 ", g.regions[e] + 1, " \"", g.names[e], "\"\n");
+  }
   return s + "$EndPhysicalNames\n";
+}
+
+// A region's physical name: the table's, with what would end Gmsh's quoted string or line
+// (double quote, line breaks; the table's rule already refuses control characters) replaced.
+std::string PhysicalName(int region, const RegionTable* table) {
+  if (table == nullptr || static_cast<size_t>(region) >= table->regions.size()) {
+    return absl::StrCat("region_", region);
+  }
+  std::string n = table->regions[region].name;
+  for (char& c : n) {
+    if (c == '"') c = '\'';
+    if (c == '\n' || c == '\r') c = ' ';
+  }
+  return n;
 }
 
 // Appends the binary representation of `v` to `out`.
@@ -480,7 +526,8 @@ absl::Status WriteGmshAscii(const TetMesh& mesh, const RegionGroups& g, AtomicFi
 absl::Status WriteGmsh(const TetMesh& mesh, const std::filesystem::path& path,
                        const GmshWriteOptions& options) {
   DECIMA_RETURN_IF_ERROR(CheckMeshForWriting(mesh, path));
-  const RegionGroups g = GroupByRegion(mesh);
+  RegionGroups g = GroupByRegion(mesh);
+  for (int r : g.regions) g.names.push_back(PhysicalName(r, options.regions));
   AtomicFile file;
   DECIMA_RETURN_IF_ERROR(file.Open(path));
   if (options.binary) {

@@ -10,8 +10,12 @@
 //   .vtu   point data "scalar" (Float32), "label" (UInt8), "feature" (UInt8, 1 if kFeatureVertex),
 //          "interface_distance" (Float32), "boundary" (UInt8, 1 if kExteriorBoundaryVertex);
 //          cell data "region" (UInt8); points Float32; cells VTK_TETRA (10).
-//   .msh   nodes and tets; region r is volume entity r + 1 with physical tag r + 1 named
-//          "region_<r>" (so Gmsh and FEM codes see the regions as physical groups).
+//          field data (with a region table) "region_names" (String), "region_labels" (UInt8)
+//          and "region_colors" (UInt8 x 3, sRGB): row i names and colours region
+//          region_labels[i] (ParaView: Information panel, spreadsheet view "Field Data").
+//   .msh   nodes and tets; region r is volume entity r + 1 with physical tag r + 1 named as
+//          the region table says ("region_<r>" without one), so Gmsh and FEM codes see the
+//          regions as named physical groups.
 //   .mesh  vertex reference = vertex label, tetrahedron reference = cell region + 1 (the same
 //          number as the .msh physical tag; MEDIT readers commonly treat 0 as "no reference").
 #pragma once
@@ -23,6 +27,7 @@
 #include "absl/status/status.h"
 #include "absl/status/statusor.h"
 #include "core/mesh/tet_mesh.h"
+#include "core/volume/regions.h"
 
 namespace decima {
 
@@ -35,6 +40,8 @@ struct VtuWriteOptions {
   // Threads compressing blocks in parallel (0 = hardware concurrency). The file's bytes do not
   // depend on it.
   int threads = 0;
+  // Names and colours of the regions, written as field data (top of this file); none if null.
+  const RegionTable* regions = nullptr;
 };
 
 // Writes `mesh` as a VTK XML UnstructuredGrid file (version 1.0, little endian, header_type
@@ -94,6 +101,8 @@ struct GmshWriteOptions {
   // (shortest round-trip decimals). Sizes are similar (README.md "Measured"): binary spends 8
   // bytes per tag as Gmsh's format demands, ASCII is short for grid coordinates.
   bool binary = true;
+  // The physical groups' names; "region_<r>" if null.
+  const RegionTable* regions = nullptr;
 };
 
 // Writes `mesh` as a Gmsh 4.1 .msh file: $PhysicalNames, $Entities (one volume entity per

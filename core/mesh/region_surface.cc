@@ -359,20 +359,19 @@ absl::Status WriteStl(const RegionSurface& s, const std::string& name,
 
 namespace decima {
 
-RegionStyle DefaultRegionStyle(uint8_t region) {
-  // Okabe & Ito (2008), "Color universal design": sky blue, orange, bluish green, yellow, blue,
-  // vermillion, reddish purple, black; as sRGB bytes.
-  static constexpr uint8_t kPalette[8][3] = {{86, 180, 233},  {230, 159, 0}, {0, 158, 115},
-                                             {240, 228, 66},  {0, 114, 178}, {213, 94, 0},
-                                             {204, 121, 167}, {0, 0, 0}};
+RegionStyle StyleOf(const std::string& name, const std::array<uint8_t, 3>& srgb) {
   RegionStyle s;
-  s.name = absl::StrCat("region_", int{region});
+  s.name = name;
   for (int c = 0; c < 3; ++c) {
     // glTF's baseColorFactor is linear; convert from sRGB.
-    const float v = kPalette[region % 8][c] / 255.0f;
+    const float v = srgb[c] / 255.0f;
     s.rgb[c] = v <= 0.04045f ? v / 12.92f : std::pow((v + 0.055f) / 1.055f, 2.4f);
   }
   return s;
+}
+
+RegionStyle DefaultRegionStyle(uint8_t region) {
+  return StyleOf(absl::StrCat("region_", int{region}), kOkabeIto[region % kOkabeIto.size()]);
 }
 
 absl::Status WriteGlb(const std::vector<RegionSurface>& surfaces,

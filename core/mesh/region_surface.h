@@ -12,6 +12,7 @@
 // into their own part, because STL readers join vertices by position.
 #pragma once
 
+#include <array>
 #include <cstdint>
 #include <filesystem>
 #include <string>
@@ -19,6 +20,7 @@
 
 #include "absl/status/status.h"
 #include "core/mesh/tet_mesh.h"
+#include "core/volume/regions.h"
 
 namespace decima {
 
@@ -56,8 +58,10 @@ struct RegionStyle {
   std::string name;
   float rgb[3] = {0.5f, 0.5f, 0.5f};
 };
-// The default style of region r: name "region_<r>" (as the .msh physical groups), colour from
-// the Okabe-Ito palette, which stays distinct under the common colour-vision deficiencies.
+// A style from a region table's name and sRGB colour (core/volume/regions.h).
+RegionStyle StyleOf(const std::string& name, const std::array<uint8_t, 3>& srgb);
+// The style of region r without a table: name "region_<r>", colour kOkabeIto[r], the palette
+// that stays distinct under the common colour-vision deficiencies.
 RegionStyle DefaultRegionStyle(uint8_t region);
 
 // Binary glTF 2.0 (.glb) holding every surface as its own named mesh and node with its colour,

@@ -1,5 +1,7 @@
 #include "core/pipeline/pictures.h"
 
+#include <algorithm>
+#include <array>
 #include <cctype>
 #include <cstdio>
 
@@ -99,20 +101,60 @@ absl::Status WriteComparisonPicture(const ViewRender& view, const PictureCaption
                   ViewText(view, caption, heat));
 }
 
+Image AddRegionLegend(const Image& image, const RegionTable& regions) {
+  constexpr int kPad = 8, kScale = 2, kGapAfter = 24;
+  const Rgb8 fill{24, 24, 28}, ink{235, 235, 235};  // as the footer (core/render/annotate.cc)
+  const int row_height = std::max(kLegendSwatch, Canvas::TextHeight(kScale)) + kPad;
+  const int width = std::max(image.width, 2 * kPad + kLegendSwatch);
+  // Lay out first (entries wrap to the width), then draw.
+  struct Entry {
+    int x, y;
+  };
+  std::vector<Entry> at;
+  int x = kPad, y = kPad;
+  for (const RegionInfo& r : regions.regions) {
+    const int w = kLegendSwatch + 6 + Canvas::TextWidth(r.name, kScale);
+    if (x > kPad && x + w > width - kPad) {
+      x = kPad;
+      y += row_height;
+    }
+    at.push_back({x, y});
+    x += w + kGapAfter;
+  }
+  const int strip = regions.regions.empty() ? 0 : y + row_height;
+  Canvas canvas(width, image.height + strip, fill);
+  canvas.Blit(image, 0, 0);
+  for (size_t i = 0; i < regions.regions.size(); ++i) {
+    const RegionInfo& r = regions.regions[i];
+    const int top = image.height + at[i].y;
+    canvas.FillRect(at[i].x, top, kLegendSwatch, kLegendSwatch, {r.rgb[0], r.rgb[1], r.rgb[2]});
+    canvas.Text(at[i].x + kLegendSwatch + 6, top + (kLegendSwatch - Canvas::TextHeight(kScale)) / 2,
+                r.name, ink, kScale);
+  }
+  return canvas.Take();
+}
+
 absl::Status WriteSegmentationPicture(const Volume& image, const Volume& labels,
-                                      const PictureCaption& caption,
+                                      const RegionTable& regions, const PictureCaption& caption,
                                       const std::filesystem::path& path) {
-  DECIMA_ASSIGN_OR_RETURN(const Image montage, SegmentationMontage(image, labels));
+  std::vector<std::array<uint8_t, 3>> colours;
+  std::string names;
+  for (const RegionInfo& r : regions.regions) {
+    colours.push_back(r.rgb);
+    absl::StrAppend(&names, names.empty() ? "" : "\n", r.name);
+  }
+  DECIMA_ASSIGN_OR_RETURN(const Image montage, SegmentationMontage(image, labels, &colours));
   return WritePng(
       path,
-      AddFooter(montage,
+      AddFooter(AddRegionLegend(montage, regions),
                 {"SEGMENTATION: AXIAL | CORONAL | SAGITTAL THROUGH THE CENTRE",
                  absl::StrCat("INPUT ", caption.input_name, "  K ", caption.regions,
                               caption.from_label_map ? "  FROM LABEL MAP" : "  LEVEL SET")}),
       {{"Software", "decima"},
        {"Source", caption.input_name},
        {"decima:job", caption.job_name},
-       {"decima:regions", absl::StrCat(caption.regions)}});
+       {"decima:regions", absl::StrCat(caption.regions)},
+       {"decima:region_names", names}});
 }
 
 absl::Status WriteCurvePicture(const PlotSeries& series, const std::string& view,

@@ -14,6 +14,7 @@
 #include "core/render/diff.h"
 #include "core/render/plot.h"
 #include "core/render/renderer.h"
+#include "core/volume/regions.h"
 #include "core/volume/volume.h"
 
 namespace decima::pipeline {
@@ -56,10 +57,17 @@ absl::Status WriteComparisonPicture(const ViewRender& view, const PictureCaption
                                     const std::filesystem::path& path);
 
 // segmentation.png: the label overlay on the axial, coronal and sagittal slices through the
-// centre (SegmentationMontage) with its footer.
+// centre (SegmentationMontage) in the region table's colours, the legend (AddRegionLegend) and
+// its footer. The PNG's "decima:region_names" text chunk lists the names, one per line.
 absl::Status WriteSegmentationPicture(const Volume& image, const Volume& labels,
-                                      const PictureCaption& caption,
+                                      const RegionTable& regions, const PictureCaption& caption,
                                       const std::filesystem::path& path);
+
+// `image` with a legend strip below it: per region a kLegendSwatch-pixel square of its colour
+// (solid, with no border inside it) and its name (upper case: the figures' bitmap font has no
+// lower case; characters it lacks are drawn as "?"), left to right, wrapped to the width.
+inline constexpr int kLegendSwatch = 16;
+Image AddRegionLegend(const Image& image, const RegionTable& regions);
 
 // curve.png: diff1 of view `view` against the cells removed (the paper's Fig. 5).
 absl::Status WriteCurvePicture(const PlotSeries& series, const std::string& view,

@@ -33,6 +33,7 @@
 #include "core/simplify/levels_io.h"
 #include "core/simplify/simplify.h"
 #include "core/simplify/simplify_json.h"
+#include "core/volume/regions.h"
 
 namespace decima::pipeline {
 namespace {
@@ -204,6 +205,41 @@ absl::StatusOr<SegmentResult> SegmentStage(const JobSpec& spec, const Volume& im
   return seg;
 }
 
+// The job's region table (core/volume/regions.h), from the segmentation's class means and the
+// spec's names; metrics.json "regions" lists it.
+absl::StatusOr<RegionTable> RegionTableOf(const JobSpec& spec, const Volume& image,
+                                          const SegmentResult& seg, JobRun& run) {
+  const auto [lo, hi] = image.ValueRange();
+  const bool hu = PlausiblyHu(image.modality, lo, hi);
+  if (!spec.region_names.empty() && spec.region_names.size() != seg.class_means.size()) {
+    // Only a label map can get here: its label count is K, whatever spec.regions said.
+    return absl::InvalidArgumentError(absl::StrCat("region_names: ", spec.region_names.size(),
+                                                   " names for the ", seg.class_means.size(),
+                                                   " regions of the label map"));
+  }
+  RegionTable table;
+  DECIMA_RETURN_IF_ERROR(MakeRegionTable(seg.class_means, seg.region_voxels, hu, spec.region_names,
+                                         &table, hu ? HuOffset(lo) : 0));
+  Json regions = Json::array();
+  for (const RegionInfo& r : table.regions) {
+    char colour[8];
+    std::snprintf(colour, sizeof colour, "#%02x%02x%02x", r.rgb[0], r.rgb[1], r.rgb[2]);
+    Json j = {{"label", r.label},
+              {"name", r.name},
+              {"colour", colour},
+              {"voxels", r.voxels},
+              {"mean", r.mean},
+              {"dicom_seg", r.in_seg},
+              {"dicom_type", r.type.meaning}};
+    if (r.label < seg.region_volumes_mm3.size()) j["volume_mm3"] = seg.region_volumes_mm3[r.label];
+    if (hu) j["mean_hu"] = r.mean_hu;
+    regions.push_back(std::move(j));
+  }
+  run.metrics()["regions"] = std::move(regions);
+  run.metrics()["region_naming"] = table.naming;
+  return table;
+}
+
 // tetra: the voxel grid as tetrahedra, region interfaces from the segmentation.
 absl::StatusOr<TetMesh> TetrahedralizeStage(const Volume& image, const SegmentResult& seg,
                                             JobRun& run) {
@@ -257,7 +293,8 @@ absl::StatusOr<SimplifyResult> SimplifyStage(const JobSpec& spec, const TetMesh&
 
 // The mesh files the spec asks for, in kOutputKinds order; the first one's size (fidelity
 // reports it), 0 when none is asked for.
-absl::StatusOr<int64_t> WriteMeshFiles(const JobSpec& spec, const TetMesh& mesh, const Stage& stage,
+absl::StatusOr<int64_t> WriteMeshFiles(const JobSpec& spec, const TetMesh& mesh,
+                                       const RegionTable& regions, const Stage& stage,
                                        JobRun& run) {
   struct MeshFile {
     const char* kind;
@@ -276,9 +313,12 @@ absl::StatusOr<int64_t> WriteMeshFiles(const JobSpec& spec, const TetMesh& mesh,
       VtuWriteOptions wo;
       wo.compress = spec.vtu_compression_level > 0;
       wo.level = std::max(1, spec.vtu_compression_level);
+      wo.regions = &regions;
       DECIMA_RETURN_IF_ERROR(WriteVtu(mesh, p, wo));
     } else if (std::string(files[i].kind) == "msh") {
-      DECIMA_RETURN_IF_ERROR(WriteGmsh(mesh, p));
+      GmshWriteOptions go;
+      go.regions = &regions;
+      DECIMA_RETURN_IF_ERROR(WriteGmsh(mesh, p, go));
     } else {
       DECIMA_RETURN_IF_ERROR(WriteMedit(mesh, p));
     }
@@ -290,14 +330,25 @@ absl::StatusOr<int64_t> WriteMeshFiles(const JobSpec& spec, const TetMesh& mesh,
 }
 
 // One closed surface per region of the simplified mesh: STL files and/or one glTF.
-absl::Status WriteRegionSurfaces(const JobSpec& spec, const TetMesh& mesh, const Stage& stage,
-                                 JobRun& run) {
+absl::Status WriteRegionSurfaces(const JobSpec& spec, const TetMesh& mesh,
+                                 const RegionTable& regions, const Stage& stage, JobRun& run) {
   stage.Report(1, "region surfaces");
   const std::vector<RegionSurface> surfaces = ExtractRegionSurfaces(mesh);
+  const std::vector<std::string> files = SurfaceFileNames(regions);
   std::vector<RegionStyle> styles;
-  for (const RegionSurface& s : surfaces) styles.push_back(DefaultRegionStyle(s.region));
+  std::vector<std::string> names;
+  for (const RegionSurface& s : surfaces) {
+    if (s.region < regions.regions.size()) {
+      const RegionInfo& r = regions.regions[s.region];
+      styles.push_back(StyleOf(r.name, r.rgb));
+      names.push_back(files[s.region]);
+    } else {  // a mesh region the table does not know: cannot happen for a job's own mesh
+      styles.push_back(DefaultRegionStyle(s.region));
+      names.push_back(absl::StrCat("surface-region_", s.region + 1, ".stl"));
+    }
+  }
   for (size_t i = 0; i < surfaces.size() && Wants(spec, "stl"); ++i) {
-    const std::string name = absl::StrCat("surface-", styles[i].name, ".stl");
+    const std::string& name = names[i];
     DECIMA_RETURN_IF_ERROR(WriteStl(surfaces[i], styles[i].name, run.OutputPath(name)));
     run.AddArtifact(name);
   }
@@ -311,12 +362,13 @@ absl::Status WriteRegionSurfaces(const JobSpec& spec, const TetMesh& mesh, const
 // write: only the mesh formats the spec asks for, and the collapse record with "levels" (a
 // resumed simplification is run again for it). Returns the size of the first mesh file.
 absl::StatusOr<int64_t> WriteStage(const JobSpec& spec, const TetMesh& original,
-                                   SimplifyResult& simplified, JobRun& run) {
+                                   SimplifyResult& simplified, const RegionTable& regions,
+                                   JobRun& run) {
   DECIMA_ASSIGN_OR_RETURN(const Stage stage, run.Stage("write"));
   DECIMA_ASSIGN_OR_RETURN(const int64_t mesh_bytes,
-                          WriteMeshFiles(spec, simplified.mesh, stage, run));
+                          WriteMeshFiles(spec, simplified.mesh, regions, stage, run));
   if (Wants(spec, "stl") || Wants(spec, "glb")) {
-    DECIMA_RETURN_IF_ERROR(WriteRegionSurfaces(spec, simplified.mesh, stage, run));
+    DECIMA_RETURN_IF_ERROR(WriteRegionSurfaces(spec, simplified.mesh, regions, stage, run));
   }
   DECIMA_ASSIGN_OR_RETURN(const LevelsOutput levels,
                           WriteLevelsOutput(spec, SimplifyOptionsOf(spec), original, &simplified,
@@ -519,7 +571,8 @@ absl::Status CurveStage(const JobSpec& spec, const TetMesh& original,
 
 // diff: segmentation.png, metrics.json and report.html. Not timed: its end is the job's total.
 absl::Status DiffStage(const JobSpec& spec, const Volume& image, const SegmentResult& seg,
-                       const Rendered& rendered, JobRun& run, std::vector<ReportPicture> report) {
+                       const RegionTable& regions, const Rendered& rendered, JobRun& run,
+                       std::vector<ReportPicture> report) {
   DECIMA_ASSIGN_OR_RETURN(Stage stage, run.Stage("diff", JobRun::Timing::kNotRecorded));
   // segmentation.png: what a clinician checks first, the labels over the slices.
   if (Wants(spec, "segmentation") || Wants(spec, "report")) {
@@ -527,7 +580,8 @@ absl::Status DiffStage(const JobSpec& spec, const Volume& image, const SegmentRe
     const bool artifact = Wants(spec, "segmentation");
     const std::filesystem::path path =
         artifact ? run.OutputPath("segmentation.png") : run.ScratchPath("segmentation.png");
-    DECIMA_RETURN_IF_ERROR(WriteSegmentationPicture(image, seg.labels, rendered.caption, path));
+    DECIMA_RETURN_IF_ERROR(
+        WriteSegmentationPicture(image, seg.labels, regions, rendered.caption, path));
     if (artifact) run.AddArtifact("segmentation.png");
     report.insert(report.begin(), ReportPicture{"Segmentation", path});
   }
@@ -559,6 +613,15 @@ absl::Status ValidateJobSpec(const JobSpec& spec, std::string* field) {
   DECIMA_RETURN_IF_ERROR(check("regions", ValidateSegmentOptions(so)));
   so.class_means = spec.class_means;
   DECIMA_RETURN_IF_ERROR(check("class_means", ValidateSegmentOptions(so)));
+  if (!spec.region_names.empty()) {
+    int index = -1;
+    if (absl::Status s = ValidateRegionNames(spec.region_names, spec.regions, &index); !s.ok()) {
+      const std::string name =
+          index < 0 ? "region_names" : absl::StrCat("region_names[", index, "]");
+      if (field != nullptr) *field = name;
+      return s;
+    }
+  }
 
   auto simplify = [&](const char* name, auto set) {
     SimplifyOptions o;
@@ -667,18 +730,22 @@ absl::StatusOr<JobResult> RunJob(const JobSpec& spec, const std::filesystem::pat
   DECIMA_ASSIGN_OR_RETURN(const Volume image, LoadStage(spec, run));
   DECIMA_ASSIGN_OR_RETURN(const SegmentResult seg,
                           SegmentStage(spec, image, checkpoints, segment_key, run));
+  DECIMA_ASSIGN_OR_RETURN(const RegionTable regions, RegionTableOf(spec, image, seg, run));
   DECIMA_ASSIGN_OR_RETURN(const TetMesh original, TetrahedralizeStage(image, seg, run));
   DECIMA_ASSIGN_OR_RETURN(SimplifyResult simplified,
                           SimplifyStage(spec, original, checkpoints, simplify_key, run));
-  DECIMA_ASSIGN_OR_RETURN(const int64_t mesh_bytes, WriteStage(spec, original, simplified, run));
+  DECIMA_ASSIGN_OR_RETURN(const int64_t mesh_bytes,
+                          WriteStage(spec, original, simplified, regions, run));
   DECIMA_ASSIGN_OR_RETURN(
       const Rendered rendered,
       RenderStage(spec, image, seg, original, simplified, mesh_bytes, run, &report));
   if (Wants(spec, "curve")) {
     DECIMA_RETURN_IF_ERROR(CurveStage(spec, original, simplified, rendered, run, &report));
   }
-  DECIMA_RETURN_IF_ERROR(DiffStage(spec, image, seg, rendered, run, std::move(report)));
-  return run.TakeResult();
+  DECIMA_RETURN_IF_ERROR(DiffStage(spec, image, seg, regions, rendered, run, std::move(report)));
+  JobResult result = run.TakeResult();
+  result.regions = regions;
+  return result;
 }
 
 }  // namespace decima::pipeline

@@ -14,6 +14,7 @@
 #include "absl/status/statusor.h"
 #include "core/common/progress.h"
 #include "core/simplify/simplify.h"
+#include "core/volume/regions.h"
 
 namespace decima::pipeline {
 
@@ -28,6 +29,8 @@ struct JobSpec {
   int regions = 3;
   std::vector<double> class_means;                 // empty: estimated by k-means
   std::optional<std::filesystem::path> label_map;  // replaces the level set when set
+  // One name per region (label order), or empty: named from intensity (core/volume/regions.h).
+  std::vector<std::string> region_names;
   // Simplification (SimplifyOptions of the same names; ranges from ValidateSimplifyOptions).
   double target_reduction = 0.5;  // fraction of cells to remove, [0, 0.99]; 0 = no target
   SimplifyPolicy policy = SimplifyPolicy::kField;
@@ -59,10 +62,10 @@ struct JobSpec {
 // Every artifact kind a JobSpec may ask for, in the order RunJob writes them.
 // "curve" (curve.png, the paper's Fig. 5 for this job) costs one more simplification and render
 // per 10 % step below the job's reduction, so it is never a default.
-// "stl" writes surface-region_<r>.stl per region and "glb" one surfaces.glb with every region
-// named and coloured: the closed surfaces of the simplified mesh's cells of each region
-// (core/mesh/region_surface.h), so they agree with the tets.
-// "levels" writes mesh.levels, the collapse record (core/pipeline/levels_output.h).
+// "stl" writes surface-<name>.stl per region (SurfaceFileNames) and "glb" one surfaces.glb with
+// every region named and coloured as the region table says: the closed surfaces of the simplified
+// mesh's cells of each region (core/mesh/region_surface.h), so they agree with the tets. "levels"
+// writes mesh.levels, the collapse record (core/pipeline/levels_output.h).
 inline constexpr const char* kOutputKinds[] = {"vtu",          "msh",    "medit",  "stl",
                                                "glb",          "levels", "labels", "images",
                                                "segmentation", "report", "curve"};
@@ -82,6 +85,9 @@ struct Artifact {
 struct JobResult {
   std::vector<Artifact> artifacts;
   std::string metrics_json;  // the content of metrics.json
+  // The job's region names, colours and DICOM codes (metrics.json "regions"), for the steps
+  // after RunJob (the DICOM SEG).
+  RegionTable regions;
   double seconds = 0;
 };
 

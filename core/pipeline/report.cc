@@ -97,7 +97,9 @@ absl::StatusOr<std::string> ReportHtml(const JobSpec& spec, const std::string& i
       "</title>\n<style>body{font-family:sans-serif;margin:2em;max-width:80em;color:#222}"
       "table{border-collapse:collapse;margin:0 0 1.5em}th,td{border:1px solid #ccc;padding:"
       ".2em .6em;text-align:left;font-size:.9em}th{background:#f3f3f3}img{max-width:100%;"
-      "border:1px solid #888}figure{margin:0 0 1.5em}.warn{color:#a00;font-weight:bold}"
+      "border:1px solid #888}.swatch{display:inline-block;width:1em;height:1em;"
+      "vertical-align:middle;border:1px solid #444}figure{margin:0 0 "
+      "1.5em}.warn{color:#a00;font-weight:bold}"
       "</style></head><body>\n<h1>",
       Html(title), "</h1>\n");
   const Json& simp = metrics["simplification"];
@@ -110,6 +112,27 @@ absl::StatusOr<std::string> ReportHtml(const JobSpec& spec, const std::string& i
   if (!simp["reached_target"].get<bool>()) {
     absl::StrAppend(&h, "<p class=\"warn\">The reduction target was not reached: ",
                     Html(simp["stop_message"].get<std::string>()), "</p>\n");
+  }
+  // The regions: the names and colours every artifact of the job uses (metrics "regions").
+  if (metrics.contains("regions") && metrics["regions"].is_array()) {
+    h += "<h2>Regions</h2>\n<table>\n<tr><th>Colour</th><th>Label</th><th>Name</th><th>Voxels"
+         "</th><th>Volume (mL)</th><th>Mean intensity</th><th>In the DICOM SEG as</th></tr>\n";
+    for (const Json& r : metrics["regions"]) {
+      const std::string colour = r.value("colour", std::string("#808080"));
+      char ml[32] = "";
+      if (r.contains("volume_mm3")) {
+        std::snprintf(ml, sizeof ml, "%.1f", r["volume_mm3"].get<double>() / 1000);
+      }
+      absl::StrAppend(
+          &h, "<tr class=\"region\"><td><span class=\"swatch\" style=\"background:", Html(colour),
+          "\"></span> ", Html(colour), "</td><td>", r.value("label", 0), "</td><td>",
+          Html(r.value("name", std::string())), "</td><td>", r.value("voxels", int64_t{0}),
+          "</td><td>", ml, "</td><td>", JsonCell(r.value("mean", Json(0.0))), "</td><td>",
+          r.value("dicom_seg", true) ? Html(r.value("dicom_type", std::string()))
+                                     : std::string("left out (air)"),
+          "</td></tr>\n");
+    }
+    h += "</table>\n";
   }
   h += "<h2>Pictures</h2>\n";
   for (const auto& pic : pictures) {
@@ -127,6 +150,7 @@ absl::StatusOr<std::string> ReportHtml(const JobSpec& spec, const std::string& i
   params["job"] = spec.job_name;
   params["regions"] = spec.regions;
   params["class_means"] = spec.class_means;
+  params["region_names"] = spec.region_names;
   params["label_map"] = spec.label_map.has_value();
   params["target_reduction"] = spec.target_reduction;
   params["policy"] = SimplifyPolicyName(spec.policy);

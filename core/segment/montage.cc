@@ -73,7 +73,8 @@ Panel MakePanel(const Volume& image, const std::vector<float>& values, const uin
 
 }  // namespace
 
-absl::StatusOr<Image> SegmentationMontage(const Volume& image, const Volume& labels) {
+absl::StatusOr<Image> SegmentationMontage(const Volume& image, const Volume& labels,
+                                          const std::vector<std::array<uint8_t, 3>>* colours) {
   DECIMA_RETURN_IF_ERROR(Validate(image, "montage: image"));
   DECIMA_RETURN_IF_ERROR(Validate(labels, "montage: labels"));
   if (labels.type != VoxelType::kUInt8 || !SameGrid(image, labels)) {
@@ -144,9 +145,12 @@ absl::StatusOr<Image> SegmentationMontage(const Volume& image, const Volume& lab
                           (r + 1 < p.height && p.labels[s + p.width] != l);
         uint8_t* out = &rgb[(static_cast<size_t>(r) * width + x0 + c) * 3];
         const double g = 255.0 * p.grey[s];
+        const bool own = colours != nullptr && l < colours->size();
         for (int ch = 0; ch < 3; ++ch) {
-          const double tint = l == 0 ? g : (1 - kTint) * g + kTint * kPalette[l & 7][ch];
-          const uint8_t edge_colour = kPalette[std::max<uint8_t>(l, 1) & 7][ch];
+          const double c = own ? (*colours)[l][ch] : kPalette[l & 7][ch];
+          const double tint = l == 0 && !own ? g : (1 - kTint) * g + kTint * c;
+          const uint8_t edge_colour =
+              own ? (*colours)[l][ch] : kPalette[std::max<uint8_t>(l, 1) & 7][ch];
           out[ch] = edge ? edge_colour : static_cast<uint8_t>(std::lround(tint));
         }
       }

@@ -2,7 +2,10 @@
 // and tests link: the service and the pipeline never draw figures.
 #pragma once
 
+#include <array>
+#include <cstdint>
 #include <filesystem>
+#include <vector>
 
 #include "absl/status/status.h"
 #include "absl/status/statusor.h"
@@ -16,7 +19,11 @@ namespace decima {
 // interfaces drawn solid, like the paper's Fig. 2. Grey levels window the image between its
 // 1st and 99th percentile. `labels` must be uint8 on the image's grid (InvalidArgument
 // otherwise). An RGB image, so that a caller can add a caption before writing it.
-absl::StatusOr<Image> SegmentationMontage(const Volume& image, const Volume& labels);
+// `colours` (sRGB per label, e.g. a region table's): every label is tinted with its colour, so a
+// legend can show the same ones; without it the figures' own palette leaves label 0 untinted.
+absl::StatusOr<Image> SegmentationMontage(
+    const Volume& image, const Volume& labels,
+    const std::vector<std::array<uint8_t, 3>>* colours = nullptr);
 
 // SegmentationMontage written as a PNG file; overwrites `png`.
 absl::Status WriteSegmentationMontage(const Volume& image, const Volume& labels,

@@ -4,6 +4,7 @@
 #include "absl/strings/str_cat.h"
 #include "core/io/dicom_export.h"
 #include "core/io/volume_io.h"
+#include "core/volume/regions.h"
 
 namespace decima::server {
 namespace fs = std::filesystem;
@@ -23,15 +24,23 @@ absl::Status AddDicomResults(const pipeline::JobSpec& spec, const fs::path& out_
   o.source_dir = spec.input;
   o.series_instance_uid = spec.series_instance_uid;
   o.labels = &*labels;
+  // The job's names, colours and codes, so the SEG says what every other artifact says.
+  if (!result->regions.regions.empty()) o.regions = &result->regions;
   o.out_dir = out_dir;
   for (const auto& a : result->artifacts) {
     if ((absl::StartsWith(a.name, "comparison") || absl::StartsWith(a.name, "diff")) &&
         absl::EndsWith(a.name, ".png")) {
       o.renders.push_back(a.path);
     }
-    // surface-<name>.stl: the region surfaces the job wrote ("stl" output), as models.
+    // surface-<name>.stl: the region surfaces the job wrote ("stl" output), as models named
+    // as the region table names them (the file name is its file-safe form).
     if (absl::StartsWith(a.name, "surface-") && absl::EndsWith(a.name, ".stl")) {
-      o.surfaces.push_back({a.name.substr(8, a.name.size() - 12), a.path});
+      std::string name = a.name.substr(8, a.name.size() - 12);
+      const std::vector<std::string> files = SurfaceFileNames(result->regions);
+      for (size_t r = 0; r < files.size(); ++r) {
+        if (files[r] == a.name) name = result->regions.regions[r].name;
+      }
+      o.surfaces.push_back({name, a.path});
     }
   }
   auto written = io::WriteDicomResults(o);

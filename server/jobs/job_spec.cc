@@ -10,6 +10,7 @@
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_format.h"
 #include "core/pipeline/levels_output.h"
+#include "core/volume/regions.h"
 #include "server/store/job_store.h"
 
 namespace decima::server {
@@ -73,6 +74,18 @@ absl::StatusOr<pipeline::JobSpec> JobSpecFromProto(const v1::JobSpec& spec, std:
                                 kMaxClassMeans, ")"));
   }
   p.class_means.assign(spec.class_means().begin(), spec.class_means().end());
+  // Bounded before copying, as class_means; each name's rule is core's (ValidateRegionNames).
+  if (spec.region_names_size() > kMaxClassMeans) {
+    return Invalid(field, "spec.region_names",
+                   absl::StrCat(spec.region_names_size(), " names, at most one per region (",
+                                kMaxClassMeans, ")"));
+  }
+  for (const auto& n : spec.region_names()) {
+    if (n.size() > 4 * kMaxRegionNameBytes) {
+      return Invalid(field, "spec.region_names", absl::StrCat("a name of ", n.size(), " bytes"));
+    }
+    p.region_names.push_back(n);
+  }
   if (spec.has_target_reduction()) p.target_reduction = spec.target_reduction();
   switch (spec.policy()) {
     case v1::SIMPLIFY_POLICY_UNSPECIFIED:
@@ -155,6 +168,7 @@ absl::StatusOr<v1::JobSpec> NormalizeJobSpec(const v1::JobSpec& spec, std::strin
   out.set_label_map(spec.label_map());
   out.set_regions(p->regions);
   for (double m : p->class_means) out.add_class_means(m);
+  for (const auto& n : p->region_names) out.add_region_names(n);
   out.set_target_reduction(p->target_reduction);
   out.set_policy(PolicyToProto(p->policy));
   out.set_error_tolerance(p->error_tolerance);
@@ -228,6 +242,8 @@ absl::StatusOr<v1::JobSpec> LevelJobSpec(const v1::JobSpec& spec, const v1::Job&
   out.set_volume(parent.spec().volume());
   out.set_regions(parent.spec().regions());
   *out.mutable_class_means() = parent.spec().class_means();
+  // The same regions under the same names, unless the caller names them anew.
+  if (out.region_names().empty()) *out.mutable_region_names() = parent.spec().region_names();
   out.set_policy(v1::FIELD);
   return out;
 }

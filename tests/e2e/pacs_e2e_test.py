@@ -288,8 +288,9 @@ def read_nifti(path):
     return np.frombuffer(raw[offset:offset + nx * ny * nz], np.uint8).reshape(nz, ny, nx)
 
 
-def seg_dice(seg_path, source_files, labels):
-    """Rebuilds the label volume from the SEG on the source geometry; Dice per region."""
+def seg_dice(seg_path, source_files, labels, regions):
+    """Rebuilds the label volume from the SEG on the source geometry; Dice per region the job's
+    region table (metrics.json "regions") keeps in the SEG, matched by segment label = name."""
     seg = pydicom.dcmread(seg_path)
     check(seg.SOPClassUID == "1.2.840.10008.5.1.4.1.1.66.4", "not a SEG")
     check(seg.SegmentationType == "BINARY", f"SegmentationType {seg.SegmentationType}")
@@ -306,10 +307,11 @@ def seg_dice(seg_path, source_files, labels):
     check((rows, cols) == (sources[0].Rows, sources[0].Columns), "SEG frame size")
     bits = np.unpackbits(np.frombuffer(seg.PixelData, np.uint8), bitorder="little")
     frames = bits[: n * rows * cols].reshape(n, rows, cols)
+    label_of_name = {r["name"]: r["label"] for r in regions if r["dicom_seg"]}
     label_of_segment = {}
     for s in seg.SegmentSequence:
-        check(s.SegmentLabel.startswith("region "), f"segment label {s.SegmentLabel}")
-        label_of_segment[int(s.SegmentNumber)] = int(s.SegmentLabel.split()[1]) - 1
+        check(s.SegmentLabel in label_of_name, f"segment label {s.SegmentLabel} not a SEG region")
+        label_of_segment[int(s.SegmentNumber)] = label_of_name[s.SegmentLabel]
         check(len(s.SegmentedPropertyCategoryCodeSequence) == 1, "category code")
         check(len(s.SegmentedPropertyTypeCodeSequence) == 1, "type code")
     rebuilt = np.full(labels.shape, 255, np.uint8)
@@ -324,9 +326,9 @@ def seg_dice(seg_path, source_files, labels):
         check(not (rebuilt[k][mask] != 255).any(), f"frame {i + 1}: segments overlap")
         rebuilt[k][mask] = label_of_segment[number]
     dice = {}
-    for r in sorted(set(np.unique(labels).tolist())):
+    for r in sorted(set(np.unique(labels).tolist()) & set(label_of_segment.values())):
         a, b = labels == r, rebuilt == r
-        dice[f"region {r + 1}"] = float(2 * np.logical_and(a, b).sum() / (a.sum() + b.sum()))
+        dice[regions[r]["name"]] = float(2 * np.logical_and(a, b).sum() / (a.sum() + b.sum()))
     return dice, len(seg.SegmentSequence), n
 
 
@@ -493,10 +495,12 @@ def main():
         job_id = job_name.split("/")[1]
         # The job's own label map, fetched as any client would (not read from the data dir).
         fetched = os.path.join(tmp, "fetched")
-        r = b.cli("fetch", job_id, "--out", fetched, "--only", "labels.nii.gz")
-        check(r.returncode == 0, f"decima fetch labels.nii.gz: {r.stderr}")
+        r = b.cli("fetch", job_id, "--out", fetched, "--only", "labels.nii.gz", "metrics.json")
+        check(r.returncode == 0, f"decima fetch labels.nii.gz metrics.json: {r.stderr}")
         labels = read_nifti(os.path.join(fetched, "labels.nii.gz"))
-        dice, segments, frames = seg_dice(seg_path, small_files, labels)
+        with open(os.path.join(fetched, "metrics.json")) as f:
+            regions = json.load(f)["regions"]
+        dice, segments, frames = seg_dice(seg_path, small_files, labels, regions)
         check(all(v == 1.0 for v in dice.values()), f"Dice {dice}")
         figures["seg_dice"] = dice
         figures["seg_segments"], figures["seg_frames"] = segments, frames

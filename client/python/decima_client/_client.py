@@ -41,7 +41,7 @@ _WEIGHTS = {"w_r": "regional", "regional": "regional", "w_g": "gradient", "gradi
             "w_s": "shape", "shape": "shape", "w_v": "volume", "volume": "volume",
             "w_n": "neighbour", "neighbour": "neighbour"}
 # submit() keywords: the JobSpec field each sets (the CLI's flag names are accepted too).
-_SPEC_KEYS = {"regions": "regions", "class_means": "class_means",
+_SPEC_KEYS = {"regions": "regions", "class_means": "class_means", "region_names": "region_names",
               "target_reduction": "target_reduction", "reduction": "target_reduction",
               "error_tolerance": "error_tolerance", "tolerance": "error_tolerance",
               "policy": "policy", "weights": "weights", "views": "views",
@@ -469,6 +469,14 @@ class Client:
                     out.outputs.extend(_names(value, key))
                 elif field == "class_means":
                     out.class_means.extend(float(v) for v in value)
+                elif field == "region_names":
+                    # Kept as given (the server checks them and names the bad one); as the
+                    # CLI, the names set K when regions is not given.
+                    if isinstance(value, str):
+                        value = value.split(",")
+                    out.region_names.extend(str(v) for v in value)
+                    if "regions" not in spec:
+                        out.regions = len(out.region_names)
                 else:
                     setattr(out, field, value)
             except errors.DecimaError:
@@ -482,7 +490,8 @@ class Client:
         and queues a job; returns its Job.
 
         spec: the job's parameters (decima.v1.JobSpec; unset ones take the server's
-        defaults): regions, class_means, target_reduction (or reduction), error_tolerance (or
+        defaults): regions, class_means, region_names (["air", "brain", "bone"] or
+        "air,brain,bone": one per region, in label order), target_reduction (or reduction), error_tolerance (or
         tolerance), policy ("field", "paper", "tetfusion"), weights ({"w_r": 10, ...}),
         views (["anterior", "30:20"] or "anterior,lateral"), image_size, transfer_function,
         outputs (["vtu", "labels", ...]), vtu_compression_level (or vtu_level).

@@ -68,6 +68,17 @@ def stats(path):
             print(f"{kind}_array {name} {arr.GetDataTypeAsString()} {arr.GetNumberOfTuples()}")
             print(f"sum_{name}", repr(float(finite.sum())))
             print(f"nonfinite_{name}", int(values.size - finite.size))
+    # Field data (the region table): strings one per line, numbers comma-separated per tuple.
+    fd = grid.GetFieldData()
+    for i in range(fd.GetNumberOfArrays()):
+        arr = fd.GetAbstractArray(i)
+        name = arr.GetName()
+        if arr.IsA("vtkStringArray"):
+            for t in range(arr.GetNumberOfValues()):
+                print(f"field_{name}_{t}", arr.GetValue(t))
+        else:
+            for t in range(arr.GetNumberOfTuples()):
+                print(f"field_{name}_{t}", ",".join(str(int(v)) for v in arr.GetTuple(t)))
 
 
 def rewrite(src, outdir):

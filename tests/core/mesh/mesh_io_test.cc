@@ -10,6 +10,7 @@
 #include <fstream>
 #include <limits>
 #include <map>
+#include <set>
 #include <sstream>
 #include <string>
 #include <vector>
@@ -123,7 +124,8 @@ std::map<std::string, std::string> ParseFacts(const std::string& text) {
     if (key == "name") {  // "name <dim> <tag> <name>" -> "name <tag>" = "<dim> <name>"
       std::istringstream fields(value);
       std::string dim, tag, name;
-      fields >> dim >> tag >> name;
+      fields >> dim >> tag;
+      std::getline(fields >> std::ws, name);  // names may hold spaces
       key += " " + tag;
       value = dim + " " + name;
     } else if (key == "physical" || key == "elementary" || key == "point_array" ||
@@ -459,6 +461,70 @@ TEST(MeshIo, GmshReadsOurMshWithRegionsAsPhysicalGroups) {
         EXPECT_EQ(f.Num("elementary " + std::to_string(r + 1)), n) << "region " << r;
         EXPECT_EQ(f.facts.at("name " + std::to_string(r + 1)), "3 region_" + std::to_string(r));
       }
+    }
+  }
+}
+
+RegionTable NamedRegions(const TetMesh& m) {
+  int k = 0;
+  for (uint8_t r : m.cell_regions) k = std::max(k, r + 1);
+  std::vector<std::string> names = {"air", "soft \"tissue\"", "bone", "Gehirn \xC3\xBC"};
+  names.resize(std::max(k, 1));
+  for (int r = 4; r < k; ++r) names[r] = "r" + std::to_string(r);
+  RegionTable t;
+  EXPECT_TRUE(MakeRegionTable(std::vector<double>(names.size(), 0),
+                              std::vector<int64_t>(names.size(), 1), false, names, &t)
+                  .ok());
+  return t;
+}
+
+// The region table as field data: VTK reads back every name (UTF-8 too), label and colour, and
+// ReadVtu still reads the file.
+TEST(MeshIo, VtkReadsTheRegionNamesAndColoursFromTheVtuFieldData) {
+  const std::string python = PythonWithVtk();
+  if (python.empty()) GTEST_SKIP() << "no python3 with the vtk module (Debian python3-vtk9)";
+  const fs::path dir = testing::MakeScratchDir("vtu_regions");
+  const TetMesh m = PhantomMesh();
+  const RegionTable t = NamedRegions(m);
+  ASSERT_GE(t.regions.size(), 3u);
+  for (bool compress : {false, true}) {
+    const fs::path p = dir / (compress ? "z.vtu" : "raw.vtu");
+    ASSERT_TRUE(WriteVtu(m, p, {.compress = compress, .regions = &t}).ok());
+    auto [rc, out] =
+        RunCommand(python + " " + Quote(Script("check_vtu.py")) + " stats " + Quote(p));
+    ASSERT_EQ(rc, 0) << out;
+    const auto f = ParseFacts(out);
+    for (size_t r = 0; r < t.regions.size(); ++r) {
+      const std::string i = std::to_string(r);
+      EXPECT_EQ(f.at("field_region_names_" + i), t.regions[r].name) << out;
+      EXPECT_EQ(f.at("field_region_labels_" + i), i);
+      const auto& c = t.regions[r].rgb;
+      EXPECT_EQ(f.at("field_region_colors_" + i),
+                std::to_string(c[0]) + "," + std::to_string(c[1]) + "," + std::to_string(c[2]));
+    }
+    auto back = ReadVtu(p);
+    ASSERT_TRUE(back.ok()) << back.status();
+    EXPECT_EQ(back->cell_regions, m.cell_regions);
+  }
+}
+
+TEST(MeshIo, GmshReadsTheRegionNamesAsPhysicalNames) {
+  const std::string gmsh = GmshBinary();
+  if (gmsh.empty()) GTEST_SKIP() << "gmsh not found on PATH (Debian package gmsh)";
+  const std::string python = AnyPython();
+  if (python.empty()) GTEST_SKIP() << "no python3 to run check_gmsh.py";
+  const fs::path dir = testing::MakeScratchDir("gmsh_names");
+  const TetMesh m = PhantomMesh();
+  const RegionTable t = NamedRegions(m);
+  std::set<int> present(m.cell_regions.begin(), m.cell_regions.end());
+  for (bool binary : {true, false}) {
+    const fs::path p = dir / (binary ? "bin.msh" : "ascii.msh");
+    ASSERT_TRUE(WriteGmsh(m, p, {.binary = binary, .regions = &t}).ok());
+    const GmshFacts f = RunGmsh(python, gmsh, p);
+    for (int r : present) {
+      std::string want = t.regions[r].name;
+      std::replace(want.begin(), want.end(), '"', '\'');  // a quote would end Gmsh's string
+      EXPECT_EQ(f.facts.at("name " + std::to_string(r + 1)), "3 " + want) << p;
     }
   }
 }

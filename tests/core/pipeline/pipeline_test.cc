@@ -91,14 +91,128 @@ TEST(RunJob, StlOutputWritesOneClosedSurfacePerRegion) {
   ASSERT_TRUE(result.ok()) << result.status();
   std::set<std::string> names;
   for (const auto& a : result->artifacts) names.insert(a.name);
-  EXPECT_EQ(names, (std::set<std::string>{"surface-region_0.stl", "surface-region_1.stl",
-                                          "surface-region_2.stl", "surfaces.glb", "metrics.json"}));
+  // Not CT-like (no value below -500): neutral names by intensity rank.
+  EXPECT_EQ(names, (std::set<std::string>{"surface-region_1_darkest.stl", "surface-region_2.stl",
+                                          "surface-region_3_brightest.stl", "surfaces.glb",
+                                          "metrics.json"}));
   for (const auto& a : result->artifacts) {
     if (a.name == "metrics.json" || a.name == "surfaces.glb") continue;
     // 84 bytes of header and count, 50 per triangle, and a closed surface has some.
     EXPECT_GT(a.size_bytes, 84u + 50u * 4u) << a.name;
     EXPECT_EQ((a.size_bytes - 84) % 50, 0u) << a.name;
   }
+}
+
+// The phantom with Hounsfield-like means: air outside, a bone shell, soft tissue inside.
+fs::path HuPhantomFile(const fs::path& dir) {
+  HeadPhantomOptions o;
+  o.dims = {24, 24, 20};
+  o.spacing = {2, 2, 2};
+  o.noise_sigma = 20;
+  o.region_means = {-1000, 900, 40};
+  auto p = MakeHeadPhantom(o);
+  EXPECT_TRUE(p.ok()) << p.status();
+  const fs::path path = dir / "hu-phantom.nii.gz";
+  EXPECT_TRUE(io::WriteNifti(p->image, path).ok());
+  return path;
+}
+
+std::string FileText(const fs::path& p) {
+  std::ifstream in(p, std::ios::binary);
+  return {std::istreambuf_iterator<char>(in), std::istreambuf_iterator<char>()};
+}
+
+// True if `image` holds a solid n x n block of colour `c` (a legend swatch: the montage's tints
+// are blends and its interface lines one pixel wide).
+bool HasSolidBlock(const Image& image, const std::array<uint8_t, 3>& c, int n) {
+  auto is = [&](int x, int y) {
+    const uint8_t* p = &image.pixels[(static_cast<size_t>(y) * image.width + x) * image.channels];
+    return p[0] == c[0] && p[1] == c[1] && p[2] == c[2];
+  };
+  for (int y = 0; y + n <= image.height; ++y) {
+    for (int x = 0; x + n <= image.width; ++x) {
+      bool all = true;
+      for (int dy = 0; dy < n && all; ++dy) {
+        for (int dx = 0; dx < n && all; ++dx) all = is(x + dx, y + dy);
+      }
+      if (all) return true;
+    }
+  }
+  return false;
+}
+
+// One region table per job: the CT rule's names and the Okabe-Ito colours are the same in
+// metrics.json, mesh.vtu's field data, mesh.msh's physical names, the STL file names, the glTF's
+// nodes and segmentation.png's legend.
+TEST(RunJob, HuLikeRegionsAreNamedAirSoftTissueBoneInEveryArtifact) {
+  const fs::path dir = decima::testing::MakeScratchDir("pipeline");
+  JobSpec spec = SmallSpec(HuPhantomFile(dir));
+  spec.outputs = {"vtu", "msh", "stl", "glb", "segmentation", "report"};
+  auto result = RunJob(spec, dir / "out", nullptr, nullptr);
+  ASSERT_TRUE(result.ok()) << result.status();
+  const std::vector<std::string> want = {"air", "soft tissue", "bone"};
+  auto m = nlohmann::json::parse(result->metrics_json);
+  EXPECT_EQ(m["region_naming"], "ct-hu");
+  ASSERT_EQ(m["regions"].size(), 3u);
+  ASSERT_EQ(result->regions.regions.size(), 3u);
+  for (size_t r = 0; r < 3; ++r) {
+    EXPECT_EQ(m["regions"][r]["name"], want[r]);
+    EXPECT_EQ(m["regions"][r]["label"], r);
+    EXPECT_EQ(result->regions.regions[r].name, want[r]);
+  }
+  EXPECT_EQ(m["regions"][0]["dicom_seg"], false);  // air is left out of a SEG
+  std::set<std::string> names;
+  for (const auto& a : result->artifacts) names.insert(a.name);
+  for (const char* f : {"surface-air.stl", "surface-soft_tissue.stl", "surface-bone.stl"}) {
+    EXPECT_TRUE(names.count(f)) << f;
+  }
+  // STL headers hold the names too.
+  EXPECT_EQ(FileText(dir / "out" / "surface-soft_tissue.stl").substr(0, 34),
+            "decima region surface: soft tissue");
+  const std::string msh = FileText(dir / "out" / "mesh.msh");
+  const std::string vtu = FileText(dir / "out" / "mesh.vtu");
+  const std::string glb = FileText(dir / "out" / "surfaces.glb");
+  const std::string html = FileText(dir / "out" / "report.html");
+  for (size_t r = 0; r < 3; ++r) {
+    EXPECT_THAT(msh, HasSubstr("3 " + std::to_string(r + 1) + " \"" + want[r] + "\"\n"));
+    std::string codes;
+    for (char c : want[r]) codes += std::to_string(int(c)) + " ";
+    EXPECT_THAT(vtu, HasSubstr(codes + "0 ")) << want[r];
+    EXPECT_THAT(glb, HasSubstr("{\"name\":\"" + want[r] + "\",\"mesh\":")) << want[r];
+    EXPECT_THAT(html, HasSubstr("<td>" + want[r] + "</td>"));
+  }
+  EXPECT_THAT(vtu, HasSubstr("Name=\"region_names\""));
+  auto png = ReadPng(dir / "out" / "segmentation.png");
+  ASSERT_TRUE(png.ok()) << png.status();
+  for (const RegionInfo& r : result->regions.regions) {
+    EXPECT_TRUE(HasSolidBlock(*png, r.rgb, 16 /* pictures.h kLegendSwatch */))
+        << r.name << ": no swatch";
+  }
+  auto text = ReadPngText(dir / "out" / "segmentation.png");
+  ASSERT_TRUE(text.ok());
+  bool listed = false;
+  for (const auto& [k, v] : *text)
+    listed |= k == "decima:region_names" && v == "air\nsoft tissue\nbone";
+  EXPECT_TRUE(listed);
+}
+
+// The user's names replace the rule's everywhere; the rule's colours stay.
+TEST(RunJob, UserRegionNamesNameTheSurfacesAndPhysicalGroups) {
+  const fs::path dir = decima::testing::MakeScratchDir("pipeline");
+  JobSpec spec = SmallSpec(HuPhantomFile(dir));
+  spec.outputs = {"msh", "stl"};
+  spec.region_names = {"outside", "Brain", "skull/bone"};
+  auto result = RunJob(spec, dir / "out", nullptr, nullptr);
+  ASSERT_TRUE(result.ok()) << result.status();
+  std::set<std::string> names;
+  for (const auto& a : result->artifacts) names.insert(a.name);
+  EXPECT_EQ(names, (std::set<std::string>{"surface-outside.stl", "surface-brain.stl",
+                                          "surface-skull_bone.stl", "mesh.msh", "metrics.json"}));
+  const std::string msh = FileText(dir / "out" / "mesh.msh");
+  EXPECT_THAT(msh, HasSubstr("3 2 \"Brain\"\n"));
+  auto m = nlohmann::json::parse(result->metrics_json);
+  EXPECT_EQ(m["region_naming"], "user");
+  EXPECT_EQ(m["regions"][2]["name"], "skull/bone");
 }
 
 // The levels output: mesh.levels is the record of a run down to the floor, the same for every
@@ -311,6 +425,22 @@ TEST(ValidateJobSpec, NamesTheFieldOfEachBadValue) {
       {"views", [](JobSpec& s) { s.views = {"upside-down"}; }},
       {"image_size", [](JobSpec& s) { s.image_size = 8; }},
       {"transfer_function", [](JobSpec& s) { s.transfer_function = "neon"; }},
+      {"region_names",
+       [](JobSpec& s) {
+         s.region_names = {"air", "bone"};
+       }},
+      {"region_names[1]",
+       [](JobSpec& s) {
+         s.region_names = {"air", "", "bone"};
+       }},
+      {"region_names[2]",
+       [](JobSpec& s) {
+         s.region_names = {"air", "bone", "AIR"};
+       }},
+      {"region_names[0]",
+       [](JobSpec& s) {
+         s.region_names = {"a\x1b[31m", "b", "c"};
+       }},
   };
   for (const auto& c : cases) {
     JobSpec s;
@@ -321,6 +451,8 @@ TEST(ValidateJobSpec, NamesTheFieldOfEachBadValue) {
     EXPECT_EQ(field, c.field);
   }
   JobSpec ok;
+  EXPECT_TRUE(ValidateJobSpec(ok).ok());
+  ok.region_names = {"air", "brain", "bone"};
   EXPECT_TRUE(ValidateJobSpec(ok).ok());
   ok.target_reduction = 0;  // no target: a real value
   EXPECT_TRUE(ValidateJobSpec(ok).ok());

@@ -10,6 +10,12 @@
 
 #include "core/io/dicom.h"
 #include "core/io/dicom_export.h"
+#include "core/volume/regions.h"
+#include "dcmtk/config/osconfig.h"
+#include "dcmtk/dcmdata/dcdeftag.h"
+#include "dcmtk/dcmdata/dcfilefo.h"
+#include "dcmtk/dcmdata/dcitem.h"
+#include "dcmtk/dcmdata/dcsequen.h"
 #include "gmock/gmock.h"
 #include "gtest/gtest.h"
 #include "server/dicom/dicom_receiver.h"
@@ -183,6 +189,68 @@ TEST(DicomExportTest, RegionSurfacesAreEncapsulatedStlInstancesDciodvfyAccepts) 
   auto bad = io::WriteDicomResults(o);
   EXPECT_EQ(bad.status().code(), absl::StatusCode::kInvalidArgument);
   EXPECT_THAT(bad.status().message(), HasSubstr("surface-bad.stl: not a binary STL"));
+}
+
+// The SEG says what the region table says: segment labels are the names, soft tissue and bone
+// are coded as such (SCT), air gets no segment, and each segment carries its colour. Read back
+// with DCMTK.
+TEST(DicomExportTest, SegmentsAreTheRegionTablesNamesCodesAndColoursWithoutAir) {
+  const fs::path dir = testing::MakeScratchDir("dicom_export_names");
+  testing::SliceSpec base;
+  base.rows = 6;
+  base.columns = 5;
+  fs::create_directories(dir / "src");
+  testing::WriteSeries(dir / "src", base, {1, 1, 1});
+  auto image = ReadDicomSeries(dir / "src");
+  ASSERT_TRUE(image.ok()) << image.status();
+  Volume labels = *image;
+  labels.type = VoxelType::kUInt8;
+  labels.bytes.assign(labels.voxel_count(), 0);
+  for (int64_t v = 0; v < labels.voxel_count(); ++v) labels.bytes[v] = v % 3;
+  RegionTable table;
+  ASSERT_TRUE(MakeRegionTable({-1000, 40, 800}, {10, 10, 10}, true, {}, &table).ok());
+  table.regions[1].name = "brain tissue";  // as a user's name would be
+  io::DicomExportOptions o;
+  o.source_dir = dir / "src";
+  o.labels = &labels;
+  o.regions = &table;
+  o.out_dir = dir / "out";
+  auto written = io::WriteDicomResults(o);
+  ASSERT_TRUE(written.ok()) << written.status();
+  EXPECT_EQ(written->segments, 2);
+
+  DcmFileFormat file;
+  ASSERT_TRUE(file.loadFile(written->segmentation.c_str()).good());
+  DcmSequenceOfItems* segments = nullptr;
+  ASSERT_TRUE(file.getDataset()->findAndGetSequence(DCM_SegmentSequence, segments).good());
+  ASSERT_EQ(segments->card(), 2u);
+  std::vector<std::string> names, types, categories;
+  for (unsigned long i = 0; i < segments->card(); ++i) {
+    DcmItem* item = segments->getItem(i);
+    OFString label, type, category;
+    ASSERT_TRUE(item->findAndGetOFString(DCM_SegmentLabel, label).good());
+    DcmItem* type_item = nullptr;
+    ASSERT_TRUE(
+        item->findAndGetSequenceItem(DCM_SegmentedPropertyTypeCodeSequence, type_item).good());
+    ASSERT_TRUE(type_item->findAndGetOFString(DCM_CodeValue, type).good());
+    DcmItem* category_item = nullptr;
+    ASSERT_TRUE(
+        item->findAndGetSequenceItem(DCM_SegmentedPropertyCategoryCodeSequence, category_item)
+            .good());
+    ASSERT_TRUE(category_item->findAndGetOFString(DCM_CodeMeaning, category).good());
+    Uint16 lab[3] = {0, 0, 0};
+    for (unsigned long c = 0; c < 3; ++c) {
+      EXPECT_TRUE(item->findAndGetUint16(DCM_RecommendedDisplayCIELabValue, lab[c], c).good())
+          << label;
+    }
+    EXPECT_GT(lab[0], 0) << label << ": no colour";
+    names.push_back(label.c_str());
+    types.push_back(type.c_str());
+    categories.push_back(category.c_str());
+  }
+  EXPECT_EQ(names, (std::vector<std::string>{"brain tissue", "bone"}));
+  EXPECT_EQ(types, (std::vector<std::string>{"87784001", "3138006"}));
+  EXPECT_EQ(categories, (std::vector<std::string>{"Tissue", "Tissue"}));
 }
 
 TEST(DicomExportTest, NewUidsAreUuidDerivedAndDistinct) {

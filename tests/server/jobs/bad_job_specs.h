@@ -51,6 +51,37 @@ inline std::vector<BadJobSpec> BadJobSpecs() {
        [](S s) {
          for (int i = 0; i < 1000; ++i) s->add_class_means(i);
        }},
+      {"region names: 2 for 3 regions", "spec.region_names",
+       [](S s) {
+         s->add_region_names("air");
+         s->add_region_names("bone");
+       }},
+      {"region names: 3 for 4 regions", "spec.region_names",
+       [](S s) {
+         s->set_regions(4);
+         for (const char* n : {"a", "b", "c"}) s->add_region_names(n);
+       }},
+      {"region names: an empty one", "spec.region_names[1]",
+       [](S s) {
+         for (const char* n : {"air", "", "bone"}) s->add_region_names(n);
+       }},
+      {"region names: a duplicate", "spec.region_names[2]",
+       [](S s) {
+         for (const char* n : {"air", "bone", "Air"}) s->add_region_names(n);
+       }},
+      {"region names: a control character", "spec.region_names[0]",
+       [](S s) {
+         for (const char* n : {"a\nb", "brain", "bone"}) s->add_region_names(n);
+       }},
+      {"region names: 65 bytes", "spec.region_names[2]",
+       [](S s) {
+         for (const char* n : {"air", "brain"}) s->add_region_names(n);
+         s->add_region_names(std::string(65, 'x'));
+       }},
+      {"region names: 1000 of them", "spec.region_names",
+       [](S s) {
+         for (int i = 0; i < 1000; ++i) s->add_region_names(std::to_string(i));
+       }},
       {"target_reduction NaN", "spec.target_reduction", [](S s) { s->set_target_reduction(kNaN); }},
       {"target_reduction +inf", "spec.target_reduction",
        [](S s) { s->set_target_reduction(kInf); }},
