@@ -38,6 +38,11 @@ struct JobSpec {
   // mesh at any reduction down to it can be had later without another job. The run then goes to
   // this floor (or to target_reduction if deeper), and the job's mesh is the level of the record.
   double record_levels_to = 0.9;
+  // A PSNR floor in dB (field policy only; finite, > 0): the job keeps the deepest level of its
+  // collapse record whose field measures >= this against the original grid (the metrics.json
+  // "fidelity.psnr_db"), found by bisection (psnr_floor.h). target_reduction stays the maximum:
+  // whichever stops first wins. Unset: no floor.
+  std::optional<double> min_psnr;
   // Rendering.
   std::vector<std::string> views{"anterior"};  // 1..16 names ParseView accepts
   int image_size = 512;                        // pixels, 16..4096
