@@ -731,6 +731,11 @@ JobSummary SummarizeJob(const v1::Job& job, int64_t input_bytes) {
     size_t v = m.find_first_not_of(" :", at + 16);
     s.reached_target = v == std::string::npos || m.compare(v, 5, "false") != 0;
   }
+  at = m.find("\"stop_reason\"");
+  if (at != std::string::npos) {
+    const size_t v = m.find('"', m.find(':', at) + 1);
+    s.stopped_by_floor = v != std::string::npos && m.compare(v, 10, "\"min_psnr\"") == 0;
+  }
   at = m.find("\"stop_message\"");
   if (at != std::string::npos) {
     size_t q = m.find('"', m.find(':', at) + 1);
@@ -756,7 +761,9 @@ std::vector<std::string> SummaryLines(const JobSummary& s) {
     sizes += buf;
   }
   out.push_back(sizes);
-  if (!s.reached_target) {
+  if (s.stopped_by_floor) {
+    out.push_back("stopped by the PSNR floor: " + s.stop_message);
+  } else if (!s.reached_target) {
     out.push_back("WARNING: the reduction target was not reached (" + s.stop_message +
                   "); exit code 10");
   }

@@ -106,8 +106,13 @@ struct JobSummary {
   double target_reduction = 0, achieved_reduction = 0;
   int64_t cells_before = 0, cells_after = 0;
   bool reached_target = true;
+  // The job's PSNR floor (JobSpec.min_psnr) stopped it before the target: what was asked for, so
+  // no warning and exit code 0 (the target is the maximum, the floor may stop earlier).
+  bool stopped_by_floor = false;
   std::string stop_message;
   int64_t artifact_bytes = 0, input_bytes = 0;
+  // The job did what its spec asked: the target reached, or the PSNR floor stopped it first.
+  bool Met() const { return reached_target || stopped_by_floor; }
 };
 JobSummary SummarizeJob(const v1::Job& job, int64_t input_bytes);
 std::vector<std::string> SummaryLines(const JobSummary& s);

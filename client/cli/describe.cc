@@ -57,6 +57,7 @@ void DescribeJob(CliContext& ctx, const v1::Job& j) {
   std::printf("  outputs %s, vtu_compression_level %d\n",
               outputs.empty() ? "(default)" : outputs.c_str(), s.vtu_compression_level());
   if (!s.label_map().empty()) std::printf("  label_map %s\n", s.label_map().c_str());
+  if (s.has_min_psnr()) std::printf("  min_psnr %g dB\n", s.min_psnr());
   std::printf("Times:\n");
   std::printf("  created %s, started %s, ended %s\n", FormatTime(j.create_time()).c_str(),
               FormatTime(j.start_time()).c_str(), FormatTime(j.end_time()).c_str());
@@ -95,7 +96,7 @@ int PrintSummary(CliContext& ctx, const v1::Job& job) {
     if (!ctx.flags.quiet || l.rfind("WARNING", 0) == 0)
       std::fprintf(stderr, "decima: %s\n", l.c_str());
   }
-  return s.reached_target ? kOk : kTargetNotReached;
+  return s.Met() ? kOk : kTargetNotReached;
 }
 
 }  // namespace decima::client

@@ -121,9 +121,8 @@ std::vector<WatchOutcome> WatchMany(CliContext& ctx, const std::vector<std::stri
       return;
     }
     const v1::Job& f = out[i].final;
-    out[i].rc = f.state() == v1::SUCCEEDED
-                    ? (SummarizeJob(f, 0).reached_target ? kOk : kTargetNotReached)
-                    : ExitCodeFor(f.state());
+    out[i].rc = f.state() == v1::SUCCEEDED ? (SummarizeJob(f, 0).Met() ? kOk : kTargetNotReached)
+                                           : ExitCodeFor(f.state());
   };
   ArmInterruptMany(ctx, names);
   std::vector<std::thread> threads;

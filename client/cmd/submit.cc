@@ -2,6 +2,7 @@
 // with its data files, a DICOM folder, or a series pulled by --dicomweb) and queues a job;
 // several INPUTs or --each FOLDER: a batch, one job per study found (client/batch.h).
 #include <algorithm>
+#include <cmath>
 #include <cstdlib>
 #include <optional>
 
@@ -26,7 +27,7 @@ struct SubmitOptions {
   fs::path out;
   // Unset options stay unset in the request: the server owns the defaults.
   std::optional<int> regions, image_size, vtu_level;
-  std::optional<double> reduction, tolerance;
+  std::optional<double> reduction, tolerance, min_psnr;
   std::vector<double> class_means;
   std::vector<std::string> weights, views, view_list, outputs, only, region_names;
   std::string region_names_flag;  // split by CheckRegionNames, keeping empty names to refuse
@@ -146,6 +147,7 @@ int FillSpec(const SubmitOptions& o, v1::JobSpec* spec) {
                    : o.policy == "tetfusion" ? v1::TETFUSION
                                              : v1::FIELD);
   if (o.tolerance) spec->set_error_tolerance(*o.tolerance);
+  if (o.min_psnr) spec->set_min_psnr(*o.min_psnr);
   if (!o.weights.empty()) {
     if (int rc = SetWeights(o.weights, spec->mutable_weights()); rc != kOk) return rc;
   }
@@ -350,6 +352,21 @@ struct RemovePulled {
 
 int RunSubmit(CliContext& ctx, SubmitOptions& o) {
   if (int rc = CheckRegionNames(o); rc != kOk) return rc;
+  // Refused before anything is uploaded; the server refuses it too (spec.min_psnr), for clients
+  // that skip this check.
+  if (o.min_psnr && !(std::isfinite(*o.min_psnr) && *o.min_psnr > 0)) {
+    std::fprintf(stderr,
+                 "decima: submit: --min-psnr %g: expected a PSNR floor in dB, finite and > 0\n",
+                 *o.min_psnr);
+    return kUsage;
+  }
+  if (o.min_psnr && o.policy != "field") {
+    std::fprintf(stderr,
+                 "decima: submit: --min-psnr needs --policy field (its recorded levels are "
+                 "searched for the floor), not %s\n",
+                 o.policy.c_str());
+    return kUsage;
+  }
   std::string input;
   RemovePulled pulled;
   // DICOMweb: pull into a folder first, then upload it like any DICOM folder.
@@ -398,6 +415,11 @@ void AddJobFlags(CLI::App* cmd, SubmitOptions& o) {
       ->transform(CLI::IsMember({"paper", "tetfusion", "field"}, CLI::ignore_case))
       ->capture_default_str();
   cmd->add_option("--tolerance", o.tolerance, "error tolerance (>= 0; default 0 = none)");
+  cmd->add_option("--min-psnr", o.min_psnr,
+                  "PSNR floor in dB (field policy): simplify as far as possible while the "
+                  "field's PSNR against the original grid stays >= DB; --reduction is then the "
+                  "maximum (default with a floor: none), whichever stops first wins")
+      ->type_name("DB");
   cmd->add_option("--weight", o.weights,
                   "weight override NAME=VALUE (w_r/regional, w_g/gradient, w_s/shape, "
                   "w_v/volume, w_n/neighbour)");

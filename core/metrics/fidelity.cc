@@ -252,6 +252,32 @@ FaceCounts CountFaces(const TetMesh& mesh, int threads) {
   return total;
 }
 
+absl::StatusOr<FieldError> MeasureFieldError(const Volume& image, const TetMesh& mesh, int threads,
+                                             double inside_tolerance, const CancelToken* cancel,
+                                             GridResample* resample) {
+  DECIMA_ASSIGN_OR_RETURN(GridResample r,
+                          ResampleOnGrid(image, mesh, threads, inside_tolerance, cancel));
+  FieldError f;
+  const int64_t np = image.voxel_count();
+  const auto [lo, hi] = image.ValueRange();
+  f.value_range = hi - lo;
+  f.grid_points = np;
+  double sq = 0;
+  for (int64_t p = 0; p < np; ++p) {
+    if (r.cell[p] < 0) continue;
+    ++f.covered_points;
+    const double e = double(r.values[p]) - image.ValueAt(p);
+    sq += e * e;
+    f.max_abs_error = std::max(f.max_abs_error, std::abs(e));
+  }
+  f.coverage = np > 0 ? double(f.covered_points) / double(np) : 0;
+  f.rmse = f.covered_points > 0 ? std::sqrt(sq / double(f.covered_points)) : 0;
+  f.psnr_db = f.rmse > 0 ? 20.0 * std::log10(f.value_range / f.rmse)
+                         : std::numeric_limits<double>::infinity();
+  if (resample != nullptr) *resample = std::move(r);
+  return f;
+}
+
 absl::StatusOr<FidelityMetrics> MeasureFidelity(const Volume& image, const TetMesh& simplified,
                                                 const FidelityOptions& options,
                                                 const CancelToken* cancel) {
@@ -285,24 +311,18 @@ absl::StatusOr<FidelityMetrics> MeasureFidelity(const Volume& image, const TetMe
   FidelityMetrics m;
   m.vertices = simplified.vertex_count();
   m.cells = simplified.tet_count();
-  DECIMA_ASSIGN_OR_RETURN(GridResample r, ResampleOnGrid(image, simplified, options.threads,
-                                                         options.inside_tolerance, cancel));
+  GridResample r;
+  DECIMA_ASSIGN_OR_RETURN(
+      const FieldError field,
+      MeasureFieldError(image, simplified, options.threads, options.inside_tolerance, cancel, &r));
   const int64_t np = image.voxel_count();
-  const auto [lo, hi] = image.ValueRange();
-  m.value_range = hi - lo;
-  m.grid_points = np;
-  double sq = 0;
-  for (int64_t p = 0; p < np; ++p) {
-    if (r.cell[p] < 0) continue;
-    ++m.covered_points;
-    const double e = double(r.values[p]) - image.ValueAt(p);
-    sq += e * e;
-    m.max_abs_error = std::max(m.max_abs_error, std::abs(e));
-  }
-  m.coverage = np > 0 ? double(m.covered_points) / double(np) : 0;
-  m.rmse = m.covered_points > 0 ? std::sqrt(sq / double(m.covered_points)) : 0;
-  m.psnr_db = m.rmse > 0 ? 20.0 * std::log10(m.value_range / m.rmse)
-                         : std::numeric_limits<double>::infinity();
+  m.grid_points = field.grid_points;
+  m.covered_points = field.covered_points;
+  m.coverage = field.coverage;
+  m.rmse = field.rmse;
+  m.max_abs_error = field.max_abs_error;
+  m.value_range = field.value_range;
+  m.psnr_db = field.psnr_db;
 
   if (options.labels != nullptr) {
     const uint8_t* truth = options.labels->data<uint8_t>();

@@ -37,6 +37,26 @@ absl::StatusOr<GridResample> ResampleOnGrid(const Volume& grid, const TetMesh& m
                                             int threads = 0, double tolerance = 1e-5,
                                             const CancelToken* cancel = nullptr);
 
+// The field's error on the original grid: the figures MeasureFidelity reports as coverage, rmse,
+// max_abs_error, value_range and psnr_db, computed by the same code (MeasureFidelity calls this),
+// so a search that stops on a PSNR floor stops on the number metrics.json shows.
+struct FieldError {
+  int64_t grid_points = 0, covered_points = 0;
+  double coverage = 0;  // covered / grid points
+  double rmse = 0;      // image units, over the covered points
+  double max_abs_error = 0;
+  double value_range = 0;  // max - min of the image
+  double psnr_db = 0;      // 20 log10(range / rmse); +infinity when rmse == 0
+};
+
+// Resamples `mesh` on `image`'s grid (ResampleOnGrid) and compares the field with the image's
+// values. `resample` (when given) receives the resampling, for callers that measure more on it.
+// Errors as ResampleOnGrid's.
+absl::StatusOr<FieldError> MeasureFieldError(const Volume& image, const TetMesh& mesh,
+                                             int threads = 0, double inside_tolerance = 1e-5,
+                                             const CancelToken* cancel = nullptr,
+                                             GridResample* resample = nullptr);
+
 struct FidelityOptions {
   // Ground-truth labels (uint8 on the image grid), e.g. the segmentation; enables Dice, the
   // label mismatch and the interface RMSE. nullptr: those stay empty / 0.

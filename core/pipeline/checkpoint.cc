@@ -250,7 +250,7 @@ absl::StatusOr<SimplifyResult> ParseSimplifyResult(const std::string& bytes) {
   DECIMA_CK(r.Get("max_error", &s.max_error));
   DECIMA_CK(r.GetVector("pass_stats", &s.pass_stats));
   DECIMA_CK(r.Done());
-  if (reason > static_cast<uint8_t>(StopReason::kStalled)) {
+  if (reason > static_cast<uint8_t>(StopReason::kPsnrFloor)) {
     return absl::InvalidArgumentError(absl::StrCat("checkpoint: stop_reason ", int(reason)));
   }
   const int64_t n = s.mesh.vertex_count();

@@ -1,6 +1,7 @@
 #include "core/pipeline/pipeline.h"
 
 #include <algorithm>
+#include <cmath>
 #include <cstdio>
 #include <iterator>
 #include <optional>
@@ -9,6 +10,7 @@
 #include <nlohmann/json.hpp>
 
 #include "absl/strings/str_cat.h"
+#include "absl/strings/str_format.h"
 #include "absl/strings/str_join.h"
 #include "core/common/status.h"
 #include "core/io/dicom.h"
@@ -22,6 +24,7 @@
 #include "core/pipeline/job_run.h"
 #include "core/pipeline/levels_output.h"
 #include "core/pipeline/pictures.h"
+#include "core/pipeline/psnr_floor.h"
 #include "core/pipeline/report.h"
 #include "core/render/camera.h"
 #include "core/render/diff.h"
@@ -100,7 +103,10 @@ std::string SimplifyKey(const JobSpec& spec, const std::string& segment_key) {
                 "|simplify policy=%s target=%.17g tolerance=%.17g w=%.17g,%.17g,%.17g levels=%.17g",
                 SimplifyPolicyName(spec.policy), spec.target_reduction, spec.error_tolerance,
                 spec.weights.shape, spec.weights.volume, spec.weights.neighbour, LevelFloor(spec));
-  return segment_key + buf;
+  std::string key = segment_key + buf;
+  // Only when set, so the keys of jobs without a floor stay what they were.
+  if (spec.min_psnr) absl::StrAppend(&key, absl::StrFormat(" min_psnr=%.17g", *spec.min_psnr));
+  return key;
 }
 
 Json LevelsJson(const LevelsOutput& l) {
@@ -257,16 +263,50 @@ SimplifyOptions SimplifyOptionsOf(const JobSpec& spec) {
   o.error_tolerance = spec.error_tolerance;
   o.weights = spec.weights;
   o.record_levels_to = LevelFloor(spec);
+  // The floor's search records down to its depth; a re-run for the levels output (after a resume)
+  // must record the same collapses, so the depth belongs to the options, not to the search alone.
+  if (spec.min_psnr) {
+    o.record_levels_to = std::max(o.record_levels_to, PsnrSearchDepth(spec.target_reduction));
+  }
   return o;
 }
 
+Json PsnrFloorJson(const PsnrFloorSearch& s) {
+  auto finite = [](double v) { return std::isfinite(v) ? Json(v) : Json(nullptr); };
+  Json probes = Json::array();
+  for (const PsnrProbe& p : s.probes) {
+    probes.push_back({{"kind", p.run ? "run" : "level"},
+                      {"requested", p.requested},
+                      {"reduction", p.reduction},
+                      {"cells", p.cells},
+                      {"psnr_db", finite(p.psnr_db)}});
+  }
+  Json j{{"floor_db", s.floor_db},
+         {"stopped_by_floor", s.floor_stopped},
+         {"kept_kind", s.kept.run ? "run" : "level"},
+         {"kept_reduction", s.kept.reduction},
+         {"kept_psnr_db", finite(s.kept.psnr_db)}};
+  if (s.deeper) {
+    j["deeper_kind"] = s.deeper->run ? "run" : "level";
+    j["deeper_reduction"] = s.deeper->reduction;
+    j["deeper_psnr_db"] = finite(s.deeper->psnr_db);
+  }
+  j["probes"] = probes;
+  j["step"] = kPsnrSearchStep;
+  j["seconds"] = s.seconds;
+  return j;
+}
+
 // simplify: feature-preserving cell collapse down to the target.
-absl::StatusOr<SimplifyResult> SimplifyStage(const JobSpec& spec, const TetMesh& original,
+// With a PSNR floor, the levels of the record searched for the deepest one that keeps it.
+absl::StatusOr<SimplifyResult> SimplifyStage(const JobSpec& spec, const Volume& image,
+                                             const TetMesh& original,
                                              const CheckpointOptions& checkpoints,
                                              const std::string& key, JobRun& run) {
   DECIMA_ASSIGN_OR_RETURN(Stage stage, run.Stage("simplify"));
   const SimplifyOptions options = SimplifyOptionsOf(spec);
   SimplifyResult simplified;
+  std::optional<PsnrFloorSearch> search;
   if (auto saved = Resume(checkpoints, stage, key, &ParseSimplifyResult)) {
     simplified = std::move(*saved);
     run.Resumed("simplify");
@@ -280,14 +320,28 @@ absl::StatusOr<SimplifyResult> SimplifyStage(const JobSpec& spec, const TetMesh&
                             ExtractLevel(original, levels, spec.target_reduction, options.threads,
                                          stage.Forward(), stage.cancel()));
   } else {
-    DECIMA_ASSIGN_OR_RETURN(simplified,
-                            Simplify(original, options, stage.Forward(), stage.cancel()));
+    if (spec.min_psnr) {
+      search.emplace();
+      DECIMA_ASSIGN_OR_RETURN(simplified,
+                              SimplifyToPsnrFloor(image, original, options, *spec.min_psnr,
+                                                  /*refine=*/!Wants(spec, "levels"), &*search,
+                                                  stage.Forward(), stage.cancel()));
+    } else {
+      DECIMA_ASSIGN_OR_RETURN(simplified,
+                              Simplify(original, options, stage.Forward(), stage.cancel()));
+    }
     SaveCheckpoint(checkpoints, stage, key, SerializeSimplifyResult(simplified));
   }
   stage.End();
   run.metrics()["simplification"] =
       SimplifyResultToJson(simplified, options, original.vertex_count());
   if (spec.levels_file) run.metrics()["simplification"]["from_levels"] = true;
+  if (spec.min_psnr) {
+    // A resumed stage has its mesh and stop message but not the probes of the search.
+    run.metrics()["min_psnr"] =
+        search ? PsnrFloorJson(*search)
+               : Json{{"floor_db", *spec.min_psnr}, {"note", "resumed from checkpoint"}};
+  }
   return simplified;
 }
 
@@ -663,12 +717,33 @@ absl::Status ValidateJobSpec(const JobSpec& spec, std::string* field) {
                                   "'levels': this job's mesh comes from a level record; it "
                                   "records none of its own"));
     }
+    if (spec.min_psnr) {
+      return check("min_psnr", absl::InvalidArgumentError(
+                                   "a level job takes its level at target_reduction; a PSNR "
+                                   "floor is searched by a job of its own"));
+    }
     if (!(spec.target_reduction > 0)) {
       return check("target_reduction",
                    absl::InvalidArgumentError(absl::StrCat(
                        spec.target_reduction, ": a level is taken at a reduction in (0, 0.99]")));
     }
   }
+  if (spec.min_psnr) {
+    const double db = *spec.min_psnr;
+    if (!(std::isfinite(db) && db > 0)) {
+      return check("min_psnr", absl::InvalidArgumentError(absl::StrCat(
+                                   db,
+                                   ": expected a PSNR floor in dB, finite and > 0 (unset: "
+                                   "no floor)")));
+    }
+    if (spec.policy != SimplifyPolicy::kField) {
+      return check("min_psnr", absl::InvalidArgumentError(absl::StrCat(
+                                   "needs the field policy, whose recorded levels the floor is "
+                                   "searched in; the policy is ",
+                                   SimplifyPolicyName(spec.policy))));
+    }
+  }
+
   if (spec.views.empty() || spec.views.size() > 16) {
     return check("views", absl::InvalidArgumentError(
                               absl::StrCat(spec.views.size(), " views, expected 1..16")));
@@ -733,7 +808,7 @@ absl::StatusOr<JobResult> RunJob(const JobSpec& spec, const std::filesystem::pat
   DECIMA_ASSIGN_OR_RETURN(const RegionTable regions, RegionTableOf(spec, image, seg, run));
   DECIMA_ASSIGN_OR_RETURN(const TetMesh original, TetrahedralizeStage(image, seg, run));
   DECIMA_ASSIGN_OR_RETURN(SimplifyResult simplified,
-                          SimplifyStage(spec, original, checkpoints, simplify_key, run));
+                          SimplifyStage(spec, image, original, checkpoints, simplify_key, run));
   DECIMA_ASSIGN_OR_RETURN(const int64_t mesh_bytes,
                           WriteStage(spec, original, simplified, regions, run));
   DECIMA_ASSIGN_OR_RETURN(

@@ -46,6 +46,11 @@ struct JobSpec {
   // The record's digest refuses a base mesh other than the one it was made on. Field policy
   // only, and no "levels" output of its own.
   std::optional<std::filesystem::path> levels_file;
+  // A PSNR floor in dB (field policy only; finite, > 0): the job keeps the deepest level of its
+  // collapse record whose field measures >= this against the original grid (the metrics.json
+  // "fidelity.psnr_db"), found by bisection (psnr_floor.h). target_reduction stays the maximum:
+  // whichever stops first wins. Unset: no floor.
+  std::optional<double> min_psnr;
   // Rendering.
   std::vector<std::string> views{"anterior"};  // 1..16 names ParseView accepts
   int image_size = 512;                        // pixels, 16..4096

@@ -7,6 +7,7 @@
 
 #include "absl/strings/str_cat.h"
 #include "core/pipeline/pictures.h"
+#include "core/simplify/simplify.h"
 
 namespace decima::pipeline {
 namespace {
@@ -109,7 +110,11 @@ absl::StatusOr<std::string> ReportHtml(const JobSpec& spec, const std::string& i
                   Html(simp["policy"].get<std::string>()),
                   "); mean colour difference of the renders (diff1) ", JsonCell(metrics["diff1"]),
                   " on 0-442.</p>\n");
-  if (!simp["reached_target"].get<bool>()) {
+  if (simp["stop_reason"] == StopReasonName(StopReason::kPsnrFloor)) {
+    // What the job asked for (JobSpec::min_psnr), not a missed target.
+    absl::StrAppend(&h, "<p>Stopped by the PSNR floor: ",
+                    Html(simp["stop_message"].get<std::string>()), "</p>\n");
+  } else if (!simp["reached_target"].get<bool>()) {
     absl::StrAppend(&h, "<p class=\"warn\">The reduction target was not reached: ",
                     Html(simp["stop_message"].get<std::string>()), "</p>\n");
   }

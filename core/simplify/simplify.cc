@@ -221,6 +221,8 @@ const char* StopReasonName(StopReason reason) {
       return "max_passes";
     case StopReason::kStalled:
       return "stalled";
+    case StopReason::kPsnrFloor:
+      return "min_psnr";
   }
   return "?";
 }
@@ -336,6 +338,8 @@ absl::StatusOr<SimplifyResult> Simplify(const TetMesh& mesh, const SimplifyOptio
       result.stop_message = absl::StrCat("target not reached: max_passes = ", options.max_passes,
                                          " ran out; ", achieved);
       break;
+    case StopReason::kPsnrFloor:
+      break;  // never set by Simplify (see the enum); the search that sets it writes the message
   }
   return result;
 }

@@ -121,6 +121,9 @@ enum class StopReason : uint8_t {
   kNoValidCollapse,  // a pass found no collapse the rules and the flip check allow
   kMaxPasses,        // max_passes ran out first
   kStalled,          // the last pass removed fewer than min_pass_gain of the input cells
+  // A job's PSNR floor (pipeline::JobSpec::min_psnr) stopped it: the next level searched measured
+  // below the floor. Simplify itself never returns it; the job's search of the levels does.
+  kPsnrFloor,
 };
 const char* StopReasonName(StopReason reason);
 

@@ -153,6 +153,11 @@ absl::StatusOr<pipeline::JobSpec> JobSpecFromProto(const v1::JobSpec& spec, std:
     }
   }
   if (spec.has_vtu_compression_level()) p.vtu_compression_level = spec.vtu_compression_level();
+  if (spec.has_min_psnr()) {
+    p.min_psnr = spec.min_psnr();
+    // A floor alone asks for "as far as the floor allows", not for the default 50 %.
+    if (!spec.has_target_reduction()) p.target_reduction = 0;
+  }
 
   std::string bad;
   absl::Status st = pipeline::ValidateJobSpec(p, &bad);
@@ -183,6 +188,7 @@ absl::StatusOr<v1::JobSpec> NormalizeJobSpec(const v1::JobSpec& spec, std::strin
   out.set_transfer_function(p->transfer_function);
   for (const auto& o : p->outputs) out.add_outputs(o);
   out.set_vtu_compression_level(p->vtu_compression_level);
+  if (p->min_psnr) out.set_min_psnr(*p->min_psnr);
   out.set_levels_of(spec.levels_of());
   return out;
 }

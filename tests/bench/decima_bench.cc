@@ -2,8 +2,8 @@
 //
 //   decima-bench --input PATH|phantom:NxNxN --stages load,segment,tetra,simplify,render
 //                [--regions K] [--reduction F] [--policy field|paper|tetfusion] [--size W]
-//                [--record-levels-to F [--extract-levels R,...]] [--view NAME] [--repeat N]
-//                --json
+//                [--record-levels-to F [--extract-levels R,...]] [--min-psnr DB] [--view NAME]
+//                [--repeat N] --json
 //
 // Every stage runs --repeat times on the output of the previous stage; `seconds` is the median
 // and `seconds_all` every run. The process's peak resident memory after the stage is reported
@@ -32,6 +32,7 @@
 #include "core/mesh/tetrahedralize.h"
 #include "core/metrics/fidelity.h"
 #include "core/metrics/fidelity_json.h"
+#include "core/pipeline/psnr_floor.h"
 #include "core/render/camera.h"
 #include "core/render/diff.h"
 #include "core/render/renderer.h"
@@ -79,6 +80,8 @@ struct BenchOptions {
   int refit_iterations = SimplifyOptions().refit_iterations;
   double record_levels_to = 0;
   std::vector<double> extract_levels;
+  double min_psnr = 0;  // 0: no floor
+  bool psnr_refine = true;
   int size = 512;
   std::string view = "anterior";
 };
@@ -175,9 +178,13 @@ absl::Status RunSimplify(const BenchOptions& o, BenchState& state, Json& out) {
   so.min_dihedral_degrees = o.min_dihedral;
   so.refit_iterations = o.refit_iterations;
   so.record_levels_to = o.record_levels_to;
+  pipeline::PsnrFloorSearch search;
   absl::Status s = Time(o.repeat, out, [&]() -> absl::Status {
     state.simplified.reset();
-    auto r = Simplify(*state.mesh, so);
+    // With a floor, what a job with JobSpec::min_psnr runs: the search is part of the time.
+    auto r = o.min_psnr > 0 ? pipeline::SimplifyToPsnrFloor(state.image, *state.mesh, so,
+                                                            o.min_psnr, o.psnr_refine, &search)
+                            : Simplify(*state.mesh, so);
     if (!r.ok()) return r.status();
     state.simplified = *std::move(r);
     return absl::OkStatus();
@@ -193,6 +200,26 @@ absl::Status RunSimplify(const BenchOptions& o, BenchState& state, Json& out) {
       out["levels_collapses"] = r.levels->collapses();
       out["levels_deepest_reduction"] = r.levels->deepest_reduction();
       out["levels_file_bytes"] = SerializeLevels(*r.levels).size();
+    }
+  }
+  if (o.min_psnr > 0) {
+    Json probes = Json::array();
+    for (const pipeline::PsnrProbe& p : search.probes) {
+      probes.push_back({{"kind", p.run ? "run" : "level"},
+                        {"requested", p.requested},
+                        {"reduction", p.reduction},
+                        {"cells", p.cells},
+                        {"psnr_db", p.psnr_db}});
+    }
+    out["min_psnr"] = {{"floor_db", search.floor_db},
+                       {"stopped_by_floor", search.floor_stopped},
+                       {"kept_reduction", search.kept.reduction},
+                       {"kept_psnr_db", search.kept.psnr_db},
+                       {"search_seconds", search.seconds},
+                       {"probes", probes}};
+    if (search.deeper) {
+      out["min_psnr"]["deeper_reduction"] = search.deeper->reduction;
+      out["min_psnr"]["deeper_psnr_db"] = search.deeper->psnr_db;
     }
   }
   out["cells_removed_per_second"] = (r.input_cells - r.output_cells) / out["seconds"].get<double>();
@@ -305,6 +332,15 @@ int Main(int argc, char** argv) {
                  "record (comma-separated), with their time and PSNR")
       ->delimiter(',')
       ->check(CLI::Range(0.0, 0.99));
+  app.add_option("--min-psnr", o.min_psnr,
+                 "simplify, field policy: a PSNR floor in dB, as a job's min_psnr (0 = none); "
+                 "--reduction is then the maximum (0: none)")
+      ->check(CLI::Range(0.0, 1e6))
+      ->capture_default_str();
+  app.add_option("--psnr-refine", o.psnr_refine,
+                 "with --min-psnr: 1 = refine the levels' answer with runs (a job without the "
+                 "levels output), 0 = levels only (a job with it)")
+      ->capture_default_str();
   app.add_option("--size", o.size, "render: image width and height in pixels")
       ->check(CLI::Range(16, 4096))
       ->capture_default_str();
@@ -313,6 +349,10 @@ int Main(int argc, char** argv) {
       ->capture_default_str();
   app.add_flag("--json", json, "Print the JSON object (the only output format; kept for scripts)");
   CLI11_PARSE(app, argc, argv);
+  if (!(o.min_psnr >= 0)) {  // NaN passes CLI::Range
+    std::cerr << "decima-bench: --min-psnr: expected a PSNR floor in dB >= 0 (0 = none)\n";
+    return 2;
+  }
 
   const std::vector<std::string> order = {"load", "segment", "tetra", "simplify", "render"};
   std::vector<std::string> requested = absl::StrSplit(stages_arg, ',', absl::SkipEmpty());

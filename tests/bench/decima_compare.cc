@@ -95,7 +95,7 @@ double SecondsSince(std::chrono::steady_clock::time_point start) {
 struct CompareOptions {
   std::string input;
   int regions = 3;
-  std::vector<double> reductions = {0.5, 0.8};
+  std::vector<double> reductions = {0.5, 0.8, 0.9, 0.95};
   std::vector<std::string> policies = {"field", "paper"};
   int repeat = 3;
   int size = 512;
@@ -515,7 +515,7 @@ int Main(int argc, char** argv) {
       "diff1, quality and manifoldness are measured for every method."};
   CompareOptions o;
   o.python = DefaultPython();
-  std::string reductions_arg = "0.5,0.8", policies_arg = "field,paper", json_path, md_path;
+  std::string reductions_arg = "0.5,0.8,0.9,0.95", policies_arg = "field,paper", json_path, md_path;
   app.add_option("--input", o.input, "Volume file, DICOM folder, or phantom:NxNxN (synthetic head)")
       ->required();
   app.add_option("--reductions", reductions_arg, "Comma-separated fractions of cells to remove")

@@ -9,6 +9,7 @@
 #include <sys/inotify.h>
 #include <unistd.h>
 
+#include <cstring>
 #include <fstream>
 #include <nlohmann/json.hpp>
 #include <regex>
@@ -321,6 +322,46 @@ TEST_F(CliE2E, MissedReductionTargetWarnsAndExitsTen) {
     }
   }
   EXPECT_TRUE(summary) << r.out;
+}
+
+// Issue 31 item 4: a bad PSNR floor is refused by the CLI before anything is uploaded (the
+// server refuses it too, tests/server/jobs/bad_job_specs.h), and no job is queued.
+TEST_F(CliE2E, BadMinPsnrIsRefusedAtSubmitAndQueuesNothingAndAFloorStopIsNoWarning) {
+  ServerProcess server(scratch_ / "data");
+  for (const char* bad : {"--min-psnr=nan", "--min-psnr=-5", "--min-psnr=inf", "--min-psnr=0"}) {
+    CliResult r = RunCli(server.address(), {"submit", volume_.string(), bad});
+    EXPECT_EQ(r.rc, 2) << bad << "\n" << r.err;
+    EXPECT_THAT(r.err, HasSubstr("--min-psnr")) << bad;
+    EXPECT_THAT(r.err, HasSubstr("finite and > 0")) << bad;
+  }
+  CliResult r = RunCli(server.address(),
+                       {"submit", volume_.string(), "--min-psnr", "40", "--policy", "paper"});
+  EXPECT_EQ(r.rc, 2) << r.err;
+  EXPECT_THAT(r.err, HasSubstr("--min-psnr needs --policy field"));
+  r = RunCli(server.address(), {"list", "-o", "json"});
+  EXPECT_EQ(r.rc, 0) << r.err;
+  EXPECT_EQ(r.out, "") << "no job queued";
+  EXPECT_TRUE(ListVolumes(server.address()).empty()) << "nothing uploaded";
+  // A floor that stops the job before its target: what was asked for, so exit 0 with the stop
+  // message instead of the target warning (exit 10). The phantom's regions are constant, which a
+  // simplified mesh reproduces exactly (infinite PSNR): noise makes a finite floor bind.
+  std::string noisy = ReadFile(volume_);
+  for (size_t at = 352, k = 0; at + 1 < noisy.size(); at += 2, ++k) {  // int16 after the header
+    int16_t v = 0;
+    std::memcpy(&v, &noisy[at], 2);
+    v = static_cast<int16_t>(v + int((k * 2654435761u) >> 27) - 16);
+    std::memcpy(&noisy[at], &v, 2);
+  }
+  const fs::path noisy_path = scratch_ / "noisy.nii";
+  std::ofstream(noisy_path, std::ios::binary) << noisy;
+  r = RunCli(server.address(), {"submit", noisy_path.string(), "--min-psnr", "1e6", "--reduction",
+                                "0.3", "--watch", "--image-size", "32"});
+  EXPECT_EQ(r.rc, 0) << r.err;
+  EXPECT_THAT(r.err, HasSubstr("stopped by the PSNR floor: PSNR floor 1e+06 dB: kept "));
+  EXPECT_THAT(r.err, Not(HasSubstr("WARNING")));
+  r = RunCli(server.address(), {"status", FirstLine(r.out)});
+  EXPECT_EQ(r.rc, 0) << r.err;
+  EXPECT_THAT(r.out, HasSubstr("min_psnr 1e+06 dB"));
 }
 
 TEST_F(CliE2E, ListIsATableAndJsonLinesWithTheFlagBeforeOrAfterTheVerb) {

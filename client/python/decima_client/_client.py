@@ -15,6 +15,7 @@ Python calls, with the CLI's semantics (client/cmd/, client/cli/, client/client_
 import hashlib
 import json
 import logging
+import math
 import os
 import queue
 import socket
@@ -47,7 +48,7 @@ _SPEC_KEYS = {"regions": "regions", "class_means": "class_means", "region_names"
               "policy": "policy", "weights": "weights", "views": "views",
               "image_size": "image_size", "transfer_function": "transfer_function",
               "outputs": "outputs", "vtu_compression_level": "vtu_compression_level",
-              "vtu_level": "vtu_compression_level"}
+              "vtu_level": "vtu_compression_level", "min_psnr": "min_psnr"}
 # fetch(outputs=...) kinds, as the CLI's --only: kind -> file name.
 _KIND_FILES = {"vtu": "mesh.vtu", "msh": "mesh.msh", "medit": "mesh.mesh", "levels": "mesh.levels",
                "labels": "labels.nii.gz", "segmentation": "segmentation.png",
@@ -477,6 +478,12 @@ class Client:
                     out.region_names.extend(str(v) for v in value)
                     if "regions" not in spec:
                         out.regions = len(out.region_names)
+                elif field == "min_psnr":
+                    # Checked here too so nothing is uploaded for a floor the server refuses.
+                    floor = float(value)
+                    if not (math.isfinite(floor) and floor > 0):
+                        raise ValueError("expected a PSNR floor in dB, finite and > 0")
+                    out.min_psnr = floor
                 else:
                     setattr(out, field, value)
             except errors.DecimaError:
@@ -494,7 +501,9 @@ class Client:
         "air,brain,bone": one per region, in label order), target_reduction (or reduction), error_tolerance (or
         tolerance), policy ("field", "paper", "tetfusion"), weights ({"w_r": 10, ...}),
         views (["anterior", "30:20"] or "anterior,lateral"), image_size, transfer_function,
-        outputs (["vtu", "labels", ...]), vtu_compression_level (or vtu_level).
+        outputs (["vtu", "labels", ...]), vtu_compression_level (or vtu_level), min_psnr (a
+        PSNR floor in dB, field policy: as far as possible while the PSNR stays >= it; the
+        reduction, if given, is the maximum).
         series: the SeriesInstanceUID to use when a DICOM folder holds several.
         label_map: a label map on the same grid (a file), instead of the segmentation.
         request_id: the AIP-155 idempotency key; a retried submit with it returns the same job.

@@ -45,6 +45,9 @@ def test_spec_mistakes_are_refused_before_anything_is_sent(client, tmp_path):
         client.submit(nii, regions="three")
     with pytest.raises(errors.InputError, match="unknown weight 'w_x'"):
         client.submit(nii, weights={"w_x": 1})
+    for bad in (float("nan"), float("inf"), -5.0, 0):
+        with pytest.raises(errors.InputError, match="min_psnr=.*finite and > 0"):
+            client.submit(nii, min_psnr=bad)
     assert volume_names(client) == before
 
 

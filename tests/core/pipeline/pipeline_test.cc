@@ -327,6 +327,43 @@ TEST(RunJob, ALevelOfAnEarlierJobIsTheMeshOfAJobAtThatReduction) {
   EXPECT_EQ(field, "outputs");
 }
 
+// Issue 31 item 4: a job with a PSNR floor says where it stopped and why, in metrics.json and in
+// the simplify stage's last message, and its fidelity figure is the one the search kept.
+TEST(RunJob, APsnrFloorIsReportedWhereItStoppedTheJob) {
+  const fs::path dir = decima::testing::MakeScratchDir("pipeline");
+  JobSpec spec = SmallSpec(PhantomFile(dir));
+  spec.outputs = {"vtu"};
+  spec.target_reduction = 0.9;
+  spec.min_psnr = 1e6;  // no level keeps it: the job keeps the unsimplified mesh
+  std::string last_simplify_message;
+  auto result = RunJob(
+      spec, dir / "out",
+      [&](const Progress& p) {
+        if (p.stage == "simplify") last_simplify_message = p.message;
+      },
+      nullptr);
+  ASSERT_TRUE(result.ok()) << result.status();
+  auto m = nlohmann::json::parse(result->metrics_json);
+  ASSERT_TRUE(m.contains("min_psnr")) << m.dump(1);
+  EXPECT_EQ(m["min_psnr"]["floor_db"].get<double>(), 1e6);
+  EXPECT_TRUE(m["min_psnr"]["stopped_by_floor"].get<bool>());
+  EXPECT_EQ(m["simplification"]["stop_reason"], "min_psnr");
+  EXPECT_FALSE(m["simplification"]["reached_target"].get<bool>());
+  EXPECT_EQ(m["simplification"]["achieved_reduction"].get<double>(), 0);
+  EXPECT_THAT(last_simplify_message, HasSubstr("PSNR floor"));
+  EXPECT_EQ(m["simplification"]["stop_message"].get<std::string>(), last_simplify_message);
+
+  // A reachable floor: the kept level's PSNR is metrics.json's fidelity figure, >= the floor.
+  spec.min_psnr = 20;
+  result = RunJob(spec, dir / "out2", nullptr, nullptr);
+  ASSERT_TRUE(result.ok()) << result.status();
+  m = nlohmann::json::parse(result->metrics_json);
+  const double psnr = m["fidelity"]["psnr_db"].get<double>();
+  EXPECT_GE(psnr, 20);
+  EXPECT_EQ(psnr, m["min_psnr"]["kept_psnr_db"].get<double>());
+  EXPECT_GT(m["simplification"]["achieved_reduction"].get<double>(), 0);
+}
+
 TEST(RunJob, WritesOnlyTheOutputsAskedFor) {
   const fs::path dir = decima::testing::MakeScratchDir("pipeline");
   JobSpec spec = SmallSpec(PhantomFile(dir));
@@ -440,6 +477,14 @@ TEST(ValidateJobSpec, NamesTheFieldOfEachBadValue) {
       {"region_names[0]",
        [](JobSpec& s) {
          s.region_names = {"a\x1b[31m", "b", "c"};
+      {"min_psnr", [](JobSpec& s) { s.min_psnr = std::nan(""); }},
+      {"min_psnr", [](JobSpec& s) { s.min_psnr = -3; }},
+      {"min_psnr", [inf](JobSpec& s) { s.min_psnr = inf; }},
+      {"min_psnr", [](JobSpec& s) { s.min_psnr = 0; }},
+      {"min_psnr",
+       [](JobSpec& s) {
+         s.min_psnr = 40;
+         s.policy = SimplifyPolicy::kPaper;
        }},
   };
   for (const auto& c : cases) {

@@ -120,6 +120,16 @@ inline std::vector<BadJobSpec> BadJobSpecs() {
        [](S s) { s->set_transfer_function("no-such-preset"); }},
       {"transfer_function broken JSON", "spec.transfer_function",
        [](S s) { s->set_transfer_function("{not json"); }},
+      {"min_psnr NaN", "spec.min_psnr", [](S s) { s->set_min_psnr(kNaN); }},
+      {"min_psnr +inf", "spec.min_psnr", [](S s) { s->set_min_psnr(kInf); }},
+      {"min_psnr -inf", "spec.min_psnr", [](S s) { s->set_min_psnr(-kInf); }},
+      {"min_psnr negative", "spec.min_psnr", [](S s) { s->set_min_psnr(-10); }},
+      {"min_psnr 0", "spec.min_psnr", [](S s) { s->set_min_psnr(0); }},
+      {"min_psnr with the paper policy", "spec.min_psnr",
+       [](S s) {
+         s->set_min_psnr(40);
+         s->set_policy(v1::PAPER);
+       }},
   };
 }
 

@@ -73,6 +73,39 @@ TEST(JobSpecFromProto, ExplicitValuesAreKept) {
   EXPECT_EQ(p->transfer_function, "ct-bone");
 }
 
+// Issue 31 item 4: a floor alone means "as far as the floor allows" (target 0, no target), a
+// floor with a reduction keeps the reduction as the maximum; both survive normalization.
+TEST(JobSpecFromProto, MinPsnrAloneDropsTheDefaultTargetAndIsStored) {
+  v1::JobSpec s = Minimal();
+  auto p = JobSpecFromProto(s);
+  ASSERT_TRUE(p.ok()) << p.status();
+  EXPECT_FALSE(p->min_psnr.has_value());
+  s.set_min_psnr(50);
+  p = JobSpecFromProto(s);
+  ASSERT_TRUE(p.ok()) << p.status();
+  ASSERT_TRUE(p->min_psnr.has_value());
+  EXPECT_EQ(*p->min_psnr, 50);
+  EXPECT_EQ(p->target_reduction, 0);
+  s.set_target_reduction(0.8);
+  p = JobSpecFromProto(s);
+  ASSERT_TRUE(p.ok()) << p.status();
+  EXPECT_DOUBLE_EQ(p->target_reduction, 0.8);
+  auto n = NormalizeJobSpec(Minimal());
+  ASSERT_TRUE(n.ok()) << n.status();
+  EXPECT_FALSE(n->has_min_psnr()) << "no floor unless asked for";
+  v1::JobSpec floor_only = Minimal();
+  floor_only.set_min_psnr(42.5);
+  n = NormalizeJobSpec(floor_only);
+  ASSERT_TRUE(n.ok()) << n.status();
+  EXPECT_EQ(n->min_psnr(), 42.5);
+  EXPECT_TRUE(n->has_target_reduction());
+  EXPECT_EQ(n->target_reduction(), 0);
+  auto again = JobSpecFromProto(*n);
+  ASSERT_TRUE(again.ok()) << again.status();
+  EXPECT_EQ(again->target_reduction, 0);
+  EXPECT_EQ(*again->min_psnr, 42.5);
+}
+
 TEST(NormalizeJobSpec, WritesEveryDefaultAndIsIdempotent) {
   auto n = NormalizeJobSpec(Minimal());
   ASSERT_TRUE(n.ok()) << n.status();
