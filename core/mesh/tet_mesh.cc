@@ -16,8 +16,8 @@ namespace {
 // every slot index fits (4 * tets < 2^31, the meshes Simplify takes), halving the counters' memory
 // (134 MB on phantom:256, freshly faulted on every call).
 template <typename Slot>
-void FillAdjacency(const TetMesh& mesh, int threads, VertexTetAdjacency* adj) {
-  const int64_t nv = mesh.vertex_count(), nt = mesh.tet_count();
+void FillAdjacency(const int32_t* cells, int64_t stride, int64_t nv, int64_t nt, int threads,
+                   VertexTetAdjacency* adj) {
   // A counting sort in contiguous chunks of tets, one per thread: each chunk counts its own
   // entries per vertex, then fills its rows' slots after those of the chunks before it. Every
   // chunk visits its tets in increasing id, so each row comes out sorted whatever the number of
@@ -31,7 +31,9 @@ void FillAdjacency(const TetMesh& mesh, int threads, VertexTetAdjacency* adj) {
       Slot* count = &cursor[c * nv];
       std::fill(count, count + nv, 0);
       const auto [t0, t1] = chunk_range(c);
-      for (int64_t i = 4 * t0; i < 4 * t1; ++i) ++count[mesh.tets[i]];
+      for (int64_t t = t0; t < t1; ++t) {
+        for (int q = 0; q < 4; ++q) ++count[cells[stride * t + q]];
+      }
     }
   });
   for (int64_t v = 0; v < nv; ++v) {
@@ -54,7 +56,7 @@ void FillAdjacency(const TetMesh& mesh, int threads, VertexTetAdjacency* adj) {
       Slot* next = &cursor[c * nv];
       const auto [t0, t1] = chunk_range(c);
       for (int64_t t = t0; t < t1; ++t) {
-        for (int q = 0; q < 4; ++q) adj->tet_ids[next[mesh.tets[4 * t + q]]++] = int32_t(t);
+        for (int q = 0; q < 4; ++q) adj->tet_ids[next[cells[stride * t + q]]++] = int32_t(t);
       }
     }
   });
@@ -63,15 +65,20 @@ void FillAdjacency(const TetMesh& mesh, int threads, VertexTetAdjacency* adj) {
 }  // namespace
 
 VertexTetAdjacency BuildVertexTetAdjacency(const TetMesh& mesh, int threads) {
-  const int64_t nv = mesh.vertex_count(), nt = mesh.tet_count();
+  return BuildVertexTetAdjacency(mesh.tets.data(), 4, mesh.vertex_count(), mesh.tet_count(),
+                                 threads);
+}
+
+VertexTetAdjacency BuildVertexTetAdjacency(const int32_t* cells, int64_t stride, int64_t nv,
+                                           int64_t nt, int threads) {
   VertexTetAdjacency adj;
   adj.offsets.resize(nv + 1);  // written below, by the row sums
   adj.offsets[0] = 0;
   adj.tet_ids.resize(4 * nt);  // every slot is written by the fill
   if (4 * nt < std::numeric_limits<int32_t>::max()) {
-    FillAdjacency<int32_t>(mesh, threads, &adj);
+    FillAdjacency<int32_t>(cells, stride, nv, nt, threads, &adj);
   } else {
-    FillAdjacency<int64_t>(mesh, threads, &adj);
+    FillAdjacency<int64_t>(cells, stride, nv, nt, threads, &adj);
   }
   return adj;
 }

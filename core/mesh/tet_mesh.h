@@ -55,6 +55,10 @@ struct VertexTetAdjacency {
 // Builds the CSR adjacency in two counting passes (no per-vertex allocation), each row sorted by
 // tet id; on up to `threads` threads (large meshes), with the same result on any count. O(V + T).
 VertexTetAdjacency BuildVertexTetAdjacency(const TetMesh& mesh, int threads = 1);
+// The same over any cell array whose tet t has its 4 vertices at cells[stride * t .. + 4): the
+// renderer's 8-int cells, so it can free the mesh's own tets before building it.
+VertexTetAdjacency BuildVertexTetAdjacency(const int32_t* cells, int64_t stride, int64_t nv,
+                                           int64_t nt, int threads = 1);
 
 // Signed volume of tet t in mm^3 (positive for a valid mesh).
 double TetVolume(const TetMesh& mesh, int64_t t);

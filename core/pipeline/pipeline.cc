@@ -455,17 +455,27 @@ absl::Status MeasureFidelityStep(const Volume& image, const SegmentResult& seg,
 }
 
 // Every view of the spec, original and simplified with the same camera and transfer function.
-absl::Status RenderViews(const JobSpec& spec, const Volume& image, const TetMesh& original,
-                         const TetMesh& simplified, const Stage& stage, Rendered* out) {
-  stage.Report(0, "building renderable meshes");
-  DECIMA_ASSIGN_OR_RETURN(const RenderableMesh original_r,
-                          BuildRenderableMesh(original, {}, stage.cancel()));
-  DECIMA_ASSIGN_OR_RETURN(const RenderableMesh simplified_r,
-                          BuildRenderableMesh(simplified, {}, stage.cancel()));
+// Memory: the original's renderable mesh (8 int32 per tet plus positions, about 170 bytes per
+// voxel) is the job's largest array, so the original is rendered in every view first and its
+// renderable mesh freed before the simplified one is built; neither ever shares the heap with
+// the other. With `release_original` (no later stage needs it), the original TetMesh is consumed
+// by the build (its arrays freed or moved as they are copied), so the TetMesh, its renderable
+// form and the build's adjacency are never all resident. The pictures do not depend on this.
+absl::Status RenderViews(const JobSpec& spec, const Volume& image, TetMesh& original,
+                         bool release_original, const TetMesh& simplified, const Stage& stage,
+                         Rendered* out) {
+  stage.Report(0, "building the original's renderable mesh");
+  std::optional<RenderableMesh> original_r;
+  if (release_original) {
+    DECIMA_ASSIGN_OR_RETURN(original_r,
+                            BuildRenderableMesh(std::move(original), {}, stage.cancel()));
+  } else {
+    DECIMA_ASSIGN_OR_RETURN(original_r, BuildRenderableMesh(original, {}, stage.cancel()));
+  }
   DECIMA_ASSIGN_OR_RETURN(
       out->transfer_function,
-      ChooseTransferFunction(spec.transfer_function, image, original_r.scalar_range));
-  out->caption.preset = ChosenPresetName(spec.transfer_function, image, original_r.scalar_range);
+      ChooseTransferFunction(spec.transfer_function, image, original_r->scalar_range));
+  out->caption.preset = ChosenPresetName(spec.transfer_function, image, original_r->scalar_range);
   ViewOptions vo;
   vo.width = vo.height = spec.image_size;
   const double steps = 2.0 * spec.views.size();
@@ -474,16 +484,23 @@ absl::Status RenderViews(const JobSpec& spec, const Volume& image, const TetMesh
     v.name = spec.views[i];
     DECIMA_ASSIGN_OR_RETURN(const ViewDirection view, ParseView(v.name));
     // Both renders use the original's bounds so the pictures align pixel by pixel.
-    DECIMA_ASSIGN_OR_RETURN(v.camera, MakeViewCamera(view, original_r.bounds, vo));
+    DECIMA_ASSIGN_OR_RETURN(v.camera, MakeViewCamera(view, original_r->bounds, vo));
     DECIMA_ASSIGN_OR_RETURN(
-        v.original, Render(original_r, v.camera, out->transfer_function, {}, stage.cancel()));
-    stage.Report((2.0 * i + 1) / (steps + 1), absl::StrCat(v.name, ": original rendered"));
+        v.original, Render(*original_r, v.camera, out->transfer_function, {}, stage.cancel()));
+    stage.Report((i + 1.0) / (steps + 1), absl::StrCat(v.name, ": original rendered"));
+    out->views.push_back(std::move(v));
+  }
+  original_r.reset();
+  stage.Report(spec.views.size() / (steps + 1), "building the simplified renderable mesh");
+  DECIMA_ASSIGN_OR_RETURN(const RenderableMesh simplified_r,
+                          BuildRenderableMesh(simplified, {}, stage.cancel()));
+  for (size_t i = 0; i < out->views.size(); ++i) {
+    ViewRender& v = out->views[i];
     DECIMA_ASSIGN_OR_RETURN(
         v.simplified, Render(simplified_r, v.camera, out->transfer_function, {}, stage.cancel()));
     DECIMA_ASSIGN_OR_RETURN(v.diff, Diff(v.original, v.simplified));
-    stage.Report((2.0 * i + 2) / (steps + 1), absl::StrCat(v.name, ": simplified rendered"),
-                 {{"diff1", v.diff.diff1}});
-    out->views.push_back(std::move(v));
+    stage.Report((spec.views.size() + i + 1.0) / (steps + 1),
+                 absl::StrCat(v.name, ": simplified rendered"), {{"diff1", v.diff.diff1}});
   }
   double heat_top = 0;
   for (const ViewRender& v : out->views) heat_top = std::max(heat_top, v.diff.max_diff2);
@@ -535,7 +552,7 @@ PictureCaption CaptionOf(const JobSpec& spec, const SegmentResult& seg,
 // render: fidelity, then every view rendered and measured (diff1 is part of metrics.json); the
 // pictures are written when "images" or "report" is asked for.
 absl::StatusOr<Rendered> RenderStage(const JobSpec& spec, const Volume& image,
-                                     const SegmentResult& seg, const TetMesh& original,
+                                     const SegmentResult& seg, TetMesh& original,
                                      const SimplifyResult& simplified, int64_t mesh_bytes,
                                      JobRun& run, std::vector<ReportPicture>* report) {
   DECIMA_ASSIGN_OR_RETURN(Stage stage, run.Stage("render"));
@@ -543,7 +560,10 @@ absl::StatusOr<Rendered> RenderStage(const JobSpec& spec, const Volume& image,
       MeasureFidelityStep(image, seg, original, simplified, mesh_bytes, stage, run));
   Rendered rendered;
   rendered.caption = CaptionOf(spec, seg, simplified);
-  DECIMA_RETURN_IF_ERROR(RenderViews(spec, image, original, simplified.mesh, stage, &rendered));
+  // Only the curve simplifies the original again after this stage.
+  const bool release_original = !Wants(spec, "curve");
+  DECIMA_RETURN_IF_ERROR(
+      RenderViews(spec, image, original, release_original, simplified.mesh, stage, &rendered));
   Json views = Json::array();
   for (const ViewRender& v : rendered.views) {
     views.push_back({{"view", v.name},
@@ -806,7 +826,8 @@ absl::StatusOr<JobResult> RunJob(const JobSpec& spec, const std::filesystem::pat
   DECIMA_ASSIGN_OR_RETURN(const SegmentResult seg,
                           SegmentStage(spec, image, checkpoints, segment_key, run));
   DECIMA_ASSIGN_OR_RETURN(const RegionTable regions, RegionTableOf(spec, image, seg, run));
-  DECIMA_ASSIGN_OR_RETURN(const TetMesh original, TetrahedralizeStage(image, seg, run));
+  // Not const: the render stage frees it once nothing after it needs the original.
+  DECIMA_ASSIGN_OR_RETURN(TetMesh original, TetrahedralizeStage(image, seg, run));
   DECIMA_ASSIGN_OR_RETURN(SimplifyResult simplified,
                           SimplifyStage(spec, image, original, checkpoints, simplify_key, run));
   DECIMA_ASSIGN_OR_RETURN(const int64_t mesh_bytes,

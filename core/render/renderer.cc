@@ -56,9 +56,13 @@ ScalarRange MeshScalarRange(const TetMesh& mesh) {
   return {*lo, *hi};
 }
 
-absl::StatusOr<RenderableMesh> BuildRenderableMesh(const TetMesh& mesh,
-                                                   const RenderableMeshOptions& options,
-                                                   const CancelToken* cancel) {
+namespace {
+
+// BuildRenderableMesh; with `consume` (== &mesh) the mesh's arrays are freed or moved into the
+// result as soon as they are copied, so the mesh and its renderable form never coexist in full.
+absl::StatusOr<RenderableMesh> BuildRenderable(const TetMesh& mesh, TetMesh* consume,
+                                               const RenderableMeshOptions& options,
+                                               const CancelToken* cancel) {
   const int64_t nv = mesh.vertex_count(), nt = mesh.tet_count();
   if (nv < 4 || mesh.positions.size() != size_t(3 * nv) || mesh.tets.size() % 4 != 0 || nt < 1) {
     return absl::InvalidArgumentError(
@@ -101,14 +105,26 @@ absl::StatusOr<RenderableMesh> BuildRenderableMesh(const TetMesh& mesh,
   DECIMA_RETURN_IF_ERROR(CheckCancelled(cancel, "render"));
 
   RenderableMesh out;
-  out.positions = mesh.positions;
-  out.scalars = mesh.scalars;
+  out.bounds = MeshBounds(mesh);
+  out.scalar_range = MeshScalarRange(mesh);
   out.cells.resize(8 * nt);
   for (int64_t t = 0; t < nt; ++t) {
     std::copy_n(&mesh.tets[4 * t], 4, &out.cells[8 * t]);
     std::fill_n(&out.cells[8 * t + 4], 4, -1);
   }
-  const VertexTetAdjacency adj = BuildVertexTetAdjacency(mesh);
+  if (consume != nullptr) {
+    // The job's original mesh is its largest structure (issue 30): from here on only the
+    // positions and scalars are read, and those move instead of being copied.
+    out.positions = std::move(consume->positions);
+    out.scalars = std::move(consume->scalars);
+    *consume = TetMesh();
+  } else {
+    out.positions = mesh.positions;
+    out.scalars = mesh.scalars;
+  }
+  // Everything below reads the vertices of tet t from cells[8t .. 8t+4) (the same values as
+  // mesh.tets) and positions from `out`, so it works on a consumed mesh.
+  const VertexTetAdjacency adj = BuildVertexTetAdjacency(out.cells.data(), 8, nv, nt);
 
   // Every face is matched around its smallest vertex v: both tets sharing it are incident to v,
   // and each (tet, face) record is written by exactly one v, so threads never collide.
@@ -125,7 +141,7 @@ absl::StatusOr<RenderableMesh> BuildRenderableMesh(const TetMesh& mesh,
       recs.clear();
       for (int64_t e = adj.offsets[v]; e < adj.offsets[v + 1]; ++e) {
         const int32_t t = adj.tet_ids[e];
-        const int32_t* tv = &mesh.tets[4 * int64_t{t}];
+        const int32_t* tv = &out.cells[8 * int64_t{t}];
         for (int q = 0; q < 4; ++q) {
           if (tv[q] == v) continue;  // face q does not contain v
           int32_t o[3], n = 0;
@@ -173,19 +189,35 @@ absl::StatusOr<RenderableMesh> BuildRenderableMesh(const TetMesh& mesh,
     for (int32_t code : part) {
       const int64_t t = code >> 2;
       const int q = code & 3;
-      const int32_t* tv = &mesh.tets[4 * t];
+      const int32_t* tv = &out.cells[8 * t];
       int32_t a = tv[kFaceVerts[q][0]], b = tv[kFaceVerts[q][1]], c = tv[kFaceVerts[q][2]];
       // Wind outwards from the actual geometry, so inverted tets do not flip their faces.
-      const Eigen::Vector3d pa = mesh.Position(a);
-      const Eigen::Vector3d n = (mesh.Position(b) - pa).cross(mesh.Position(c) - pa);
-      if (n.dot(mesh.Position(tv[q]) - pa) > 0) std::swap(b, c);
+      const auto position = [&](int32_t v) {
+        return Eigen::Vector3d(out.positions[3 * int64_t{v}], out.positions[3 * int64_t{v} + 1],
+                               out.positions[3 * int64_t{v} + 2]);
+      };
+      const Eigen::Vector3d pa = position(a);
+      const Eigen::Vector3d n = (position(b) - pa).cross(position(c) - pa);
+      if (n.dot(position(tv[q]) - pa) > 0) std::swap(b, c);
       out.boundary_faces.push_back(code);
       out.boundary_vertices.insert(out.boundary_vertices.end(), {a, b, c});
     }
   }
-  out.bounds = MeshBounds(mesh);
-  out.scalar_range = MeshScalarRange(mesh);
   return out;
+}
+
+}  // namespace
+
+absl::StatusOr<RenderableMesh> BuildRenderableMesh(const TetMesh& mesh,
+                                                   const RenderableMeshOptions& options,
+                                                   const CancelToken* cancel) {
+  return BuildRenderable(mesh, nullptr, options, cancel);
+}
+
+absl::StatusOr<RenderableMesh> BuildRenderableMesh(TetMesh&& mesh,
+                                                   const RenderableMeshOptions& options,
+                                                   const CancelToken* cancel) {
+  return BuildRenderable(mesh, &mesh, options, cancel);
 }
 
 namespace {

@@ -65,6 +65,14 @@ struct RenderableMeshOptions {
 absl::StatusOr<RenderableMesh> BuildRenderableMesh(const TetMesh& mesh,
                                                    const RenderableMeshOptions& options = {},
                                                    const CancelToken* cancel = nullptr);
+// The same, consuming `mesh` once its sizes, indices and values are checked (left empty from then
+// on, also when a non-manifold face is found later; unchanged when a first check fails): its
+// positions and scalars move into the result and its other arrays are freed before the adjacency is
+// built, so the mesh, the result and the adjacency are never all resident (on the 5-tet grid mesh
+// of a job, about 100 bytes per voxel less at the peak). Same result.
+absl::StatusOr<RenderableMesh> BuildRenderableMesh(TetMesh&& mesh,
+                                                   const RenderableMeshOptions& options = {},
+                                                   const CancelToken* cancel = nullptr);
 
 struct RenderOptions {
   // Largest distance between sub-samples of the transfer function inside one tet segment, mm.

@@ -7,9 +7,30 @@
 namespace decima::server {
 namespace {
 
-constexpr int64_t kBaseBytes = int64_t{256} << 20;
-constexpr int64_t kBytesPerVoxel = 512;
+// The job's peak is the largest of its stages' peaks (core/pipeline/README.md, "Memory"), each a
+// fixed part plus a cost per tet of the original 5-tet grid mesh, fitted to the stage peaks that
+// `decima-bench --job-out` measured on the CT head at 128x128x53 and 256x256x113 (50 %, field):
+// simplify holds the original mesh and the engine's arrays; render holds the original's renderable
+// mesh and its vertex-tet adjacency while it is built (the job's peak). The other stages stay
+// below these two (segment ~30, tetra ~120 bytes per voxel). Checked on ch2 and ch2better.
+struct StageModel {
+  int64_t base_bytes;
+  int64_t bytes_per_tet;
+};
+constexpr StageModel kStages[] = {
+    {int64_t{30} << 20, 70},   // simplify
+    {int64_t{132} << 20, 72},  // render
+};
+constexpr int64_t kSaturated = int64_t{1} << 50;
 constexpr int64_t kRuntimeBytes = int64_t{1} << 30;  // libraries, thread stacks, malloc arenas
+
+// Tets of the 5-tet decomposition of the voxel grid: 5 per cube between voxel centres.
+int64_t GridTets(const v1::Volume& volume, int64_t voxels) {
+  if (volume.dims_size() != 3) return 5 * voxels;  // DICOM before parsing: about 5 per voxel
+  int64_t cubes = 1;
+  for (int64_t d : volume.dims()) cubes *= std::max<int64_t>(d - 1, 1);
+  return 5 * cubes;
+}
 
 }  // namespace
 
@@ -18,15 +39,23 @@ int64_t EstimateJobMemoryBytes(const v1::Volume& volume) {
   if (volume.dims_size() == 3) {
     voxels = 1;
     for (int64_t d : volume.dims()) {
-      if (d <= 0) return kBaseBytes;
+      if (d <= 0) return kStages[0].base_bytes;
       // Saturate instead of overflowing: such a volume is refused anyway.
-      voxels = voxels > (int64_t{1} << 50) / d ? (int64_t{1} << 50) : voxels * d;
+      voxels = voxels > kSaturated / d ? kSaturated : voxels * d;
     }
   } else {
     voxels = std::max<int64_t>(volume.size_bytes(), 0) / 2;
   }
-  const int64_t per_voxel = std::min(voxels, (int64_t{1} << 50) / kBytesPerVoxel) * kBytesPerVoxel;
-  return kBaseBytes + per_voxel;
+  if (voxels >= kSaturated / 5) return kSaturated;
+  const int64_t tets = GridTets(volume, voxels);
+  int64_t peak = 0;
+  for (const StageModel& s : kStages) {
+    const int64_t stage = tets >= (kSaturated - s.base_bytes) / s.bytes_per_tet
+                              ? kSaturated
+                              : s.base_bytes + tets * s.bytes_per_tet;
+    peak = std::max(peak, stage);
+  }
+  return peak;
 }
 
 int64_t DefaultJobMemoryCapBytes() {

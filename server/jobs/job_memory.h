@@ -3,7 +3,7 @@
 // runner estimates it from the volume's declared size before anything is decoded: a job whose
 // estimate exceeds the cap fails at once with "needs N, limit M" instead of meeting the OOM
 // killer, and every other job runs under an address-space limit sized from its estimate.
-// Figures behind the constants are in server/README.md.
+// Figures behind the constants are in core/pipeline/README.md ("Memory").
 #pragma once
 
 #include <cstdint>
@@ -12,9 +12,10 @@
 
 namespace decima::server {
 
-// Estimated peak resident bytes of a job on `volume`: a fixed base plus a per-voxel cost. The
-// voxel count comes from the parsed dims or, when the server defers parsing (DICOM), from the
-// files' size at two bytes per voxel.
+// Estimated peak resident bytes of a job on `volume`: the largest over the stages (simplify,
+// render) of a fixed part plus a cost per tet of the 5-tet grid mesh, fitted to measured stage
+// peaks (figures in core/pipeline/README.md). The voxel count comes from the parsed dims or,
+// when the server defers parsing (DICOM), from the files' size at two bytes per voxel.
 int64_t EstimateJobMemoryBytes(const v1::Volume& volume);
 
 // The default cap of one job: 80 % of the machine's physical memory.

@@ -4,11 +4,20 @@
 //                [--regions K] [--reduction F] [--policy field|paper|tetfusion] [--size W]
 //                [--record-levels-to F [--extract-levels R,...]] [--min-psnr DB] [--view NAME]
 //                [--repeat N] --json
+//   decima-bench --input PATH --job-out DIR [--regions K] [--reduction F] [--policy P]
+//                [--size W] [--view NAME]
 //
 // Every stage runs --repeat times on the output of the previous stage; `seconds` is the median
 // and `seconds_all` every run. The process's peak resident memory after the stage is reported
 // as `peak_rss_mb` (peak over the process so far, so it grows monotonically across stages).
 // Without the segment stage, tetra uses the phantom's ground-truth labels (files: no labels).
+// The top-level `bytes_per_voxel` is the process's peak over the input's voxels.
+//
+// With --job-out, the whole job (pipeline::RunJob with the server's default outputs) runs once in
+// this process, writing its artifacts to DIR, and the JSON carries the job's own memory figures
+// from its metrics.json (`peak_rss_mb`, `stage_peak_rss_mb`), bytes per voxel and per tet of
+// the original mesh, and the stage seconds: the peak-memory regression benchmark of issue 30.
+// It is the figure the server's job child reports, less the child's few MB of gRPC libraries.
 #include <sys/resource.h>
 
 #include <algorithm>
@@ -32,6 +41,7 @@
 #include "core/mesh/tetrahedralize.h"
 #include "core/metrics/fidelity.h"
 #include "core/metrics/fidelity_json.h"
+#include "core/pipeline/pipeline.h"
 #include "core/pipeline/psnr_floor.h"
 #include "core/render/camera.h"
 #include "core/render/diff.h"
@@ -292,6 +302,50 @@ absl::Status RunRender(const BenchOptions& o, BenchState& state, Json& out) {
   return absl::OkStatus();
 }
 
+// The whole job in this process; prints the job's own memory figures (see the file comment).
+int RunWholeJob(const BenchOptions& o, const std::string& out_dir) {
+  pipeline::JobSpec spec;
+  spec.input = o.input;
+  spec.regions = o.regions;
+  spec.target_reduction = o.reduction;
+  spec.policy = *ParseSimplifyPolicy(o.policy);  // the flag accepts only known names
+  spec.image_size = o.size;
+  spec.views = {o.view};
+  auto result = pipeline::RunJob(spec, out_dir, nullptr, nullptr, {});
+  if (!result.ok()) {
+    std::cerr << "decima-bench: job: " << result.status() << "\n";
+    return 1;
+  }
+  const Json metrics = Json::parse(result->metrics_json);
+  const double voxels = metrics["input"]["voxels"].get<double>();
+  const double tets = metrics["simplification"]["cells_before"].get<double>();
+  const double peak_bytes = metrics["peak_rss_mb"].get<double>() * 1048576.0;
+  Json out;
+  out["input"] = o.input;
+  out["job_out"] = out_dir;
+  out["machine"] = {{"cores", std::thread::hardware_concurrency()},
+                    {"load_average_1m_at_end", LoadAverage()}};
+  out["dims"] = metrics["input"]["dims"];
+  out["voxels"] = voxels;
+  out["tets"] = tets;
+  out["reduction"] = o.reduction;
+  out["policy"] = o.policy;
+  out["peak_rss_mb"] = metrics["peak_rss_mb"];
+  out["bytes_per_voxel"] = peak_bytes / voxels;
+  out["bytes_per_tet"] = peak_bytes / tets;
+  out["stage_peak_rss_mb"] = metrics["stage_peak_rss_mb"];
+  Json per_voxel = Json::object();
+  for (const auto& [stage, mb] : metrics["stage_peak_rss_mb"].items()) {
+    per_voxel[stage] = mb.get<double>() * 1048576.0 / voxels;
+  }
+  out["stage_bytes_per_voxel"] = per_voxel;
+  out["seconds"] = metrics["seconds"];
+  out["cells_after"] = metrics["simplification"]["cells_after"];
+  out["fidelity"] = metrics["fidelity"];
+  std::cout << out.dump(2) << std::endl;
+  return 0;
+}
+
 int Main(int argc, char** argv) {
   CLI::App app{"decima-bench: time Decima's pipeline stages on one input and print JSON"};
   BenchOptions o;
@@ -347,12 +401,18 @@ int Main(int argc, char** argv) {
   app.add_option("--view", o.view,
                  "render: view preset (anterior, lateral, superior, oblique, ...)")
       ->capture_default_str();
+  std::string job_out;
+  app.add_option("--job-out", job_out,
+                 "Run the whole job (RunJob) into this folder instead of the stages and print "
+                 "its memory figures");
   app.add_flag("--json", json, "Print the JSON object (the only output format; kept for scripts)");
   CLI11_PARSE(app, argc, argv);
   if (!(o.min_psnr >= 0)) {  // NaN passes CLI::Range
     std::cerr << "decima-bench: --min-psnr: expected a PSNR floor in dB >= 0 (0 = none)\n";
     return 2;
   }
+
+  if (!job_out.empty()) return RunWholeJob(o, job_out);
 
   const std::vector<std::string> order = {"load", "segment", "tetra", "simplify", "render"};
   std::vector<std::string> requested = absl::StrSplit(stages_arg, ',', absl::SkipEmpty());
@@ -392,6 +452,9 @@ int Main(int argc, char** argv) {
   }
   result["machine"]["load_average_1m_at_end"] = LoadAverage();
   result["peak_rss_mb"] = PeakRssMb();
+  if (state.image.voxel_count() > 0) {
+    result["bytes_per_voxel"] = PeakRssMb() * 1048576.0 / state.image.voxel_count();
+  }
   std::cout << result.dump(2) << std::endl;
   return 0;
 }

@@ -409,6 +409,33 @@ TEST(BuildRenderableMesh, FindsNeighboursAndBoundary) {
   EXPECT_EQ(links + 48, 4 * 40);
 }
 
+// The consuming build (the job's original mesh, issue 30) frees the mesh and gives exactly the
+// renderable mesh of the copying build: cells with neighbours, boundary faces with their
+// winding (read from the moved positions), bounds and scalar range.
+TEST(BuildRenderableMesh, ConsumingBuildIsIdenticalAndEmptiesTheMesh) {
+  TetMesh mesh = MeshOf(RampVolume({5, 4, 3}, {0, 1, 1, 1}));
+  // Move one interior and one boundary vertex so the windings depend on the positions read.
+  mesh.positions[3 * 7 + 1] += 0.2f;
+  mesh.positions[0] -= 0.3f;
+  auto copied = BuildRenderableMesh(mesh);
+  ASSERT_TRUE(copied.ok()) << copied.status();
+  auto consumed = BuildRenderableMesh(std::move(mesh));
+  ASSERT_TRUE(consumed.ok()) << consumed.status();
+  EXPECT_EQ(consumed->positions, copied->positions);
+  EXPECT_EQ(consumed->scalars, copied->scalars);
+  EXPECT_EQ(consumed->cells, copied->cells);
+  EXPECT_EQ(consumed->boundary_faces, copied->boundary_faces);
+  EXPECT_EQ(consumed->boundary_vertices, copied->boundary_vertices);
+  EXPECT_EQ(consumed->bounds.min, copied->bounds.min);
+  EXPECT_EQ(consumed->bounds.max, copied->bounds.max);
+  EXPECT_EQ(consumed->scalar_range.min, copied->scalar_range.min);
+  EXPECT_EQ(consumed->scalar_range.max, copied->scalar_range.max);
+  EXPECT_EQ(mesh.vertex_count(), 0);  // NOLINT(bugprone-use-after-move): the contract
+  EXPECT_TRUE(mesh.tets.empty());
+  EXPECT_TRUE(mesh.labels.empty());
+  EXPECT_TRUE(mesh.positions.empty());
+}
+
 TEST(BuildRenderableMesh, RejectsBrokenMeshesWithClearErrors) {
   const TetMesh good = MeshOf(RampVolume({3, 3, 3}, {0, 1, 1, 1}));
   auto expect_error = [](const TetMesh& m, const std::string& words) {

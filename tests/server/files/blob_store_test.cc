@@ -212,12 +212,32 @@ TEST(JobMemoryTest, EstimateGrowsWithVoxelsAndFallsBackToFileSize) {
   for (int64_t d : {2048, 1024, 1024}) big.add_dims(d);
   dicom.set_size_bytes(int64_t{2} * 512 * 512 * 100);  // 100 int16 slices
   EXPECT_LT(EstimateJobMemoryBytes(small), int64_t{512} << 20);
-  EXPECT_GT(EstimateJobMemoryBytes(big), int64_t{1} << 40);
+  EXPECT_GT(EstimateJobMemoryBytes(big), int64_t{1} << 39);
   EXPECT_GT(EstimateJobMemoryBytes(dicom), int64_t{512} * 512 * 100 * 256);
   // The limit leaves room for twice the estimate but never exceeds the cap.
   EXPECT_EQ(JobAddressSpaceLimitBytes(int64_t{1} << 30, int64_t{64} << 30), int64_t{3} << 30);
   EXPECT_EQ(JobAddressSpaceLimitBytes(int64_t{40} << 30, int64_t{64} << 30), int64_t{64} << 30);
   EXPECT_GT(DefaultJobMemoryCapBytes(), 0);
+}
+
+// The estimate against the job peaks `decima-bench --job-out` measured (core/pipeline/README.md,
+// "Memory"; 50 %, field policy): within 25 %, the band issue 30 asks for. A change of the
+// pipeline's memory that moves a peak out of the band must come with new figures and constants.
+TEST(JobMemoryTest, EstimateIsWithinAQuarterOfTheMeasuredPeaks) {
+  struct Measured {
+    int64_t dims[3];
+    double peak_mib;
+  };
+  for (const Measured& m : {Measured{{128, 128, 53}, 418},        // CT head, small
+                            Measured{{256, 256, 113}, 2620},      // CT head
+                            Measured{{181, 217, 181}, 2536},      // ch2
+                            Measured{{301, 370, 316}, 11741}}) {  // ch2better
+    v1::Volume v;
+    for (int64_t d : m.dims) v.add_dims(d);
+    const double estimate_mib = EstimateJobMemoryBytes(v) / 1048576.0;
+    EXPECT_GT(estimate_mib, 0.75 * m.peak_mib) << m.dims[0] << "x" << m.dims[1] << "x" << m.dims[2];
+    EXPECT_LT(estimate_mib, 1.25 * m.peak_mib) << m.dims[0] << "x" << m.dims[1] << "x" << m.dims[2];
+  }
 }
 
 }  // namespace
