@@ -477,6 +477,7 @@ TEST(ValidateJobSpec, NamesTheFieldOfEachBadValue) {
       {"region_names[0]",
        [](JobSpec& s) {
          s.region_names = {"a\x1b[31m", "b", "c"};
+       }},
       {"min_psnr", [](JobSpec& s) { s.min_psnr = std::nan(""); }},
       {"min_psnr", [](JobSpec& s) { s.min_psnr = -3; }},
       {"min_psnr", [inf](JobSpec& s) { s.min_psnr = inf; }},
