@@ -576,10 +576,14 @@ absl::StatusOr<DicomExportResult> WriteDicomResults(const DicomExportOptions& o)
     return absl::InternalError("ReferencedSeriesSequence: no reference added");
   }
 
-  result.segmentation = o.out_dir / "segmentation.dcm";
-  if (OFCondition c = seg->saveFile(result.segmentation.c_str(), EXS_LittleEndianExplicit);
-      c.bad()) {
-    return DcmError(result.segmentation.string(), c);
+  // A map whose every region is air (a phantom, a synthetic series) has no segment, and a SEG
+  // without one is no valid object: none is written; the SC images and the models still are.
+  if (result.segments > 0) {
+    result.segmentation = o.out_dir / "segmentation.dcm";
+    if (OFCondition c = seg->saveFile(result.segmentation.c_str(), EXS_LittleEndianExplicit);
+        c.bad()) {
+      return DcmError(result.segmentation.string(), c);
+    }
   }
 
   // The renders, one SC series.

@@ -56,7 +56,7 @@ struct DicomExportOptions {
 };
 
 struct DicomExportResult {
-  std::filesystem::path segmentation;            // out_dir/segmentation.dcm
+  std::filesystem::path segmentation;            // out_dir/segmentation.dcm; empty: no segment
   std::vector<std::filesystem::path> secondary;  // out_dir/sc-<n>.dcm
   std::vector<std::filesystem::path> models;     // out_dir/model-<n>.dcm (Encapsulated STL)
   std::string study_instance_uid;                // of the source, shared by all outputs

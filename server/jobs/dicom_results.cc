@@ -51,7 +51,7 @@ absl::Status AddDicomResults(const pipeline::JobSpec& spec, const fs::path& out_
   auto add = [&](const fs::path& p) {
     result->artifacts.push_back({p.filename().string(), p, fs::file_size(p, ec)});
   };
-  add(written->segmentation);
+  if (!written->segmentation.empty()) add(written->segmentation);
   for (const auto& p : written->secondary) add(p);
   for (const auto& p : written->models) add(p);
   return absl::OkStatus();

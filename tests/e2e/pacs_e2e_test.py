@@ -515,11 +515,13 @@ def main():
         figures["dciodvfy_sc_errors"] = len(sc_errors)
         check(not sc_errors, "dciodvfy errors on SC:\n" + "\n".join(sc_errors))
         sent = b.db(f"SELECT send_status FROM dicom_series WHERE job='{job_name}'")
-        # The region surfaces: one Encapsulated STL per region of the SEG, named, dciodvfy-clean.
+        # The region surfaces: one Encapsulated STL per region (air too, which the SEG leaves
+        # out), named, dciodvfy-clean.
         models = orthanc.json("POST", "/tools/find", {"Level": "Instance", "Expand": True,
                                                       "Query": {"StudyInstanceUID": study_uid,
                                                                 "Modality": "M3D"}})
-        check(len(models) == segments, f"{len(models)} STL models for {segments} segments")
+        check(len(models) == spec["regions"],
+              f"{len(models)} STL models for {spec['regions']} regions")
         model_path = os.path.join(tmp, "model.dcm")
         with open(model_path, "wb") as f:
             f.write(orthanc.request("GET", f"/instances/{models[0]['ID']}/file"))
