@@ -98,46 +98,41 @@ absl::StatusOr<SimplifyResult> SimplifyToPsnrFloor(const Volume& image, const Te
   // Bisection of the reduction between the unsimplified mesh (lo: infinite PSNR) and the deepest
   // level (hi: below the floor). The brackets are the requested reductions: ExtractLevel's level
   // for R is the shortest prefix removing ceil(R * cells), so it only grows with R.
-  double lo = 0, hi = deepest.reduction;
+  double lo = 0;
   std::optional<SimplifyResult> kept;
-  s.deeper = deepest;
-  const SimplifyLevels& levels = *deep.levels;
-  for (int step = 0; step < 32 && hi - lo > kPsnrSearchStep; ++step) {
-    const double mid = 0.5 * (lo + hi);
-    DECIMA_ASSIGN_OR_RETURN(SimplifyResult level,
-                            ExtractLevel(original, levels, mid, options.threads, nullptr, cancel));
-    DECIMA_ASSIGN_OR_RETURN(const PsnrProbe p, measure(level, mid, false));
-    if (p.psnr_db >= min_psnr) {
-      lo = mid;
-      s.kept = p;
-      kept = std::move(level);
-    } else {
-      hi = mid;
-      s.deeper = p;
+  // Halves (lo, hi] until it is one search step wide; `make` gives the mesh at a reduction.
+  auto bisect = [&](double hi, bool run, auto&& make) -> absl::Status {
+    s.deeper = deepest;
+    for (int step = 0; step < 32 && hi - lo > kPsnrSearchStep; ++step) {
+      const double mid = 0.5 * (lo + hi);
+      DECIMA_ASSIGN_OR_RETURN(SimplifyResult mesh, make(mid));
+      DECIMA_ASSIGN_OR_RETURN(const PsnrProbe p, measure(mesh, mid, run));
+      if (p.psnr_db >= min_psnr) {
+        lo = mid;
+        s.kept = p;
+        kept = std::move(mesh);
+      } else {
+        hi = mid;
+        s.deeper = p;
+      }
     }
-  }
+    return absl::OkStatus();
+  };
+  const SimplifyLevels& levels = *deep.levels;
+  DECIMA_RETURN_IF_ERROR(bisect(deepest.reduction, false, [&](double r) {
+    return ExtractLevel(original, levels, r, options.threads, nullptr, cancel);
+  }));
   // The levels of a deep record measure lower than runs to the same reduction (the record's
   // rounds are paced by its depth, levels.h), so runs between the level kept and the deepest
   // level, which is itself a run, usually keep the floor deeper. README "PSNR floor" has figures.
   if (refine && deepest.run) {
     SimplifyOptions run_options = options;
     run_options.record_levels_to = 0;
-    s.deeper = deepest;
-    hi = deepest.reduction;  // a run that ran out of collapses stops there too
-    for (int step = 0; step < 32 && hi - lo > kPsnrSearchStep; ++step) {
-      const double mid = 0.5 * (lo + hi);
-      run_options.target_reduction = mid;
-      DECIMA_ASSIGN_OR_RETURN(SimplifyResult run, Simplify(original, run_options, nullptr, cancel));
-      DECIMA_ASSIGN_OR_RETURN(const PsnrProbe p, measure(run, mid, true));
-      if (p.psnr_db >= min_psnr) {
-        lo = mid;
-        s.kept = p;
-        kept = std::move(run);
-      } else {
-        hi = mid;
-        s.deeper = p;
-      }
-    }
+    // hi: the deepest run (one that ran out of collapses stops there too).
+    DECIMA_RETURN_IF_ERROR(bisect(deepest.reduction, true, [&](double r) {
+      run_options.target_reduction = r;
+      return Simplify(original, run_options, nullptr, cancel);
+    }));
   }
   SimplifyResult result = kept ? std::move(*kept) : Unsimplified(original);
   if (!kept) s.kept = {0, 0, original.tet_count(), std::numeric_limits<double>::infinity(), true};
