@@ -117,15 +117,16 @@ v1::CreateJobRequest LevelJobRequest(const v1::Job& parent, double reduction,
   v1::JobSpec* spec = req.mutable_spec();
   spec->set_levels_of(parent.name());
   spec->set_target_reduction(reduction);
+  // The kinds a level job writes (its mesh comes from a record: no "levels", no "curve").
+  static const std::vector<std::string> kLevelKinds = {
+      "vtu", "msh", "medit", "stl", "glb", "labels", "images", "segmentation", "report"};
   for (std::string o : only) {
     std::transform(o.begin(), o.end(), o.begin(),
                    [](unsigned char c) { return static_cast<char>(std::tolower(c)); });
-    for (const char* kind : {"vtu", "msh", "medit", "stl", "glb", "labels", "images",
-                             "segmentation", "report"}) {
-      const bool listed = std::find(spec->outputs().begin(), spec->outputs().end(), o) !=
-                          spec->outputs().end();
-      if (o == kind && !listed) spec->add_outputs(o);
-    }
+    const bool kind = std::find(kLevelKinds.begin(), kLevelKinds.end(), o) != kLevelKinds.end();
+    const bool listed =
+        std::find(spec->outputs().begin(), spec->outputs().end(), o) != spec->outputs().end();
+    if (kind && !listed) spec->add_outputs(o);
   }
   if (spec->outputs().empty()) spec->add_outputs("vtu");
   *spec->mutable_views() = parent.spec().views();
