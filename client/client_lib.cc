@@ -666,8 +666,14 @@ std::string FormatBytes(int64_t bytes) {
   return buf;
 }
 
-std::string OverallBar(const v1::Progress& p, double elapsed_s, int width, bool with_curve) {
-  const double f = OverallFraction(p.stage(), p.fraction(), with_curve);
+double JobFraction(const v1::Progress& p, bool with_curve) {
+  if (p.has_overall_fraction()) return std::clamp(p.overall_fraction(), 0.0, 1.0);
+  return OverallFraction(p.stage(), p.fraction(), with_curve);
+}
+
+std::string OverallBar(const v1::Progress& p, double elapsed_s, int width, bool with_curve,
+                       double since_event_s) {
+  const double f = JobFraction(p, with_curve);
   const int filled = static_cast<int>(f * width + 0.5);
   std::string bar(static_cast<size_t>(filled), '#');
   bar.append(static_cast<size_t>(width - filled), '.');
@@ -676,7 +682,11 @@ std::string OverallBar(const v1::Progress& p, double elapsed_s, int width, bool 
   std::string out = head;
   out += p.stage() + " " + std::to_string(static_cast<int>(p.fraction() * 100)) + "%";
   out += "  elapsed " + FormatDuration(elapsed_s);
-  if (f >= 0.02 && f < 1) out += "  ETA " + FormatDuration(elapsed_s * (1 - f) / f);
+  if (p.has_eta_seconds()) {
+    if (f < 1) out += "  ETA " + FormatDuration(std::max(0.0, p.eta_seconds() - since_event_s));
+  } else if (f >= 0.02 && f < 1) {
+    out += "  ETA " + FormatDuration(elapsed_s * (1 - f) / f);
+  }
   return out;
 }
 

@@ -96,9 +96,15 @@ bool JobWithCurve(const v1::Job& job);
 std::string FormatDuration(double seconds);
 // "15.6 MB", "812 KB", "73 B".
 std::string FormatBytes(int64_t bytes);
+// The job's overall fraction: the job's own (Progress.overall_fraction, from its stage model and
+// measured rates) when the event carries it, else OverallFraction's fixed stage weights.
+double JobFraction(const v1::Progress& p, bool with_curve = false);
 // One status line for a TTY (no newline): "[#####.....]  45% simplify  elapsed 0:12  ETA 0:15".
-// ETA is left out while the overall fraction is below 2 % (too early to say).
-std::string OverallBar(const v1::Progress& p, double elapsed_s, int width, bool with_curve = false);
+// The ETA is the job's own (Progress.eta_seconds, less the `since_event_s` seconds since the
+// event was sent); for an event without one it is extrapolated from the elapsed time and left
+// out while the overall fraction is below 2 % (too early to say).
+std::string OverallBar(const v1::Progress& p, double elapsed_s, int width, bool with_curve = false,
+                       double since_event_s = 0);
 
 // After a succeeded job: achieved against target reduction, cells, the artifacts' total size
 // and its ratio to the input's bytes. `target_reached` false when metrics say so.

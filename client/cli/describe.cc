@@ -34,11 +34,12 @@ void DescribeJob(CliContext& ctx, const v1::Job& j) {
   line("State:", v1::JobState_Name(j.state()));
   if (j.state() == v1::RUNNING || j.state() == v1::QUEUED) {
     const v1::Progress& p = j.progress();
-    line("Progress:", p.stage().empty()
-                          ? "-"
-                          : Percent(OverallFraction(p.stage(), p.fraction(), JobWithCurve(j))) +
-                                " overall, " + p.stage() + " " + Percent(p.fraction()) + " " +
-                                p.message());
+    line("Progress:",
+         p.stage().empty()
+             ? "-"
+             : Percent(JobFraction(p, JobWithCurve(j))) + " overall, " + p.stage() + " " +
+                   Percent(p.fraction()) + " " + p.message() +
+                   (p.has_eta_seconds() ? ", ETA " + FormatDuration(p.eta_seconds()) : ""));
   }
   if (!j.error().message().empty()) line("Error:", j.error().message());
   const v1::Volume* vol = GetVolume(ctx, j.spec().volume());

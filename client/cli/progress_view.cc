@@ -18,17 +18,22 @@ double ProgressView::Elapsed() const {
                       .count();
 }
 
+double ProgressView::SinceEvent() const {
+  if (current_time_.seconds() == 0) return 0;
+  return std::max(0.0, SecondsSince(current_time_));
+}
+
 void ProgressView::Draw() {
   if (quiet_ || current_.stage().empty()) return;
   if (tty_) {
-    std::string l = OverallBar(current_, Elapsed(), 24, with_curve_) + "  " + current_.message();
+    std::string l =
+        OverallBar(current_, Elapsed(), 24, with_curve_, SinceEvent()) + "  " + current_.message();
     l.resize(std::min<size_t>(l.size(), static_cast<size_t>(columns_() - 1)));
     std::fprintf(out_, "\r\033[K%s", l.c_str());
     bar_open_ = true;
     return;
   }
-  const int decile =
-      static_cast<int>(OverallFraction(current_.stage(), current_.fraction(), with_curve_) * 10);
+  const int decile = static_cast<int>(JobFraction(current_, with_curve_) * 10);
   if (current_.stage() == plain_stage_ && decile == plain_decile_ &&
       std::chrono::steady_clock::now() - plain_at_ < std::chrono::seconds(15)) {
     return;
@@ -37,7 +42,7 @@ void ProgressView::Draw() {
   plain_decile_ = decile;
   plain_at_ = std::chrono::steady_clock::now();
   std::fprintf(out_, "%s %s %s\n", ShortId(name_).c_str(),
-               OverallBar(current_, Elapsed(), 0, with_curve_).substr(3).c_str(),
+               OverallBar(current_, Elapsed(), 0, with_curve_, SinceEvent()).substr(3).c_str(),
                TerminalSafe(current_.message()).c_str());
 }
 
@@ -69,13 +74,13 @@ void ProgressView::OnEvent(const v1::JobEvent& ev, bool first_contact) {
       text += ", started " + FormatDuration(SecondsSince(j.start_time())) + " ago";
     }
     Say(text);
-    if (j.state() == v1::RUNNING) current_ = j.progress();
+    if (j.state() == v1::RUNNING) current_ = j.progress(), current_time_ = {};
     return;
   }
   if (!ev.has_heartbeat() && ev.sequence() <= replay_until_) {
     // Stored events replayed after the snapshot: the snapshot line said where the job is, so
     // they only bring the bar up to date.
-    if (ev.has_progress()) current_ = ev.progress();
+    if (ev.has_progress()) current_ = ev.progress(), current_time_ = ev.time();
     if (ev.has_state_change() && ev.state_change().state() == v1::RUNNING) start_time_ = ev.time();
     if (ev.sequence() == replay_until_) Draw();
     return;
@@ -83,6 +88,7 @@ void ProgressView::OnEvent(const v1::JobEvent& ev, bool first_contact) {
   if (ev.has_progress()) {
     if (start_time_.seconds() == 0) start_time_ = ev.time();
     current_ = ev.progress();
+    current_time_ = ev.time();
     Draw();
   } else if (ev.has_heartbeat()) {
     if (tty_) Draw();  // the elapsed time moves while a stage is quiet
@@ -119,7 +125,7 @@ void JobLinesView::OnEvent(const v1::JobEvent& ev, bool first_contact) {
   if (ev.has_heartbeat()) return;
   if (ev.has_progress()) {
     const v1::Progress& p = ev.progress();
-    const double f = OverallFraction(p.stage(), p.fraction(), with_curve_);
+    const double f = JobFraction(p, with_curve_);
     const int d = static_cast<int>(f * 10);
     // Replayed events (older than the snapshot) only bring the counters up to date.
     if ((p.stage() != stage_ || d != decile_) && ev.sequence() > replay_until_) {

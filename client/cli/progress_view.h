@@ -33,6 +33,8 @@ class ProgressView {
 
  private:
   double Elapsed() const;
+  // Seconds since the server sent current_ (0 when it came from a snapshot).
+  double SinceEvent() const;
   void Draw();
 
   std::string name_;
@@ -43,6 +45,7 @@ class ProgressView {
   const std::chrono::steady_clock::time_point watch_start_ = std::chrono::steady_clock::now();
   google::protobuf::Timestamp start_time_;
   v1::Progress current_;
+  google::protobuf::Timestamp current_time_;
   bool with_curve_ = false;   // from the snapshot's spec: the curve stage counts in the bar
   int64_t replay_until_ = 0;  // the snapshot's last_sequence: events up to it are replayed
   std::string plain_stage_;

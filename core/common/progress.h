@@ -23,6 +23,11 @@ struct Progress {
   std::string message;  // human readable, one line
   // Stage-specific numbers (e.g. {"iteration", 12}, {"energy", 3.1e6}); ordered, small.
   std::vector<std::pair<std::string, double>> metrics;
+  // The whole job's progress (0..1) and seconds left, filled in by the job's clock
+  // (core/pipeline/eta.h) from its stage model and the stages' measured rates; < 0 = unknown
+  // (a core function never sets them).
+  double overall = -1;
+  double eta_seconds = -1;
 };
 
 using ProgressFn = std::function<void(const Progress&)>;

@@ -62,7 +62,9 @@ double PeakRss::PeakMb() const {
 }
 
 JobRun::StageScope::StageScope(JobRun* run, const char* name, Timing timing)
-    : run_(run), name_(name), timing_(timing), start_(Clock::now()), open_(true) {}
+    : run_(run), name_(name), timing_(timing), start_(Clock::now()), open_(true) {
+  run_->StageBegan(name_);
+}
 
 JobRun::StageScope::StageScope(StageScope&& other) noexcept
     : run_(other.run_),
@@ -73,15 +75,20 @@ JobRun::StageScope::StageScope(StageScope&& other) noexcept
 
 void JobRun::StageScope::Report(double fraction, std::string message,
                                 std::vector<std::pair<std::string, double>> metrics) const {
-  decima::Report(run_->progress_, {name_, fraction, std::move(message), std::move(metrics)});
+  Progress p;
+  p.stage = name_;
+  p.fraction = fraction;
+  p.message = std::move(message);
+  p.metrics = std::move(metrics);
+  run_->Emit(std::move(p));
 }
 
 ProgressFn JobRun::StageScope::Forward() const {
   if (!run_->progress_) return nullptr;
-  return [progress = run_->progress_, stage = name_](const Progress& p) {
+  return [run = run_, stage = name_](const Progress& p) {
     Progress q = p;
     q.stage = stage;
-    progress(q);
+    run->Emit(std::move(q));
   };
 }
 
@@ -101,6 +108,7 @@ void JobRun::StageScope::End() {
   open_ = false;
   if (timing_ == Timing::kRecorded) run_->seconds_[name_] = Seconds(start_);
   run_->rss_.EndStage(name_);
+  run_->StageEnded(name_);
 }
 
 JobRun::JobRun(std::filesystem::path out_dir, ProgressFn progress, const CancelToken* cancel)
@@ -138,10 +146,59 @@ void JobRun::AddArtifact(const std::string& name) {
   artifacts_.push_back({name, path, std::filesystem::file_size(path, ec)});
 }
 
+double JobRun::Now() const { return Seconds(start_); }
+
+void JobRun::StageBegan(const char* stage) {
+  const double now = Now();
+  stage_times_.push_back({stage, now, -1});
+  if (!clock_) return;
+  clock_->Begin(stage, now);
+  // What the clock forecast for the whole job as each stage began: metrics.json "eta", to
+  // compare with seconds.total.
+  const JobClock::Estimate e = clock_->At(stage, 0, now);
+  forecasts_[stage] = now + e.eta_seconds;
+}
+
+void JobRun::StageEnded(const char* stage) {
+  const double now = Now();
+  for (auto& t : stage_times_) {
+    if (t.stage == stage && t.ended < 0) t.ended = now;
+  }
+  if (clock_) clock_->End(stage, now, WasResumed(stage));
+}
+
+bool JobRun::WasResumed(const std::string& stage) const {
+  return std::find(resumed_.begin(), resumed_.end(), stage) != resumed_.end();
+}
+
+void JobRun::Plan(std::vector<StagePlan> plan) {
+  clock_.emplace(std::move(plan));
+  for (const auto& t : stage_times_) {
+    clock_->Begin(t.stage, t.began);
+    if (t.ended >= 0) clock_->End(t.stage, t.ended, WasResumed(t.stage));
+  }
+}
+
+void JobRun::Emit(Progress p) {
+  if (!progress_) return;
+  if (clock_) {
+    const JobClock::Estimate e = clock_->At(p.stage, p.fraction, Now());
+    p.overall = e.overall;
+    p.eta_seconds = e.eta_seconds;
+  }
+  progress_(p);
+}
+
 absl::Status JobRun::WriteMetrics() {
   total_seconds_ = Seconds(start_);
   seconds_["total"] = total_seconds_;
   metrics_["seconds"] = seconds_;
+  if (clock_) {
+    Json predicted = Json::object();
+    for (const auto& s : clock_->plan()) predicted[s.stage] = s.seconds;
+    metrics_["eta"] = {{"predicted_seconds", predicted},
+                       {"forecast_total_seconds_at_stage_start", forecasts_}};
+  }
   metrics_["peak_rss_mb"] = rss_.PeakMb();
   metrics_["stage_peak_rss_mb"] = rss_.stages();
   metrics_["stage_peak_rss_per_stage"] = rss_.resettable();

@@ -13,7 +13,9 @@
 #include <chrono>
 #include <cstdint>
 #include <filesystem>
+#include <optional>
 #include <string>
+#include <utility>
 #include <vector>
 
 #include <nlohmann/json.hpp>
@@ -21,6 +23,7 @@
 #include "absl/status/status.h"
 #include "absl/status/statusor.h"
 #include "core/common/progress.h"
+#include "core/pipeline/eta.h"
 #include "core/pipeline/pipeline.h"
 
 namespace decima::pipeline {
@@ -111,6 +114,10 @@ class JobRun {
   // Marks a stage as loaded from its checkpoint ("resumed_stages").
   void Resumed(const std::string& stage) { resumed_.push_back(stage); }
   const ProgressFn& progress() const { return progress_; }
+  // The job's stages with their predicted seconds (PredictStages), once the volume's size is
+  // known: from then on every progress event carries the job's overall fraction and seconds
+  // left (JobClock), and metrics.json "eta" the prediction, to compare with "seconds".
+  void Plan(std::vector<StagePlan> plan);
 
   // Closes the figures (seconds.total, peak memory, resumed stages), writes metrics.json and
   // lists it. Call after the last stage ended.
@@ -129,6 +136,22 @@ class JobRun {
   std::vector<Artifact> artifacts_;
   std::string metrics_json_;
   double total_seconds_ = 0;
+  // Stage begin and end times (seconds since the job began; end -1 while open), kept from the
+  // start so a plan made after "load" knows when it began.
+  struct StageTimes {
+    std::string stage;
+    double began = 0, ended = -1;
+  };
+  std::vector<StageTimes> stage_times_;
+  std::optional<JobClock> clock_;
+  nlohmann::ordered_json forecasts_ = nlohmann::ordered_json::object();
+
+  double Now() const;
+  void StageBegan(const char* stage);
+  void StageEnded(const char* stage);
+  bool WasResumed(const std::string& stage) const;
+  // Sends `p` with the clock's estimate filled in.
+  void Emit(Progress p);
 };
 
 // `text` written to `path` through a temporary name, so a reader never sees half a file.

@@ -174,6 +174,7 @@ absl::StatusOr<Volume> LoadStage(const JobSpec& spec, JobRun& run) {
                             {"type", std::string(VoxelTypeName(image.type))},
                             {"modality", image.modality},
                             {"voxels", image.voxel_count()}};
+  run.Plan(PredictStages(spec, image.dims));
   stage.Report(1, Describe(image));
   return image;
 }

@@ -38,6 +38,8 @@ void SendProgress(int fd, const Progress& p) {
   out->set_fraction(p.fraction);
   out->set_message(ValidUtf8(p.message));
   for (const auto& [k, v] : p.metrics) (*out->mutable_metrics())[k] = v;
+  if (p.overall >= 0) out->set_overall_fraction(p.overall);
+  if (p.eta_seconds >= 0) out->set_eta_seconds(p.eta_seconds);
   Send(fd, m);
 }
 

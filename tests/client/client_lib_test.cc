@@ -351,6 +351,23 @@ TEST(ProgressTest, OverallFractionIsMonotonicAcrossStagesAndTheBarHasAnEta) {
   EXPECT_THAT(OverallBar(p, 1, 10), ::testing::Not(HasSubstr("ETA")));  // too early to say
 }
 
+// An event with the job's own figures (its stage model and measured rates) drives the bar and
+// the ETA from the first event after load, and the ETA counts down between events.
+TEST(ProgressTest, TheJobsOwnFractionAndEtaWinOverTheFixedWeights) {
+  v1::Progress p;
+  p.set_stage("load");
+  p.set_fraction(1);
+  EXPECT_LT(JobFraction(p), 0.01);  // the fixed weights: load is nothing
+  p.set_overall_fraction(0.25);
+  p.set_eta_seconds(90);
+  EXPECT_DOUBLE_EQ(JobFraction(p), 0.25);
+  const std::string bar = OverallBar(p, 1, 8);
+  EXPECT_THAT(bar, HasSubstr("[##......]  25% load 100%"));
+  EXPECT_THAT(bar, HasSubstr("ETA 1:30"));  // not "too early to say" at 1 s
+  EXPECT_THAT(OverallBar(p, 31, 8, false, 30), HasSubstr("ETA 1:00"));
+  EXPECT_THAT(OverallBar(p, 200, 8, false, 199), HasSubstr("ETA 0:00"));  // never negative
+}
+
 // A field reproduced exactly has an infinite PSNR, which metrics.json writes as null: shown as
 // "inf (rmse 0)", not as the 0 dB that strtod makes of "null".
 TEST(FidelityLinesTest, ShowsTheFiguresAndAnExactFieldAsInfinitePsnr) {

@@ -66,8 +66,12 @@ _LEVEL_KINDS = ("vtu", "msh", "medit", "stl", "glb", "labels", "images", "segmen
 
 
 def overall_fraction(progress, with_curve=False):
-    """A job's overall progress, 0..1, from a decima.v1.Progress (its stage and the fraction
-    within it), weighting the stages as the CLI's bar does; 0 for an unknown stage."""
+    """A job's overall progress, 0..1, from a decima.v1.Progress: the job's own figure
+    (overall_fraction, from its stage model and measured rates) when the event carries it, else
+    the stage and the fraction within it weighted as the CLI's bar does; 0 for an unknown
+    stage."""
+    if progress.HasField("overall_fraction"):
+        return min(max(progress.overall_fraction, 0.0), 1.0)
     total = before = own = 0.0
     found = False
     for stage, seconds in _STAGE_WEIGHTS:

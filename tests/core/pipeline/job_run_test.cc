@@ -133,5 +133,47 @@ TEST(JobRun, AnOutputFolderThatCannotBeMadeIsAnErrorNamingIt) {
   EXPECT_NE(st.message().find((dir / "file" / "out").string()), std::string::npos) << st;
 }
 
+TEST(JobRun, OncePlannedEveryEventCarriesTheJobsFractionAndEtaAndMetricsTheForecast) {
+  const fs::path dir = decima::testing::MakeScratchDir("job_run");
+  std::vector<Progress> events;
+  JobRun run(
+      dir / "out", [&](const Progress& p) { events.push_back(p); }, nullptr);
+  ASSERT_TRUE(run.Open().ok());
+  {
+    auto load = run.Stage("load");
+    ASSERT_TRUE(load.ok()) << load.status();
+    load->Report(0, "reading");
+    run.Plan(PredictStages(JobSpec{}, {32, 32, 32}));
+    load->Report(1, "read");
+  }
+  for (const char* name : {"segment", "tetra", "simplify"}) {
+    auto stage = run.Stage(name);
+    ASSERT_TRUE(stage.ok()) << stage.status();
+    stage->Report(0, "start");
+    stage->Forward()({"module-internal", 0.5, "half", {}});
+    stage->Report(1, "done");
+  }
+  ASSERT_EQ(events.size(), 11u);
+  // Before the plan the job's own figures are unknown; after it every event has them.
+  EXPECT_LT(events[0].overall, 0);
+  EXPECT_LT(events[0].eta_seconds, 0);
+  double last = 0;
+  for (size_t i = 1; i < events.size(); ++i) {
+    EXPECT_GE(events[i].overall, last) << i;
+    EXPECT_LT(events[i].overall, 1) << i << ": write, render and diff are still to come";
+    EXPECT_GT(events[i].eta_seconds, 0) << i;
+    last = events[i].overall;
+  }
+  ASSERT_TRUE(run.WriteMetrics().ok());
+  std::ifstream in(dir / "out" / "metrics.json");
+  const auto m = nlohmann::json::parse(in);
+  ASSERT_TRUE(m.contains("eta")) << m.dump();
+  EXPECT_GT(m["eta"]["predicted_seconds"]["simplify"].get<double>(), 0);
+  EXPECT_EQ(m["eta"]["predicted_seconds"].size(), 7u);
+  // A forecast of the whole job as each stage after the plan began.
+  EXPECT_TRUE(m["eta"]["forecast_total_seconds_at_stage_start"].contains("simplify"));
+  EXPECT_FALSE(m["eta"]["forecast_total_seconds_at_stage_start"].contains("load"));
+}
+
 }  // namespace
 }  // namespace decima::pipeline
