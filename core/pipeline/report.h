@@ -37,8 +37,8 @@ struct ReportContext {
 };
 
 // Most triangles the 3D view embeds; more are merged by vertex clustering (ViewSurfaces), so
-// the page stays small (about 14 bytes per triangle in the page: CT head figures in
-// core/pipeline/README.md).
+// the page stays small (about 6.3 bytes per triangle in the page: CT head figures in
+// core/pipeline/README.md, "The report's 3D view").
 inline constexpr int64_t kViewTriangleBudget = 120000;
 
 // The region surfaces of `mesh` as the 3D view shows them: at most `budget` triangles in all,

@@ -17,10 +17,12 @@
 #include "core/io/png.h"
 #include "core/io/volume_io.h"
 #include "core/mesh/tetrahedralize.h"
+#include "core/pipeline/pictures.h"
 #include "core/pipeline/pipeline.h"
 #include "core/pipeline/report.h"
 #include "core/pipeline/report_viewer.h"
 #include "core/volume/phantom.h"
+#include "tests/testing/dicom_writer.h"
 #include "tests/testing/process.h"
 #include "tests/testing/test_data.h"
 
@@ -134,6 +136,37 @@ TEST(ViewSurfaces, MergesDownToTheTriangleBudget) {
   }
 }
 
+// A job on a DICOM series: its report names the patient, study and series (escaped), which
+// metrics.json does not carry.
+TEST(ReportHtml, ADicomJobsReportNamesPatientStudyAndSeries) {
+  const fs::path dir = decima::testing::MakeScratchDir("report-dicom");
+  decima::testing::SliceSpec slice;
+  slice.rows = slice.columns = 24;
+  slice.pixel_spacing = {2, 2};
+  slice.patient_name = "O'NEIL^ANN<b>";
+  slice.patient_id = "ID-7";
+  slice.study_description = "HEAD & NECK";
+  slice.description = "AX <T1>";
+  slice.value = [](int i, int j) {
+    return (i - 12) * (i - 12) + (j - 12) * (j - 12) < 49 ? 1000 : 0;
+  };
+  fs::create_directories(dir / "series");
+  decima::testing::WriteSeries(dir / "series", slice, std::vector<double>(11, 2.0));
+  JobSpec spec;
+  spec.input = dir / "series";
+  spec.regions = 2;
+  spec.image_size = 32;
+  spec.outputs = {"report"};
+  auto result = RunJob(spec, dir / "out", nullptr, nullptr);
+  ASSERT_TRUE(result.ok()) << result.status();
+  const std::string html = FileText(dir / "out" / "report.html");
+  EXPECT_THAT(html, HasSubstr("<th>Patient</th><td>O&#39;NEIL, ANN&lt;b&gt;</td>"));
+  EXPECT_THAT(html, HasSubstr("<th>Patient ID</th><td>ID-7</td>"));
+  EXPECT_THAT(html, HasSubstr("<th>Study</th><td>HEAD &amp; NECK</td>"));
+  EXPECT_THAT(html, HasSubstr("<th>Series</th><td>AX &lt;T1&gt;</td>"));
+  EXPECT_THAT(result->metrics_json, Not(HasSubstr("NEIL")));
+}
+
 // A 24x24x20 three-region phantom in Hounsfield units (air, soft tissue, bone).
 fs::path HuPhantomFile(const fs::path& dir) {
   HeadPhantomOptions o;
@@ -207,8 +240,6 @@ TEST(ReportInBrowser, TheThreeDViewDrawsTheSurfacesWithoutErrors) {
   ASSERT_FALSE(ReportViewerScript().empty())
       << "this build has no 3D view (" << ReportViewerMissingReason()
       << "); deploy/install-deps.sh installs npm";
-  const std::string chromium = FindChromium();
-  if (chromium.empty()) GTEST_SKIP() << "chromium is not installed (apt-get install chromium)";
   const fs::path dir = decima::testing::MakeScratchDir("report-browser");
   JobSpec spec;
   spec.input = HuPhantomFile(dir);
@@ -221,6 +252,15 @@ TEST(ReportInBrowser, TheThreeDViewDrawsTheSurfacesWithoutErrors) {
   ASSERT_THAT(html, HasSubstr("id=\"decima-surfaces-data\""));
   EXPECT_THAT(html, Not(HasSubstr("src=\"http")));  // self-contained: nothing from a network
   EXPECT_THAT(html, Not(HasSubstr("<script src")));
+  // The heat maps' scale is the fixed one, whatever this job's largest difference, and stated.
+  const auto metrics = nlohmann::json::parse(result->metrics_json);
+  EXPECT_EQ(metrics["render"]["heat_scale_max"].get<double>(), kHeatScaleMax);
+  EXPECT_NE(metrics["render"]["views"][0]["max_diff2"].get<double>(), kHeatScaleMax);
+  EXPECT_THAT(html,
+              HasSubstr("pale yellow 100 or more (of at most 442), the same scale in every job"));
+
+  const std::string chromium = FindChromium();
+  if (chromium.empty()) GTEST_SKIP() << "chromium is not installed (apt-get install chromium)";
   const auto started = std::chrono::steady_clock::now();
   Shot shot = StartShot(chromium, page, dir, "report");
   std::string state;
