@@ -136,7 +136,7 @@ std::string Words(const std::string& key) {
       {"psnr_db", "Peak signal-to-noise ratio (dB)"},
       {"max_abs_error", "Largest error of the field (image units)"},
       {"value_range", "Value range of the scan (image units)"},
-      {"dice", "Dice overlap per region"},
+      {"dice", "Dice overlap"},
       {"mean_dice", "Mean Dice overlap"},
       {"label_mismatch", "Share of voxels whose region changed"},
       {"interface_rmse", "Field error next to region borders (image units)"},
@@ -235,6 +235,10 @@ void Rows(const Json& j, const std::string& prefix, std::string* out) {
         prefix.empty() ? Words(it.key()) : absl::StrCat(prefix, ": ", Words(it.key()));
     if (it->is_object()) {
       Rows(*it, what, out);
+    } else if (it->is_number() && it.key().size() > 10 &&
+               it.key().compare(it.key().size() - 10, 10, "_reduction") == 0) {
+      absl::StrAppend(out, "<tr><th>", Html(what), "</th><td>", FormatPercent(it->get<double>()),
+                      "</td></tr>\n");
     } else {
       absl::StrAppend(out, "<tr><th>", Html(what), "</th><td>", Value(*it), "</td></tr>\n");
     }
@@ -579,7 +583,7 @@ absl::StatusOr<std::string> ReportHtml(const JobSpec& spec, const std::string& i
   if (!spec.class_means.empty()) params["Region means given"] = spec.class_means;
   if (!spec.region_names.empty()) params["Region names given"] = spec.region_names;
   params["Segmentation from a label map"] = spec.label_map.has_value();
-  params["Reduction asked for"] = spec.target_reduction;
+  params["Reduction asked for"] = FormatPercent(spec.target_reduction);
   params["Simplification policy"] = SimplifyPolicyName(spec.policy);
   params["Error tolerance"] = spec.error_tolerance;
   params["Views"] = spec.views;
