@@ -28,7 +28,8 @@ packages=(
   time
   # independent tools that prove our files are readable by others
   python3 python3-vtk9 python3-numpy gmsh
-  # a real browser (headless) that opens report.html in tests/e2e/cli_e2e_test.cc
+  # a real browser (headless) that opens report.html (and draws its WebGL 3D view) in
+  # tests/core/pipeline/report_test.cc and tests/e2e/cli_e2e_test.cc
   chromium
   # the real MRI the demo and tests use
   mricron-data
@@ -44,6 +45,14 @@ packages=(
   # by protoc and grpc_python_plugin (protobuf-compiler, protobuf-compiler-grpc above)
   python3-grpcio python3-protobuf python3-venv python3-setuptools python3-wheel python3-pytest
 )
+
+# The report's 3D view: npm installs the pinned three.js and esbuild of core/pipeline/web (npm ci,
+# package-lock.json) at build time and node runs esbuild to bundle them into the page. A machine
+# with its own npm and node keeps them: NodeSource's nodejs bundles npm and conflicts with
+# Debian's npm package, so asking apt for it there would fail the whole install.
+if ! command -v npm >/dev/null || ! command -v node >/dev/null; then
+  packages+=(npm nodejs)
+fi
 
 missing=()
 for p in "${packages[@]}"; do

@@ -54,6 +54,10 @@ namespace fs = std::filesystem;
 // Attributes used (DICOM Part 6 data dictionary).
 const gdcm::Tag kModality(0x0008, 0x0060);
 const gdcm::Tag kSeriesDescription(0x0008, 0x103e);
+const gdcm::Tag kStudyDate(0x0008, 0x0020);
+const gdcm::Tag kStudyDescription(0x0008, 0x1030);
+const gdcm::Tag kPatientName(0x0010, 0x0010);
+const gdcm::Tag kPatientId(0x0010, 0x0020);
 const gdcm::Tag kSeriesInstanceUid(0x0020, 0x000e);
 const gdcm::Tag kImagePositionPatient(0x0020, 0x0032);
 const gdcm::Tag kImageOrientationPatient(0x0020, 0x0037);
@@ -93,6 +97,7 @@ struct SliceHeader {
   std::string series_uid;
   std::string description;
   std::string modality;
+  std::string patient_name, patient_id, study_date, study_description;  // DicomDescription
   std::optional<std::string> photometric, number_of_frames, pixel_spacing, orientation, position,
       rescale_slope, rescale_intercept;
   std::optional<uint16_t> rows, columns, samples_per_pixel, bits_allocated, bits_stored, high_bit,
@@ -213,6 +218,10 @@ absl::StatusOr<std::optional<SliceHeader>> ReadHeader(const fs::path& dir, const
   h.series_uid = *uid;
   h.description = GetText(ds, kSeriesDescription).value_or("");
   h.modality = GetText(ds, kModality).value_or("");
+  h.patient_name = GetText(ds, kPatientName).value_or("");
+  h.patient_id = GetText(ds, kPatientId).value_or("");
+  h.study_date = GetText(ds, kStudyDate).value_or("");
+  h.study_description = GetText(ds, kStudyDescription).value_or("");
   h.photometric = GetText(ds, kPhotometricInterpretation);
   h.number_of_frames = GetText(ds, kNumberOfFrames);
   h.pixel_spacing = GetText(ds, kPixelSpacing);
@@ -877,23 +886,42 @@ absl::StatusOr<std::vector<DicomSeriesInfo>> ListDicomSeries(const fs::path& dir
   return SeriesInfos(GroupBySeries(scan));
 }
 
-absl::StatusOr<Volume> ReadDicomSeries(const fs::path& dir,
-                                       const std::string& series_instance_uid) {
+std::string FormatPersonName(const std::string& pn) {
+  const std::vector<std::string> parts =
+      absl::StrSplit(pn.substr(0, pn.find('=')), '^');  // family, given, middle, prefix, suffix
+  std::string rest;
+  for (size_t i = 1; i < parts.size(); ++i) {
+    const absl::string_view p = absl::StripAsciiWhitespace(parts[i]);
+    if (!p.empty()) absl::StrAppend(&rest, rest.empty() ? "" : " ", p);
+  }
+  const absl::string_view family = absl::StripAsciiWhitespace(parts.front());
+  if (family.empty()) return rest;
+  return rest.empty() ? std::string(family) : absl::StrCat(family, ", ", rest);
+}
+
+absl::StatusOr<Volume> ReadDicomSeries(const fs::path& dir, const std::string& series_instance_uid,
+                                       DicomDescription* description) {
   DECIMA_ASSIGN_OR_RETURN(FolderScan scan, ScanFolder(dir));
   const auto series = GroupBySeries(scan);
+  auto it = series.begin();
   if (series_instance_uid.empty()) {
     if (series.size() > 1) {
       return absl::InvalidArgumentError(absl::StrCat(
           dir.string(), ": holds ", series.size(),
           " series, pick one by SeriesInstanceUID: ", ListForMessage(SeriesInfos(series))));
     }
-    return AssembleSeries(dir, series.begin()->first, series.begin()->second);
+  } else {
+    it = series.find(series_instance_uid);
+    if (it == series.end()) {
+      return absl::NotFoundError(
+          absl::StrCat(dir.string(), ": no series with uid ", series_instance_uid,
+                       "; available: ", ListForMessage(SeriesInfos(series))));
+    }
   }
-  auto it = series.find(series_instance_uid);
-  if (it == series.end()) {
-    return absl::NotFoundError(absl::StrCat(dir.string(), ": no series with uid ",
-                                            series_instance_uid,
-                                            "; available: ", ListForMessage(SeriesInfos(series))));
+  if (description != nullptr) {
+    const SliceHeader& h = *it->second.front();
+    *description = {h.patient_name,      h.patient_id,  h.study_date,
+                    h.study_description, h.description, h.modality};
   }
   return AssembleSeries(dir, it->first, it->second);
 }

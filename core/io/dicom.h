@@ -42,6 +42,22 @@ struct DicomSeriesInfo {
 // Thread-safe (the first call silences GDCM's global warning and error trace once).
 absl::StatusOr<std::vector<DicomSeriesInfo>> ListDicomSeries(const std::filesystem::path& dir);
 
+// What a series is, for people reading a job's report: from its first slice's header, each ""
+// if absent. Text as in the file (UTF-8 with invalid bytes replaced); PatientName is a DICOM PN
+// ("FAMILY^GIVEN^MIDDLE", see FormatPersonName).
+struct DicomDescription {
+  std::string patient_name;        // (0010,0010)
+  std::string patient_id;          // (0010,0020)
+  std::string study_date;          // (0008,0020), YYYYMMDD
+  std::string study_description;   // (0008,1030)
+  std::string series_description;  // (0008,103E)
+  std::string modality;            // (0008,0060)
+};
+
+// A PN value as people write it: "DOE^JOHN^Q" -> "DOE, JOHN Q"; only the first (alphabetic)
+// component group of "alphabetic=ideographic=phonetic"; "" for an empty name.
+std::string FormatPersonName(const std::string& pn);
+
 // True if `path` is a DICOM Part 10 file by its first 132 bytes (128-byte preamble, "DICM");
 // else false with `*reason` saying why. Checking this before GDCM sees a file keeps arbitrary
 // files (checksums, NIfTI, archives) away from its parser. The one DICM check of the project.
@@ -65,7 +81,9 @@ bool HasDicomMarker(const std::filesystem::path& path, std::string* reason);
 // (DICOMDIR, reports), are skipped. Bits outside BitsStored/HighBit are masked and signed
 // samples sign-extended. Cost: one read of every file's header, one full read of each slice.
 // The result passed Validate(). Thread-safe as ListDicomSeries.
+// With `description`, it also receives the series' description (DicomDescription).
 absl::StatusOr<Volume> ReadDicomSeries(const std::filesystem::path& dir,
-                                       const std::string& series_instance_uid = "");
+                                       const std::string& series_instance_uid = "",
+                                       DicomDescription* description = nullptr);
 
 }  // namespace decima

@@ -84,10 +84,11 @@ absl::Status WriteViewPictures(const ViewRender& view, size_t view_index,
       text));
   DECIMA_RETURN_IF_ERROR(WritePng(
       path("diff"),
-      AddFooter(DiffHeatMap(view.diff, heat),
-                WithTitle(absl::StrCat("COLOUR DIFFERENCE PER PIXEL (RGB DISTANCE 0-442), SCALE 0-",
-                                       FormatNumber(heat.max_value), " FOR ALL VIEWS OF THIS JOB"),
-                          footer)),
+      AddFooter(
+          DiffHeatMap(view.diff, heat),
+          WithTitle(absl::StrCat("COLOUR DIFFERENCE PER PIXEL (RGB DISTANCE 0-442), FIXED SCALE 0-",
+                                 FormatNumber(heat.max_value), ", LARGER AS THE TOP"),
+                    footer)),
       text));
   return WriteComparisonPicture(view, caption, heat, path("comparison"));
 }
@@ -95,8 +96,10 @@ absl::Status WriteViewPictures(const ViewRender& view, size_t view_index,
 absl::Status WriteComparisonPicture(const ViewRender& view, const PictureCaption& caption,
                                     const DiffImageOptions& heat,
                                     const std::filesystem::path& path) {
-  DECIMA_ASSIGN_OR_RETURN(const Image comparison,
-                          ComparisonImage(view.original, view.simplified, view.diff, heat));
+  DECIMA_ASSIGN_OR_RETURN(
+      const Image comparison,
+      ComparisonImage(AnnotateRender(view.original.ToImage(), view.camera, {}),
+                      AnnotateRender(view.simplified.ToImage(), view.camera, {}), view.diff, heat));
   return WritePng(path, AddFooter(comparison, ViewFooter(view, caption)),
                   ViewText(view, caption, heat));
 }

@@ -39,6 +39,14 @@ struct ViewRender {
   DiffResult diff;
 };
 
+// The top of the difference heat maps of every job: colour distances (diff2, RGB distance
+// 0..441.7) from 0 (black) to this value (pale yellow); larger ones show as the top colour. A
+// fixed scale, so that an identical pixel is black and pictures of different jobs compare:
+// scaled to a job's own largest difference, a one-grey-level change filled the map with orange.
+// 100 is the distance between mid grey and a clearly different shade (e.g. (128,128,128) to
+// (186,186,186)), where a reader starts to see a change at a glance.
+inline constexpr double kHeatScaleMax = 100;
+
 // "50.0%" for 0.5.
 std::string FormatPercent(double fraction);
 
@@ -51,7 +59,8 @@ std::string ViewPictureName(const char* base, const std::string& view, size_t vi
 absl::Status WriteViewPictures(const ViewRender& view, size_t view_index,
                                const PictureCaption& caption, const DiffImageOptions& heat,
                                const std::filesystem::path& dir);
-// Only the comparison picture (original, simplified and difference side by side), at `path`.
+// Only the comparison picture (original, simplified and difference side by side), at `path`;
+// the original and simplified panels carry orientation letters and a mm scale (AnnotateRender).
 absl::Status WriteComparisonPicture(const ViewRender& view, const PictureCaption& caption,
                                     const DiffImageOptions& heat,
                                     const std::filesystem::path& path);

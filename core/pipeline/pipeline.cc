@@ -27,6 +27,7 @@
 #include "core/pipeline/psnr_floor.h"
 #include "core/pipeline/report.h"
 #include "core/render/camera.h"
+#include "core/render/canvas.h"
 #include "core/render/diff.h"
 #include "core/render/plot.h"
 #include "core/render/renderer.h"
@@ -48,10 +49,11 @@ bool Wants(const JobSpec& spec, const char* kind) {
   return std::find(spec.outputs.begin(), spec.outputs.end(), kind) != spec.outputs.end();
 }
 
-absl::StatusOr<Volume> LoadInput(const JobSpec& spec) {
+absl::StatusOr<Volume> LoadInput(const JobSpec& spec, std::optional<DicomDescription>* dicom) {
   std::error_code ec;
   if (std::filesystem::is_directory(spec.input, ec)) {
-    return ReadDicomSeries(spec.input, spec.series_instance_uid);
+    dicom->emplace();
+    return ReadDicomSeries(spec.input, spec.series_instance_uid, &**dicom);
   }
   return io::ReadVolume(spec.input);
 }
@@ -164,11 +166,13 @@ struct CurvePoint {
   double diff1 = 0;
 };
 
-// load: the volume file or DICOM series.
-absl::StatusOr<Volume> LoadStage(const JobSpec& spec, JobRun& run) {
+// load: the volume file or DICOM series (and, for a series, its patient, study and series for
+// the report: kept out of metrics.json, which is not meant to carry patient data).
+absl::StatusOr<Volume> LoadStage(const JobSpec& spec, JobRun& run,
+                                 std::optional<DicomDescription>* dicom) {
   DECIMA_ASSIGN_OR_RETURN(const Stage stage, run.Stage("load"));
   stage.Report(0, spec.input.string());
-  DECIMA_ASSIGN_OR_RETURN(Volume image, LoadInput(spec));
+  DECIMA_ASSIGN_OR_RETURN(Volume image, LoadInput(spec, dicom));
   run.metrics()["input"] = {{"dims", image.dims},
                             {"spacing_mm", {image.spacing[0], image.spacing[1], image.spacing[2]}},
                             {"type", std::string(VoxelTypeName(image.type))},
@@ -503,9 +507,7 @@ absl::Status RenderViews(const JobSpec& spec, const Volume& image, TetMesh& orig
     stage.Report((spec.views.size() + i + 1.0) / (steps + 1),
                  absl::StrCat(v.name, ": simplified rendered"), {{"diff1", v.diff.diff1}});
   }
-  double heat_top = 0;
-  for (const ViewRender& v : out->views) heat_top = std::max(heat_top, v.diff.max_diff2);
-  out->heat.max_value = heat_top > 0 ? heat_top : 1;
+  out->heat.max_value = kHeatScaleMax;
   return absl::OkStatus();
 }
 
@@ -532,7 +534,15 @@ absl::Status WriteViewPicturesOf(const JobSpec& spec, const Rendered& rendered, 
       continue;
     }
     report->push_back(
-        {absl::StrCat("View ", v.name, ": original, simplified, difference"), comparison_path});
+        {absl::StrCat("View ", v.name, ": original mesh, simplified mesh, difference"),
+         comparison_path,
+         absl::StrCat("Both meshes rendered with the same camera and colours; letters give the "
+                      "patient's sides (R/L right/left, A/P anterior/posterior, S/I superior/"
+                      "inferior) and the bar a length in mm. The difference is the colour "
+                      "distance of each pixel between the two renders on a fixed scale: black is "
+                      "no difference, pale yellow ",
+                      FormatNumber(rendered.heat.max_value),
+                      " or more (of at most 442), the same scale in every job.")});
   }
   return absl::OkStatus();
 }
@@ -637,8 +647,10 @@ absl::Status CurveStage(const JobSpec& spec, const TetMesh& original,
   DECIMA_RETURN_IF_ERROR(
       WriteCurvePicture(series, first.name, rendered.caption, run.OutputPath("curve.png")));
   run.AddArtifact("curve.png");
-  report->push_back({"diff1 against cells removed (the paper's Fig. 5 for this job)",
-                     run.OutputPath("curve.png")});
+  report->push_back({"Mean colour difference against cells removed", run.OutputPath("curve.png"),
+                     "The job simplified again to 10 %, 20 %, ... of the cells removed, each "
+                     "rendered in the first view and compared with the original (the paper's "
+                     "Fig. 5 for this job)."});
   stage.End();
   stage.Report(1, absl::StrCat(curve.size(), " points"));
   return absl::OkStatus();
@@ -646,8 +658,9 @@ absl::Status CurveStage(const JobSpec& spec, const TetMesh& original,
 
 // diff: segmentation.png, metrics.json and report.html. Not timed: its end is the job's total.
 absl::Status DiffStage(const JobSpec& spec, const Volume& image, const SegmentResult& seg,
-                       const RegionTable& regions, const Rendered& rendered, JobRun& run,
-                       std::vector<ReportPicture> report) {
+                       const RegionTable& regions, const Rendered& rendered,
+                       const TetMesh& simplified, const std::optional<DicomDescription>& dicom,
+                       JobRun& run, std::vector<ReportPicture> report) {
   DECIMA_ASSIGN_OR_RETURN(Stage stage, run.Stage("diff", JobRun::Timing::kNotRecorded));
   // segmentation.png: what a clinician checks first, the labels over the slices.
   if (Wants(spec, "segmentation") || Wants(spec, "report")) {
@@ -658,15 +671,23 @@ absl::Status DiffStage(const JobSpec& spec, const Volume& image, const SegmentRe
     DECIMA_RETURN_IF_ERROR(
         WriteSegmentationPicture(image, seg.labels, regions, rendered.caption, path));
     if (artifact) run.AddArtifact("segmentation.png");
-    report.insert(report.begin(), ReportPicture{"Segmentation", path});
+    report.insert(report.begin(),
+                  ReportPicture{"Segmentation", path,
+                                "The regions over the axial, coronal and sagittal slices through "
+                                "the centre of the scan, with their names and colours below."});
   }
   stage.Report(0.5, "metrics.json");
   // The pictures and metrics.json so far count as the "diff" stage; report.html adds little.
   stage.End();
   DECIMA_RETURN_IF_ERROR(run.WriteMetrics());
   if (Wants(spec, "report")) {
-    DECIMA_ASSIGN_OR_RETURN(const std::string html,
-                            ReportHtml(spec, rendered.caption.input_name, run.metrics(), report));
+    stage.Report(0.7, "report.html");
+    ReportContext context;
+    context.regions = &regions;
+    context.mesh = &simplified;
+    context.dicom = dicom;
+    DECIMA_ASSIGN_OR_RETURN(const std::string html, ReportHtml(spec, rendered.caption.input_name,
+                                                               run.metrics(), report, context));
     DECIMA_RETURN_IF_ERROR(WriteText(run.OutputPath("report.html"), html));
     run.AddArtifact("report.html");
   }
@@ -823,7 +844,8 @@ absl::StatusOr<JobResult> RunJob(const JobSpec& spec, const std::filesystem::pat
   const std::string simplify_key = SimplifyKey(spec, segment_key);
   std::vector<ReportPicture> report;  // the pictures report.html shows, as they are made
 
-  DECIMA_ASSIGN_OR_RETURN(const Volume image, LoadStage(spec, run));
+  std::optional<DicomDescription> dicom;
+  DECIMA_ASSIGN_OR_RETURN(const Volume image, LoadStage(spec, run, &dicom));
   DECIMA_ASSIGN_OR_RETURN(const SegmentResult seg,
                           SegmentStage(spec, image, checkpoints, segment_key, run));
   DECIMA_ASSIGN_OR_RETURN(const RegionTable regions, RegionTableOf(spec, image, seg, run));
@@ -839,7 +861,8 @@ absl::StatusOr<JobResult> RunJob(const JobSpec& spec, const std::filesystem::pat
   if (Wants(spec, "curve")) {
     DECIMA_RETURN_IF_ERROR(CurveStage(spec, original, simplified, rendered, run, &report));
   }
-  DECIMA_RETURN_IF_ERROR(DiffStage(spec, image, seg, regions, rendered, run, std::move(report)));
+  DECIMA_RETURN_IF_ERROR(DiffStage(spec, image, seg, regions, rendered, simplified.mesh, dicom, run,
+                                   std::move(report)));
   JobResult result = run.TakeResult();
   result.regions = regions;
   return result;

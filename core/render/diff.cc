@@ -138,10 +138,21 @@ absl::Status WriteDiffImage(const DiffResult& diff, const std::filesystem::path&
 absl::StatusOr<Image> ComparisonImage(const RenderedImage& original,
                                       const RenderedImage& simplified, const DiffResult& diff,
                                       const DiffImageOptions& options) {
+  if (original.rgb.size() != size_t(original.width) * original.height * 3 ||
+      simplified.rgb.size() != size_t(simplified.width) * simplified.height * 3) {
+    return absl::InvalidArgumentError(
+        "comparison: original, simplified and diff must have the same size");
+  }
+  return ComparisonImage(original.ToImage(), simplified.ToImage(), diff, options);
+}
+
+absl::StatusOr<Image> ComparisonImage(const Image& original, const Image& simplified,
+                                      const DiffResult& diff, const DiffImageOptions& options) {
   const int w = original.width, h = original.height;
   if (simplified.width != w || simplified.height != h || diff.width != w || diff.height != h ||
-      diff.diff2.size() != size_t(w) * h || original.rgb.size() != size_t(w) * h * 3 ||
-      simplified.rgb.size() != size_t(w) * h * 3) {
+      diff.diff2.size() != size_t(w) * h || original.channels != 3 || simplified.channels != 3 ||
+      original.pixels.size() != size_t(w) * h * 3 ||
+      simplified.pixels.size() != size_t(w) * h * 3) {
     return absl::InvalidArgumentError(
         "comparison: original, simplified and diff must have the same size");
   }
@@ -153,11 +164,13 @@ absl::StatusOr<Image> ComparisonImage(const RenderedImage& original,
   Canvas c(width, header + h, kPanel);
   const std::string titles[3] = {"ORIGINAL", "SIMPLIFIED",
                                  absl::StrCat("DIFFERENCE (MEAN ", FormatNumber(diff.diff1), ")")};
-  const Image panels[3] = {original.ToImage(), simplified.ToImage(), HeatPixels(diff, top)};
+  const Image* panels[3] = {&original, &simplified, nullptr};
+  const Image heat = HeatPixels(diff, top);
+  panels[2] = &heat;
   for (int k = 0; k < 3; ++k) {
     const int x = k * (w + gap);
     c.Text(x + pad, pad, titles[k], kText, s);
-    c.Blit(panels[k], x, header);
+    c.Blit(*panels[k], x, header);
   }
   DrawBar(c, 3 * w + 2 * gap + 4 * s, header + 7 * s + 6 * s, header + h - pad, s, top);
   return c.Take();

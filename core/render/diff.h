@@ -54,6 +54,10 @@ absl::Status WriteDiffImage(const DiffResult& diff, const std::filesystem::path&
 absl::StatusOr<Image> ComparisonImage(const RenderedImage& original,
                                       const RenderedImage& simplified, const DiffResult& diff,
                                       const DiffImageOptions& options = {});
+// The same from 8-bit RGB pictures of the renders (e.g. annotated with AnnotateRender, which
+// keeps their size); channels 3.
+absl::StatusOr<Image> ComparisonImage(const Image& original, const Image& simplified,
+                                      const DiffResult& diff, const DiffImageOptions& options = {});
 absl::Status WriteComparison(const RenderedImage& original, const RenderedImage& simplified,
                              const DiffResult& diff, const std::filesystem::path& path,
                              const DiffImageOptions& options = {});

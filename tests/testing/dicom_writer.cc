@@ -66,6 +66,12 @@ void WriteSlice(const fs::path& path, const SliceSpec& s) {
   PutText(ds, 0x0008, 0x0018, gdcm::VR::UI, absl::StrCat(s.series_uid, ".", s.instance));
   PutText(ds, 0x0008, 0x0060, gdcm::VR::CS, s.modality);
   PutText(ds, 0x0008, 0x103e, gdcm::VR::LO, s.description);
+  if (!s.study_date.empty()) PutText(ds, 0x0008, 0x0020, gdcm::VR::DA, s.study_date);
+  if (!s.study_description.empty()) {
+    PutText(ds, 0x0008, 0x1030, gdcm::VR::LO, s.study_description);
+  }
+  if (!s.patient_name.empty()) PutText(ds, 0x0010, 0x0010, gdcm::VR::PN, s.patient_name);
+  if (!s.patient_id.empty()) PutText(ds, 0x0010, 0x0020, gdcm::VR::LO, s.patient_id);
   if (s.slice_thickness) PutText(ds, 0x0018, 0x0050, gdcm::VR::DS, Decimals({*s.slice_thickness}));
   PutText(ds, 0x0020, 0x000d, gdcm::VR::UI, "1.2.826.0.1.3680043.9.7777.99");
   PutText(ds, 0x0020, 0x000e, gdcm::VR::UI, s.series_uid);

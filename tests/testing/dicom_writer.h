@@ -29,6 +29,8 @@ struct SliceSpec {
   std::string series_uid = "1.2.826.0.1.3680043.9.7777.1";
   std::string description = "synthetic";
   std::string modality = "CT";
+  // Patient and study attributes, written only when not empty.
+  std::string patient_name, patient_id, study_date, study_description;
   std::string sop_class_uid = "1.2.840.10008.5.1.4.1.1.2";  // CT Image Storage
   int instance = 1;
   bool with_sequence = false;    // adds a nested Referenced Image Sequence (undefined lengths)

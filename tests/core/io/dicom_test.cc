@@ -79,6 +79,45 @@ TEST(DicomTest, ShuffledFileNamesAreSortedByPositionAlongNormal) {
   }
 }
 
+// What the report shows of a series: patient, study and series from its first slice, padding
+// stripped; absent attributes are empty.
+TEST(DicomTest, ReadsThePatientStudyAndSeriesDescription) {
+  const fs::path dir = testing::MakeScratchDir("dicom-description");
+  SliceSpec base;
+  base.patient_name = "DOE^JANE^Q";
+  base.patient_id = "P123";
+  base.study_date = "20240131";
+  base.study_description = "CT HEAD W/O";
+  base.description = "Axial 2mm";
+  WriteSeries(dir, base, {2, 2});
+  DicomDescription d;
+  absl::StatusOr<Volume> v = ReadDicomSeries(dir, "", &d);
+  ASSERT_TRUE(v.ok()) << v.status();
+  EXPECT_EQ(d.patient_name, "DOE^JANE^Q");
+  EXPECT_EQ(FormatPersonName(d.patient_name), "DOE, JANE Q");
+  EXPECT_EQ(d.patient_id, "P123");
+  EXPECT_EQ(d.study_date, "20240131");
+  EXPECT_EQ(d.study_description, "CT HEAD W/O");
+  EXPECT_EQ(d.series_description, "Axial 2mm");
+  EXPECT_EQ(d.modality, "CT");
+
+  const fs::path bare = testing::MakeScratchDir("dicom-description-bare");
+  WriteSeries(bare, SliceSpec{}, {2});
+  ASSERT_TRUE(ReadDicomSeries(bare, "", &d).ok());
+  EXPECT_EQ(d.patient_name, "");
+  EXPECT_EQ(d.study_description, "");
+  EXPECT_EQ(d.series_description, "synthetic");
+}
+
+TEST(DicomTest, FormatPersonNameWritesFamilyCommaGiven) {
+  EXPECT_EQ(FormatPersonName("DOE^JOHN"), "DOE, JOHN");
+  EXPECT_EQ(FormatPersonName("DOE"), "DOE");
+  EXPECT_EQ(FormatPersonName("^JOHN"), "JOHN");
+  EXPECT_EQ(FormatPersonName("DOE^JOHN^^DR^"), "DOE, JOHN DR");
+  EXPECT_EQ(FormatPersonName("Yamada^Tarou=山田^太郎"), "Yamada, Tarou");
+  EXPECT_EQ(FormatPersonName(""), "");
+}
+
 TEST(DicomTest, DescendingPositionsPutOriginAtLowestSliceWithRightHandedDirection) {
   // Like the real CT: instance 1 is at the top (largest z), file names follow instances.
   const fs::path dir = testing::MakeScratchDir("dicom-descending");
