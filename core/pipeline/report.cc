@@ -112,8 +112,9 @@ absl::StatusOr<std::string> ReportHtml(const JobSpec& spec, const std::string& i
                   " on 0-442.</p>\n");
   if (simp["stop_reason"] == StopReasonName(StopReason::kPsnrFloor)) {
     // What the job asked for (JobSpec::min_psnr), not a missed target.
-    absl::StrAppend(&h, "<p>Stopped by the PSNR floor: ",
-                    Html(simp["stop_message"].get<std::string>()), "</p>\n");
+    absl::StrAppend(&h,
+                    "<p>Stopped by the PSNR floor: ", Html(simp["stop_message"].get<std::string>()),
+                    "</p>\n");
   } else if (!simp["reached_target"].get<bool>()) {
     absl::StrAppend(&h, "<p class=\"warn\">The reduction target was not reached: ",
                     Html(simp["stop_message"].get<std::string>()), "</p>\n");
@@ -159,6 +160,8 @@ absl::StatusOr<std::string> ReportHtml(const JobSpec& spec, const std::string& i
   params["label_map"] = spec.label_map.has_value();
   params["target_reduction"] = spec.target_reduction;
   params["policy"] = SimplifyPolicyName(spec.policy);
+  if (spec.policy == SimplifyPolicy::kField)
+    params["interfaces"] = InterfaceModeName(spec.interfaces);
   params["error_tolerance"] = spec.error_tolerance;
   params["views"] = spec.views;
   params["image_size"] = spec.image_size;

@@ -206,7 +206,6 @@ absl::Status RunSimplify(const BenchOptions& o, BenchState& state, Json& out) {
   out.update(SimplifyResultToJson(r, so, state.mesh->vertex_count()));
   if (so.policy == SimplifyPolicy::kField) {
     out["min_dihedral_degrees"] = o.min_dihedral;
-    out["interfaces"] = o.interfaces;
     out["refit_iterations"] = o.refit_iterations;
     out["record_levels_to"] = o.record_levels_to;
     if (r.levels) {
