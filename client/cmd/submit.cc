@@ -23,7 +23,7 @@ struct SubmitOptions {
   std::vector<std::string> inputs;
   fs::path each;
   DicomWebFlags dicomweb;
-  std::string label_map, policy = "field", transfer_function, fault, request_id, series;
+  std::string label_map, policy = "field", interfaces, transfer_function, fault, request_id, series;
   fs::path out;
   // Unset options stay unset in the request: the server owns the defaults.
   std::optional<int> regions, image_size, vtu_level;
@@ -148,6 +148,7 @@ int FillSpec(const SubmitOptions& o, v1::JobSpec* spec) {
                                              : v1::FIELD);
   if (o.tolerance) spec->set_error_tolerance(*o.tolerance);
   if (o.min_psnr) spec->set_min_psnr(*o.min_psnr);
+  if (!o.interfaces.empty()) spec->set_interfaces(o.interfaces);
   if (!o.weights.empty()) {
     if (int rc = SetWeights(o.weights, spec->mutable_weights()); rc != kOk) return rc;
   }
@@ -415,6 +416,10 @@ void AddJobFlags(CLI::App* cmd, SubmitOptions& o) {
       ->transform(CLI::IsMember({"paper", "tetfusion", "field"}, CLI::ignore_case))
       ->capture_default_str();
   cmd->add_option("--tolerance", o.tolerance, "error tolerance (>= 0; default 0 = none)");
+  cmd->add_option("--interfaces", o.interfaces,
+                  "field policy: free (default: interfaces move wherever every voxel centre "
+                  "keeps its label) or voxel-faces (the voxel staircase kept as a set)")
+      ->check(CLI::IsMember({"free", "voxel-faces"}));
   cmd->add_option("--min-psnr", o.min_psnr,
                   "PSNR floor in dB (field policy): simplify as far as possible while the "
                   "field's PSNR against the original grid stays >= DB; --reduction is then the "

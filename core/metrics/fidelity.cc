@@ -400,6 +400,30 @@ absl::StatusOr<FidelityMetrics> MeasureFidelity(const Volume& image, const TetMe
     }
   }
 
+  if (int64_t(simplified.interface_distance.size()) == simplified.vertex_count()) {
+    // Each vertex of a two-label cell once, in vertex order (the sum does not depend on threads).
+    std::vector<uint8_t> on_interface(simplified.vertex_count(), 0);
+    for (int64_t c = 0; c < simplified.tet_count(); ++c) {
+      const int32_t* t = &simplified.tets[4 * c];
+      const uint8_t l = simplified.labels[t[0]];
+      if (simplified.labels[t[1]] == l && simplified.labels[t[2]] == l &&
+          simplified.labels[t[3]] == l) {
+        continue;
+      }
+      for (int k = 0; k < 4; ++k) on_interface[t[k]] = 1;
+    }
+    double sum = 0;
+    for (int64_t v = 0; v < simplified.vertex_count(); ++v) {
+      const double d = std::abs(double(simplified.interface_distance[v]));
+      if (!on_interface[v] || !std::isfinite(d)) continue;
+      ++m.interface_vertices;
+      sum += d;
+      m.interface_distance_max_voxels = std::max(m.interface_distance_max_voxels, d);
+    }
+    m.interface_distance_mean_voxels =
+        m.interface_vertices > 0 ? sum / double(m.interface_vertices) : 0;
+  }
+
   const double voxel_volume = image.spacing.prod();
   const MeshQuality q =
       MeasureQuality(simplified, options.degenerate_volume_fraction * voxel_volume);

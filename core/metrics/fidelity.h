@@ -96,6 +96,14 @@ struct FidelityMetrics {
   double label_mismatch = 0;     // fraction of grid points whose label differs from truth
   double interface_rmse = 0;     // field RMSE at covered points next to a truth interface
   int64_t interface_points = 0;  //   (a 6-neighbour with another truth label)
+  // How far the mesh's interfaces lie from the segmentation's zero level, in voxels: over the
+  // vertices of cells that hold two labels (the resampled label boundary lies inside those
+  // cells), the largest and the mean |interface_distance| the mesh carries (the level set's
+  // distance at the vertex). One side of the Hausdorff distance to the zero surface, sampled at
+  // vertices (README "Interface distance"); 0 when the mesh has no two-label cell or no distances.
+  double interface_distance_max_voxels = 0;
+  double interface_distance_mean_voxels = 0;
+  int64_t interface_vertices = 0;
   // Feature vertices (with original + vertex_map).
   int64_t feature_vertices = 0;          // kFeatureVertex in the original
   int64_t feature_vertices_moved = 0;    // survive at another position

@@ -21,6 +21,9 @@ nlohmann::ordered_json FidelityToJson(const FidelityMetrics& m) {
   j["mean_dice"] = m.mean_dice;
   j["label_mismatch"] = m.label_mismatch;
   j["interface_rmse"] = m.interface_rmse;
+  j["interface_distance_max_voxels"] = m.interface_distance_max_voxels;
+  j["interface_distance_mean_voxels"] = m.interface_distance_mean_voxels;
+  j["interface_vertices"] = m.interface_vertices;
   j["feature_vertices"] = m.feature_vertices;
   j["feature_vertices_moved"] = m.feature_vertices_moved;
   j["feature_vertices_removed"] = m.feature_vertices_removed;

@@ -106,6 +106,11 @@ std::string SimplifyKey(const JobSpec& spec, const std::string& segment_key) {
                 SimplifyPolicyName(spec.policy), spec.target_reduction, spec.error_tolerance,
                 spec.weights.shape, spec.weights.volume, spec.weights.neighbour, LevelFloor(spec));
   std::string key = segment_key + buf;
+  // The field policy's default changed from the voxel staircase to free interfaces (issue 31):
+  // a checkpoint made before says nothing of them and is not reused.
+  if (spec.policy == SimplifyPolicy::kField) {
+    absl::StrAppend(&key, " interfaces=", InterfaceModeName(spec.interfaces));
+  }
   // Only when set, so the keys of jobs without a floor stay what they were.
   if (spec.min_psnr) absl::StrAppend(&key, absl::StrFormat(" min_psnr=%.17g", *spec.min_psnr));
   return key;
@@ -266,6 +271,7 @@ SimplifyOptions SimplifyOptionsOf(const JobSpec& spec) {
   o.policy = spec.policy;
   o.target_reduction = spec.target_reduction;
   o.error_tolerance = spec.error_tolerance;
+  o.interfaces = spec.interfaces;
   o.weights = spec.weights;
   o.record_levels_to = LevelFloor(spec);
   // The floor's search records down to its depth; a re-run for the levels output (after a resume)
@@ -728,6 +734,8 @@ absl::Status ValidateJobSpec(const JobSpec& spec, std::string* field) {
   DECIMA_RETURN_IF_ERROR(simplify(
       "target_reduction", [&](SimplifyOptions& o) { o.target_reduction = spec.target_reduction; }));
   DECIMA_RETURN_IF_ERROR(simplify("policy", [&](SimplifyOptions& o) { o.policy = spec.policy; }));
+  DECIMA_RETURN_IF_ERROR(
+      simplify("interfaces", [&](SimplifyOptions& o) { o.interfaces = spec.interfaces; }));
   DECIMA_RETURN_IF_ERROR(simplify(
       "error_tolerance", [&](SimplifyOptions& o) { o.error_tolerance = spec.error_tolerance; }));
   DECIMA_RETURN_IF_ERROR(simplify(

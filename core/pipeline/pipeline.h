@@ -35,6 +35,9 @@ struct JobSpec {
   double target_reduction = 0.5;  // fraction of cells to remove, [0, 0.99]; 0 = no target
   SimplifyPolicy policy = SimplifyPolicy::kField;
   double error_tolerance = 0;  // >= 0; 0 = no tolerance, stop on the target only
+  // Field policy: interfaces free under the label guard (default) or kept as the voxel staircase
+  // (core/simplify/README.md, "Interfaces free inside their voxels").
+  InterfaceMode interfaces = InterfaceMode::kFree;
   ErrorWeights weights;
   // With the "levels" output and the field policy: the collapses are recorded down to this
   // reduction (SimplifyOptions::record_levels_to, (0, 0.99]) and written as mesh.levels, so the

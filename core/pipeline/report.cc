@@ -140,6 +140,12 @@ std::string Words(const std::string& key) {
       {"mean_dice", "Mean Dice overlap"},
       {"label_mismatch", "Share of voxels whose region changed"},
       {"interface_rmse", "Field error next to region borders (image units)"},
+      {"interface_distance_max_voxels",
+       "Largest distance of a region border from the segmentation's zero level (voxels)"},
+      {"interface_distance_mean_voxels",
+       "Mean distance of a region border from the segmentation's zero level (voxels)"},
+      {"interface_vertices", "Vertices on region borders"},
+      {"interfaces", "Region borders"},
       {"feature_vertices", "Feature vertices (corners and edges of regions)"},
       {"feature_vertices_moved", "Feature vertices moved"},
       {"feature_vertices_removed", "Feature vertices removed"},
@@ -585,6 +591,9 @@ absl::StatusOr<std::string> ReportHtml(const JobSpec& spec, const std::string& i
   params["Segmentation from a label map"] = spec.label_map.has_value();
   params["Reduction asked for"] = FormatPercent(spec.target_reduction);
   params["Simplification policy"] = SimplifyPolicyName(spec.policy);
+  if (spec.policy == SimplifyPolicy::kField) {
+    params["Region borders"] = InterfaceModeName(spec.interfaces);
+  }
   params["Error tolerance"] = spec.error_tolerance;
   params["Views"] = spec.views;
   params["Picture size (pixels)"] = spec.image_size;

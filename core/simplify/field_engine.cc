@@ -59,6 +59,20 @@ constexpr int kRangeShift = 10;
 constexpr uint8_t kOnFrontier = 1, kNearFrontier = 2;
 // Axes at least this share of the longest may carry the slabs (SlabAxis).
 constexpr double kSlabAxisShare = 0.9;
+// The label guard (InterfaceMode::kFree, README "Interfaces free inside their voxels"). The metric
+// (core/metrics ResampleOnGrid) counts a point as inside a cell when every barycentric coordinate
+// is >= -kMetricInside, takes the lowest such cell id and gives the point the label of that cell's
+// vertex with the largest coordinate (ties to the lower slot). The guard computes the same
+// coordinates from the same float positions (in mm instead of grid index units: equal up to
+// rounding, ~1e-13), and makes the metric's answer independent of which cell it picks and of the
+// tie rule: every cell within kMetricInside + kInsideSlack of a sample must give the sample's own
+// label with its coordinate ahead of every other label's by kLabelMargin, and at least one new
+// cell must hold it within kMetricInside - kInsideSlack (coverage).
+constexpr double kMetricInside = 1e-5;
+constexpr double kInsideSlack = 1e-7;
+// Also covers a sample that lies on a face the star shares with a cell outside it, whose
+// coordinates in the two cells differ by the (float) distance to the face over the cells' heights.
+constexpr double kLabelMargin = 1e-3;
 
 // p^T q p at p = (a, b, c, d, 1): the diagonal term of each row, then twice the row's
 // off-diagonal sum. Written out rather than as loops over an array: GCC vectorised those through
@@ -316,6 +330,18 @@ struct LoggedCollapse {
   float cost;
 };
 
+// A cell a collapse would create, ready for barycentric coordinates: l_k = r_k . (p - a) / det for
+// k = 1..3 and l_0 = 1 - l_1 - l_2 - l_3, as the metric computes them (T^-1 by its rows).
+struct NewCell {
+  int32_t id;
+  int32_t v[4];
+  double a[3];
+  double r[3][3];       // rows of T^-1 (T's columns are the edges from v[0])
+  double lo[3], hi[3];  // bounding box, widened by the inside tolerance
+  uint8_t labels[4];
+  bool mixed;
+};
+
 // What one run of the greedy loop owns: its queue, its working memory and its counts. The serial
 // loop has one; in a parallel round every block of the mesh gets one (README "Parallel rounds").
 struct Worker {
@@ -325,6 +351,12 @@ struct Worker {
   std::vector<const StarCell*> guarded;  // Valid: the moved cells the shape guard checks last
   std::vector<Plane> planes;
   int32_t failed = -1;  // InKernel: the star cell that refused the last target
+  // KeepsLabels: the new cells of the last try, and where each sample of the star goes if the last
+  // valid try (relocated_for) is made.
+  std::vector<NewCell> new_cells;
+  std::vector<std::pair<int32_t, int32_t>> relocated;
+  std::pair<int32_t, int32_t> relocated_for{-1, -1};
+  int64_t label_refusals = 0;
   int64_t removed = 0, collapses = 0, pops = 0, invalid_tries = 0, requeued = 0,
           constrained_moves = 0;
   double last_error = 0, max_error = 0;
@@ -356,6 +388,10 @@ class FieldEngine {
 
   absl::Status Run(int64_t target, double tolerance, const ProgressFn& progress,
                    const CancelToken* cancel, SimplifyResult* result);
+  // The test hook (CheckFieldCollapse): the rules for one collapse u -> v on the input mesh.
+  FieldCollapseCheck CheckOne(int32_t u, int32_t v);
+  // The test hook PinnedFieldVertices.
+  std::vector<uint8_t> Pinned();
 
  private:
   void Setup();
@@ -375,6 +411,7 @@ class FieldEngine {
   void PreparePlanes(int32_t u, const Star& star, Worker& w);
   bool InKernel(int32_t v, const Star& star, Worker& w);
   bool Valid(int32_t u, int32_t v, const Star& star, Worker& w);
+  bool KeepsLabels(int32_t u, int32_t v, const Star& star, Worker& w);
   int64_t Collapse(int32_t u, int32_t v, const Star& star, Worker& w);
   void Push(int32_t u, Worker& w) {
     w.heap.push({static_cast<float>(st_[u].cost), u, ++st_[u].version});
@@ -507,6 +544,12 @@ class FieldEngine {
   const float* pos_ = nullptr;  // the input positions, mm (they never change)
   std::vector<uint8_t> flags_;
   BitSet dead_;
+  // InterfaceMode::kFree: the label guard's samples. Every removed input vertex is a voxel centre
+  // whose label must stay; it is listed in one live cell that holds it (bucket_head_ per cell,
+  // sample_next_ per input vertex). A vertex still alive is its own sample, exactly at a vertex
+  // of its own label, and needs no list.
+  bool free_interfaces_ = false;
+  std::vector<int32_t> bucket_head_, sample_next_;
   // Adjacency: the input CSR rows, linked per merge class (survivor first).
   VertexArray<int32_t> row_start_;  // int32: 4 * cells fits (Simplify checks)
   VertexArray<int32_t> row_len_, class_next_, class_tail_;
@@ -624,6 +667,11 @@ void FieldEngine::Setup() {
     }
   });
   dead_ = BitSet(nt_);
+  free_interfaces_ = options_.interfaces == InterfaceMode::kFree;
+  if (free_interfaces_) {
+    bucket_head_.assign(nt_, -1);
+    sample_next_.assign(nv_, -1);
+  }
 
   VertexTetAdjacency adjacency = BuildVertexTetAdjacency(in_, threads_);
   cell_ids_ = std::move(adjacency.tet_ids);  // the rows are consumed in place
@@ -775,7 +823,23 @@ Freedom FieldEngine::Classify(int32_t u, Scratch& s, int32_t along[2]) const {
   // A feature vertex is on an interface only if a cell around it holds two labels. The feature
   // band is a distance threshold and can be more than one vertex deep; a vertex whose cells
   // all hold its own label lies inside its region, and collapsing it changes no interface.
-  const bool feature = (fu & kFeatureVertex) && touches_mixed;
+  bool feature = (fu & kFeatureVertex) && touches_mixed;
+  if (feature && free_interfaces_) {
+    // Free interfaces: the label guard (KeepsLabels) decides where an interface vertex may go, and
+    // its voxel layer is no constraint. Where three or more labels meet the vertex stays: a
+    // junction of the label regions keeps its place.
+    uint8_t seen[3] = {label, label, label};
+    int nlabels = 1;
+    for (const StarCell& sc : star) {
+      for (int k = 0; k < 4; ++k) {
+        const uint8_t l = in_.labels[sc.v[k]];
+        if (l == seen[0] || (nlabels > 1 && l == seen[1])) continue;
+        if (nlabels == 2) return Freedom::kPinned;
+        seen[nlabels++] = l;
+      }
+    }
+    feature = false;  // only the hull constrains it now
+  }
   std::sort(faces_.begin(), faces_.end());
   // Constraint faces: hull faces (key 0), and faces of three feature vertices of u's label that
   // border a two-label cell (key 1): the voxel-interface layer u belongs to. A face of the band
@@ -1018,6 +1082,113 @@ bool FieldEngine::Valid(int32_t u, int32_t v, const Star& star, Worker& w) {
       if (after > max_cos_ && after > MaxDihedralCos(t)) return false;
     }
   }
+  // Last, the label guard: it is the dearest test and the cheap ones refuse most tries.
+  if (free_interfaces_ && !KeepsLabels(u, v, star, w)) {
+    ++w.label_refusals;
+    return false;
+  }
+  return true;
+}
+
+// The label guard (InterfaceMode::kFree): whether every sample the collapse u -> v moves into new
+// cells (u's own, and those listed in u's cells) lies in a new cell and gets its own label in
+// every new cell that holds it (README "Interfaces free inside their voxels"). On success
+// w.relocated says which new cell each sample goes to (Collapse lists them there). Valid's
+// other tests must have passed: every new cell is positive.
+bool FieldEngine::KeepsLabels(int32_t u, int32_t v, const Star& star, Worker& w) {
+  w.relocated.clear();
+  w.relocated_for = {-1, -1};
+  std::vector<NewCell>& cells = w.new_cells;
+  cells.clear();
+  const uint8_t* labels = in_.labels.data();
+  bool one_label = true;  // every vertex of u's star has u's label
+  for (const StarCell& sc : star) {
+    const int32_t* t = sc.v;
+    for (int k = 0; k < 4; ++k) one_label &= labels[t[k]] == labels[u];
+    if (t[0] == v || t[1] == v || t[2] == v || t[3] == v) continue;  // deleted
+    NewCell& c = cells.emplace_back();
+    c.id = sc.id;
+    for (int k = 0; k < 4; ++k) c.v[k] = t[k] == u ? v : t[k];
+    double p[4][3];
+    for (int k = 0; k < 4; ++k) {
+      for (int d = 0; d < 3; ++d) p[k][d] = pos_[3 * int64_t(c.v[k]) + d];
+    }
+    double e[3][3];
+    for (int k = 0; k < 3; ++k) {
+      for (int d = 0; d < 3; ++d) e[k][d] = p[k + 1][d] - p[0][d];
+    }
+    auto cross = [](const double* x, const double* y, double* out) {
+      out[0] = x[1] * y[2] - x[2] * y[1];
+      out[1] = x[2] * y[0] - x[0] * y[2];
+      out[2] = x[0] * y[1] - x[1] * y[0];
+    };
+    cross(e[1], e[2], c.r[0]);
+    cross(e[2], e[0], c.r[1]);
+    cross(e[0], e[1], c.r[2]);
+    const double det = Dot(e[0], c.r[0]);
+    for (int k = 0; k < 3; ++k) {
+      for (int d = 0; d < 3; ++d) c.r[k][d] /= det;
+    }
+    for (int d = 0; d < 3; ++d) {
+      c.a[d] = p[0][d];
+      c.lo[d] = std::min({p[0][d], p[1][d], p[2][d], p[3][d]});
+      c.hi[d] = std::max({p[0][d], p[1][d], p[2][d], p[3][d]});
+    }
+    // A point within the inside tolerance of the cell is within that share of its largest
+    // height, itself at most its longest box side times sqrt(3).
+    const double widen = 2 * (kMetricInside + kInsideSlack) *
+                         std::max({c.hi[0] - c.lo[0], c.hi[1] - c.lo[1], c.hi[2] - c.lo[2]});
+    for (int d = 0; d < 3; ++d) {
+      c.lo[d] -= widen;
+      c.hi[d] += widen;
+    }
+    c.mixed = false;
+    for (int k = 0; k < 4; ++k) {
+      c.labels[k] = labels[c.v[k]];
+      c.mixed |= c.labels[k] != c.labels[0];
+    }
+  }
+  // One sample: false if it would leave the new cells or get another label in one of them.
+  auto place = [&](int32_t s) {
+    const double q[3] = {pos_[3 * int64_t(s)], pos_[3 * int64_t(s) + 1], pos_[3 * int64_t(s) + 2]};
+    const uint8_t own = labels[s];
+    int32_t home = -1;
+    for (const NewCell& c : cells) {
+      if (q[0] < c.lo[0] || q[0] > c.hi[0] || q[1] < c.lo[1] || q[1] > c.hi[1] || q[2] < c.lo[2] ||
+          q[2] > c.hi[2]) {
+        continue;
+      }
+      const double d[3] = {q[0] - c.a[0], q[1] - c.a[1], q[2] - c.a[2]};
+      double l[4];
+      l[1] = Dot(c.r[0], d);
+      l[2] = Dot(c.r[1], d);
+      l[3] = Dot(c.r[2], d);
+      l[0] = 1.0 - l[1] - l[2] - l[3];
+      const double lowest = std::min({l[0], l[1], l[2], l[3]});
+      if (lowest < -(kMetricInside + kInsideSlack)) continue;
+      if (home < 0 && lowest >= -(kMetricInside - kInsideSlack)) home = c.id;
+      if (one_label) continue;  // every new cell has the samples' label (they had it before)
+      if (!c.mixed) {
+        if (c.labels[0] != own) return false;
+        continue;
+      }
+      double mine = -std::numeric_limits<double>::infinity(), other = mine;
+      for (int k = 0; k < 4; ++k) {
+        (c.labels[k] == own ? mine : other) = std::max(c.labels[k] == own ? mine : other, l[k]);
+      }
+      if (!(mine > other + kLabelMargin)) return false;
+    }
+    if (home < 0) return false;
+    w.relocated.emplace_back(s, home);
+    return true;
+  };
+  if (!place(u)) return false;
+  for (const StarCell& sc : star) {
+    for (int32_t s = bucket_head_[sc.id]; s >= 0; s = sample_next_[s]) {
+      if (!place(s)) return false;
+    }
+  }
+  w.relocated_for = {u, v};
   return true;
 }
 
@@ -1025,6 +1196,17 @@ int64_t FieldEngine::Collapse(int32_t u, int32_t v, const Star& star, Worker& w)
   int64_t removed = 0;
   std::vector<int32_t>& touched = w.touched;
   touched.clear();
+  if (free_interfaces_) {
+    // The samples of u's cells (and u's own) go to the new cells KeepsLabels found for them.
+    // Valid's last try was this one in every caller; should another try come between, redo it.
+    if (w.relocated_for != std::make_pair(u, v)) KeepsLabels(u, v, star, w);
+    for (const StarCell& sc : star) bucket_head_[sc.id] = -1;
+    for (const auto& [sample, cell] : w.relocated) {
+      sample_next_[sample] = bucket_head_[cell];
+      bucket_head_[cell] = sample;
+    }
+    w.relocated_for = {-1, -1};
+  }
   for (const StarCell& sc : star) {
     const int32_t c = sc.id;
     int32_t t[4] = {sc.v[0], sc.v[1], sc.v[2], sc.v[3]};
@@ -1617,6 +1799,8 @@ void FieldEngine::ReleaseQueue() {
   release(class_tail_);
   release(cell_ids_);
   release(flags_);
+  release(bucket_head_);
+  release(sample_next_);
   release(frontier_);
   release(range_lo_);
   release(range_hi_);
@@ -1702,7 +1886,49 @@ void FieldEngine::Finish(SimplifyResult* result) {
   });
 }
 
+std::vector<uint8_t> FieldEngine::Pinned() {
+  Setup();
+  Scratch s;
+  std::vector<uint8_t> pinned(nv_);
+  for (int64_t u = 0; u < nv_; ++u) {
+    GatherStar(int32_t(u), &s.star);
+    int32_t along[2];
+    pinned[u] = Classify(int32_t(u), s, along) == Freedom::kPinned;
+  }
+  return pinned;
+}
+
+FieldCollapseCheck FieldEngine::CheckOne(int32_t u, int32_t v) {
+  Setup();
+  Worker w;
+  GatherStar(u, &w.scratch.star);
+  const Star& star = w.scratch.star;
+  Targets(u, w.scratch);
+  bool target = false;
+  for (const Candidate& c : w.scratch.candidates) target |= c.target == v;
+  if (!target) return FieldCollapseCheck::kNotATarget;
+  PreparePlanes(u, star, w);
+  const bool guard = free_interfaces_;
+  free_interfaces_ = false;
+  const bool valid = Valid(u, v, star, w);
+  free_interfaces_ = guard;
+  if (!valid) return FieldCollapseCheck::kInvalid;
+  if (guard && !KeepsLabels(u, v, star, w)) return FieldCollapseCheck::kLabelChanged;
+  return FieldCollapseCheck::kAllowed;
+}
+
 }  // namespace
+
+FieldCollapseCheck CheckFieldCollapse(const TetMesh& mesh, const SimplifyOptions& options,
+                                      int32_t u, int32_t v) {
+  FieldEngine engine(mesh, options, 1, nullptr);
+  return engine.CheckOne(u, v);
+}
+
+std::vector<uint8_t> PinnedFieldVertices(const TetMesh& mesh, const SimplifyOptions& options) {
+  FieldEngine engine(mesh, options, 1, nullptr);
+  return engine.Pinned();
+}
 
 int SlabAxis(const float* positions, int64_t n, const float lo[3], const float hi[3], double width,
              int threads) {

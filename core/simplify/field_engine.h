@@ -5,6 +5,7 @@
 #pragma once
 
 #include <cstdint>
+#include <vector>
 
 #include "absl/status/status.h"
 #include "core/common/progress.h"
@@ -23,6 +24,22 @@ absl::Status RunFieldSimplify(const TetMesh& mesh, const SimplifyOptions& option
                               int64_t target, double tolerance, const ProgressFn& progress,
                               const CancelToken* cancel, SimplifyResult* result,
                               SimplifyLevels* levels = nullptr);
+
+// What the field policy's rules say of one half-edge collapse u -> v of the input mesh, for tests
+// that drive a single collapse (CheckFieldCollapse).
+enum class FieldCollapseCheck {
+  kAllowed,
+  kNotATarget,    // the constraint rules (hull, voxel layers, junctions) do not let u go to v
+  kInvalid,       // rule 6 (volume, a vertex's last cell) or the shape guard refuses it
+  kLabelChanged,  // InterfaceMode::kFree: a voxel centre would leave the mesh or get another label
+};
+FieldCollapseCheck CheckFieldCollapse(const TetMesh& mesh, const SimplifyOptions& options,
+                                      int32_t u, int32_t v);
+
+// Per input vertex, 1 if the constraint rules pin it (no target at all) in the input mesh: under
+// InterfaceMode::kVoxelFaces the corners of the voxel staircase, under kFree the junctions of
+// three or more labels; hull corners under both.
+std::vector<uint8_t> PinnedFieldVertices(const TetMesh& mesh, const SimplifyOptions& options);
 
 // The axis (0, 1, 2) the parallel rounds cut into slabs of `width` mm, for n vertices at
 // `positions` (x, y, z each) inside the box [lo, hi]. The longest axis, since a shorter one gives

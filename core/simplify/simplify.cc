@@ -151,6 +151,10 @@ absl::Status ValidateSimplifyOptions(const SimplifyOptions& o) {
   if (!ParseSimplifyPolicy(SimplifyPolicyName(o.policy))) {
     return bad(absl::StrCat("policy = ", static_cast<int>(o.policy), ": not a policy"));
   }
+  if (!ParseInterfaceMode(InterfaceModeName(o.interfaces))) {
+    return bad(absl::StrCat("interfaces = ", static_cast<int>(o.interfaces),
+                            ": not an interface mode (free, voxel-faces)"));
+  }
   if (!(o.target_reduction >= 0 && o.target_reduction <= 0.99)) {
     return bad(absl::StrCat("target_reduction = ", o.target_reduction,
                             ": expected a fraction of cells to remove in [0, 0.99]"));
@@ -237,6 +241,23 @@ const char* SimplifyPolicyName(SimplifyPolicy policy) {
       return "field";
   }
   return "?";
+}
+
+const char* InterfaceModeName(InterfaceMode mode) {
+  switch (mode) {
+    case InterfaceMode::kFree:
+      return "free";
+    case InterfaceMode::kVoxelFaces:
+      return "voxel-faces";
+  }
+  return "unknown";
+}
+
+std::optional<InterfaceMode> ParseInterfaceMode(std::string_view name) {
+  for (InterfaceMode m : {InterfaceMode::kFree, InterfaceMode::kVoxelFaces}) {
+    if (name == InterfaceModeName(m)) return m;
+  }
+  return std::nullopt;
 }
 
 namespace {

@@ -1,9 +1,11 @@
 // Decimation of a tetrahedral mesh with three policies:
 //  - kField (the job default): greedy half-edge collapses ranked by the error of the
 //    piecewise-linear field (4-D quadrics). Surviving vertices keep their position and voxel
-//    sample; feature vertices move only inside a planar patch of their interface layer or along
-//    a straight crease of it, hull vertices only inside a box face or along a box edge; corners
-//    never. So interfaces and hull stay the same point sets, every cell stays positive and the
+//    sample; hull vertices move only inside a box face or along a box edge, so the hull stays the
+//    same point set. Interfaces (`interfaces`): by default an interface vertex may go wherever
+//    every voxel centre of the input keeps its own label (label mismatch 0, coverage 1), except
+//    where three labels meet; with kVoxelFaces it moves only inside a planar patch of its voxel
+//    layer or along a straight crease of it, corners never. Every cell stays positive and the
 //    mesh conforming, the output does not depend on `threads`. README.md: "The field policy".
 //  - kPaper: feature-preserving greedy cell collapse (paper §2.2), described below.
 //  - kTetFusion: the TetFusion baseline (Chopra & Meyer 2002) on the paper's engine.
@@ -48,6 +50,19 @@ enum class SimplifyPolicy : uint8_t {
   kPaper,      // rules 1-6 of §2.2.2 and the full error of Eq. (8)
   kTetFusion,  // every interior cell to its centroid, local error only, rule 6, hull kept
   kField,      // field-accurate: half-edge collapses ranked by the field's quadric error
+};
+
+// kField: how vertices of two-label cells (the interfaces) may move. README "Interfaces free inside
+// their voxels".
+enum class InterfaceMode : uint8_t {
+  // The default. Any half-edge collapse of an interface vertex is allowed if every voxel centre of
+  // the input still lies only in cells that give it its own label (label mismatch 0, coverage 1;
+  // the label of a point as core/metrics/fidelity.h defines it), checked exactly on one sample per
+  // removed input vertex. Vertices where three or more labels meet stay where they are.
+  kFree,
+  // The voxel staircase kept as a point set: an interface vertex moves only inside a planar patch
+  // or along a straight crease of its voxel layer; corners never move (the behaviour before).
+  kVoxelFaces,
 };
 
 // Weights of Eq. (8); defaults are the paper's Table 2 (CT-head). Any value >= 0.
@@ -112,6 +127,9 @@ struct SimplifyOptions {
   // reduction it recorded, the same mesh as a run to that reduction. The parallel rounds are
   // paced by the floor instead of the target for that (README "Levels").
   double record_levels_to = 0;
+  // kField: interfaces free inside their voxels under the label guard (default) or kept as the
+  // voxel staircase. Ignored by the other policies.
+  InterfaceMode interfaces = InterfaceMode::kFree;
   int threads = 0;  // worker threads (scoring; kField: its slabs too); 0 = hardware concurrency
 };
 
@@ -133,6 +151,11 @@ const char* SimplifyPolicyName(SimplifyPolicy policy);
 std::optional<SimplifyPolicy> ParseSimplifyPolicy(std::string_view name);
 // "field, paper, tetfusion": every name, for help texts and error messages.
 std::string SimplifyPolicyNames();
+
+// "free", "voxel-faces": the one spelling of each interface mode in flags, files and the API.
+const char* InterfaceModeName(InterfaceMode mode);
+// The mode of that name, or nullopt for any other string (case-sensitive).
+std::optional<InterfaceMode> ParseInterfaceMode(std::string_view name);
 
 struct SimplifyPassStats {
   int64_t candidates = 0;      // cells the own-vertex rules allowed at the start of the pass

@@ -106,6 +106,15 @@ absl::StatusOr<pipeline::JobSpec> JobSpecFromProto(const v1::JobSpec& spec, std:
                                   " is not a policy (PAPER, TETFUSION or FIELD)"));
   }
   if (spec.has_error_tolerance()) p.error_tolerance = spec.error_tolerance();
+  if (!spec.interfaces().empty()) {
+    const std::optional<InterfaceMode> mode = ParseInterfaceMode(spec.interfaces());
+    if (!mode) {
+      return Invalid(field, "spec.interfaces",
+                     absl::StrCat("'", spec.interfaces().substr(0, 64),
+                                  "' is not an interface mode (free or voxel-faces)"));
+    }
+    p.interfaces = *mode;
+  }
   const v1::ErrorWeights& w = spec.weights();
   if (w.has_regional()) p.weights.regional = w.regional();
   if (w.has_gradient()) p.weights.gradient = w.gradient();
@@ -177,6 +186,7 @@ absl::StatusOr<v1::JobSpec> NormalizeJobSpec(const v1::JobSpec& spec, std::strin
   out.set_target_reduction(p->target_reduction);
   out.set_policy(PolicyToProto(p->policy));
   out.set_error_tolerance(p->error_tolerance);
+  out.set_interfaces(InterfaceModeName(p->interfaces));
   v1::ErrorWeights* w = out.mutable_weights();
   w->set_regional(p->weights.regional);
   w->set_gradient(p->weights.gradient);
@@ -232,17 +242,17 @@ absl::StatusOr<v1::JobSpec> LevelJobSpec(const v1::JobSpec& spec, const v1::Job&
     return Invalid(field, "spec.policy", "a level record is made by the FIELD policy only");
   }
   // The range the parent recorded (metrics.json "levels", written with the record).
-  const double target = spec.has_target_reduction() ? spec.target_reduction()
-                                                    : pipeline::JobSpec{}.target_reduction;
+  const double target =
+      spec.has_target_reduction() ? spec.target_reduction() : pipeline::JobSpec{}.target_reduction;
   const auto metrics = nlohmann::json::parse(parent.metrics_json(), nullptr, false);
   const auto levels = metrics.is_object() ? metrics.value("levels", nlohmann::json::object())
                                           : nlohmann::json::object();
   const double deepest = levels.value("deepest_reduction", 0.0);
   const bool exhausted = levels.value("exhausted", false);
   if (std::isfinite(target) && target > deepest && !exhausted) {
-    return Invalid(field, "spec.target_reduction",
-                   absl::StrFormat("%g is outside the range %s recorded, (0, %.4f]", target, of,
-                                   deepest));
+    return Invalid(
+        field, "spec.target_reduction",
+        absl::StrFormat("%g is outside the range %s recorded, (0, %.4f]", target, of, deepest));
   }
   v1::JobSpec out = spec;
   out.set_volume(parent.spec().volume());

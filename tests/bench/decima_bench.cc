@@ -87,6 +87,7 @@ struct BenchOptions {
   double reduction = 0.5;
   std::string policy = "field";
   double min_dihedral = SimplifyOptions().min_dihedral_degrees;
+  std::string interfaces = InterfaceModeName(SimplifyOptions().interfaces);
   int refit_iterations = SimplifyOptions().refit_iterations;
   double record_levels_to = 0;
   std::vector<double> extract_levels;
@@ -186,6 +187,7 @@ absl::Status RunSimplify(const BenchOptions& o, BenchState& state, Json& out) {
   so.policy = *ParseSimplifyPolicy(o.policy);  // the flag accepts only known names
   so.target_reduction = o.reduction;
   so.min_dihedral_degrees = o.min_dihedral;
+  so.interfaces = *ParseInterfaceMode(o.interfaces);  // the flag accepts only known names
   so.refit_iterations = o.refit_iterations;
   so.record_levels_to = o.record_levels_to;
   pipeline::PsnrFloorSearch search;
@@ -371,6 +373,11 @@ int Main(int argc, char** argv) {
   app.add_option("--min-dihedral", o.min_dihedral,
                  "simplify, field policy: the shape guard's floor in degrees (0 = no guard)")
       ->check(CLI::Range(0.0, 30.0))
+      ->capture_default_str();
+  app.add_option("--interfaces", o.interfaces,
+                 "simplify, field policy: free (interface vertices move wherever every voxel "
+                 "centre keeps its label) or voxel-faces (the voxel staircase kept as a set)")
+      ->check(CLI::IsMember({"free", "voxel-faces"}))
       ->capture_default_str();
   app.add_option("--refit-iterations", o.refit_iterations,
                  "simplify, field policy: least-squares refit steps (0 = keep the samples)")

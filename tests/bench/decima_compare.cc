@@ -97,6 +97,7 @@ struct CompareOptions {
   int regions = 3;
   std::vector<double> reductions = {0.5, 0.8, 0.9, 0.95};
   std::vector<std::string> policies = {"field", "paper"};
+  std::string interfaces = InterfaceModeName(SimplifyOptions().interfaces);  // field policy
   int repeat = 3;
   int size = 512;
   std::string view = "anterior";
@@ -295,6 +296,7 @@ Json RunInChild(const std::function<Json()>& fn) {
 Json RunDecima(const CompareOptions& o, const Reference& ref, const std::string& name,
                double reduction) {
   Json head{{"method", name}, {"kind", "decima"}, {"target_reduction", reduction}};
+  if (name == "field") head["interfaces"] = o.interfaces;
   const std::optional<SimplifyPolicy> policy = ParseSimplifyPolicy(name);
   if (!policy) {
     head["error"] =
@@ -309,6 +311,7 @@ Json RunDecima(const CompareOptions& o, const Reference& ref, const std::string&
     SimplifyOptions so;
     so.policy = *policy;
     so.target_reduction = reduction;
+    so.interfaces = *ParseInterfaceMode(o.interfaces);  // the flag accepts only known names
     std::optional<SimplifyResult> result;
     std::vector<double> runs;
     for (int i = 0; i < o.repeat; ++i) {
@@ -523,6 +526,11 @@ int Main(int argc, char** argv) {
   app.add_option("--policies", policies_arg,
                  "Comma-separated Decima policies (this build: " + SimplifyPolicyNames() +
                      "); an unknown name gives an error entry, not a failure")
+      ->capture_default_str();
+  app.add_option("--interfaces", o.interfaces,
+                 "field policy: free (interface vertices move wherever every voxel centre keeps "
+                 "its label) or voxel-faces (the voxel staircase kept as a set)")
+      ->check(CLI::IsMember({"free", "voxel-faces"}))
       ->capture_default_str();
   app.add_option("--repeat", o.repeat,
                  "Timed runs per method and reduction; the median is reported")

@@ -48,7 +48,8 @@ _SPEC_KEYS = {"regions": "regions", "class_means": "class_means", "region_names"
               "policy": "policy", "weights": "weights", "views": "views",
               "image_size": "image_size", "transfer_function": "transfer_function",
               "outputs": "outputs", "vtu_compression_level": "vtu_compression_level",
-              "vtu_level": "vtu_compression_level", "min_psnr": "min_psnr"}
+              "vtu_level": "vtu_compression_level", "min_psnr": "min_psnr",
+              "interfaces": "interfaces"}
 # fetch(outputs=...) kinds, as the CLI's --only: kind -> file name.
 _KIND_FILES = {"vtu": "mesh.vtu", "msh": "mesh.msh", "medit": "mesh.mesh", "levels": "mesh.levels",
                "labels": "labels.nii.gz", "segmentation": "segmentation.png",

@@ -69,6 +69,13 @@ SimplifyOptions Field(double reduction, int threads = 2) {
   return o;
 }
 
+// The voxel staircase kept as a set (InterfaceMode::kVoxelFaces): what the tests of the interface
+// layers below check. field_labels_test checks the default, free interfaces.
+SimplifyOptions VoxelFaces(SimplifyOptions o) {
+  o.interfaces = InterfaceMode::kVoxelFaces;
+  return o;
+}
+
 // The same without the refit: every vertex left keeps its voxel sample.
 SimplifyOptions FieldWithoutRefit(double reduction, int threads = 2) {
   SimplifyOptions o = Field(reduction, threads);
@@ -189,7 +196,7 @@ Labeled Blocks(int64_t n, double noise) {
 
 TEST(FieldPolicy, PlanarInterfacesReachNinetyPercentWithInterfacesLabelsAndHullKept) {
   const Labeled b = Blocks(24, 5);
-  auto r = Simplify(b.mesh, Field(0.9));
+  auto r = Simplify(b.mesh, VoxelFaces(Field(0.9)));
   ASSERT_TRUE(r.ok()) << r.status();
   EXPECT_TRUE(r->reached_target) << r->stop_message;
   EXPECT_GE(r->achieved_reduction, 0.9);
@@ -217,7 +224,7 @@ TEST(FieldPolicy, InterfaceCornersNeverMove) {
       [](int64_t i, int64_t j, int64_t k) {
         return i >= 6 && i < 14 && j >= 6 && j < 14 && k >= 6 && k < 14 ? 1 : 0;
       });
-  auto r = Simplify(b.mesh, Field(0.99));
+  auto r = Simplify(b.mesh, VoxelFaces(Field(0.99)));
   ASSERT_TRUE(r.ok()) << r.status();
   EXPECT_GT(r->achieved_reduction, 0.8);
   int checked = 0;
@@ -289,7 +296,7 @@ TEST(FieldPolicy, EveryVertexOfATwoLabelCellKeepsItsLayerWhateverTheFeatureThres
 TEST(FieldPolicy, CurvedInterfacesKeepEveryFeatureVertexOnItsLayer) {
   auto pm = MakePhantomMesh(28, 30);
   Labeled in{pm.phantom.image, pm.phantom.labels, pm.mesh};
-  SimplifyOptions o = FieldWithoutRefit(0.7);
+  SimplifyOptions o = VoxelFaces(FieldWithoutRefit(0.7));
   auto r = Simplify(in.mesh, o);
   ASSERT_TRUE(r.ok()) << r.status();
   EXPECT_GT(r->achieved_reduction, 0.6);
@@ -626,6 +633,12 @@ TEST(SimplifyPolicyNames, EveryNameRoundTripsAndNothingElseParses) {
   EXPECT_FALSE(ParseSimplifyPolicy("").has_value());
   EXPECT_FALSE(ParseSimplifyPolicy("Paper").has_value());
   EXPECT_FALSE(ParseSimplifyPolicy("no-such-policy").has_value());
+  for (InterfaceMode m : {InterfaceMode::kFree, InterfaceMode::kVoxelFaces}) {
+    EXPECT_EQ(ParseInterfaceMode(InterfaceModeName(m)), m);
+  }
+  EXPECT_EQ(std::string(InterfaceModeName(InterfaceMode::kVoxelFaces)), "voxel-faces");
+  EXPECT_FALSE(ParseInterfaceMode("voxel_faces").has_value());
+  EXPECT_FALSE(ParseInterfaceMode("").has_value());
 }
 
 }  // namespace

@@ -120,6 +120,8 @@ inline std::vector<BadJobSpec> BadJobSpecs() {
        [](S s) { s->set_transfer_function("no-such-preset"); }},
       {"transfer_function broken JSON", "spec.transfer_function",
        [](S s) { s->set_transfer_function("{not json"); }},
+      {"interfaces unknown", "spec.interfaces", [](S s) { s->set_interfaces("voxel_faces"); }},
+      {"interfaces wrong case", "spec.interfaces", [](S s) { s->set_interfaces("Free"); }},
       {"min_psnr NaN", "spec.min_psnr", [](S s) { s->set_min_psnr(kNaN); }},
       {"min_psnr +inf", "spec.min_psnr", [](S s) { s->set_min_psnr(kInf); }},
       {"min_psnr -inf", "spec.min_psnr", [](S s) { s->set_min_psnr(-kInf); }},

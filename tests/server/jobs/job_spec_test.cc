@@ -73,6 +73,25 @@ TEST(JobSpecFromProto, ExplicitValuesAreKept) {
   EXPECT_EQ(p->transfer_function, "ct-bone");
 }
 
+// Issue 31 item 3: the field policy's interfaces, "free" unless asked otherwise, written out by
+// normalization; unknown names are refused (bad_job_specs.h).
+TEST(JobSpecFromProto, InterfacesDefaultToFreeAndVoxelFacesIsKept) {
+  v1::JobSpec s = Minimal();
+  auto p = JobSpecFromProto(s);
+  ASSERT_TRUE(p.ok()) << p.status();
+  EXPECT_EQ(p->interfaces, InterfaceMode::kFree);
+  auto n = NormalizeJobSpec(s);
+  ASSERT_TRUE(n.ok()) << n.status();
+  EXPECT_EQ(n->interfaces(), "free");
+  s.set_interfaces("voxel-faces");
+  p = JobSpecFromProto(s);
+  ASSERT_TRUE(p.ok()) << p.status();
+  EXPECT_EQ(p->interfaces, InterfaceMode::kVoxelFaces);
+  n = NormalizeJobSpec(s);
+  ASSERT_TRUE(n.ok()) << n.status();
+  EXPECT_EQ(n->interfaces(), "voxel-faces");
+}
+
 // Issue 31 item 4: a floor alone means "as far as the floor allows" (target 0, no target), a
 // floor with a reduction keeps the reduction as the maximum; both survive normalization.
 TEST(JobSpecFromProto, MinPsnrAloneDropsTheDefaultTargetAndIsStored) {
