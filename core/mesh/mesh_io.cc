@@ -130,9 +130,9 @@ bool LzmaBlock(const uint8_t* in, size_t n, const VtuArray& a, int preset,
                std::vector<uint8_t>& out) {
   lzma_options_lzma opt;
   if (lzma_lzma_preset(&opt, static_cast<uint32_t>(preset))) return false;
-  // Normal mode (optimal parsing) even at the fast presets 1-3: their fast mode left the CT
-  // head's connectivity at 50 % 20 % larger (core/mesh/README.md "Compact meshes").
-  opt.mode = LZMA_MODE_NORMAL;
+  // xz's own modes: presets 1-3 are its fast mode, 4-9 normal mode (optimal parsing), which
+  // makes the CT head's file at 50 % 16 % smaller but takes ~3x the time to write
+  // (core/mesh/README.md "Compact meshes"); the default level 1 is the fast one.
   const size_t elem = std::strcmp(a.type, "UInt8") == 0 ? 1 : 4;
   if (elem == 4) {
     opt.lc = 0;

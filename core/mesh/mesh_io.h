@@ -34,15 +34,15 @@ namespace decima {
 // How the arrays of a .vtu are compressed. Both are VTK's own compressors (the file's
 // `compressor` attribute), read by VTK/ParaView 9 and by ReadVtu.
 enum class VtuCompressor {
-  // vtkZLibDataCompressor: fastest to read (README.md "Compact meshes": the CT head at 50 %
-  // reads in about 0.4 s against 0.8 s), about twice the bytes of kLzma.
+  // vtkZLibDataCompressor: faster to write and to read than kLzma, 1.7x its bytes (README.md
+  // "Compact meshes" has the figures).
   kZlib,
   // vtkLZMADataCompressor: each block is one .xz stream (liblzma), whose filter chain is stored
   // in the stream, so VTK's decoder (lzma_stream_buffer_decode) undoes any chain xz knows. Each
   // array gets the chain that suits it: the cell offsets (4, 8, 12, ...) go through xz's delta
   // filter first (every byte difference is then constant: 2.4 MB under zlib level 1 on the CT
   // head at 50 %, a few hundred bytes here), and 4-byte arrays use LZMA2 with lc=0, lp=2, pb=2
-  // (literal and position contexts aligned to 4 bytes). About half the bytes of kZlib.
+  // (literal and position contexts aligned to 4 bytes). 40 % fewer bytes than kZlib at level 1.
   kLzma,
 };
 
