@@ -13,7 +13,7 @@ packages=(
   # core numerics and logging
   libeigen3-dev libspdlog-dev libfmt-dev
   # readers and writers of outside formats
-  zlib1g-dev libpng-dev libgdcm-dev
+  zlib1g-dev liblzma-dev libpng-dev libgdcm-dev
   # job store, CLI parsing, JSON
   libsqlite3-dev libcli11-dev nlohmann-json3-dev
   # the PostgreSQL job store of replicas (libpqxx), and the real PostgreSQL 15 its tests and

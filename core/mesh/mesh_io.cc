@@ -1,14 +1,16 @@
 // Mesh writers (.vtu, .msh 4.1, .mesh) and the .vtu reader.
 //
 // Formats as specified by their owners: VTK's "VTK File Formats" (XML section; appended data
-// with a UInt64 byte-count header, vtkZLibDataCompressor block header
-// [nblocks, block size, last partial block size, compressed size of each block]), Gmsh's
+// with a UInt64 byte-count header, vtkZLibDataCompressor / vtkLZMADataCompressor block header
+// [nblocks, block size, last partial block size, compressed size of each block]; an LZMA block
+// is one .xz stream, as vtkLZMADataCompressor writes and decodes them), Gmsh's
 // reference manual section "MSH file format" version 4.1, and the MEDIT/INRIA ".mesh" ASCII
 // layout. Large arrays go to disk with one fwrite each; text formats are formatted with
 // std::to_chars into one reusable buffer (no per-element allocation, no iostreams).
 #include "core/mesh/mesh_io.h"
 
 #include <fcntl.h>
+#include <lzma.h>
 #include <sys/stat.h>
 #include <unistd.h>
 #include <zlib.h>
@@ -27,9 +29,9 @@
 #include <vector>
 
 #include "absl/strings/str_cat.h"
+#include "core/common/atomic_file.h"
 #include "core/common/parallel.h"
 #include "core/common/status.h"
-#include "core/common/atomic_file.h"
 
 namespace decima {
 namespace {
@@ -39,7 +41,6 @@ constexpr uint64_t kVtuBlockBytes = uint64_t{1} << 20;  // zlib block (VTK uses 
 constexpr int kMaxRegions = 8;                          // labels and regions are 0..7
 
 std::string PathString(const std::filesystem::path& path) { return path.string(); }
-
 
 // Checks the size invariants of tet_mesh.h that a writer relies on (indices are checked too, so a
 // file never references a missing vertex).
@@ -117,7 +118,43 @@ struct VtuArray {
   int components;
   const uint8_t* data;
   uint64_t bytes;
+  // LZMA only: the distance of xz's delta filter in bytes (0: none). The cell offsets are an
+  // arithmetic sequence, so their byte-wise differences at the value's width are constant.
+  uint32_t delta = 0;
 };
+
+// One vtkLZMADataCompressor block: an .xz stream (CRC64, as VTK's own compressor writes) of
+// [delta filter,] LZMA2 at `preset`, with literal/position contexts aligned to the element
+// size for multi-byte arrays.
+bool LzmaBlock(const uint8_t* in, size_t n, const VtuArray& a, int preset,
+               std::vector<uint8_t>& out) {
+  lzma_options_lzma opt;
+  if (lzma_lzma_preset(&opt, static_cast<uint32_t>(preset))) return false;
+  // xz's own modes: presets 1-3 are its fast mode, 4-9 normal mode (optimal parsing), which
+  // makes the CT head's file at 50 % 16 % smaller but takes ~3x the time to write
+  // (core/mesh/README.md "Compact meshes"); the default level 1 is the fast one.
+  const size_t elem = std::strcmp(a.type, "UInt8") == 0 ? 1 : 4;
+  if (elem == 4) {
+    opt.lc = 0;
+    opt.lp = 2;
+    opt.pb = 2;
+  }
+  lzma_options_delta delta{};
+  delta.type = LZMA_DELTA_TYPE_BYTE;
+  delta.dist = a.delta;
+  std::array<lzma_filter, 3> filters{};
+  size_t f = 0;
+  if (a.delta != 0) filters[f++] = {LZMA_FILTER_DELTA, &delta};
+  filters[f++] = {LZMA_FILTER_LZMA2, &opt};
+  filters[f] = {LZMA_VLI_UNKNOWN, nullptr};
+  out.resize(lzma_stream_buffer_bound(n));
+  size_t out_pos = 0;
+  if (lzma_stream_buffer_encode(filters.data(), LZMA_CHECK_CRC64, nullptr, in, n, out.data(),
+                                &out_pos, out.size()) != LZMA_OK)
+    return false;
+  out.resize(out_pos);
+  return true;
+}
 
 // How one array is stored in the appended block: header, then payload (compressed blocks or
 // the array's bytes), starting at `offset` bytes after the '_' marker.
@@ -127,7 +164,7 @@ struct EncodedArray {
   uint64_t offset = 0;
 };
 
-// Compresses every array into vtkZLibDataCompressor blocks, blocks spread over threads.
+// Compresses every array into blocks of options.compressor, blocks spread over threads.
 absl::Status CompressArrays(const std::vector<VtuArray>& arrays, std::vector<EncodedArray>& enc,
                             const VtuWriteOptions& options, const std::filesystem::path& path) {
   struct Task {
@@ -151,6 +188,13 @@ absl::Status CompressArrays(const std::vector<VtuArray>& arrays, std::vector<Enc
                   const uint64_t begin = t.block * kVtuBlockBytes;
                   const uint64_t n = std::min(kVtuBlockBytes, t.array->bytes - begin);
                   std::vector<uint8_t>& out = t.out->compressed_blocks[t.block];
+                  if (options.compressor == VtuCompressor::kLzma) {
+                    if (!LzmaBlock(t.array->data + begin, n, *t.array, options.level, out)) {
+                      failed = true;
+                      return;
+                    }
+                    continue;
+                  }
                   uLongf out_len = compressBound(static_cast<uLong>(n));
                   out.resize(out_len);
                   if (compress2(out.data(), &out_len, t.array->data + begin, static_cast<uLong>(n),
@@ -162,7 +206,9 @@ absl::Status CompressArrays(const std::vector<VtuArray>& arrays, std::vector<Enc
                 }
               });
   if (failed)
-    return absl::InternalError(absl::StrCat(PathString(path), ": zlib compression failed"));
+    return absl::InternalError(absl::StrCat(
+        PathString(path), ": ", options.compressor == VtuCompressor::kLzma ? "LZMA" : "zlib",
+        " compression failed"));
 
   for (size_t i = 0; i < arrays.size(); ++i) {
     EncodedArray& e = enc[i];
@@ -208,8 +254,9 @@ absl::Status WriteVtu(const TetMesh& mesh, const std::filesystem::path& path,
                       const VtuWriteOptions& options) {
   DECIMA_RETURN_IF_ERROR(CheckMeshForWriting(mesh, path));
   if (options.compress && (options.level < 1 || options.level > 9))
-    return absl::InvalidArgumentError(absl::StrCat(
-        "cannot write ", PathString(path), ": zlib level ", options.level, " is outside 1..9"));
+    return absl::InvalidArgumentError(absl::StrCat("cannot write ", PathString(path),
+                                                   ": compression level ", options.level,
+                                                   " is outside 1..9"));
   const int64_t nv = mesh.vertex_count(), nt = mesh.tet_count();
 
   // Derived arrays (the only copies made): flag bits as 0/1 bytes, offsets and cell types.
@@ -240,8 +287,8 @@ absl::Status WriteVtu(const TetMesh& mesh, const std::filesystem::path& path,
       {"Points", "Float32", "Points", 3, Bytes(mesh.positions), 12 * uint64_t(nv)},
       {"Cells", "Int32", "connectivity", 1, Bytes(mesh.tets), 16 * uint64_t(nt)},
       offsets64
-          ? VtuArray{"Cells", "Int64", "offsets", 1, Bytes(offsets64_values), 8 * uint64_t(nt)}
-          : VtuArray{"Cells", "Int32", "offsets", 1, Bytes(offsets32), 4 * uint64_t(nt)},
+          ? VtuArray{"Cells", "Int64", "offsets", 1, Bytes(offsets64_values), 8 * uint64_t(nt), 8}
+          : VtuArray{"Cells", "Int32", "offsets", 1, Bytes(offsets32), 4 * uint64_t(nt), 4},
       {"Cells", "UInt8", "types", 1, types.data(), uint64_t(nt)},
   };
 
@@ -270,9 +317,11 @@ absl::Status WriteVtu(const TetMesh& mesh, const std::filesystem::path& path,
       "<?xml version=\"1.0\"?>\n"
       "<VTKFile type=\"UnstructuredGrid\" version=\"1.0\" byte_order=\"LittleEndian\" "
       "header_type=\"UInt64\"",
-      options.compress ? " compressor=\"vtkZLibDataCompressor\"" : "", ">\n  <UnstructuredGrid>\n",
-      RegionFieldData(options.regions), "    <Piece NumberOfPoints=\"", nv, "\" NumberOfCells=\"",
-      nt, "\">\n");
+      !options.compress                            ? ""
+      : options.compressor == VtuCompressor::kLzma ? " compressor=\"vtkLZMADataCompressor\""
+                                                   : " compressor=\"vtkZLibDataCompressor\"",
+      ">\n  <UnstructuredGrid>\n", RegionFieldData(options.regions), "    <Piece NumberOfPoints=\"",
+      nv, "\" NumberOfCells=\"", nt, "\">\n");
   const char* open_section = nullptr;
   for (size_t i = 0; i < arrays.size(); ++i) {
     const VtuArray& a = arrays[i];

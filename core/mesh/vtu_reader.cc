@@ -4,8 +4,10 @@
 // header (the only XML we need; names and values are taken verbatim, without entity decoding),
 // and every array length is checked against the piece's counts and against the bytes actually
 // left in the file BEFORE anything is allocated. For zlib data the bound is deflate's maximum
-// ratio (1032:1), so a tiny file cannot make us allocate gigabytes.
+// ratio (1032:1), for LZMA (.xz) data a bound of 16384:1 (1 MiB of zeros, the best case of a
+// block, is 284 bytes: 3,692:1), so a tiny file cannot make us allocate gigabytes.
 #include <fcntl.h>
+#include <lzma.h>
 #include <sys/stat.h>
 #include <unistd.h>
 #include <zlib.h>
@@ -36,7 +38,10 @@ static_assert(std::endian::native == std::endian::little, "the .vtu reader assum
 
 constexpr int kMaxRegions = 8;               // labels and regions are 0..7 (tet_mesh.h)
 constexpr uint64_t kMaxDeflateRatio = 1032;  // deflate's best case: 258 bytes per 2 bits
-constexpr size_t kMaxXmlElements = 10000;    // a .vtu header has a few dozen
+constexpr uint64_t kMaxLzmaRatio = 16384;    // see the top of the file
+// The .xz decoder's memory limit: LZMA2 at preset 9 needs 65 MiB to decode (a 64 MiB dictionary).
+constexpr uint64_t kLzmaMemLimit = uint64_t{128} << 20;
+constexpr size_t kMaxXmlElements = 10000;  // a .vtu header has a few dozen
 constexpr size_t kMaxXmlDepth = 32;
 constexpr uint64_t kMaxCount = std::numeric_limits<int32_t>::max();  // points and cells
 
@@ -445,6 +450,7 @@ class VtuReader {
   std::string appended_text_;    // the appended section when base64-encoded
   int header_bytes_ = 4;         // UInt32 or UInt64 size headers
   bool compressed_ = false;
+  bool lzma_ = false;  // vtkLZMADataCompressor (else zlib)
   const XmlElement* piece_ = nullptr;
   uint64_t num_points_ = 0, num_cells_ = 0;
 };
@@ -521,10 +527,12 @@ absl::Status VtuReader::ParseHeader() {
     return Error(absl::StrCat("header_type '", header_type, "' is not UInt32 or UInt64"));
   }
   if (const auto c = root.Attr("compressor")) {
-    if (*c != "vtkZLibDataCompressor")
-      return Unimplemented(
-          absl::StrCat("compressor '", *c, "' is not supported (only vtkZLibDataCompressor)"));
+    if (*c != "vtkZLibDataCompressor" && *c != "vtkLZMADataCompressor")
+      return Unimplemented(absl::StrCat("compressor '", *c,
+                                        "' is not supported (only vtkZLibDataCompressor and "
+                                        "vtkLZMADataCompressor)"));
     compressed_ = true;
+    lzma_ = *c == "vtkLZMADataCompressor";
   }
   const auto grids = xml_.Children(root, "UnstructuredGrid");
   if (grids.size() != 1)
@@ -681,7 +689,10 @@ absl::StatusOr<uint64_t> VtuReader::LoadBinary(ByteSource& src, uint64_t min_byt
     DECIMA_RETURN_IF_ERROR(src.Read(dst, n));
     return n;
   }
-  // vtkZLibDataCompressor: [nblocks, block size, last partial size, compressed sizes...].
+  // vtkZLibDataCompressor and vtkLZMADataCompressor: [nblocks, block size, last partial size,
+  // compressed sizes...], then the blocks (zlib streams, or .xz streams).
+  const char* what = lzma_ ? "LZMA" : "zlib";
+  const uint64_t max_ratio = lzma_ ? kMaxLzmaRatio : kMaxDeflateRatio;
   DECIMA_ASSIGN_OR_RETURN(const uint64_t nblocks, header_word());
   DECIMA_ASSIGN_OR_RETURN(const uint64_t block, header_word());
   DECIMA_ASSIGN_OR_RETURN(const uint64_t last, header_word());
@@ -701,25 +712,40 @@ absl::StatusOr<uint64_t> VtuReader::LoadBinary(ByteSource& src, uint64_t min_byt
   for (uint64_t b = 0; b < nblocks; ++b) {
     DECIMA_ASSIGN_OR_RETURN(csize[b], header_word());
     const uint64_t usize = (b + 1 == nblocks && last) ? last : block;
-    if (usize / kMaxDeflateRatio > csize[b])
-      return absl::InvalidArgumentError(absl::StrCat("zlib block ", b, " claims ", csize[b],
+    if (usize / max_ratio > csize[b])
+      return absl::InvalidArgumentError(absl::StrCat(what, " block ", b, " claims ", csize[b],
                                                      " compressed bytes for ", usize,
                                                      " bytes, an impossible ratio"));
     if (csize[b] > src.Remaining())
-      return absl::InvalidArgumentError(absl::StrCat("truncated: zlib block ", b, " needs ",
+      return absl::InvalidArgumentError(absl::StrCat("truncated: ", what, " block ", b, " needs ",
                                                      csize[b], " bytes but only ", src.Remaining(),
                                                      " remain"));
     csum += csize[b];
     cmax = std::max(cmax, csize[b]);
   }
   if (csum > src.Remaining())
-    return absl::InvalidArgumentError(absl::StrCat("truncated: zlib blocks need ", csum,
+    return absl::InvalidArgumentError(absl::StrCat("truncated: ", what, " blocks need ", csum,
                                                    " bytes but only ", src.Remaining(), " remain"));
   uint8_t* dst = alloc(total);
   std::vector<uint8_t> in(cmax);
   for (uint64_t b = 0; b < nblocks; ++b) {
     const uint64_t usize = (b + 1 == nblocks && last) ? last : block;
     DECIMA_RETURN_IF_ERROR(src.Read(in.data(), csize[b]));
+    if (lzma_) {
+      uint64_t memlimit = kLzmaMemLimit;
+      size_t in_pos = 0, out_pos = 0;
+      const lzma_ret rc =
+          lzma_stream_buffer_decode(&memlimit, 0, nullptr, in.data(), &in_pos, csize[b],
+                                    dst + b * block, &out_pos, static_cast<size_t>(usize));
+      if (rc != LZMA_OK || in_pos != csize[b] || out_pos != usize)
+        return absl::InvalidArgumentError(
+            absl::StrCat("LZMA block ", b, " is corrupt (",
+                         rc == LZMA_MEMLIMIT_ERROR ? "needs more than 128 MiB to decode"
+                         : rc != LZMA_OK ? absl::StrCat("liblzma error ", static_cast<int>(rc))
+                                         : std::string("wrong size"),
+                         ")"));
+      continue;
+    }
     uLongf out_len = static_cast<uLongf>(usize);
     const int rc = uncompress(dst + b * block, &out_len, in.data(), static_cast<uLong>(csize[b]));
     if (rc != Z_OK || out_len != usize)

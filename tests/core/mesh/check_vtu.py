@@ -6,9 +6,14 @@
       counts, cell types, array types and sums, minimum signed tet volume.
   check_vtu.py rewrite IN OUTDIR
       Reads IN and writes it to OUTDIR with vtkXMLUnstructuredGridWriter in every data mode
-      (ascii, inline base64 "binary", appended raw, appended base64) x compressor (none, zlib)
-      x header type (UInt32, UInt64), printing "written PATH" per file, so the C++ test can
-      check that ReadVtu reads files written by VTK itself.
+      (ascii, inline base64 "binary", appended raw, appended base64) x compressor (none, zlib,
+      lzma) x header type (UInt32, UInt64), printing "written PATH" per file, so the C++ test
+      can check that ReadVtu reads files written by VTK itself.
+  check_vtu.py same A B
+      Reads A and B with VTK and compares every array exactly: points, connectivity, offsets,
+      cell types, every point, cell and field data array by name and type. Prints "same" or
+      exits non-zero naming the first difference (checks one encoding against another, e.g. an
+      LZMA file against the raw file of the same mesh).
   check_vtu.py decimate IN OUT REDUCTION
       Runs vtkUnstructuredGridQuadricDecimation on IN (ScalarsName "scalar") and writes its
       output to OUT with VTK's writer: a file whose field VTK itself renamed to "scalars".
@@ -84,8 +89,8 @@ def stats(path):
 def rewrite(src, outdir):
     grid = read(src)
     for mode in ("ascii", "binary", "appended", "appended-base64"):
-        for compress in ("none", "zlib"):
-            if mode == "ascii" and compress == "zlib":
+        for compress in ("none", "zlib", "lzma"):
+            if mode == "ascii" and compress != "none":
                 continue
             for header in ("32", "64"):
                 dst = f"{outdir}/{mode}-{compress}-{header}.vtu"
@@ -108,6 +113,8 @@ def write(grid, dst, mode, compress, header):
         writer.SetEncodeAppendedData(1 if mode == "appended-base64" else 0)
     if compress == "zlib":
         writer.SetCompressorTypeToZLib()
+    elif compress == "lzma":
+        writer.SetCompressorTypeToLZMA()
     else:
         writer.SetCompressorTypeToNone()
     if header == "64":
@@ -116,6 +123,42 @@ def write(grid, dst, mode, compress, header):
         writer.SetHeaderTypeToUInt32()
     if writer.Write() != 1 or catcher.errors:
         sys.exit(f"VTK failed to write {dst}")
+
+
+def arrays(grid):
+    out = {
+        "points": grid.GetPoints().GetData(),
+        "connectivity": grid.GetCells().GetConnectivityArray(),
+        "offsets": grid.GetCells().GetOffsetsArray(),
+        "types": grid.GetCellTypesArray(),
+    }
+    for data, kind in ((grid.GetPointData(), "point"), (grid.GetCellData(), "cell"),
+                       (grid.GetFieldData(), "field")):
+        for i in range(data.GetNumberOfArrays()):
+            arr = data.GetAbstractArray(i)
+            out[f"{kind} {arr.GetName()}"] = arr
+    return out
+
+
+def same(path_a, path_b):
+    a, b = arrays(read(path_a)), arrays(read(path_b))
+    if sorted(a) != sorted(b):
+        sys.exit(f"different arrays: {sorted(a)} against {sorted(b)}")
+    for name in sorted(a):
+        x, y = a[name], b[name]
+        if x.IsA("vtkStringArray") or y.IsA("vtkStringArray"):
+            xs = [x.GetValue(i) for i in range(x.GetNumberOfValues())]
+            ys = [y.GetValue(i) for i in range(y.GetNumberOfValues())]
+            if xs != ys:
+                sys.exit(f"{name}: {xs} against {ys}")
+            continue
+        if x.GetDataTypeAsString() != y.GetDataTypeAsString():
+            sys.exit(f"{name}: type {x.GetDataTypeAsString()} against {y.GetDataTypeAsString()}")
+        u, v = vtk_to_numpy(x), vtk_to_numpy(y)
+        # Bit patterns, so NaN/inf compare exactly.
+        if u.shape != v.shape or u.tobytes() != v.tobytes():
+            sys.exit(f"{name}: values differ ({u.shape} against {v.shape})")
+    print("same")
 
 
 def decimate(src, dst, reduction):
@@ -132,6 +175,8 @@ def main(argv):
         stats(argv[2])
     elif len(argv) == 4 and argv[1] == "rewrite":
         rewrite(*argv[2:])
+    elif len(argv) == 4 and argv[1] == "same":
+        same(*argv[2:])
     elif len(argv) == 5 and argv[1] == "decimate":
         decimate(*argv[2:])
     else:

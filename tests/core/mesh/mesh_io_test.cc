@@ -200,12 +200,23 @@ fs::path Script(const char* name) { return fs::path(DECIMA_MESH_TEST_DIR) / name
 // ---------------------------------------------------------------------------------------------
 // Round trips
 
+// Every encoding WriteVtu offers: raw, zlib, LZMA (the default), by file name.
+struct VtuEncoding {
+  const char* file;
+  VtuWriteOptions options;
+};
+const VtuEncoding kVtuEncodings[] = {
+    {"raw.vtu", {.compress = false}},
+    {"zlib.vtu", {.compress = true, .compressor = VtuCompressor::kZlib}},
+    {"lzma.vtu", {.compress = true, .compressor = VtuCompressor::kLzma}},
+};
+
 TEST(MeshIo, VtuRoundTripOfTinyMeshIsExactRawAndCompressed) {
   const TetMesh m = TwoTets();
   const fs::path dir = testing::MakeScratchDir("vtu_tiny");
-  for (bool compress : {false, true}) {
-    const fs::path p = dir / (compress ? "z.vtu" : "raw.vtu");
-    ASSERT_TRUE(WriteVtu(m, p, {.compress = compress}).ok());
+  for (const VtuEncoding& e : kVtuEncodings) {
+    const fs::path p = dir / e.file;
+    ASSERT_TRUE(WriteVtu(m, p, e.options).ok());
     auto back = ReadVtu(p);
     ASSERT_TRUE(back.ok()) << back.status();
     ExpectSameMesh(m, *back);
@@ -215,9 +226,9 @@ TEST(MeshIo, VtuRoundTripOfTinyMeshIsExactRawAndCompressed) {
 TEST(MeshIo, EmptyMeshRoundTripsAndWritesEveryFormat) {
   const TetMesh empty;
   const fs::path dir = testing::MakeScratchDir("empty");
-  for (bool compress : {false, true}) {
-    const fs::path p = dir / (compress ? "z.vtu" : "raw.vtu");
-    ASSERT_TRUE(WriteVtu(empty, p, {.compress = compress}).ok());
+  for (const VtuEncoding& e : kVtuEncodings) {
+    const fs::path p = dir / e.file;
+    ASSERT_TRUE(WriteVtu(empty, p, e.options).ok());
     auto back = ReadVtu(p);
     ASSERT_TRUE(back.ok()) << back.status();
     ExpectSameMesh(empty, *back);
@@ -229,15 +240,19 @@ TEST(MeshIo, EmptyMeshRoundTripsAndWritesEveryFormat) {
 TEST(MeshIo, VtuRoundTripOfPhantomMeshIsExact) {
   const TetMesh m = PhantomMesh();
   const fs::path dir = testing::MakeScratchDir("vtu_phantom");
-  for (bool compress : {false, true}) {
-    const fs::path p = dir / (compress ? "z.vtu" : "raw.vtu");
-    ASSERT_TRUE(WriteVtu(m, p, {.compress = compress, .level = 6, .threads = 2}).ok());
+  for (VtuEncoding e : kVtuEncodings) {
+    const fs::path p = dir / e.file;
+    e.options.level = 6;
+    e.options.threads = 2;
+    ASSERT_TRUE(WriteVtu(m, p, e.options).ok());
     auto back = ReadVtu(p);
     ASSERT_TRUE(back.ok()) << back.status();
     ExpectSameMesh(m, *back);
   }
-  // Noise compresses poorly, but positions, connectivity and labels compress well.
-  EXPECT_LT(fs::file_size(dir / "z.vtu"), fs::file_size(dir / "raw.vtu") * 3 / 4);
+  // Noise compresses poorly, but positions, connectivity and labels compress well; LZMA with
+  // the delta-coded offsets better than zlib.
+  EXPECT_LT(fs::file_size(dir / "zlib.vtu"), fs::file_size(dir / "raw.vtu") * 3 / 4);
+  EXPECT_LT(fs::file_size(dir / "lzma.vtu"), fs::file_size(dir / "zlib.vtu"));
 }
 
 TEST(MeshIo, VtuRawFileHoldsExactlyTheArraysAndTheirHeaders) {
@@ -353,13 +368,44 @@ TEST(MeshIo, VtkReadsOurVtuFilesWithTheRightCountsAndValues) {
   if (python.empty()) GTEST_SKIP() << "no python3 with the vtk module (Debian python3-vtk9)";
   const fs::path dir = testing::MakeScratchDir("vtk_reads");
   for (const TetMesh& m : {TwoTets(), PhantomMesh()}) {
-    for (bool compress : {false, true}) {
-      const fs::path p = dir / (compress ? "z.vtu" : "raw.vtu");
-      ASSERT_TRUE(WriteVtu(m, p, {.compress = compress}).ok());
+    for (const VtuEncoding& e : kVtuEncodings) {
+      const fs::path p = dir / e.file;
+      ASSERT_TRUE(WriteVtu(m, p, e.options).ok());
       SCOPED_TRACE(p.string() + " with " + std::to_string(m.tet_count()) + " tets");
       ExpectVtkSeesMesh(python, p, m);
     }
   }
+}
+
+// The compact encoding (LZMA blocks with delta-coded offsets) is what VTK reads from the raw
+// file of the same mesh, array for array and bit for bit (check_vtu.py same), with the region
+// table as field data.
+TEST(MeshIo, VtkReadsEveryCompressedVtuAsTheRawOneArrayForArray) {
+  const std::string python = PythonWithVtk();
+  if (python.empty()) GTEST_SKIP() << "no python3 with the vtk module (Debian python3-vtk9)";
+  const fs::path dir = testing::MakeScratchDir("vtk_same");
+  const TetMesh m = PhantomMesh();
+  RegionTable table;
+  for (int r = 0; r < 3; ++r) {
+    RegionInfo& info = table.regions.emplace_back();
+    info.label = static_cast<uint8_t>(r);
+    info.name = std::string("region \"") + char('a' + r) + "\"";
+    info.rgb = {static_cast<uint8_t>(40 * r), 159, 66};
+  }
+  for (VtuEncoding e : kVtuEncodings) {
+    e.options.regions = &table;
+    // Several blocks per array (1 MiB each) and both thread counts.
+    e.options.threads = 2;
+    ASSERT_TRUE(WriteVtu(m, dir / e.file, e.options).ok());
+  }
+  for (const char* file : {"zlib.vtu", "lzma.vtu"}) {
+    auto [rc, log] = RunCommand(python + " " + Quote(Script("check_vtu.py")) + " same " +
+                                Quote(dir / "raw.vtu") + " " + Quote(dir / file));
+    EXPECT_EQ(rc, 0) << file << ": " << log;
+    EXPECT_EQ(log, "same\n") << file;
+  }
+  EXPECT_NE(ReadAll(dir / "lzma.vtu").find("compressor=\"vtkLZMADataCompressor\""),
+            std::string::npos);
 }
 
 TEST(MeshIo, ReadVtuReadsEveryEncodingVtkWrites) {
@@ -383,7 +429,7 @@ TEST(MeshIo, ReadVtuReadsEveryEncodingVtkWrites) {
     SCOPED_TRACE(file);
     ExpectSameMesh(m, *back);
   }
-  EXPECT_EQ(files, 14) << log;  // 4 modes x 2 compressors x 2 headers, minus compressed ascii
+  EXPECT_EQ(files, 20) << log;  // 4 modes x 3 compressors x 2 headers, minus compressed ascii
 }
 
 // VTK's quadric decimation renames the field to "scalars" (and drops every other array): the
@@ -602,9 +648,15 @@ class BrokenVtu : public ::testing::Test {
   void SetUp() override {
     dir_ = testing::MakeScratchDir("broken_vtu");
     ASSERT_TRUE(WriteVtu(TwoTets(), dir_ / "raw.vtu", {.compress = false}).ok());
-    ASSERT_TRUE(WriteVtu(TwoTets(), dir_ / "z.vtu", {.compress = true}).ok());
+    ASSERT_TRUE(
+        WriteVtu(TwoTets(), dir_ / "z.vtu", {.compress = true, .compressor = VtuCompressor::kZlib})
+            .ok());
+    ASSERT_TRUE(
+        WriteVtu(TwoTets(), dir_ / "xz.vtu", {.compress = true, .compressor = VtuCompressor::kLzma})
+            .ok());
     raw_ = ReadAll(dir_ / "raw.vtu");
     z_ = ReadAll(dir_ / "z.vtu");
+    xz_ = ReadAll(dir_ / "xz.vtu");
   }
   // The offset="..." attribute of array `name` in the XML of `file`.
   static std::string OffsetAttr(const std::string& file, const std::string& name) {
@@ -640,7 +692,7 @@ class BrokenVtu : public ::testing::Test {
   }
 
   fs::path dir_;
-  std::string raw_, z_;
+  std::string raw_, z_, xz_;
   int case_ = 0;
 };
 
@@ -732,6 +784,18 @@ TEST_F(BrokenVtu, CorruptZlibBlockIsRejected) {
   const size_t pos = DataPos(z_, "Points", 8 * 4);  // 4 header words for one block
   for (int i = 2; i < 12; ++i) bad[pos + i] = static_cast<char>(bad[pos + i] ^ 0x5a);
   ExpectError(bad, absl::StatusCode::kInvalidArgument, "zlib block 0 is corrupt");
+}
+
+TEST_F(BrokenVtu, CorruptLzmaBlockIsRejected) {
+  std::string bad = xz_;
+  const size_t pos = DataPos(xz_, "Points", 8 * 4);  // 4 header words for one block
+  // Past the 12-byte .xz stream header, into the block (its header, data or CRC64).
+  for (int i = 14; i < 24; ++i) bad[pos + i] = static_cast<char>(bad[pos + i] ^ 0x5a);
+  ExpectError(bad, absl::StatusCode::kInvalidArgument, "LZMA block 0 is corrupt");
+  // The compressor attribute decides: an .xz stream read as zlib is corrupt.
+  ExpectError(
+      Replace(xz_, "compressor=\"vtkLZMADataCompressor\"", "compressor=\"vtkZLibDataCompressor\""),
+      absl::StatusCode::kInvalidArgument, "zlib block 0 is corrupt");
 }
 
 TEST_F(BrokenVtu, BadCellsAreRejected) {
