@@ -448,10 +448,8 @@ void AddJobFlags(CLI::App* cmd, SubmitOptions& o) {
       ->transform(CLI::IsMember({"vtu", "msh", "medit", "stl", "glb", "levels", "labels", "images",
                                  "segmentation", "report", "curve"},
                                 CLI::ignore_case));
-  cmd->add_option(
-         "--vtu-level", o.vtu_level,
-         "compression level of mesh.vtu (xz preset of its LZMA blocks): 0 uncompressed, 1 fastest "
-         "(default) .. 9 smallest")
+  cmd->add_option("--vtu-level", o.vtu_level,
+                  "zlib level of mesh.vtu: 0 uncompressed, 1 fastest (default) .. 9 smallest")
       ->check(CLI::Range(0, 9));
 }
 

@@ -50,7 +50,9 @@ struct VtuWriteOptions {
   // Compress every array (blocks of 1 MiB) with `compressor`; false writes raw arrays (fastest
   // to write and read, about 8x the bytes of kLzma).
   bool compress = true;
-  VtuCompressor compressor = VtuCompressor::kLzma;
+  // zlib by default: LZMA halves the bytes but writes 5-20x slower and VTK reads it ~2x slower
+  // (README.md "Compact meshes"); a job option to choose it is not done yet.
+  VtuCompressor compressor = VtuCompressor::kZlib;
   // The compressor's level, 1..9: zlib's level, or the xz preset (1 = fastest in both; zlib 6
   // saves another ~5 % at ~8x the time).
   int level = 1;

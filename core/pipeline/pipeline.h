@@ -61,7 +61,7 @@ struct JobSpec {
   // Artifacts (kOutputKinds), in that order; metrics.json is always written.
   // "levels" is not a default: it takes the run down to record_levels_to (core/pipeline/README.md).
   std::vector<std::string> outputs{"vtu", "labels", "images", "segmentation", "report"};
-  int vtu_compression_level = 1;  // 0 = uncompressed, 1..9 the xz preset of its LZMA blocks
+  int vtu_compression_level = 1;  // 0 = uncompressed, 1..9 zlib
   // Captions only (picture footers, report.html); empty: the input's file name / nothing.
   std::string job_name;
   std::string input_name;

@@ -231,8 +231,7 @@ TEST_F(CliE2E, DefaultArtifactsAreSmallOutputsAreChosenAndFetchOnlyPicks) {
   EXPECT_EQ(FilesIn(chosen), (std::set<std::string>{"mesh.vtu", "mesh.msh", "metrics.json"}));
   const std::string vtu = ReadFile(chosen / "mesh.vtu");
   EXPECT_THAT(vtu, Not(HasSubstr("compressor=")));
-  // The default encoding: VTK's LZMA compressor (core/mesh/README.md "Compact meshes").
-  EXPECT_THAT(ReadFile(def / "mesh.vtu"), HasSubstr("compressor=\"vtkLZMADataCompressor\""));
+  EXPECT_THAT(ReadFile(def / "mesh.vtu"), HasSubstr("compressor=\"vtkZLibDataCompressor\""));
   const std::string job = FirstLine(r.out);
 
   // A name the server does not know is refused at submit, naming the field.

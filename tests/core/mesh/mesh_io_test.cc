@@ -200,7 +200,7 @@ fs::path Script(const char* name) { return fs::path(DECIMA_MESH_TEST_DIR) / name
 // ---------------------------------------------------------------------------------------------
 // Round trips
 
-// Every encoding WriteVtu offers: raw, zlib, LZMA (the default), by file name.
+// Every encoding WriteVtu offers: raw, zlib (the default), LZMA, by file name.
 struct VtuEncoding {
   const char* file;
   VtuWriteOptions options;
