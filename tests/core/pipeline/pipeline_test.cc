@@ -15,10 +15,13 @@
 #include "core/io/volume_io.h"
 #include "core/simplify/levels_io.h"
 #include "core/volume/phantom.h"
+#include "tests/core/pipeline/hu_phantom.h"
 #include "tests/testing/test_data.h"
 
 namespace decima::pipeline {
 namespace {
+
+using testing::HuPhantomFile;
 
 namespace fs = std::filesystem;
 using ::testing::HasSubstr;
@@ -103,19 +106,6 @@ TEST(RunJob, StlOutputWritesOneClosedSurfacePerRegion) {
   }
 }
 
-// The phantom with Hounsfield-like means: air outside, a bone shell, soft tissue inside.
-fs::path HuPhantomFile(const fs::path& dir) {
-  HeadPhantomOptions o;
-  o.dims = {24, 24, 20};
-  o.spacing = {2, 2, 2};
-  o.noise_sigma = 20;
-  o.region_means = {-1000, 900, 40};
-  auto p = MakeHeadPhantom(o);
-  EXPECT_TRUE(p.ok()) << p.status();
-  const fs::path path = dir / "hu-phantom.nii.gz";
-  EXPECT_TRUE(io::WriteNifti(p->image, path).ok());
-  return path;
-}
 
 std::string FileText(const fs::path& p) {
   std::ifstream in(p, std::ios::binary);

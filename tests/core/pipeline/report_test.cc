@@ -24,10 +24,13 @@
 #include "core/volume/phantom.h"
 #include "tests/testing/dicom_writer.h"
 #include "tests/testing/process.h"
+#include "tests/core/pipeline/hu_phantom.h"
 #include "tests/testing/test_data.h"
 
 namespace decima::pipeline {
 namespace {
+
+using testing::HuPhantomFile;
 
 namespace fs = std::filesystem;
 using ::testing::HasSubstr;
@@ -167,19 +170,6 @@ TEST(ReportHtml, ADicomJobsReportNamesPatientStudyAndSeries) {
   EXPECT_THAT(result->metrics_json, Not(HasSubstr("NEIL")));
 }
 
-// A 24x24x20 three-region phantom in Hounsfield units (air, soft tissue, bone).
-fs::path HuPhantomFile(const fs::path& dir) {
-  HeadPhantomOptions o;
-  o.dims = {24, 24, 20};
-  o.spacing = {2, 2, 2};
-  o.noise_sigma = 20;
-  o.region_means = {-1000, 900, 40};
-  auto p = MakeHeadPhantom(o);
-  EXPECT_TRUE(p.ok()) << p.status();
-  const fs::path path = dir / "hu-phantom.nii.gz";
-  EXPECT_TRUE(io::WriteNifti(p->image, path).ok());
-  return path;
-}
 
 std::string FindChromium() {
   if (const char* env = std::getenv("DECIMA_CHROMIUM"); env != nullptr && *env != '\0') return env;

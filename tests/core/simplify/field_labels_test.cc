@@ -20,38 +20,8 @@ namespace {
 
 using simplify_internal::CheckFieldCollapse;
 using simplify_internal::FieldCollapseCheck;
-using testing::SimpleInterfaceDistance;
-
-struct Labeled {
-  Volume image, labels;
-  TetMesh mesh;
-};
-
-// A float image and uint8 labels on an n^3 grid from per-voxel functions, meshed with the
-// stand-in interface distance.
-template <typename ValueFn, typename LabelFn>
-Labeled MakeLabeled(int64_t n, ValueFn value, LabelFn label) {
-  Labeled out;
-  auto image = MakeVolume({n, n, n}, VoxelType::kFloat32);
-  auto labels = MakeVolume({n, n, n}, VoxelType::kUInt8);
-  EXPECT_TRUE(image.ok() && labels.ok());
-  out.image = *std::move(image);
-  out.labels = *std::move(labels);
-  for (int64_t k = 0, p = 0; k < n; ++k)
-    for (int64_t j = 0; j < n; ++j)
-      for (int64_t i = 0; i < n; ++i, ++p) {
-        out.image.mutable_data<float>()[p] = float(value(i, j, k));
-        out.labels.mutable_data<uint8_t>()[p] = uint8_t(label(i, j, k));
-      }
-  const std::vector<float> dist = SimpleInterfaceDistance(out.labels);
-  TetrahedralizeOptions t;
-  t.labels = &out.labels;
-  t.interface_distance = dist.data();
-  auto mesh = Tetrahedralize(out.image, t);
-  EXPECT_TRUE(mesh.ok()) << mesh.status();
-  out.mesh = *std::move(mesh);
-  return out;
-}
+using testing::Labeled;
+using testing::MakeLabeled;
 
 SimplifyOptions Field(double reduction, InterfaceMode interfaces, int threads = 2) {
   SimplifyOptions o;

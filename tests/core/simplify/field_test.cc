@@ -19,47 +19,11 @@ namespace decima {
 namespace {
 
 using testing::FaceUse;
+using testing::Labeled;
+using testing::MakeLabeled;
 using testing::MakePhantomMesh;
 using testing::SimpleInterfaceDistance;
 using testing::TotalVolume;
-
-struct Labeled {
-  Volume image, labels;
-  TetMesh mesh;
-};
-
-// A float image and uint8 labels on an n^3 grid from per-voxel functions, meshed with the
-// stand-in interface distance (feature vertices = voxels with a 6-neighbour of another label)
-// or, when `distance` is given, with its per-voxel interface distance in voxels.
-template <typename ValueFn, typename LabelFn>
-Labeled MakeLabeled(int64_t n, ValueFn value, LabelFn label,
-                    std::function<double(int64_t, int64_t, int64_t)> distance = nullptr) {
-  Labeled out;
-  auto image = MakeVolume({n, n, n}, VoxelType::kFloat32);
-  auto labels = MakeVolume({n, n, n}, VoxelType::kUInt8);
-  EXPECT_TRUE(image.ok() && labels.ok());
-  out.image = *std::move(image);
-  out.labels = *std::move(labels);
-  for (int64_t k = 0, p = 0; k < n; ++k)
-    for (int64_t j = 0; j < n; ++j)
-      for (int64_t i = 0; i < n; ++i, ++p) {
-        out.image.mutable_data<float>()[p] = float(value(i, j, k));
-        out.labels.mutable_data<uint8_t>()[p] = uint8_t(label(i, j, k));
-      }
-  std::vector<float> dist = SimpleInterfaceDistance(out.labels);
-  if (distance) {
-    for (int64_t k = 0, p = 0; k < n; ++k)
-      for (int64_t j = 0; j < n; ++j)
-        for (int64_t i = 0; i < n; ++i, ++p) dist[p] = float(distance(i, j, k));
-  }
-  TetrahedralizeOptions t;
-  t.labels = &out.labels;
-  t.interface_distance = dist.data();
-  auto mesh = Tetrahedralize(out.image, t);
-  EXPECT_TRUE(mesh.ok()) << mesh.status();
-  out.mesh = *std::move(mesh);
-  return out;
-}
 
 SimplifyOptions Field(double reduction, int threads = 2) {
   SimplifyOptions o;
