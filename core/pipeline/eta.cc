@@ -4,6 +4,8 @@
 #include <cmath>
 #include <utility>
 
+#include "core/pipeline/levels_output.h"
+
 namespace decima::pipeline {
 namespace {
 
@@ -36,10 +38,6 @@ constexpr double kRenderPerPixel = 2.3e-6;     // per view, both meshes and the 
 constexpr double kCurvePerStep = 0.6;   // x the job's own simplify time at that step
 constexpr double kDiffPerVoxel = 2e-8;  // segmentation picture, report
 
-bool Wants(const JobSpec& spec, const char* kind) {
-  return std::find(spec.outputs.begin(), spec.outputs.end(), kind) != spec.outputs.end();
-}
-
 }  // namespace
 
 std::vector<StagePlan> PredictStages(const JobSpec& spec, const std::array<int64_t, 3>& dims) {
@@ -47,12 +45,12 @@ std::vector<StagePlan> PredictStages(const JobSpec& spec, const std::array<int64
   const double cells = 5.0 * double(std::max<int64_t>(dims[0] - 1, 1)) *
                        double(std::max<int64_t>(dims[1] - 1, 1)) *
                        double(std::max<int64_t>(dims[2] - 1, 1));
-  const bool levels = Wants(spec, "levels");
-  // How far the simplification runs: to the target, or to the record's floor when deeper.
-  double depth = spec.target_reduction > 0 ? spec.target_reduction : 0.99;
-  if (levels && spec.policy == SimplifyPolicy::kField)
-    depth = std::max(depth, spec.record_levels_to);
-  if (spec.min_psnr) depth = 0.99;
+  // How far the simplification runs: to the target, or to the record's floor when deeper (0.99
+  // for a PSNR floor, which bisects the levels of a record to 0.99).
+  const double depth =
+      spec.min_psnr
+          ? 0.99
+          : std::max(spec.target_reduction > 0 ? spec.target_reduction : 0.99, LevelFloor(spec));
   const double kept = spec.min_psnr ? 0.2 : 1 - std::min(depth, 0.99);
   const double out_cells = cells * kept;
   const double views = double(std::max<size_t>(spec.views.size(), 1));

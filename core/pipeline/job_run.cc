@@ -150,8 +150,10 @@ double JobRun::Now() const { return Seconds(start_); }
 
 void JobRun::StageBegan(const char* stage) {
   const double now = Now();
-  stage_times_.push_back({stage, now, -1});
-  if (!clock_) return;
+  if (!clock_) {
+    stage_times_.push_back({stage, now, -1});
+    return;
+  }
   clock_->Begin(stage, now);
   // What the clock forecast for the whole job as each stage began: metrics.json "eta", to
   // compare with seconds.total.
@@ -161,10 +163,13 @@ void JobRun::StageBegan(const char* stage) {
 
 void JobRun::StageEnded(const char* stage) {
   const double now = Now();
+  if (clock_) {
+    clock_->End(stage, now, WasResumed(stage));
+    return;
+  }
   for (auto& t : stage_times_) {
     if (t.stage == stage && t.ended < 0) t.ended = now;
   }
-  if (clock_) clock_->End(stage, now, WasResumed(stage));
 }
 
 bool JobRun::WasResumed(const std::string& stage) const {
@@ -177,6 +182,7 @@ void JobRun::Plan(std::vector<StagePlan> plan) {
     clock_->Begin(t.stage, t.began);
     if (t.ended >= 0) clock_->End(t.stage, t.ended, WasResumed(t.stage));
   }
+  stage_times_.clear();
 }
 
 void JobRun::Emit(Progress p) {

@@ -136,8 +136,9 @@ class JobRun {
   std::vector<Artifact> artifacts_;
   std::string metrics_json_;
   double total_seconds_ = 0;
-  // Stage begin and end times (seconds since the job began; end -1 while open), kept from the
-  // start so a plan made after "load" knows when it began.
+  // Stage begin and end times (seconds since the job began; end -1 while open) of the stages
+  // before the plan (the clock keeps them from then on), so a plan made in "load" knows when it
+  // began.
   struct StageTimes {
     std::string stage;
     double began = 0, ended = -1;

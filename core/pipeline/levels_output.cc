@@ -10,9 +10,7 @@
 namespace decima::pipeline {
 
 double LevelFloor(const JobSpec& spec) {
-  const bool wanted =
-      std::find(spec.outputs.begin(), spec.outputs.end(), "levels") != spec.outputs.end();
-  return wanted && spec.policy == SimplifyPolicy::kField ? spec.record_levels_to : 0;
+  return Wants(spec, "levels") && spec.policy == SimplifyPolicy::kField ? spec.record_levels_to : 0;
 }
 
 absl::StatusOr<LevelsOutput> WriteLevelsOutput(const JobSpec& spec, const SimplifyOptions& options,
@@ -20,9 +18,7 @@ absl::StatusOr<LevelsOutput> WriteLevelsOutput(const JobSpec& spec, const Simpli
                                                const std::filesystem::path& out_dir,
                                                const CancelToken* cancel) {
   LevelsOutput out;
-  const bool wanted =
-      std::find(spec.outputs.begin(), spec.outputs.end(), "levels") != spec.outputs.end();
-  if (!wanted) return out;
+  if (!Wants(spec, "levels")) return out;
   if (LevelFloor(spec) == 0) {
     out.note = absl::StrFormat("no levels: the %s policy does not record them (field does)",
                                SimplifyPolicyName(spec.policy));

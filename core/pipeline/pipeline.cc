@@ -40,14 +40,15 @@
 #include "core/volume/regions.h"
 
 namespace decima::pipeline {
-namespace {
-
-using Json = nlohmann::ordered_json;
-using Stage = JobRun::StageScope;
 
 bool Wants(const JobSpec& spec, const char* kind) {
   return std::find(spec.outputs.begin(), spec.outputs.end(), kind) != spec.outputs.end();
 }
+
+namespace {
+
+using Json = nlohmann::ordered_json;
+using Stage = JobRun::StageScope;
 
 absl::StatusOr<Volume> LoadInput(const JobSpec& spec, std::optional<DicomDescription>* dicom) {
   std::error_code ec;
@@ -762,7 +763,7 @@ absl::Status ValidateJobSpec(const JobSpec& spec, std::string* field) {
                                  SimplifyPolicyName(spec.policy),
                                  ": a level record is made by the field policy only")));
     }
-    if (std::find(spec.outputs.begin(), spec.outputs.end(), "levels") != spec.outputs.end()) {
+    if (Wants(spec, "levels")) {
       return check("outputs", absl::InvalidArgumentError(
                                   "'levels': this job's mesh comes from a level record; it "
                                   "records none of its own"));

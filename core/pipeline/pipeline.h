@@ -78,6 +78,9 @@ inline constexpr const char* kOutputKinds[] = {"vtu",          "msh",    "medit"
                                                "glb",          "levels", "labels", "images",
                                                "segmentation", "report", "curve"};
 
+// Whether `spec` asks for the output `kind` (one of kOutputKinds).
+bool Wants(const JobSpec& spec, const char* kind);
+
 // OK, or InvalidArgument for the first parameter out of range; `*field` (when given) receives
 // its JobSpec member name ("target_reduction", "weights.shape", ...). Checks the parameters
 // only, not that `input` exists. Uses ValidateSegmentOptions, ValidateSimplifyOptions,
