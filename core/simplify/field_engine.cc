@@ -475,16 +475,16 @@ class FieldEngine {
       const float* b = &pos_[3 * int64_t(c[k + 1])];
       for (int d = 0; d < 3; ++d) e[k][d] = double(b[d]) - a[d];
     }
-    auto cross = [](const double* x, const double* y, double* out) {
-      out[0] = x[1] * y[2] - x[2] * y[1];
-      out[1] = x[2] * y[0] - x[0] * y[2];
-      out[2] = x[0] * y[1] - x[1] * y[0];
-    };
-    cross(e[1], e[2], n[1]);
-    cross(e[2], e[0], n[2]);
-    cross(e[0], e[1], n[3]);
+    Cross(e[1], e[2], n[1]);
+    Cross(e[2], e[0], n[2]);
+    Cross(e[0], e[1], n[3]);
     for (int d = 0; d < 3; ++d) n[0][d] = -(n[1][d] + n[2][d] + n[3][d]);
     for (int k = 0; k < 4; ++k) sq[k] = n[k][0] * n[k][0] + n[k][1] * n[k][1] + n[k][2] * n[k][2];
+  }
+  static void Cross(const double* x, const double* y, double* out) {
+    out[0] = x[1] * y[2] - x[2] * y[1];
+    out[1] = x[2] * y[0] - x[0] * y[2];
+    out[2] = x[0] * y[1] - x[1] * y[0];
   }
   static double Dot(const double* x, const double* y) {
     return x[0] * y[0] + x[1] * y[1] + x[2] * y[2];
@@ -1117,14 +1117,9 @@ bool FieldEngine::KeepsLabels(int32_t u, int32_t v, const Star& star, Worker& w)
     for (int k = 0; k < 3; ++k) {
       for (int d = 0; d < 3; ++d) e[k][d] = p[k + 1][d] - p[0][d];
     }
-    auto cross = [](const double* x, const double* y, double* out) {
-      out[0] = x[1] * y[2] - x[2] * y[1];
-      out[1] = x[2] * y[0] - x[0] * y[2];
-      out[2] = x[0] * y[1] - x[1] * y[0];
-    };
-    cross(e[1], e[2], c.r[0]);
-    cross(e[2], e[0], c.r[1]);
-    cross(e[0], e[1], c.r[2]);
+    Cross(e[1], e[2], c.r[0]);
+    Cross(e[2], e[0], c.r[1]);
+    Cross(e[0], e[1], c.r[2]);
     const double det = Dot(e[0], c.r[0]);
     for (int k = 0; k < 3; ++k) {
       for (int d = 0; d < 3; ++d) c.r[k][d] /= det;
@@ -1174,7 +1169,8 @@ bool FieldEngine::KeepsLabels(int32_t u, int32_t v, const Star& star, Worker& w)
       }
       double mine = -std::numeric_limits<double>::infinity(), other = mine;
       for (int k = 0; k < 4; ++k) {
-        (c.labels[k] == own ? mine : other) = std::max(c.labels[k] == own ? mine : other, l[k]);
+        double& best = c.labels[k] == own ? mine : other;
+        best = std::max(best, l[k]);
       }
       if (!(mine > other + kLabelMargin)) return false;
     }
