@@ -1,4 +1,5 @@
 #include "client/batch.h"
+#include "client/text.h"
 
 #include <dcmtk/dcmdata/dcdeftag.h>
 #include <dcmtk/dcmdata/dcfilefo.h>
@@ -14,18 +15,9 @@ namespace decima::client {
 namespace fs = std::filesystem;
 namespace {
 
-std::string Lower(std::string s) {
-  for (char& c : s) c = static_cast<char>(std::tolower(static_cast<unsigned char>(c)));
-  return s;
-}
-
-bool EndsWith(const std::string& s, const std::string& tail) {
-  return s.size() >= tail.size() && s.compare(s.size() - tail.size(), tail.size(), tail) == 0;
-}
-
 // The "DICM" marker at byte 128 of a Part 10 file; DICOMDIR (an index of a medium) is no image.
 bool IsDicomFile(const fs::path& path) {
-  if (Lower(path.filename().string()) == "dicomdir") return false;
+  if (AsciiLower(path.filename().string()) == "dicomdir") return false;
   std::ifstream in(path, std::ios::binary);
   char magic[132] = {};
   return in.read(magic, sizeof magic) && std::string(magic + 128, 4) == "DICM";
@@ -42,7 +34,7 @@ std::string UidTail(const std::string& uid) {
 }  // namespace
 
 bool IsVolumeFileName(const std::string& file_name) {
-  const std::string n = Lower(file_name);
+  const std::string n = AsciiLower(file_name);
   for (const char* ext : {".nii", ".nii.gz", ".mha", ".mhd", ".nrrd", ".nhdr"}) {
     if (EndsWith(n, ext) && n.size() > std::string(ext).size()) return true;
   }

@@ -1,4 +1,5 @@
 #include "client/client_lib.h"
+#include "client/text.h"
 
 #include <string_view>
 
@@ -376,16 +377,6 @@ std::string Trim(const std::string& s) {
   return a == std::string::npos ? "" : s.substr(a, b - a + 1);
 }
 
-std::string Lower(std::string s) {
-  for (char& c : s) c = static_cast<char>(std::tolower(static_cast<unsigned char>(c)));
-  return s;
-}
-
-bool EndsWith(const std::string& s, const std::string& suffix) {
-  return s.size() >= suffix.size() &&
-         s.compare(s.size() - suffix.size(), suffix.size(), suffix) == 0;
-}
-
 }  // namespace
 
 bool TcpPortAnswers(const std::string& address, std::chrono::milliseconds timeout) {
@@ -488,7 +479,7 @@ std::string Sha256HexOf(std::string_view bytes) {
 bool AddHeaderDataFiles(std::vector<InputFile>* files, std::string* error) {
   if (files->size() != 1) return true;
   const InputFile header = (*files)[0];
-  const std::string lname = Lower(header.name);
+  const std::string lname = AsciiLower(header.name);
   const bool mhd = EndsWith(lname, ".mhd"), nhdr = EndsWith(lname, ".nhdr");
   if (!mhd && !nhdr) return true;
   std::ifstream in(header.path);
@@ -510,19 +501,19 @@ bool AddHeaderDataFiles(std::vector<InputFile>* files, std::string* error) {
     if (mhd) {
       auto eq = line.find('=');
       if (eq == std::string::npos) continue;
-      key = Lower(Trim(line.substr(0, eq)));
+      key = AsciiLower(Trim(line.substr(0, eq)));
       value = Trim(line.substr(eq + 1));
       if (key != "elementdatafile") continue;
     } else {
       if (Trim(line).empty()) break;  // the blank line ends an NRRD header
       auto colon = line.find(':');
       if (colon == std::string::npos) continue;
-      key = Lower(Trim(line.substr(0, colon)));
+      key = AsciiLower(Trim(line.substr(0, colon)));
       value = Trim(line.substr(colon + 1));
       if (!value.empty() && value[0] == '=') continue;  // key:=value pairs
       if (key != "data file" && key != "datafile") continue;
     }
-    const std::string lv = Lower(value);
+    const std::string lv = AsciiLower(value);
     if (lv == "local") return true;
     if (lv.rfind("list", 0) == 0) {
       list = true;
@@ -587,7 +578,7 @@ std::vector<std::string> KeepDicomFiles(std::vector<InputFile>* files) {
   std::vector<InputFile> kept;
   for (auto& f : *files) {
     bool dicom = false;
-    if (Lower(f.path.filename().string()) != "dicomdir") {
+    if (AsciiLower(f.path.filename().string()) != "dicomdir") {
       std::ifstream in(f.path, std::ios::binary);
       char magic[132] = {};
       dicom = in.read(magic, sizeof magic) && std::string(magic + 128, 4) == "DICM";

@@ -1,4 +1,5 @@
 #include "client/dicomweb.h"
+#include "client/text.h"
 
 #include <curl/curl.h>
 
@@ -14,7 +15,6 @@ namespace decima::client {
 namespace fs = std::filesystem;
 namespace {
 
-std::string Lower(std::string s);
 std::string Boundary(const std::string& content_type);
 
 // The answer, parsed as it arrives (RFC 2046 multipart/related): each application/dicom part
@@ -79,7 +79,7 @@ bool Parse(Transfer* t) {
           }
           return true;
         }
-        const std::string head = Lower(t->buf.substr(0, end));
+        const std::string head = AsciiLower(t->buf.substr(0, end));
         if (head.find("content-type: application/dicom") == std::string::npos &&
             head.find("content-type:application/dicom") == std::string::npos) {
           return Fail(
@@ -137,7 +137,7 @@ size_t OnBody(char* data, size_t size, size_t n, void* user) {
       t->error_body.append(data, std::min(len, 200 - std::min<size_t>(200, t->error_body.size())));
       return len;  // read to the end; reported after the transfer
     }
-    if (Lower(t->content_type).find("multipart/related") == std::string::npos) {
+    if (AsciiLower(t->content_type).find("multipart/related") == std::string::npos) {
       t->error = t->url + ": answer is '" + t->content_type + "', expected multipart/related";
       return 0;
     }
@@ -159,16 +159,10 @@ size_t OnBody(char* data, size_t size, size_t n, void* user) {
   return Parse(t) ? len : 0;
 }
 
-std::string Lower(std::string s) {
-  std::transform(s.begin(), s.end(), s.begin(),
-                 [](unsigned char c) { return static_cast<char>(std::tolower(c)); });
-  return s;
-}
-
 size_t OnHeader(char* data, size_t size, size_t n, void* user) {
   auto* t = static_cast<Transfer*>(user);
   const std::string line(data, size * n);
-  if (Lower(line.substr(0, 13)) == "content-type:") {
+  if (AsciiLower(line.substr(0, 13)) == "content-type:") {
     std::string v = line.substr(13);
     while (!v.empty() && (v.back() == '\r' || v.back() == '\n')) v.pop_back();
     t->content_type = v;
@@ -178,7 +172,7 @@ size_t OnHeader(char* data, size_t size, size_t n, void* user) {
 
 // The boundary parameter of a multipart Content-Type, unquoted; "" if absent.
 std::string Boundary(const std::string& content_type) {
-  const std::string lower = Lower(content_type);
+  const std::string lower = AsciiLower(content_type);
   size_t p = lower.find("boundary=");
   if (p == std::string::npos) return "";
   std::string b = content_type.substr(p + 9);

@@ -1,4 +1,5 @@
 #include "client/cli/output.h"
+#include "client/text.h"
 
 #include <google/protobuf/util/json_util.h>
 #include <sys/ioctl.h>
@@ -140,9 +141,7 @@ std::vector<std::string> JobRow(CliContext& ctx, const v1::Job& j, bool wide) {
     r.push_back(j.state() == v1::SUCCEEDED
                     ? Percent(s.achieved_reduction, 1) + (s.reached_target ? "" : " (short)")
                     : "-");
-    std::string policy = v1::SimplifyPolicy_Name(j.spec().policy());
-    for (char& c : policy) c = static_cast<char>(std::tolower(static_cast<unsigned char>(c)));
-    r.push_back(policy);
+    r.push_back(AsciiLower(v1::SimplifyPolicy_Name(j.spec().policy())));
     std::string views;
     for (const auto& v : j.spec().views()) views += (views.empty() ? "" : " ") + v;
     r.push_back(views.empty() ? "-" : views);

@@ -9,6 +9,7 @@
 #include "client/cli/output.h"
 #include "client/cli/watch.h"
 #include "client/cmd/commands.h"
+#include "client/text.h"
 #include "decima/v1/jobs.grpc.pb.h"
 
 namespace decima::client {
@@ -27,8 +28,8 @@ struct FetchOptions {
 // Whether `file` is one of `only`: a file name, or a kind (as in --outputs) that produces it.
 bool MatchesOnly(const std::string& file, const std::vector<std::string>& only) {
   if (only.empty()) return true;
-  for (std::string o : only) {
-    for (char& c : o) c = static_cast<char>(std::tolower(static_cast<unsigned char>(c)));
+  for (const std::string& listed : only) {
+    const std::string o = AsciiLower(listed);
     if (o == file) return true;
     if (o == "vtu" && file == "mesh.vtu") return true;
     if (o == "msh" && file == "mesh.msh") return true;
@@ -120,9 +121,8 @@ v1::CreateJobRequest LevelJobRequest(const v1::Job& parent, double reduction,
   // The kinds a level job writes (its mesh comes from a record: no "levels", no "curve").
   static const std::vector<std::string> kLevelKinds = {
       "vtu", "msh", "medit", "stl", "glb", "labels", "images", "segmentation", "report"};
-  for (std::string o : only) {
-    std::transform(o.begin(), o.end(), o.begin(),
-                   [](unsigned char c) { return static_cast<char>(std::tolower(c)); });
+  for (const std::string& given : only) {
+    const std::string o = AsciiLower(given);
     const bool kind = std::find(kLevelKinds.begin(), kLevelKinds.end(), o) != kLevelKinds.end();
     const bool listed =
         std::find(spec->outputs().begin(), spec->outputs().end(), o) != spec->outputs().end();

@@ -12,6 +12,7 @@
 #include "client/cli/volume_upload.h"
 #include "client/cli/watch.h"
 #include "client/cmd/commands.h"
+#include "client/text.h"
 
 namespace decima::client {
 
@@ -64,10 +65,7 @@ int CheckRegionNames(SubmitOptions& o) {
       if (c == '\\') problem = "holds a backslash";
     }
     for (size_t k = 0; k < i && problem == nullptr; ++k) {
-      std::string a = n, b = o.region_names[k];
-      for (char& c : a) c = static_cast<char>(std::tolower(static_cast<unsigned char>(c)));
-      for (char& c : b) c = static_cast<char>(std::tolower(static_cast<unsigned char>(c)));
-      if (a == b) problem = "appears twice";
+      if (AsciiLower(n) == AsciiLower(o.region_names[k])) problem = "appears twice";
     }
     if (problem != nullptr) {
       std::fprintf(stderr, "decima: --region-names: name %zu %s\n", i + 1, problem);
@@ -106,8 +104,7 @@ int SetWeights(const std::vector<std::string>& weights, v1::ErrorWeights* ew) {
       std::fprintf(stderr, "decima: --weight %s: expected NAME=VALUE\n", w.c_str());
       return kUsage;
     }
-    std::string name = w.substr(0, eq);
-    for (char& c : name) c = static_cast<char>(std::tolower(static_cast<unsigned char>(c)));
+    const std::string name = AsciiLower(w.substr(0, eq));
     double value = 0;
     try {
       value = std::stod(w.substr(eq + 1));

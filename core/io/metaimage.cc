@@ -25,7 +25,7 @@ using internal::Invalid;
 using internal::Unsupported;
 
 // A header longer than this is not a MetaImage header (ITK's are < 1 KiB).
-constexpr size_t kMaxHeaderBytes = 1 << 16;
+constexpr size_t kMaxMetaHeaderBytes = 1 << 16;
 
 struct ElementTypeName {
   const char* name;
@@ -44,16 +44,17 @@ struct MetaHeader {
   int64_t local_data_offset = 0;
 };
 
-absl::StatusOr<MetaHeader> ParseHeader(const fs::path& path) {
-  DECIMA_ASSIGN_OR_RETURN(const std::string head, internal::ReadFileHead(path, kMaxHeaderBytes));
+absl::StatusOr<MetaHeader> ParseMetaHeader(const fs::path& path) {
+  DECIMA_ASSIGN_OR_RETURN(const std::string head,
+                          internal::ReadFileHead(path, kMaxMetaHeaderBytes));
   if (head.empty()) return Invalid(path, "empty file, expected a MetaImage header");
   MetaHeader h;
   size_t pos = 0;
   while (true) {
     const size_t eol = head.find('\n', pos);
     if (eol == std::string::npos) {
-      if (head.size() >= kMaxHeaderBytes) {
-        return Invalid(path, "no ElementDataFile line within the first ", kMaxHeaderBytes,
+      if (head.size() >= kMaxMetaHeaderBytes) {
+        return Invalid(path, "no ElementDataFile line within the first ", kMaxMetaHeaderBytes,
                        " bytes: not a MetaImage header");
       }
     }
@@ -124,7 +125,7 @@ std::string Num(double d) {
 namespace internal {
 
 absl::StatusOr<Volume> ReadMetaImage(const fs::path& path, ReadMode mode) {
-  DECIMA_ASSIGN_OR_RETURN(const MetaHeader h, ParseHeader(path));
+  DECIMA_ASSIGN_OR_RETURN(const MetaHeader h, ParseMetaHeader(path));
   if (const std::string* ot = Field(h, {"objecttype"}); ot != nullptr && *ot != "Image") {
     return Unsupported(path, "ObjectType = ", *ot, ", expected Image");
   }

@@ -24,7 +24,7 @@ namespace fs = std::filesystem;
 using internal::Invalid;
 using internal::Unsupported;
 
-constexpr size_t kMaxHeaderBytes = 1 << 20;
+constexpr size_t kMaxNrrdHeaderBytes = 1 << 20;
 
 struct NrrdHeader {
   std::map<std::string, std::string> fields;  // lower-cased field name -> value
@@ -32,8 +32,9 @@ struct NrrdHeader {
   bool ended_with_blank_line = false;
 };
 
-absl::StatusOr<NrrdHeader> ParseHeader(const fs::path& path) {
-  DECIMA_ASSIGN_OR_RETURN(const std::string head, internal::ReadFileHead(path, kMaxHeaderBytes));
+absl::StatusOr<NrrdHeader> ParseNrrdHeader(const fs::path& path) {
+  DECIMA_ASSIGN_OR_RETURN(const std::string head,
+                          internal::ReadFileHead(path, kMaxNrrdHeaderBytes));
   if (head.empty()) return Invalid(path, "empty file, expected a NRRD header");
   if (head.size() < 8 || head.compare(0, 7, "NRRD000") != 0) {
     return Invalid(path, "missing the NRRD magic 'NRRD000x' on the first line");
@@ -45,8 +46,8 @@ absl::StatusOr<NrrdHeader> ParseHeader(const fs::path& path) {
   while (pos < head.size()) {
     size_t eol = head.find('\n', pos);
     if (eol == std::string::npos) {
-      if (head.size() >= kMaxHeaderBytes) {
-        return Invalid(path, "header longer than ", kMaxHeaderBytes, " bytes");
+      if (head.size() >= kMaxNrrdHeaderBytes) {
+        return Invalid(path, "header longer than ", kMaxNrrdHeaderBytes, " bytes");
       }
       eol = head.size();
     }
@@ -250,7 +251,7 @@ absl::StatusOr<int64_t> SkipLines(const fs::path& data_path, int64_t offset, int
 namespace internal {
 
 absl::StatusOr<Volume> ReadNrrd(const fs::path& path, ReadMode mode) {
-  DECIMA_ASSIGN_OR_RETURN(const NrrdHeader h, ParseHeader(path));
+  DECIMA_ASSIGN_OR_RETURN(const NrrdHeader h, ParseNrrdHeader(path));
 
   const std::string* dim_s = Field(h, {"dimension"});
   if (dim_s == nullptr) return Invalid(path, "header has no 'dimension' field");

@@ -38,7 +38,6 @@ namespace {
 
 constexpr uint8_t kVtkTetra = 10;
 constexpr uint64_t kVtuBlockBytes = uint64_t{1} << 20;  // zlib block (VTK uses 32 KiB; any works)
-constexpr int kMaxRegions = 8;                          // labels and regions are 0..7
 
 std::string PathString(const std::filesystem::path& path) { return path.string(); }
 

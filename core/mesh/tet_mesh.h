@@ -27,10 +27,13 @@ enum VertexFlag : uint8_t {
   kExteriorBoundaryVertex = 1 << 1,  // on the hull of the mesh
 };
 
+// Labels and regions are 0..kMaxRegions-1: the segmentation's phases fit in 3 bits.
+constexpr int kMaxRegions = 8;
+
 struct TetMesh {
   std::vector<float> positions;           // x, y, z per vertex, LPS mm
   std::vector<float> scalars;             // field value per vertex (the image intensity)
-  std::vector<uint8_t> labels;            // region per vertex, 0..7
+  std::vector<uint8_t> labels;            // region per vertex, below kMaxRegions
   std::vector<float> interface_distance;  // distance to the nearest region interface, voxels
   std::vector<uint8_t> vertex_flags;      // VertexFlag bits
   std::vector<int32_t> tets;              // 4 vertex indices per cell, positively oriented

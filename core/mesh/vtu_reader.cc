@@ -36,7 +36,6 @@ namespace {
 
 static_assert(std::endian::native == std::endian::little, "the .vtu reader assumes little endian");
 
-constexpr int kMaxRegions = 8;               // labels and regions are 0..7 (tet_mesh.h)
 constexpr uint64_t kMaxDeflateRatio = 1032;  // deflate's best case: 258 bytes per 2 bits
 constexpr uint64_t kMaxLzmaRatio = 16384;    // see the top of the file
 // The .xz decoder's memory limit: LZMA2 at preset 9 needs 65 MiB to decode (a 64 MiB dictionary).
