@@ -69,16 +69,9 @@ OMP_NUM_THREADS=1 run_ctest "$tsan" "server|client" || status=1
 # The end-to-end suites whose subject is concurrency in the service (queue, leases, watchers,
 # restarts, uploads); the CLI, README, PACS and scale-out suites run in the plain build, where
 # the job pipeline is not slowed down eight-fold.
-# Their two longest tests (about 150 s each under TSan, the other 18 together about 230 s) run
-# first, side by side: a fresh build folder has no timings for ctest to order by, and in one
-# call the run took 341 s where 265 s of work per core was there to share.
-longest='^(ServiceE2E\.FourClientsTwentyJobsEachTwoWorkersAllSucceedOnceInOrder|HardeningE2E\.WatchersSurviveAGracefulRestartAndShortJobsFinishInTheDrain)$'
-tsan_e2e() {  # ctest selection arguments
-  TSAN_OPTIONS="suppressions=$PWD/tests/tsan.supp:log_path=$tsan_logs/tsan:second_deadlock_stack=1" \
-  OMP_NUM_THREADS=1 ctest --test-dir "$tsan" "$@" --output-on-failure -j "$jobs" --timeout 900
-}
-tsan_e2e -R "$longest" || status=1
-tsan_e2e -R '^(ServiceE2E|HardeningE2E)\.' -E "$longest" || status=1
+TSAN_OPTIONS="suppressions=$PWD/tests/tsan.supp:log_path=$tsan_logs/tsan:second_deadlock_stack=1" \
+OMP_NUM_THREADS=1 ctest --test-dir "$tsan" -R '^(ServiceE2E|HardeningE2E)\.' --output-on-failure \
+  -j "$jobs" --timeout 900 || status=1
 check_logs "$tsan_logs" || status=1
 
 exit $status
