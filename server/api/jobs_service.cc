@@ -9,6 +9,7 @@
 #include "server/api/watch_loop.h"
 #include "server/dicom/dicom_receiver.h"
 #include "server/jobs/faults.h"
+#include "server/jobs/job_memory.h"
 #include "server/jobs/job_spec.h"
 #include "server/util/ids.h"
 #include "spdlog/spdlog.h"
@@ -80,6 +81,16 @@ absl::StatusOr<v1::Job> SubmitJob(const ServiceDeps& d, const Principal& caller,
     if (auto may = CallGuard::MayRead(caller, vol->creator(), value); !may.ok()) {
       detail->set_field(name);
       return absl::PermissionDeniedError(may.error_message());
+    }
+    // Refused now rather than failed when a worker takes it: nothing is queued.
+    const int64_t cap = d.options->job_memory_cap_bytes;
+    if (value == spec->volume() && cap > 0) {
+      if (auto fits = CheckJobMemory(*vol, value, cap); !fits.ok()) {
+        detail->set_field(name);
+        detail->set_limit("worker_memory_mb");
+        detail->set_limit_value(cap >> 20);
+        return fits;
+      }
     }
   }
   const std::string id = NewId();

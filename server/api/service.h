@@ -35,6 +35,7 @@ struct ServiceOptions {
   int64_t heartbeat_ms = 5000;  // WatchJob heartbeat period
   BlobSweepPolicy blob_sweep;   // upload claims and partial-upload expiry (blob_store.h)
   int64_t disk_reserve_bytes = int64_t{64} << 20;  // disk_space.h; 0 = none
+  int64_t job_memory_cap_bytes = 0;  // a job whose estimate is above is refused; 0 = no check
 };
 
 inline constexpr size_t kMaxChunkBytes = size_t{1} << 20;

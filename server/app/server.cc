@@ -18,6 +18,7 @@
 #include "absl/strings/str_cat.h"
 #include "core/common/status.h"
 #include "server/api/grpc_util.h"
+#include "server/jobs/job_memory.h"
 #include "server/util/ids.h"
 #include "spdlog/spdlog.h"
 
@@ -260,6 +261,7 @@ void Server::StartServices() {
   so.audit = audit_;
   so.max_upload_bytes = o.max_upload_mb << 20;
   so.max_queued = o.max_queued;
+  so.job_memory_cap_bytes = JobMemoryCapBytes(o.worker_memory_mb);
   so.allow_faults = o.allow_faults;
   so.heartbeat_ms = static_cast<int64_t>(o.heartbeat_seconds * 1000);
   so.blob_sweep.grace = std::chrono::seconds(static_cast<int64_t>(o.blob_grace_seconds));

@@ -4,6 +4,9 @@
 
 #include <algorithm>
 
+#include "absl/strings/str_cat.h"
+#include "server/files/disk_space.h"
+
 namespace decima::server {
 namespace {
 
@@ -63,6 +66,22 @@ int64_t DefaultJobMemoryCapBytes() {
   const long page = ::sysconf(_SC_PAGESIZE);
   if (pages <= 0 || page <= 0) return int64_t{8} << 30;
   return static_cast<int64_t>(pages) * page / 10 * 8;
+}
+
+int64_t JobMemoryCapBytes(int64_t worker_memory_mb) {
+  return worker_memory_mb > 0 ? worker_memory_mb << 20 : DefaultJobMemoryCapBytes();
+}
+
+absl::Status CheckJobMemory(const v1::Volume& volume, const std::string& volume_name, int64_t cap) {
+  const int64_t needed = EstimateJobMemoryBytes(volume);
+  if (needed <= cap) return absl::OkStatus();
+  std::string dims;
+  for (int64_t d : volume.dims()) absl::StrAppend(&dims, dims.empty() ? "" : "x", d);
+  return absl::ResourceExhaustedError(
+      absl::StrCat(volume_name, " (", dims.empty() ? HumanBytes(volume.size_bytes()) : dims,
+                   dims.empty() ? "" : " voxels", ") needs about ", HumanBytes(needed),
+                   " of memory, more than the job limit of ", HumanBytes(cap),
+                   " (decima-server --worker-memory-mb); nothing was run"));
 }
 
 int64_t JobAddressSpaceLimitBytes(int64_t needed, int64_t cap) {

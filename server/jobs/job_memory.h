@@ -7,7 +7,9 @@
 #pragma once
 
 #include <cstdint>
+#include <string>
 
+#include "absl/status/status.h"
 #include "decima/v1/volumes.pb.h"
 
 namespace decima::server {
@@ -20,6 +22,16 @@ int64_t EstimateJobMemoryBytes(const v1::Volume& volume);
 
 // The default cap of one job: 80 % of the machine's physical memory.
 int64_t DefaultJobMemoryCapBytes();
+
+// The cap of one job: `worker_memory_mb` (decima-server --worker-memory-mb) when above 0, else
+// the default.
+int64_t JobMemoryCapBytes(int64_t worker_memory_mb);
+
+// OK when a job on `volume` (called `volume_name` in the message) fits under `cap`; otherwise
+// ResourceExhausted naming the volume's size, the estimate, the limit and the flag that raises
+// it. Checked when a job is submitted and again by the runner (another replica's limit may be
+// lower than the one that took the job).
+absl::Status CheckJobMemory(const v1::Volume& volume, const std::string& volume_name, int64_t cap);
 
 // The address-space limit for a job with estimate `needed` under `cap`: room for twice the
 // estimate plus the runtime's fixed mappings, never above the cap.

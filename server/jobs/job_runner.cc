@@ -13,7 +13,6 @@
 
 #include "absl/strings/str_cat.h"
 #include "core/pipeline/levels_output.h"
-#include "server/files/disk_space.h"
 #include "server/files/volume_probe.h"
 #include "server/jobs/child_process.h"
 #include "server/jobs/job_memory.h"
@@ -112,21 +111,11 @@ absl::StatusOr<JobRunner::Prepared> JobRunner::Prepare(const v1::Job& job, int64
   if (!input.ok()) return input.status();
   request.set_input(input->string());
   request.set_series_instance_uid(volume.series_instance_uid());
-  const int64_t needed = EstimateJobMemoryBytes(volume);
-  const int64_t cap =
-      options_.worker_memory_mb > 0 ? options_.worker_memory_mb << 20 : DefaultJobMemoryCapBytes();
-  if (needed > cap) {
-    std::string dims;
-    for (int64_t d : volume.dims()) absl::StrAppend(&dims, dims.empty() ? "" : "x", d);
-    return absl::ResourceExhaustedError(absl::StrCat(
-        job.spec().volume(), " (", dims.empty() ? HumanBytes(volume.size_bytes()) : dims,
-        dims.empty() ? "" : " voxels", ") needs about ", HumanBytes(needed),
-        " of memory, more than the job limit of ", HumanBytes(cap),
-        " (decima-server --worker-memory-mb); nothing was run"));
-  }
+  const int64_t cap = JobMemoryCapBytes(options_.worker_memory_mb);
+  if (auto fits = CheckJobMemory(volume, job.spec().volume(), cap); !fits.ok()) return fits;
   Prepared prepared;
 #if !defined(__SANITIZE_ADDRESS__) && !defined(__SANITIZE_THREAD__)
-  prepared.memory_limit_bytes = JobAddressSpaceLimitBytes(needed, cap);
+  prepared.memory_limit_bytes = JobAddressSpaceLimitBytes(EstimateJobMemoryBytes(volume), cap);
 #endif
   request.set_memory_limit_bytes(prepared.memory_limit_bytes);
   request.set_job_name(job.name());
@@ -145,9 +134,8 @@ absl::StatusOr<JobRunner::Prepared> JobRunner::Prepare(const v1::Job& job, int64
     for (const char* file : {pipeline::kLevelsFileName, "labels.nii.gz"}) {
       std::error_code ec;
       if (!fs::is_regular_file(dir / file, ec)) {
-        return absl::FailedPreconditionError(
-            absl::StrCat(job.spec().levels_of(), " has no ", file, " any more (deleted?); ",
-                         "nothing was run"));
+        return absl::FailedPreconditionError(absl::StrCat(
+            job.spec().levels_of(), " has no ", file, " any more (deleted?); ", "nothing was run"));
       }
     }
     request.set_levels_file((dir / pipeline::kLevelsFileName).string());

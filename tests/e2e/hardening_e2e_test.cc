@@ -274,9 +274,9 @@ TEST_F(HardeningE2E, FullDiskRefusesUploadsKeepsNothingAndDeletesHealIt) {
 }
 
 // Issue case 1: CreateVolume reads headers only (a 0.5 MB .nii.gz declaring 512 MB costs the
-// server nothing) and the job that would need far more memory than allowed fails at once,
-// saying how much it needs.
-TEST_F(HardeningE2E, DecompressionBombCostsTheServerNothingAndItsJobFailsWithTheNeed) {
+// server nothing), and the job that would need far more memory than allowed is refused when it
+// is submitted, saying how much it needs: nothing is queued (issue 30).
+TEST_F(HardeningE2E, DecompressionBombCostsTheServerNothingAndItsJobIsRefusedWithTheNeed) {
   ServerProcess server(scratch_ / "data", {"--worker-memory-mb", "2048"});
   const fs::path bomb = scratch_ / "bomb.nii.gz";
   WriteNiftiGzBomb(bomb, 1024, 1024, 512);
@@ -284,10 +284,15 @@ TEST_F(HardeningE2E, DecompressionBombCostsTheServerNothingAndItsJobFailsWithThe
   const int64_t before = PeakRss(server.pid());
   CliResult r =
       RunCli(server.address(), {"-q", "submit", bomb.string(), "--watch"}, 120s * kSlowdown);
-  EXPECT_EQ(r.rc, 3) << r.err;  // job failed
-  EXPECT_THAT(r.err, HasSubstr("needs about"));
-  EXPECT_THAT(r.err, HasSubstr("2.0 GB"));
+  EXPECT_EQ(r.rc, 1) << r.err;  // refused: no job to fail
+  EXPECT_THAT(r.err, HasSubstr("1024x1024x512 voxels) needs about"));
+  EXPECT_THAT(r.err, HasSubstr("more than the job limit of 2.0 GB"));
   EXPECT_THAT(r.err, HasSubstr("--worker-memory-mb"));
+  v1::ListJobsResponse jobs;
+  ASSERT_TRUE(v1::Jobs::NewStub(SharedChannel(server.address()))
+                  ->ListJobs(Ctx().get(), v1::ListJobsRequest(), &jobs)
+                  .ok());
+  EXPECT_EQ(jobs.jobs_size(), 0) << "a refused job was queued";
   const int64_t after = PeakRss(server.pid());
   ASSERT_GT(before, 0);
   EXPECT_LT(after - before, int64_t{64} << 20)

@@ -53,6 +53,7 @@ class ServicesTest : public ::testing::Test {
     so.data_dir = DataDir(dir_);
     so.identities = std::move(identities);
     so.allow_faults = allow_faults;
+    so.job_memory_cap_bytes = job_memory_cap_bytes_;
     services_ = std::make_unique<Services>(so, store_.get(), blobs_.get(), &bus_, pool_.get());
     grpc::ServerBuilder builder;
     builder.RegisterService(services_->uploads());
@@ -84,6 +85,7 @@ class ServicesTest : public ::testing::Test {
     return d;
   }
 
+  int64_t job_memory_cap_bytes_ = 0;  // ServiceOptions::job_memory_cap_bytes, set before Start
   fs::path dir_;
   EventBus bus_;
   std::unique_ptr<JobStore> store_;
@@ -226,6 +228,38 @@ TEST_F(ServicesTest, CreateJobStoresTheNormalizedSpecAndAnUnknownVolumeIsNotFoun
 
   req.mutable_spec()->set_volume("volumes/nope");
   EXPECT_EQ(jobs->CreateJob(Ctx().get(), req, &job).error_code(), grpc::NOT_FOUND);
+}
+
+// Issue 30: a job whose memory estimate is above the job limit is refused when it is submitted,
+// naming the volume's size, the estimate, the limit and the flag, and nothing is queued; a job
+// under the limit is queued as before.
+TEST_F(ServicesTest, AJobOverTheMemoryLimitIsRefusedAtSubmitAndQueuesNothing) {
+  job_memory_cap_bytes_ = int64_t{1} << 30;
+  Start();
+  v1::Volume big;
+  big.set_name("volumes/big");
+  for (int64_t d : {1024, 1024, 1024}) big.add_dims(d);
+  bool created = false;
+  ASSERT_TRUE(store_->CreateVolume("big", big, "", "", &created).ok());
+  auto jobs = v1::Jobs::NewStub(channel_);
+  v1::CreateJobRequest req;
+  req.mutable_spec()->set_volume("volumes/big");
+  v1::Job job;
+  auto ctx = Ctx();
+  grpc::Status s = jobs->CreateJob(ctx.get(), req, &job);
+  EXPECT_EQ(s.error_code(), grpc::RESOURCE_EXHAUSTED) << s.error_message();
+  EXPECT_THAT(s.error_message(), HasSubstr("volumes/big (1024x1024x1024 voxels) needs about"));
+  EXPECT_THAT(s.error_message(), HasSubstr("more than the job limit of 1.0 GB"));
+  EXPECT_THAT(s.error_message(), HasSubstr("--worker-memory-mb"));
+  const v1::ErrorDetail detail = Detail(*ctx);
+  EXPECT_EQ(detail.field(), "spec.volume");
+  EXPECT_EQ(detail.limit(), "worker_memory_mb");
+  EXPECT_EQ(detail.limit_value(), 1024);
+  EXPECT_EQ(*store_->CountJobs(v1::QUEUED), 0);
+
+  req.mutable_spec()->set_volume("volumes/v");  // no dims, no bytes: under any limit
+  EXPECT_TRUE(jobs->CreateJob(Ctx().get(), req, &job).ok());
+  EXPECT_EQ(*store_->CountJobs(v1::QUEUED), 1);
 }
 
 TEST_F(ServicesTest, TheFaultSeamIsIgnoredUnlessTheServerAllowsFaults) {
