@@ -58,6 +58,10 @@ void DescribeJob(CliContext& ctx, const v1::Job& j) {
   std::printf("  outputs %s, vtu_compression_level %d\n",
               outputs.empty() ? "(default)" : outputs.c_str(), s.vtu_compression_level());
   if (!s.label_map().empty()) std::printf("  label_map %s\n", s.label_map().c_str());
+  if (!s.levels_of().empty()) {
+    std::printf("  levels_of %s (the mesh is a level of that job's record)\n",
+                s.levels_of().c_str());
+  }
   if (s.has_min_psnr()) std::printf("  min_psnr %g dB\n", s.min_psnr());
   if (!s.interfaces().empty()) std::printf("  interfaces %s\n", s.interfaces().c_str());
   std::printf("Times:\n");

@@ -254,6 +254,7 @@ class JobsService final : public v1::Jobs::Service {
     auto id = ParseName(req->name(), "jobs", "name");
     if (!id.ok()) return ToGrpc(id.status());
     if (auto may = MayWriteJob(caller, *id, req->name()); !may.ok()) return may;
+    if (auto st = NoLevelJobReads(req->name()); !st.ok()) return ToGrpc(st);
     d_.disk->BeforeDelete();
     if (auto st = d_.jobs->DeleteJob(*id); !st.ok()) return ToGrpc(st);
     d_.options->data_dir.RemoveJob(*id);
@@ -283,6 +284,26 @@ class JobsService final : public v1::Jobs::Service {
   }
 
  private:
+  // FAILED_PRECONDITION while a queued or running level job (spec.levels_of) reads its mesh from
+  // the record of job `name`: deleting the record would fail that job when it runs. Any caller's
+  // level job counts, and the caller is told only its name and state.
+  absl::Status NoLevelJobReads(const std::string& name) const {
+    std::string token;
+    for (int page = 0; page < 10000; ++page) {
+      auto jobs = d_.jobs->ListJobs({v1::QUEUED, v1::RUNNING}, "", 500, token);
+      if (!jobs.ok()) return jobs.status();
+      for (const v1::Job& j : jobs->jobs) {
+        if (j.spec().levels_of() != name) continue;
+        return absl::FailedPreconditionError(absl::StrCat(
+            name, " is read by the level job ", j.name(), " (", v1::JobState_Name(j.state()),
+            "); delete it once that job has ended, or cancel that job first"));
+      }
+      if (jobs->next_page_token.empty()) return absl::OkStatus();
+      token = jobs->next_page_token;
+    }
+    return absl::OkStatus();
+  }
+
   // NOT_FOUND for a missing job, PERMISSION_DENIED when `caller` may not change it.
   grpc::Status MayWriteJob(const Principal& caller, const std::string& id,
                            const std::string& name) const {

@@ -270,8 +270,15 @@ TEST_F(CliE2E, FetchAReductionFromTheLevelRecordWithoutSimplifyingAgain) {
   const fs::path level = scratch_ / "level";
   r = RunCli(server.address(), {"fetch", recorded, "--reduction", "0.6", "--out", level.string()});
   ASSERT_EQ(r.rc, 0) << r.err << server.Log();
-  EXPECT_THAT(r.err, HasSubstr("the level 0.6 of " + recorded + " is taken from its record by"));
+  const std::string by = " is taken from its record by ";
+  const size_t at = r.err.find("the level 0.6 of " + recorded + by);
+  ASSERT_NE(at, std::string::npos) << r.err;
+  const std::string level_job = FirstLine(r.err.substr(r.err.find(by, at) + by.size()));
   EXPECT_EQ(FilesIn(level), (std::set<std::string>{"mesh.vtu", "metrics.json"}));
+  // Its description says where its mesh came from.
+  CliResult status = RunCli(server.address(), {"status", level_job});
+  EXPECT_EQ(status.rc, 0) << status.err;
+  EXPECT_THAT(status.out, HasSubstr("levels_of " + recorded + " (the mesh is a level of"));
   EXPECT_EQ(ReadFile(level / "mesh.vtu"), ReadFile(direct / "mesh.vtu"));
   auto m = nlohmann::json::parse(ReadFile(level / "metrics.json"));
   EXPECT_TRUE(m["simplification"]["from_levels"].get<bool>());

@@ -262,6 +262,33 @@ TEST_F(ServicesTest, AJobOverTheMemoryLimitIsRefusedAtSubmitAndQueuesNothing) {
   EXPECT_EQ(*store_->CountJobs(v1::QUEUED), 1);
 }
 
+// A job whose level record a queued level job will read cannot be deleted until that job has
+// ended or is cancelled (the level job would fail when it runs).
+TEST_F(ServicesTest, AJobIsNotDeletedWhileALevelJobReadsItsRecord) {
+  Start();
+  v1::JobSpec parent_spec;
+  parent_spec.set_volume("volumes/v");
+  bool created = false;
+  ASSERT_TRUE(store_->CreateJob("parent", parent_spec, "", 0, "", &created).ok());
+  ASSERT_TRUE(store_->Cancel("parent").ok());  // final, so deletable on its own
+  v1::JobSpec level_spec = parent_spec;
+  level_spec.set_levels_of("jobs/parent");
+  ASSERT_TRUE(store_->CreateJob("level", level_spec, "", 0, "", &created).ok());
+  auto jobs = v1::Jobs::NewStub(channel_);
+  v1::DeleteJobRequest del;
+  del.set_name("jobs/parent");
+  v1::DeleteJobResponse resp;
+  grpc::Status s = jobs->DeleteJob(Ctx().get(), del, &resp);
+  EXPECT_EQ(s.error_code(), grpc::FAILED_PRECONDITION) << s.error_message();
+  EXPECT_THAT(s.error_message(), HasSubstr("read by the level job jobs/level (QUEUED)"));
+  EXPECT_TRUE(store_->GetJob("parent").ok()) << "refused, yet deleted";
+
+  ASSERT_TRUE(store_->Cancel("level").ok());
+  s = jobs->DeleteJob(Ctx().get(), del, &resp);
+  EXPECT_TRUE(s.ok()) << s.error_message();
+  EXPECT_FALSE(store_->GetJob("parent").ok());
+}
+
 TEST_F(ServicesTest, TheFaultSeamIsIgnoredUnlessTheServerAllowsFaults) {
   for (bool allow : {false, true}) {
     Start(allow);
