@@ -6,6 +6,7 @@
 #include <iterator>
 #include <optional>
 #include <utility>
+#include <vector>
 
 #include <nlohmann/json.hpp>
 
@@ -855,11 +856,17 @@ absl::StatusOr<JobResult> RunJob(const JobSpec& spec, const std::filesystem::pat
 
   std::optional<DicomDescription> dicom;
   DECIMA_ASSIGN_OR_RETURN(const Volume image, LoadStage(spec, run, &dicom));
-  DECIMA_ASSIGN_OR_RETURN(const SegmentResult seg,
+  // Not const: its distance arrays are freed after the tetra stage.
+  DECIMA_ASSIGN_OR_RETURN(SegmentResult seg,
                           SegmentStage(spec, image, checkpoints, segment_key, run));
   DECIMA_ASSIGN_OR_RETURN(const RegionTable regions, RegionTableOf(spec, image, seg, run));
   // Not const: the render stage frees it once nothing after it needs the original.
   DECIMA_ASSIGN_OR_RETURN(TetMesh original, TetrahedralizeStage(image, seg, run));
+  // The interface distances (voxels and mm, 8 bytes per voxel) are read only by the tetra stage,
+  // which copies the first into the mesh's vertices (its checkpoint is written already): freed
+  // here, they no longer sit under the simplify and render peaks.
+  std::vector<float>().swap(seg.interface_distance_voxels);
+  std::vector<float>().swap(seg.interface_distance_mm);
   DECIMA_ASSIGN_OR_RETURN(SimplifyResult simplified,
                           SimplifyStage(spec, image, original, checkpoints, simplify_key, run));
   DECIMA_ASSIGN_OR_RETURN(const int64_t mesh_bytes,
