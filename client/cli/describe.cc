@@ -64,6 +64,9 @@ void DescribeJob(CliContext& ctx, const v1::Job& j) {
   }
   if (s.has_min_psnr()) std::printf("  min_psnr %g dB\n", s.min_psnr());
   if (!s.interfaces().empty()) std::printf("  interfaces %s\n", s.interfaces().c_str());
+  if (!s.mesh_compression().empty()) {
+    std::printf("  mesh_compression %s\n", s.mesh_compression().c_str());
+  }
   std::printf("Times:\n");
   std::printf("  created %s, started %s, ended %s\n", FormatTime(j.create_time()).c_str(),
               FormatTime(j.start_time()).c_str(), FormatTime(j.end_time()).c_str());

@@ -24,7 +24,8 @@ struct SubmitOptions {
   std::vector<std::string> inputs;
   fs::path each;
   DicomWebFlags dicomweb;
-  std::string label_map, policy = "field", interfaces, transfer_function, fault, request_id, series;
+  std::string label_map, policy = "field", interfaces, mesh_compression, transfer_function, fault,
+                         request_id, series;
   fs::path out;
   // Unset options stay unset in the request: the server owns the defaults.
   std::optional<int> regions, image_size, vtu_level;
@@ -154,6 +155,7 @@ int FillSpec(const SubmitOptions& o, v1::JobSpec* spec) {
   spec->set_transfer_function(o.transfer_function);
   for (const auto& out : o.outputs) spec->add_outputs(out);
   if (o.vtu_level) spec->set_vtu_compression_level(*o.vtu_level);
+  if (!o.mesh_compression.empty()) spec->set_mesh_compression(o.mesh_compression);
   return kOk;
 }
 
@@ -445,8 +447,13 @@ void AddJobFlags(CLI::App* cmd, SubmitOptions& o) {
       ->transform(CLI::IsMember({"vtu", "msh", "medit", "stl", "glb", "levels", "labels", "images",
                                  "segmentation", "report", "curve"},
                                 CLI::ignore_case));
+  cmd->add_option("--mesh-compression", o.mesh_compression,
+                  "mesh.vtu's compressor: zlib (default) or lzma (VTK's LZMA: ~44 % fewer bytes, "
+                  "several times the write time, ~2x VTK's read time)")
+      ->check(CLI::IsMember({"zlib", "lzma"}));
   cmd->add_option("--vtu-level", o.vtu_level,
-                  "zlib level of mesh.vtu: 0 uncompressed, 1 fastest (default) .. 9 smallest")
+                  "compression level of mesh.vtu (zlib's, or xz's preset with --mesh-compression "
+                  "lzma): 0 uncompressed, 1 fastest (default) .. 9 smallest")
       ->check(CLI::Range(0, 9));
 }
 

@@ -249,6 +249,16 @@ std::string RegionFieldData(const RegionTable* table) {
 
 }  // namespace
 
+const char* VtuCompressorName(VtuCompressor compressor) {
+  return compressor == VtuCompressor::kLzma ? "lzma" : "zlib";
+}
+
+std::optional<VtuCompressor> ParseVtuCompressor(std::string_view name) {
+  if (name == "zlib") return VtuCompressor::kZlib;
+  if (name == "lzma") return VtuCompressor::kLzma;
+  return std::nullopt;
+}
+
 absl::Status WriteVtu(const TetMesh& mesh, const std::filesystem::path& path,
                       const VtuWriteOptions& options) {
   DECIMA_RETURN_IF_ERROR(CheckMeshForWriting(mesh, path));

@@ -22,7 +22,9 @@
 
 #include <cstdint>
 #include <filesystem>
+#include <optional>
 #include <string>
+#include <string_view>
 
 #include "absl/status/status.h"
 #include "absl/status/statusor.h"
@@ -46,12 +48,17 @@ enum class VtuCompressor {
   kLzma,
 };
 
+// "zlib" | "lzma": the name a job spec uses (JobSpec::mesh_compression, metrics.json).
+const char* VtuCompressorName(VtuCompressor compressor);
+// The compressor of a name VtuCompressorName gives (case-sensitive); nullopt otherwise.
+std::optional<VtuCompressor> ParseVtuCompressor(std::string_view name);
+
 struct VtuWriteOptions {
   // Compress every array (blocks of 1 MiB) with `compressor`; false writes raw arrays (fastest
   // to write and read, about 8x the bytes of kLzma).
   bool compress = true;
   // zlib by default: LZMA halves the bytes but writes 5-20x slower and VTK reads it ~2x slower
-  // (README.md "Compact meshes"); a job option to choose it is not done yet.
+  // (README.md "Compact meshes"); a job chooses with JobSpec::mesh_compression.
   VtuCompressor compressor = VtuCompressor::kZlib;
   // The compressor's level, 1..9: zlib's level, or the xz preset (1 = fastest in both; zlib 6
   // saves another ~5 % at ~8x the time).

@@ -380,6 +380,7 @@ absl::StatusOr<int64_t> WriteMeshFiles(const JobSpec& spec, const TetMesh& mesh,
       VtuWriteOptions wo;
       wo.compress = spec.vtu_compression_level > 0;
       wo.level = std::max(1, spec.vtu_compression_level);
+      wo.compressor = spec.mesh_compression;
       wo.regions = &regions;
       DECIMA_RETURN_IF_ERROR(WriteVtu(mesh, p, wo));
     } else if (std::string(files[i].kind) == "msh") {
@@ -442,6 +443,11 @@ absl::StatusOr<int64_t> WriteStage(const JobSpec& spec, const TetMesh& original,
                                             run.out_dir(), stage.cancel()));
   if (levels.artifact) run.AddArtifact(*levels.artifact);
   run.metrics()["levels"] = LevelsJson(levels);
+  if (Wants(spec, "vtu")) {
+    // How mesh.vtu is encoded (lossless either way): "none" at level 0, else the compressor.
+    run.metrics()["mesh_compression"] =
+        spec.vtu_compression_level == 0 ? "none" : VtuCompressorName(spec.mesh_compression);
+  }
   const bool mesh_asked = Wants(spec, "vtu") || Wants(spec, "msh") || Wants(spec, "medit");
   stage.Report(1, mesh_asked ? "mesh written" : "no mesh file asked for");
   return mesh_bytes;

@@ -13,6 +13,7 @@
 
 #include "absl/status/statusor.h"
 #include "core/common/progress.h"
+#include "core/mesh/mesh_io.h"
 #include "core/simplify/simplify.h"
 #include "core/volume/regions.h"
 
@@ -61,7 +62,10 @@ struct JobSpec {
   // Artifacts (kOutputKinds), in that order; metrics.json is always written.
   // "levels" is not a default: it takes the run down to record_levels_to (core/pipeline/README.md).
   std::vector<std::string> outputs{"vtu", "labels", "images", "segmentation", "report"};
-  int vtu_compression_level = 1;  // 0 = uncompressed, 1..9 zlib
+  int vtu_compression_level = 1;  // 0 = uncompressed, 1..9 the level of mesh_compression
+  // mesh.vtu's compressor: zlib, or VTK's LZMA (~44 % fewer bytes, writes 5-20x slower, VTK
+  // reads it ~2x slower; core/mesh/README.md "Compact meshes"). With LZMA the level is xz's preset.
+  VtuCompressor mesh_compression = VtuCompressor::kZlib;
   // Captions only (picture footers, report.html); empty: the input's file name / nothing.
   std::string job_name;
   std::string input_name;

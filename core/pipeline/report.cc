@@ -16,6 +16,7 @@
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_join.h"
 #include "absl/strings/str_replace.h"
+#include "core/mesh/mesh_io.h"
 #include "core/pipeline/pictures.h"
 #include "core/pipeline/report_viewer.h"
 #include "core/simplify/simplify.h"
@@ -600,7 +601,10 @@ absl::StatusOr<std::string> ReportHtml(const JobSpec& spec, const std::string& i
   params["Transfer function"] =
       spec.transfer_function.size() > 80 ? "custom JSON" : spec.transfer_function;
   params["Outputs"] = spec.outputs;
-  params["VTU compression level"] = spec.vtu_compression_level;
+  params["VTU compression"] = spec.vtu_compression_level == 0
+                                  ? std::string("none")
+                                  : absl::StrCat(VtuCompressorName(spec.mesh_compression),
+                                                 " level ", spec.vtu_compression_level);
   std::string rows;
   for (auto it = params.begin(); it != params.end(); ++it) {
     absl::StrAppend(&rows, "<tr><th>", Html(it.key()), "</th><td>", Value(*it), "</td></tr>\n");

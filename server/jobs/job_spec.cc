@@ -9,6 +9,7 @@
 #include "absl/strings/ascii.h"
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_format.h"
+#include "core/mesh/mesh_io.h"
 #include "core/pipeline/levels_output.h"
 #include "core/volume/regions.h"
 #include "server/store/job_store.h"
@@ -162,6 +163,15 @@ absl::StatusOr<pipeline::JobSpec> JobSpecFromProto(const v1::JobSpec& spec, std:
     }
   }
   if (spec.has_vtu_compression_level()) p.vtu_compression_level = spec.vtu_compression_level();
+  if (!spec.mesh_compression().empty()) {
+    const std::optional<VtuCompressor> compressor = ParseVtuCompressor(spec.mesh_compression());
+    if (!compressor) {
+      return Invalid(field, "spec.mesh_compression",
+                     absl::StrCat("'", spec.mesh_compression().substr(0, 64),
+                                  "' is not a mesh compression (zlib or lzma)"));
+    }
+    p.mesh_compression = *compressor;
+  }
   if (spec.has_min_psnr()) {
     p.min_psnr = spec.min_psnr();
     // A floor alone asks for "as far as the floor allows", not for the default 50 %.
@@ -198,6 +208,7 @@ absl::StatusOr<v1::JobSpec> NormalizeJobSpec(const v1::JobSpec& spec, std::strin
   out.set_transfer_function(p->transfer_function);
   for (const auto& o : p->outputs) out.add_outputs(o);
   out.set_vtu_compression_level(p->vtu_compression_level);
+  out.set_mesh_compression(VtuCompressorName(p->mesh_compression));
   if (p->min_psnr) out.set_min_psnr(*p->min_psnr);
   out.set_levels_of(spec.levels_of());
   return out;

@@ -5,7 +5,8 @@
 //                [--record-levels-to F [--extract-levels R,...]] [--min-psnr DB] [--view NAME]
 //                [--repeat N] --json
 //   decima-bench --input PATH --job-out DIR [--regions K] [--reduction F] [--policy P]
-//                [--size W] [--view NAME]
+//                [--interfaces M] [--min-psnr DB] [--mesh-compression zlib|lzma] [--size W]
+//                [--view NAME]
 //
 // Every stage runs --repeat times on the output of the previous stage; `seconds` is the median
 // and `seconds_all` every run. The process's peak resident memory after the stage is reported
@@ -38,6 +39,7 @@
 #include "absl/strings/str_join.h"
 #include "absl/strings/str_split.h"
 #include "core/io/volume_io.h"
+#include "core/mesh/mesh_io.h"
 #include "core/mesh/tetrahedralize.h"
 #include "core/metrics/fidelity.h"
 #include "core/metrics/fidelity_json.h"
@@ -93,6 +95,7 @@ struct BenchOptions {
   std::vector<double> extract_levels;
   double min_psnr = 0;  // 0: no floor
   bool psnr_refine = true;
+  std::string mesh_compression = VtuCompressorName(VtuWriteOptions().compressor);
   int size = 512;
   std::string view = "anterior";
 };
@@ -311,6 +314,9 @@ int RunWholeJob(const BenchOptions& o, const std::string& out_dir) {
   spec.regions = o.regions;
   spec.target_reduction = o.reduction;
   spec.policy = *ParseSimplifyPolicy(o.policy);  // the flag accepts only known names
+  spec.interfaces = *ParseInterfaceMode(o.interfaces);
+  if (o.min_psnr > 0) spec.min_psnr = o.min_psnr;  // --reduction stays the maximum, as in a job
+  spec.mesh_compression = *ParseVtuCompressor(o.mesh_compression);  // the flag checks the name
   spec.image_size = o.size;
   spec.views = {o.view};
   auto result = pipeline::RunJob(spec, out_dir, nullptr, nullptr, {});
@@ -378,6 +384,10 @@ int Main(int argc, char** argv) {
                  "simplify, field policy: free (interface vertices move wherever every voxel "
                  "centre keeps its label) or voxel-faces (the voxel staircase kept as a set)")
       ->check(CLI::IsMember({"free", "voxel-faces"}))
+      ->capture_default_str();
+  app.add_option("--mesh-compression", o.mesh_compression,
+                 "--job-out: mesh.vtu's compressor, zlib or lzma (a job's mesh_compression)")
+      ->check(CLI::IsMember({"zlib", "lzma"}))
       ->capture_default_str();
   app.add_option("--refit-iterations", o.refit_iterations,
                  "simplify, field policy: least-squares refit steps (0 = keep the samples)")

@@ -234,6 +234,20 @@ TEST_F(CliE2E, DefaultArtifactsAreSmallOutputsAreChosenAndFetchOnlyPicks) {
   EXPECT_THAT(ReadFile(def / "mesh.vtu"), HasSubstr("compressor=\"vtkZLibDataCompressor\""));
   const std::string job = FirstLine(r.out);
 
+  // --mesh-compression lzma reaches the file's header (VTK's LZMA compressor); the CLI refuses
+  // a name it does not know before anything is sent.
+  const fs::path lzma = scratch_ / "lzma";
+  CliResult l = RunCli(server.address(), {"submit", volume_.string(), "--outputs", "vtu",
+                                          "--mesh-compression", "lzma", "--out", lzma.string(),
+                                          "--image-size", "64", "--reduction", "0.3"});
+  ASSERT_EQ(l.rc, 0) << l.err;
+  const std::string lzma_vtu = ReadFile(lzma / "mesh.vtu");
+  EXPECT_THAT(lzma_vtu.substr(0, lzma_vtu.find("<UnstructuredGrid>")),
+              HasSubstr("compressor=\"vtkLZMADataCompressor\""));
+  l = RunCli(server.address(), {"submit", volume_.string(), "--mesh-compression", "lz4"});
+  EXPECT_EQ(l.rc, 2) << l.err;
+  EXPECT_THAT(l.err, HasSubstr("--mesh-compression"));
+
   // A name the server does not know is refused at submit, naming the field.
   r = RunCli(server.address(), {"submit", volume_.string(), "--outputs", "obj"});
   EXPECT_EQ(r.rc, 2) << r.err;  // the CLI's own check

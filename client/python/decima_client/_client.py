@@ -49,7 +49,7 @@ _SPEC_KEYS = {"regions": "regions", "class_means": "class_means", "region_names"
               "image_size": "image_size", "transfer_function": "transfer_function",
               "outputs": "outputs", "vtu_compression_level": "vtu_compression_level",
               "vtu_level": "vtu_compression_level", "min_psnr": "min_psnr",
-              "interfaces": "interfaces"}
+              "interfaces": "interfaces", "mesh_compression": "mesh_compression"}
 # fetch(outputs=...) kinds, as the CLI's --only: kind -> file name.
 _KIND_FILES = {"vtu": "mesh.vtu", "msh": "mesh.msh", "medit": "mesh.mesh", "levels": "mesh.levels",
                "labels": "labels.nii.gz", "segmentation": "segmentation.png",
@@ -506,7 +506,8 @@ class Client:
         "air,brain,bone": one per region, in label order), target_reduction (or reduction), error_tolerance (or
         tolerance), policy ("field", "paper", "tetfusion"), weights ({"w_r": 10, ...}),
         views (["anterior", "30:20"] or "anterior,lateral"), image_size, transfer_function,
-        outputs (["vtu", "labels", ...]), vtu_compression_level (or vtu_level), min_psnr (a
+        outputs (["vtu", "labels", ...]), vtu_compression_level (or vtu_level),
+        mesh_compression ("zlib" or "lzma": mesh.vtu's compressor), min_psnr (a
         PSNR floor in dB, field policy: as far as possible while the PSNR stays >= it; the
         reduction, if given, is the maximum).
         series: the SeriesInstanceUID to use when a DICOM folder holds several.

@@ -6,6 +6,7 @@
 #include <gtest/gtest.h>
 
 #include <cmath>
+#include <cstdio>
 #include <fstream>
 #include <limits>
 #include <nlohmann/json.hpp>
@@ -13,6 +14,7 @@
 
 #include "core/io/png.h"
 #include "core/io/volume_io.h"
+#include "core/mesh/mesh_io.h"
 #include "core/simplify/levels_io.h"
 #include "core/volume/phantom.h"
 #include "tests/core/pipeline/hu_phantom.h"
@@ -380,6 +382,59 @@ TEST(RunJob, WritesOnlyTheOutputsAskedFor) {
   bad.vtu_compression_level = 10;
   EXPECT_EQ(ValidateJobSpec(bad, &field).code(), absl::StatusCode::kInvalidArgument);
   EXPECT_EQ(field, "vtu_compression_level");
+}
+
+// The Python with VTK (Debian's python3-vtk9 is /usr/bin/python3), or "" if none.
+std::string PythonWithVtk() {
+  for (const char* py : {"/usr/bin/python3", "python3"}) {
+    if (std::system((std::string(py) + " -c 'import vtk' >/dev/null 2>&1").c_str()) == 0) return py;
+  }
+  return "";
+}
+
+// Issue 32 part 5: JobSpec::mesh_compression reaches mesh.vtu's header (zlib by default, VTK's
+// LZMA when asked), metrics.json says which, the file reads back as the job's mesh, and VTK's
+// own reader opens the LZMA file (check_vtu.py stats fails on any VTK error).
+TEST(RunJob, MeshCompressionChoosesTheVtuCompressorVtkReads) {
+  const fs::path dir = decima::testing::MakeScratchDir("pipeline");
+  JobSpec spec = SmallSpec(PhantomFile(dir));
+  spec.outputs = {"vtu"};
+  auto zlib = RunJob(spec, dir / "zlib", nullptr, nullptr);
+  ASSERT_TRUE(zlib.ok()) << zlib.status();
+  spec.mesh_compression = VtuCompressor::kLzma;
+  auto lzma = RunJob(spec, dir / "lzma", nullptr, nullptr);
+  ASSERT_TRUE(lzma.ok()) << lzma.status();
+
+  const std::string zlib_text = FileText(dir / "zlib" / "mesh.vtu");
+  const std::string lzma_text = FileText(dir / "lzma" / "mesh.vtu");
+  const std::string header = lzma_text.substr(0, lzma_text.find("<UnstructuredGrid>"));
+  EXPECT_THAT(header, HasSubstr("compressor=\"vtkLZMADataCompressor\""));
+  EXPECT_THAT(zlib_text.substr(0, zlib_text.find("<UnstructuredGrid>")),
+              HasSubstr("compressor=\"vtkZLibDataCompressor\""));
+  EXPECT_EQ(nlohmann::json::parse(zlib->metrics_json)["mesh_compression"], "zlib");
+  const auto m = nlohmann::json::parse(lzma->metrics_json);
+  EXPECT_EQ(m["mesh_compression"], "lzma");
+
+  // Lossless: both files are the same mesh, the one the job measured.
+  auto a = ReadVtu(dir / "zlib" / "mesh.vtu");
+  auto b = ReadVtu(dir / "lzma" / "mesh.vtu");
+  ASSERT_TRUE(a.ok()) << a.status();
+  ASSERT_TRUE(b.ok()) << b.status();
+  EXPECT_EQ(b->tet_count(), m["simplification"]["cells_after"].get<int64_t>());
+  EXPECT_EQ(a->tets, b->tets);
+  EXPECT_EQ(a->scalars, b->scalars);
+
+  const std::string python = PythonWithVtk();
+  if (python.empty()) GTEST_SKIP() << "no python3 with the vtk module (Debian python3-vtk9)";
+  const std::string cmd = python + " '" DECIMA_MESH_TEST_DIR "/check_vtu.py' stats '" +
+                          (dir / "lzma" / "mesh.vtu").string() + "' 2>&1";
+  FILE* pipe = popen(cmd.c_str(), "r");
+  ASSERT_NE(pipe, nullptr);
+  std::string out;
+  char buf[512];
+  while (size_t n = fread(buf, 1, sizeof buf, pipe)) out.append(buf, n);
+  ASSERT_EQ(pclose(pipe), 0) << out;
+  EXPECT_THAT(out, HasSubstr("cells " + std::to_string(b->tet_count()) + "\n"));
 }
 
 // The paper's Fig. 5 for one job: a point per 10 % below the job's reduction plus the job's own,

@@ -92,6 +92,25 @@ TEST(JobSpecFromProto, InterfacesDefaultToFreeAndVoxelFacesIsKept) {
   EXPECT_EQ(n->interfaces(), "voxel-faces");
 }
 
+// Issue 32 part 5: mesh.vtu's compressor, zlib unless asked otherwise, written out by
+// normalization; unknown names are refused (bad_job_specs.h).
+TEST(JobSpecFromProto, MeshCompressionDefaultsToZlibAndLzmaIsKept) {
+  v1::JobSpec s = Minimal();
+  auto p = JobSpecFromProto(s);
+  ASSERT_TRUE(p.ok()) << p.status();
+  EXPECT_EQ(p->mesh_compression, VtuCompressor::kZlib);
+  auto n = NormalizeJobSpec(s);
+  ASSERT_TRUE(n.ok()) << n.status();
+  EXPECT_EQ(n->mesh_compression(), "zlib");
+  s.set_mesh_compression("lzma");
+  p = JobSpecFromProto(s);
+  ASSERT_TRUE(p.ok()) << p.status();
+  EXPECT_EQ(p->mesh_compression, VtuCompressor::kLzma);
+  n = NormalizeJobSpec(s);
+  ASSERT_TRUE(n.ok()) << n.status();
+  EXPECT_EQ(n->mesh_compression(), "lzma");
+}
+
 // Issue 31 item 4: a floor alone means "as far as the floor allows" (target 0, no target), a
 // floor with a reduction keeps the reduction as the maximum; both survive normalization.
 TEST(JobSpecFromProto, MinPsnrAloneDropsTheDefaultTargetAndIsStored) {
