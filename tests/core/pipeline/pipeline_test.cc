@@ -108,7 +108,6 @@ TEST(RunJob, StlOutputWritesOneClosedSurfacePerRegion) {
   }
 }
 
-
 std::string FileText(const fs::path& p) {
   std::ifstream in(p, std::ios::binary);
   return {std::istreambuf_iterator<char>(in), std::istreambuf_iterator<char>()};
@@ -224,8 +223,8 @@ TEST(RunJob, LevelsOutputIsOneRecordWhateverTheTarget) {
     std::set<std::string> names;
     for (const auto& a : result->artifacts) names.insert(a.name);
     // The labels come along: the record is only applied to the mesh of this segmentation.
-    EXPECT_EQ(names, (std::set<std::string>{"mesh.vtu", "mesh.levels", "labels.nii.gz",
-                                            "metrics.json"}));
+    EXPECT_EQ(names,
+              (std::set<std::string>{"mesh.vtu", "mesh.levels", "labels.nii.gz", "metrics.json"}));
     auto levels = ReadLevels(out / "mesh.levels");
     ASSERT_TRUE(levels.ok()) << levels.status();
     EXPECT_TRUE(levels->exhausted || levels->deepest_reduction() >= 0.7);

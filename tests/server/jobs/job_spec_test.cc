@@ -214,7 +214,8 @@ v1::Job RecordedParent() {
   for (const char* f : {"mesh.vtu", "mesh.levels", "labels.nii.gz"}) {
     p.add_artifacts()->set_file_name(f);
   }
-  p.set_metrics_json(R"({"levels":{"file":"mesh.levels","deepest_reduction":0.9,"exhausted":false}})");
+  p.set_metrics_json(
+      R"({"levels":{"file":"mesh.levels","deepest_reduction":0.9,"exhausted":false}})");
   return p;
 }
 
@@ -266,12 +267,12 @@ TEST(LevelJobSpec, RefusesWhatTheRecordCannotGiveNamingTheField) {
     const char* field;
     std::function<void(v1::JobSpec*)> set;
   };
-  for (const Case& c : std::vector<Case>{
-           {"spec.volume", [](v1::JobSpec* s) { s->set_volume("volumes/other"); }},
-           {"spec.label_map", [](v1::JobSpec* s) { s->set_label_map("volumes/lm"); }},
-           {"spec.regions", [](v1::JobSpec* s) { s->set_regions(3); }},
-           {"spec.class_means", [](v1::JobSpec* s) { s->add_class_means(2); }},
-           {"spec.policy", [](v1::JobSpec* s) { s->set_policy(v1::PAPER); }}}) {
+  for (const Case& c :
+       std::vector<Case>{{"spec.volume", [](v1::JobSpec* s) { s->set_volume("volumes/other"); }},
+                         {"spec.label_map", [](v1::JobSpec* s) { s->set_label_map("volumes/lm"); }},
+                         {"spec.regions", [](v1::JobSpec* s) { s->set_regions(3); }},
+                         {"spec.class_means", [](v1::JobSpec* s) { s->add_class_means(2); }},
+                         {"spec.policy", [](v1::JobSpec* s) { s->set_policy(v1::PAPER); }}}) {
     v1::JobSpec s = LevelOf(0.5);
     c.set(&s);
     field.clear();
