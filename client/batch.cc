@@ -1,5 +1,4 @@
 #include "client/batch.h"
-#include "client/text.h"
 
 #include <dcmtk/dcmdata/dcdeftag.h>
 #include <dcmtk/dcmdata/dcfilefo.h>
@@ -10,6 +9,8 @@
 #include <fstream>
 #include <map>
 #include <mutex>
+
+#include "client/text.h"
 
 namespace decima::client {
 namespace fs = std::filesystem;

@@ -1,5 +1,4 @@
 #include "client/client_lib.h"
-#include "client/text.h"
 
 #include <string_view>
 
@@ -19,6 +18,8 @@
 #include <fstream>
 #include <sstream>
 #include <thread>
+
+#include "client/text.h"
 
 namespace decima::client {
 namespace fs = std::filesystem;

@@ -1,15 +1,15 @@
 #include "client/dicomweb.h"
-#include "client/text.h"
 
 #include <curl/curl.h>
 
 #include <algorithm>
-#include <cctype>
 #include <chrono>
 #include <cstdio>
 #include <fstream>
 #include <memory>
 #include <string_view>
+
+#include "client/text.h"
 
 namespace decima::client {
 namespace fs = std::filesystem;

@@ -1,5 +1,4 @@
 #include "client/cli/output.h"
-#include "client/text.h"
 
 #include <google/protobuf/util/json_util.h>
 #include <sys/ioctl.h>
@@ -9,6 +8,8 @@
 #include <cstdio>
 #include <ctime>
 #include <map>
+
+#include "client/text.h"
 
 namespace decima::client {
 

@@ -1,6 +1,8 @@
 // decima.v1.Jobs: queue, cancel, retry, delete, watch.
 #include <google/protobuf/util/message_differencer.h>
 
+#include <string_view>
+
 #include "absl/strings/str_cat.h"
 #include "decima/v1/jobs.grpc.pb.h"
 #include "server/api/grpc_util.h"
@@ -82,9 +84,10 @@ absl::StatusOr<v1::Job> SubmitJob(const ServiceDeps& d, const Principal& caller,
       detail->set_field(name);
       return absl::PermissionDeniedError(may.error_message());
     }
-    // Refused now rather than failed when a worker takes it: nothing is queued.
+    // Refused now rather than failed when a worker takes it: nothing is queued. The estimate
+    // is the volume's (a label map is small beside the job).
     const int64_t cap = d.options->job_memory_cap_bytes;
-    if (value == spec->volume() && cap > 0) {
+    if (std::string_view(name) == "spec.volume" && cap > 0) {
       if (auto fits = CheckJobMemory(*vol, value, cap); !fits.ok()) {
         detail->set_field(name);
         detail->set_limit("worker_memory_mb");
