@@ -1,7 +1,6 @@
 #include "core/mesh/tetrahedralize.h"
 
 #include <algorithm>
-#include <array>
 #include <cmath>
 #include <limits>
 #include <thread>
@@ -11,37 +10,9 @@
 #include "core/common/huge_pages.h"
 #include "core/common/parallel.h"
 #include "core/common/status.h"
+#include "core/mesh/grid_tets.h"
 
 namespace decima {
-namespace {
-
-// Cube corner c sits at offset (c & 1, (c >> 1) & 1, (c >> 2) & 1).
-using TetTemplate = std::array<std::array<int, 4>, 5>;
-
-// Even cubes ((i + j + k) % 2 == 0) keep the corners with an even number of set bits as the
-// ones cut off; odd cubes the opposite, so each face diagonal agrees with the neighbour's.
-constexpr TetTemplate kEvenCube = {
-    {{1, 2, 4, 7}, {0, 1, 2, 4}, {3, 2, 1, 7}, {5, 1, 4, 7}, {6, 2, 4, 7}}};
-constexpr TetTemplate kOddCube = {
-    {{0, 3, 5, 6}, {1, 0, 3, 5}, {2, 0, 3, 6}, {4, 0, 5, 6}, {7, 3, 5, 6}}};
-
-Eigen::Vector3d CornerOffset(int c) {
-  return {double(c & 1), double((c >> 1) & 1), double((c >> 2) & 1)};
-}
-
-// Reorders every template tet so it is positively oriented in index space, then flips all of
-// them if the index-to-physical map reverses orientation.
-TetTemplate Oriented(TetTemplate t, bool flip) {
-  for (auto& tet : t) {
-    const Eigen::Vector3d p0 = CornerOffset(tet[0]);
-    const double vol = (CornerOffset(tet[1]) - p0)
-                           .dot((CornerOffset(tet[2]) - p0).cross(CornerOffset(tet[3]) - p0));
-    if ((vol < 0) != flip) std::swap(tet[2], tet[3]);
-  }
-  return t;
-}
-
-}  // namespace
 
 absl::StatusOr<TetMesh> Tetrahedralize(const Volume& image, const TetrahedralizeOptions& options,
                                        const ProgressFn& progress, const CancelToken* cancel) {
@@ -104,25 +75,22 @@ absl::StatusOr<TetMesh> Tetrahedralize(const Volume& image, const Tetrahedralize
   DECIMA_RETURN_IF_ERROR(CheckCancelled(cancel, "tetrahedralize"));
   Report(progress, {"tetra", 0.3, "vertices placed", {}});
 
-  // Cells: 5 per cube, cube c = i + (nx-1) * (j + (ny-1) * k) owns tets 5c .. 5c+4.
-  const bool flip = linear.determinant() < 0;
-  const TetTemplate even = Oriented(kEvenCube, flip), odd = Oriented(kOddCube, flip);
-  int64_t corner[8];
-  for (int c = 0; c < 8; ++c) corner[c] = (c & 1) + nx * (((c >> 1) & 1) + ny * ((c >> 2) & 1));
+  // Cells: 5 per cube, cube c = i + (nx-1) * (j + (ny-1) * k) owns tets 5c .. 5c+4 (GridTets).
+  const GridTets grid(nx, ny, nz, linear.determinant() < 0);
   const uint8_t* labels = mesh.labels.data();
   ParallelFor(nz - 1, threads, [&](int64_t k0, int64_t k1) {
     for (int64_t k = k0; k < k1; ++k) {
       for (int64_t j = 0; j + 1 < ny; ++j) {
         int64_t cube = (nx - 1) * (j + (ny - 1) * k);
         for (int64_t i = 0; i + 1 < nx; ++i, ++cube) {
-          const int64_t base = i + nx * (j + ny * k);
-          const TetTemplate& t = ((i + j + k) & 1) ? odd : even;
+          const int32_t base = static_cast<int32_t>(i + nx * (j + ny * k));
+          const int parity = static_cast<int>((i + j + k) & 1);
           int32_t* out = &mesh.tets[cube * 20];
           uint8_t* region = &mesh.cell_regions[cube * 5];
           for (int s = 0; s < 5; ++s) {
-            int32_t v[4];
-            for (int q = 0; q < 4; ++q) v[q] = static_cast<int32_t>(base + corner[t[s][q]]);
-            std::copy_n(v, 4, out + 4 * s);
+            const int32_t* offset = grid.Offsets(parity, s);
+            int32_t* v = out + 4 * s;
+            for (int q = 0; q < 4; ++q) v[q] = base + offset[q];
             region[s] = CellRegion(labels[v[0]], labels[v[1]], labels[v[2]], labels[v[3]]);
           }
         }

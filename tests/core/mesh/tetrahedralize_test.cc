@@ -9,6 +9,7 @@
 
 #include <gtest/gtest.h>
 
+#include "core/mesh/grid_tets.h"
 #include "core/volume/phantom.h"
 
 namespace decima {
@@ -147,6 +148,32 @@ TEST(Tetrahedralize, RejectsFlatVolumesAndForeignLabelGrids) {
   TetrahedralizeOptions opts;
   opts.labels = &*labels;
   EXPECT_FALSE(Tetrahedralize(v, opts).ok());
+}
+
+// GridTets is the one definition of the grid's cells; a stage that reads cells from it instead
+// of the mesh must see exactly the mesh Tetrahedralize wrote, for either orientation and for
+// dimensions of every parity.
+TEST(GridTets, GivesTheCellsTetrahedralizeWrites) {
+  for (const bool mirrored : {false, true}) {
+    for (const std::array<int64_t, 3> dims :
+         {std::array<int64_t, 3>{2, 2, 2}, {5, 4, 3}, {4, 7, 6}}) {
+      Volume v = Ramp(dims);
+      if (mirrored) v.direction.col(1) *= -1;
+      auto m = Tetrahedralize(v);
+      ASSERT_TRUE(m.ok()) << m.status();
+      const GridTets grid(dims[0], dims[1], dims[2], v.direction.determinant() < 0);
+      ASSERT_EQ(grid.tet_count(), m->tet_count());
+      ASSERT_EQ(grid.vertex_count(), m->vertex_count());
+      for (int64_t t = 0; t < m->tet_count(); ++t) {
+        int32_t cell[4];
+        grid.Cell(t, cell);
+        for (int q = 0; q < 4; ++q) {
+          ASSERT_EQ(cell[q], m->tets[4 * t + q])
+              << "tet " << t << " vertex " << q << (mirrored ? " (mirrored)" : "");
+        }
+      }
+    }
+  }
 }
 
 TEST(Tetrahedralize, CellRegionIsMajorityWithTiesToSmaller) {

@@ -1,0 +1,50 @@
+#include "core/mesh/grid_tets.h"
+
+#include <array>
+#include <utility>
+
+namespace decima {
+namespace {
+
+// Cube corner c sits at offset (c & 1, (c >> 1) & 1, (c >> 2) & 1).
+using TetTemplate = std::array<std::array<int, 4>, 5>;
+
+// Even cubes ((i + j + k) % 2 == 0) keep the corners with an even number of set bits as the
+// ones cut off; odd cubes the opposite, so each face diagonal agrees with the neighbour's.
+constexpr TetTemplate kEvenCube = {
+    {{1, 2, 4, 7}, {0, 1, 2, 4}, {3, 2, 1, 7}, {5, 1, 4, 7}, {6, 2, 4, 7}}};
+constexpr TetTemplate kOddCube = {
+    {{0, 3, 5, 6}, {1, 0, 3, 5}, {2, 0, 3, 6}, {4, 0, 5, 6}, {7, 3, 5, 6}}};
+
+int CornerAxis(int c, int axis) { return (c >> axis) & 1; }
+
+// Signed volume (times 6) of a template tet in index space.
+int IndexVolume(const std::array<int, 4>& tet) {
+  int e[3][3];
+  for (int r = 0; r < 3; ++r) {
+    for (int a = 0; a < 3; ++a) e[r][a] = CornerAxis(tet[r + 1], a) - CornerAxis(tet[0], a);
+  }
+  return e[0][0] * (e[1][1] * e[2][2] - e[1][2] * e[2][1]) -
+         e[0][1] * (e[1][0] * e[2][2] - e[1][2] * e[2][0]) +
+         e[0][2] * (e[1][0] * e[2][1] - e[1][1] * e[2][0]);
+}
+
+}  // namespace
+
+GridTets::GridTets(int64_t nx, int64_t ny, int64_t nz, bool flip)
+    : nx_(nx), ny_(ny), nz_(nz), flip_(flip) {
+  for (int parity = 0; parity < 2; ++parity) {
+    TetTemplate t = parity ? kOddCube : kEvenCube;
+    for (int s = 0; s < 5; ++s) {
+      // Positively oriented in index space, then all reversed if the map to mm reverses it.
+      if ((IndexVolume(t[s]) < 0) != flip) std::swap(t[s][2], t[s][3]);
+      for (int q = 0; q < 4; ++q) {
+        const int c = t[s][q];
+        offsets_[parity][s][q] = static_cast<int32_t>(
+            CornerAxis(c, 0) + nx * (CornerAxis(c, 1) + ny * CornerAxis(c, 2)));
+      }
+    }
+  }
+}
+
+}  // namespace decima

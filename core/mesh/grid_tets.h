@@ -1,0 +1,50 @@
+// The 5-tet decomposition of a voxel grid as a function of the cell id, so that a stage can read
+// the cells of the grid mesh without holding them (16 bytes per tet; issue 30).
+//
+// Layout (the one Tetrahedralize writes): vertex v = i + nx * (j + ny * k) is the voxel centre
+// (i, j, k); cube c = i + (nx-1) * (j + (ny-1) * k) owns tets 5c .. 5c+4. Each cube is a central
+// tet and four corner tets; the split alternates with the parity of (i + j + k) so that shared
+// face diagonals agree, and every tet is positively oriented in physical space (all of them are
+// reordered when the index-to-physical map reverses orientation).
+#pragma once
+
+#include <cstdint>
+
+namespace decima {
+
+class GridTets {
+ public:
+  GridTets() = default;
+  // nx, ny, nz >= 2; `flip`: the index-to-physical map has a negative determinant.
+  GridTets(int64_t nx, int64_t ny, int64_t nz, bool flip);
+
+  int64_t nx() const { return nx_; }
+  int64_t ny() const { return ny_; }
+  int64_t nz() const { return nz_; }
+  bool flip() const { return flip_; }
+  int64_t vertex_count() const { return nx_ * ny_ * nz_; }
+  int64_t tet_count() const { return 5 * (nx_ - 1) * (ny_ - 1) * (nz_ - 1); }
+
+  // The four vertices of tet t (0 <= t < tet_count()), in the order Tetrahedralize stores them.
+  void Cell(int64_t t, int32_t out[4]) const {
+    const int64_t cube = t / 5;
+    const int s = static_cast<int>(t - 5 * cube);
+    const int64_t i = cube % (nx_ - 1);
+    const int64_t jk = cube / (nx_ - 1);
+    const int64_t j = jk % (ny_ - 1);
+    const int64_t k = jk / (ny_ - 1);
+    const int32_t base = static_cast<int32_t>(i + nx_ * (j + ny_ * k));
+    const int32_t* offset = offsets_[(i + j + k) & 1][s];
+    for (int q = 0; q < 4; ++q) out[q] = base + offset[q];
+  }
+
+  // The vertex-id offsets from a cube's corner (i, j, k) of tet s of an even (0) or odd (1) cube.
+  const int32_t* Offsets(int parity, int s) const { return offsets_[parity][s]; }
+
+ private:
+  int64_t nx_ = 0, ny_ = 0, nz_ = 0;
+  bool flip_ = false;
+  int32_t offsets_[2][5][4] = {};
+};
+
+}  // namespace decima
