@@ -401,7 +401,9 @@ std::string ViewSection(const ReportContext& context) {
           ? absl::StrCat(", merged for display from the ", Count(extracted), " of the mesh")
           : "",
       "). Drag to turn, scroll to zoom, right-drag to move; tick a region to show or hide it. It "
-      "opens facing the patient (anterior view), head up.</p>\n"
+      "opens facing the patient (anterior view), head up. The letters on its edges give the "
+      "patient's sides as it turns, and the bar a length in mm at the depth of the point it turns "
+      "about.</p>\n"
       "<div id=\"decima-3d\" data-state=\"loading\"><p>Loading the 3D view (needs JavaScript and "
       "WebGL)...</p></div>\n<script type=\"application/json\" id=\"decima-surfaces-meta\">",
       ScriptJson(meta),

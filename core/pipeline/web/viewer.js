@@ -14,9 +14,15 @@
 //                                             zigzag LEB128 varint of its difference from the
 //                                             previous index of the region
 // When the first frame is drawn, the container gets data-state="ready" and the console one line
-// "decima-3d: ready; regions N; shown M; canvas X,Y,W,H" (the canvas's page rectangle, CSS
-// pixels), which the browser test (tests/core/pipeline/report_browser_test.cc) reads; an error
-// sets data-state="error: ..." and is logged with console.error.
+// "decima-3d: ready; regions N; shown M; canvas X,Y,W,H; right A, left B, up C, down D; scale
+// S mm" (the canvas's page rectangle in CSS pixels, the orientation letters on its edges and the
+// scale bar's length), which the browser test (tests/core/pipeline/report_test.cc) reads; an
+// error sets data-state="error: ..." and is logged with console.error.
+//
+// Orientation letters and the mm scale follow the camera as the 2D pictures' do
+// (core/render/annotate.cc): each edge gets the patient direction(s) it faces, and the bar is
+// measured at the depth of the point the view turns about (a perspective view has no single
+// scale).
 import {
   AmbientLight,
   Box3,
@@ -42,6 +48,70 @@ function fail(box, e) {
   p.className = 'warn';
   p.textContent = '3D view unavailable: ' + message;
   box.replaceChildren(p);
+}
+
+// The letters of a patient direction d (LPS): the dominant axis, then the second one if its
+// component is at least a third of |d|; the rule of OrientationLetters in core/render/annotate.cc.
+function orientationLetters(d) {
+  const pos = ['L', 'P', 'S'];
+  const neg = ['R', 'A', 'I'];
+  const c = [d.x, d.y, d.z];
+  const n = Math.hypot(c[0], c[1], c[2]);
+  if (!(n > 0)) return '';
+  const order = [0, 1, 2].sort((a, b) => Math.abs(c[b]) - Math.abs(c[a]));
+  const letter = (i) => (c[i] > 0 ? pos[i] : neg[i]);
+  return letter(order[0]) + (Math.abs(c[order[1]]) >= n / 3 ? letter(order[1]) : '');
+}
+
+// The longest round length that spans at most a quarter of the width (ScaleBarMm's steps).
+function scaleBarMm(pixelsPerMm, width) {
+  for (const mm of [500, 200, 100, 50, 20, 10, 5, 2, 1]) {
+    if (mm * pixelsPerMm <= width / 4) return mm;
+  }
+  return 1;
+}
+
+// Letters on the four edges and a scale bar, as HTML over the canvas; update() after each move.
+function overlay(stage, width, height) {
+  const text = 'position:absolute;color:#ebebeb;font:bold 14px monospace;' +
+    'text-shadow:0 0 2px #000,0 0 2px #000;pointer-events:none;';
+  const make = (css) => {
+    const e = document.createElement('span');
+    e.style.cssText = text + css;
+    stage.append(e);
+    return e;
+  };
+  const edges = {
+    right: make('right:6px;top:50%;transform:translateY(-50%);'),
+    left: make('left:6px;top:50%;transform:translateY(-50%);'),
+    up: make('top:6px;left:50%;transform:translateX(-50%);'),
+    down: make('bottom:6px;left:50%;transform:translateX(-50%);'),
+  };
+  const bar = document.createElement('div');
+  bar.style.cssText = 'position:absolute;left:10px;bottom:30px;height:3px;background:#ebebeb;' +
+    'box-shadow:0 0 2px #000;pointer-events:none;';
+  stage.append(bar);
+  const barLabel = make('left:10px;bottom:10px;');
+  barLabel.title = 'at the depth of the point the view turns about';
+  const state = { letters: {}, mm: 0 };
+  return {
+    state,
+    update(camera, target) {
+      const right = new Vector3(1, 0, 0).applyQuaternion(camera.quaternion);
+      const up = new Vector3(0, 1, 0).applyQuaternion(camera.quaternion);
+      const dirs = { right, left: right.clone().negate(), up, down: up.clone().negate() };
+      for (const [edge, d] of Object.entries(dirs)) {
+        state.letters[edge] = orientationLetters(d);
+        edges[edge].textContent = state.letters[edge];
+      }
+      const depth = camera.position.distanceTo(target);
+      const visibleMm = 2 * depth * Math.tan((camera.fov * Math.PI) / 360);
+      const pixelsPerMm = height / visibleMm;
+      state.mm = scaleBarMm(pixelsPerMm, width);
+      bar.style.width = Math.round(state.mm * pixelsPerMm) + 'px';
+      barLabel.textContent = state.mm + ' mm';
+    },
+  };
 }
 
 async function inflate(base64) {
@@ -148,9 +218,14 @@ async function main(box) {
   controls.update();
 
   const canvas = renderer.domElement;
-  box.replaceChildren(canvas, list);
+  const stage = document.createElement('div');
+  stage.style.cssText = 'position:relative;display:inline-block;max-width:100%;';
+  stage.append(canvas);
+  const marks = overlay(stage, width, height);
+  box.replaceChildren(stage, list);
   function draw() {
     renderer.render(scene, camera);
+    marks.update(camera, controls.target);
   }
   controls.addEventListener('change', draw);
   draw();
@@ -158,8 +233,10 @@ async function main(box) {
   const at = [rect.left + window.scrollX, rect.top + window.scrollY, rect.width, rect.height];
   box.dataset.state = 'ready';
   const shown = meta.regions.filter((r) => r.shown).length;
+  const l = marks.state.letters;
   console.info(`decima-3d: ready; regions ${meta.regions.length}; shown ${shown}; canvas ` +
-    at.map(Math.round).join(','));
+    at.map(Math.round).join(',') +
+    `; right ${l.right}, left ${l.left}, up ${l.up}, down ${l.down}; scale ${marks.state.mm} mm`);
 }
 
 const box = document.getElementById('decima-3d');

@@ -22,9 +22,9 @@
 #include "core/pipeline/report.h"
 #include "core/pipeline/report_viewer.h"
 #include "core/volume/phantom.h"
+#include "tests/core/pipeline/hu_phantom.h"
 #include "tests/testing/dicom_writer.h"
 #include "tests/testing/process.h"
-#include "tests/core/pipeline/hu_phantom.h"
 #include "tests/testing/test_data.h"
 
 namespace decima::pipeline {
@@ -170,7 +170,6 @@ TEST(ReportHtml, ADicomJobsReportNamesPatientStudyAndSeries) {
   EXPECT_THAT(result->metrics_json, Not(HasSubstr("NEIL")));
 }
 
-
 std::string FindChromium() {
   if (const char* env = std::getenv("DECIMA_CHROMIUM"); env != nullptr && *env != '\0') return env;
   for (const char* p :
@@ -274,6 +273,18 @@ TEST(ReportInBrowser, TheThreeDViewDrawsTheSurfacesWithoutErrors) {
   const int x = std::stoi(m[3]), y = std::stoi(m[4]), w = std::stoi(m[5]), h = std::stoi(m[6]);
   ASSERT_GT(w, 100);
   ASSERT_GT(h, 100);
+  // The view starts in front of the face, head up, as the anterior picture: the patient's left
+  // on the right edge, superior at the top; and a scale bar of a round length in mm.
+  std::smatch marks;
+  ASSERT_TRUE(std::regex_search(
+      log, marks, std::regex(R"(; right (\w+), left (\w+), up (\w+), down (\w+); scale (\d+) mm)")))
+      << "the viewer reported no orientation letters or scale:\n"
+      << log;
+  EXPECT_EQ(marks[1], "L");
+  EXPECT_EQ(marks[2], "R");
+  EXPECT_EQ(marks[3], "S");
+  EXPECT_EQ(marks[4], "I");
+  EXPECT_GT(std::stoi(marks[5]), 0);
 
   auto image = ReadPng(shot.png);
   ASSERT_TRUE(image.ok()) << image.status();
