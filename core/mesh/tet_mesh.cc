@@ -84,13 +84,14 @@ VertexTetAdjacency BuildAdjacency(const CellFn& cell, int64_t nv, int64_t nt, in
 }  // namespace
 
 void DropGridCells(TetMesh* mesh) {
-  if (!mesh->grid) return;
+  if (!mesh->grid || mesh->cells_dropped) return;
   std::vector<int32_t>().swap(mesh->tets);
   std::vector<uint8_t>().swap(mesh->cell_regions);
+  mesh->cells_dropped = true;
 }
 
 VertexTetAdjacency BuildVertexTetAdjacency(const TetMesh& mesh, int threads) {
-  if (mesh.cells_dropped()) {
+  if (mesh.cells_dropped) {
     const GridTets& grid = *mesh.grid;
     return BuildAdjacency([&](int64_t t, int32_t out[4]) { grid.Cell(t, out); },
                           mesh.vertex_count(), mesh.tet_count(), threads);

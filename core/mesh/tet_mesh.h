@@ -47,16 +47,18 @@ struct TetMesh {
   // Set by Tetrahedralize: cell t is grid->Cell(t), whether or not `tets` holds it. Whoever edits
   // the cells of such a mesh resets it.
   std::optional<GridTets> grid;
+  // Set by DropGridCells, cleared by RestoreGridCells: `tets` and `cell_regions` are freed and the
+  // cells are the grid's. A flag, not "tets is empty", so that a mesh whose cells were cleared
+  // (edited) is never read as the grid's.
+  bool cells_dropped = false;
 
   int64_t vertex_count() const { return static_cast<int64_t>(scalars.size()); }
   int64_t tet_count() const {
-    return cells_dropped() ? grid->tet_count() : static_cast<int64_t>(tets.size() / 4);
+    return cells_dropped ? grid->tet_count() : static_cast<int64_t>(tets.size() / 4);
   }
-  // The cells are the grid's and `tets` / `cell_regions` are freed (DropGridCells).
-  bool cells_dropped() const { return grid && tets.empty() && grid->tet_count() > 0; }
   // The four vertices of cell t, from `tets` or, when they are dropped, from the grid.
   void Cell(int64_t t, int32_t out[4]) const {
-    if (cells_dropped()) {
+    if (cells_dropped) {
       grid->Cell(t, out);
     } else {
       for (int k = 0; k < 4; ++k) out[k] = tets[4 * t + k];

@@ -48,8 +48,9 @@ void FillGridCells(TetMesh* mesh, int threads) {
 }  // namespace
 
 void RestoreGridCells(TetMesh* mesh, int threads) {
-  if (!mesh->cells_dropped()) return;
+  if (!mesh->cells_dropped) return;
   FillGridCells(mesh, ResolveThreads(threads));
+  mesh->cells_dropped = false;
 }
 
 absl::StatusOr<TetMesh> Tetrahedralize(const Volume& image, const TetrahedralizeOptions& options,

@@ -385,7 +385,7 @@ class FieldEngine {
   FieldEngine(const TetMesh& mesh, const SimplifyOptions& options, int threads,
               SimplifyLevels* levels)
       : in_(mesh),
-        grid_(mesh.cells_dropped() ? &*mesh.grid : nullptr),
+        grid_(mesh.cells_dropped ? &*mesh.grid : nullptr),
         options_(options),
         threads_(threads),
         levels_(levels) {}

@@ -58,7 +58,7 @@ absl::Status ValidateMesh(const TetMesh& m, int threads) {
                             m.vertex_flags.size(), " flags"));
   }
   if (m.tets.size() % 4 != 0) return bad("tets size is not a multiple of 4");
-  if (m.cells_dropped() && m.grid->vertex_count() != nv) {
+  if (m.cells_dropped && m.grid->vertex_count() != nv) {
     return bad(absl::StrCat("has its cells dropped, and its grid ", m.grid->nx(), "x", m.grid->ny(),
                             "x", m.grid->nz(), " does not have its ", nv, " vertices"));
   }
@@ -290,7 +290,7 @@ absl::StatusOr<SimplifyResult> Simplify(const TetMesh& mesh, const SimplifyOptio
   DECIMA_RETURN_IF_ERROR(ValidateSimplifyOptions(options));
   const int threads = ResolveThreads(options.threads);
   DECIMA_RETURN_IF_ERROR(ValidateMesh(mesh, threads));
-  if (mesh.cells_dropped() &&
+  if (mesh.cells_dropped &&
       (options.policy != SimplifyPolicy::kField || options.record_levels_to > 0)) {
     // The cell-collapse engine and the level record (ExtractLevel, BaseMeshDigest) read `tets`.
     return absl::InvalidArgumentError(
@@ -384,7 +384,7 @@ absl::StatusOr<SimplifyResult> SimplifyDroppingCells(TetMesh* mesh, const Simpli
                                                      const ProgressFn& progress,
                                                      const CancelToken* cancel) {
   const bool drop = mesh->grid && options.policy == SimplifyPolicy::kField &&
-                    options.record_levels_to == 0 && !mesh->cells_dropped();
+                    options.record_levels_to == 0 && !mesh->cells_dropped;
   if (drop) DropGridCells(mesh);
   absl::StatusOr<SimplifyResult> result = Simplify(*mesh, options, progress, cancel);
   if (drop) RestoreGridCells(mesh, options.threads);

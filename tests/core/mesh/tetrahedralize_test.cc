@@ -201,7 +201,7 @@ TEST(GridTets, DroppedCellsAreCountedComputedAndRestoredAsTetrahedralizeWroteThe
     const TetMesh written = *m;
     const VertexTetAdjacency from_array = BuildVertexTetAdjacency(written, 2);
     DropGridCells(&*m);
-    ASSERT_TRUE(m->cells_dropped());
+    ASSERT_TRUE(m->cells_dropped);
     EXPECT_TRUE(m->tets.empty());
     EXPECT_TRUE(m->cell_regions.empty());
     EXPECT_EQ(m->tet_count(), written.tet_count());
@@ -215,7 +215,11 @@ TEST(GridTets, DroppedCellsAreCountedComputedAndRestoredAsTetrahedralizeWroteThe
     EXPECT_EQ(from_grid.offsets, from_array.offsets);
     EXPECT_EQ(from_grid.tet_ids, from_array.tet_ids);
     RestoreGridCells(&*m, 2);
-    EXPECT_FALSE(m->cells_dropped());
+    EXPECT_FALSE(m->cells_dropped);
+    // Cells cleared by an editor (not dropped) are not read as the grid's.
+    TetMesh edited = written;
+    edited.tets.clear();
+    EXPECT_EQ(edited.tet_count(), 0);
     EXPECT_EQ(m->tets, written.tets);
     EXPECT_EQ(m->cell_regions, written.cell_regions);
   }
@@ -225,7 +229,7 @@ TEST(GridTets, DroppedCellsAreCountedComputedAndRestoredAsTetrahedralizeWroteThe
   plain.cell_regions = {0};
   DropGridCells(&plain);
   EXPECT_EQ(plain.tets.size(), 4u);
-  EXPECT_FALSE(plain.cells_dropped());
+  EXPECT_FALSE(plain.cells_dropped);
 }
 
 TEST(Tetrahedralize, CellRegionIsMajorityWithTiesToSmaller) {

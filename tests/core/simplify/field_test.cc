@@ -604,7 +604,7 @@ TEST(FieldPolicy, CellsFromTheGridGiveTheSameResultAsTheTets) {
   auto pm = MakePhantomMesh(40, 40);
   TetMesh dropped = pm.mesh;
   DropGridCells(&dropped);
-  ASSERT_TRUE(dropped.cells_dropped());
+  ASSERT_TRUE(dropped.cells_dropped);
   for (int threads : {1, 2}) {
     for (InterfaceMode mode : {InterfaceMode::kFree, InterfaceMode::kVoxelFaces}) {
       SimplifyOptions o = Field(0.7, threads);
@@ -648,7 +648,7 @@ TEST(FieldPolicy, DroppingTheCellsForTheRunGivesTheSameResultAndRestoresThem) {
   ExpectSameSimplification(*expected, *r, "dropping");
   EXPECT_EQ(pm.mesh.tets, before.tets);
   EXPECT_EQ(pm.mesh.cell_regions, before.cell_regions);
-  EXPECT_FALSE(pm.mesh.cells_dropped());
+  EXPECT_FALSE(pm.mesh.cells_dropped);
 
   SimplifyOptions levels = Field(0.6);
   levels.record_levels_to = 0.7;
