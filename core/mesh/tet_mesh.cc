@@ -15,8 +15,9 @@ namespace {
 // The counting sort of BuildVertexTetAdjacency with per-chunk counters of type Slot: int32 where
 // every slot index fits (4 * tets < 2^31, the meshes Simplify takes), halving the counters' memory
 // (134 MB on phantom:256, freshly faulted on every call).
-template <typename Slot>
-void FillAdjacency(const int32_t* cells, int64_t stride, int64_t nv, int64_t nt, int threads,
+// `cell(t, out)` writes tet t's four vertices.
+template <typename Slot, typename CellFn>
+void FillAdjacency(const CellFn& cell, int64_t nv, int64_t nt, int threads,
                    VertexTetAdjacency* adj) {
   // A counting sort in contiguous chunks of tets, one per thread: each chunk counts its own
   // entries per vertex, then fills its rows' slots after those of the chunks before it. Every
@@ -32,7 +33,9 @@ void FillAdjacency(const int32_t* cells, int64_t stride, int64_t nv, int64_t nt,
       std::fill(count, count + nv, 0);
       const auto [t0, t1] = chunk_range(c);
       for (int64_t t = t0; t < t1; ++t) {
-        for (int q = 0; q < 4; ++q) ++count[cells[stride * t + q]];
+        int32_t c4[4];
+        cell(t, c4);
+        for (int q = 0; q < 4; ++q) ++count[c4[q]];
       }
     }
   });
@@ -56,35 +59,59 @@ void FillAdjacency(const int32_t* cells, int64_t stride, int64_t nv, int64_t nt,
       Slot* next = &cursor[c * nv];
       const auto [t0, t1] = chunk_range(c);
       for (int64_t t = t0; t < t1; ++t) {
-        for (int q = 0; q < 4; ++q) adj->tet_ids[next[cells[stride * t + q]]++] = int32_t(t);
+        int32_t c4[4];
+        cell(t, c4);
+        for (int q = 0; q < 4; ++q) adj->tet_ids[next[c4[q]]++] = int32_t(t);
       }
     }
   });
 }
 
+template <typename CellFn>
+VertexTetAdjacency BuildAdjacency(const CellFn& cell, int64_t nv, int64_t nt, int threads) {
+  VertexTetAdjacency adj;
+  adj.offsets.resize(nv + 1);  // written below, by the row sums
+  adj.offsets[0] = 0;
+  adj.tet_ids.resize(4 * nt);  // every slot is written by the fill
+  if (4 * nt < std::numeric_limits<int32_t>::max()) {
+    FillAdjacency<int32_t>(cell, nv, nt, threads, &adj);
+  } else {
+    FillAdjacency<int64_t>(cell, nv, nt, threads, &adj);
+  }
+  return adj;
+}
+
 }  // namespace
 
+void DropGridCells(TetMesh* mesh) {
+  if (!mesh->grid || mesh->cells_dropped) return;
+  std::vector<int32_t>().swap(mesh->tets);
+  std::vector<uint8_t>().swap(mesh->cell_regions);
+  mesh->cells_dropped = true;
+}
+
 VertexTetAdjacency BuildVertexTetAdjacency(const TetMesh& mesh, int threads) {
+  if (mesh.cells_dropped) {
+    const GridTets& grid = *mesh.grid;
+    return BuildAdjacency([&](int64_t t, int32_t out[4]) { grid.Cell(t, out); },
+                          mesh.vertex_count(), mesh.tet_count(), threads);
+  }
   return BuildVertexTetAdjacency(mesh.tets.data(), 4, mesh.vertex_count(), mesh.tet_count(),
                                  threads);
 }
 
 VertexTetAdjacency BuildVertexTetAdjacency(const int32_t* cells, int64_t stride, int64_t nv,
                                            int64_t nt, int threads) {
-  VertexTetAdjacency adj;
-  adj.offsets.resize(nv + 1);  // written below, by the row sums
-  adj.offsets[0] = 0;
-  adj.tet_ids.resize(4 * nt);  // every slot is written by the fill
-  if (4 * nt < std::numeric_limits<int32_t>::max()) {
-    FillAdjacency<int32_t>(cells, stride, nv, nt, threads, &adj);
-  } else {
-    FillAdjacency<int64_t>(cells, stride, nv, nt, threads, &adj);
-  }
-  return adj;
+  return BuildAdjacency(
+      [&](int64_t t, int32_t out[4]) {
+        for (int q = 0; q < 4; ++q) out[q] = cells[stride * t + q];
+      },
+      nv, nt, threads);
 }
 
 double TetVolume(const TetMesh& mesh, int64_t t) {
-  const int32_t* v = &mesh.tets[4 * t];
+  int32_t v[4];
+  mesh.Cell(t, v);
   const Eigen::Vector3d p0 = mesh.Position(v[0]);
   return (mesh.Position(v[1]) - p0)
              .dot((mesh.Position(v[2]) - p0).cross(mesh.Position(v[3]) - p0)) /

@@ -7,17 +7,23 @@
 //  - tets.size() == 4 * tet_count(), every index in [0, vertex_count()), the four distinct;
 //  - every tet is positively oriented: dot(p1 - p0, cross(p2 - p0, p3 - p0)) > 0;
 //  - cell_regions has tet_count() entries.
+// A mesh made by Tetrahedralize also records its grid (`grid`): its cells are GridTets's, so a
+// stage may free tets and cell_regions while it does not need them (DropGridCells) and get them
+// back (RestoreGridCells, tetrahedralize.h). With the cells dropped, tet_count() still counts them
+// and Cell(t) computes them; code that reads `tets` directly must have them restored.
 // The mesh is conforming: two tets share a whole face or nothing of that face.
 #pragma once
 
 #include <array>
 #include <cstdint>
+#include <optional>
 #include <vector>
 
 #include <Eigen/Core>
 #include <Eigen/Geometry>
 
 #include "core/common/huge_pages.h"
+#include "core/mesh/grid_tets.h"
 
 namespace decima {
 
@@ -38,13 +44,34 @@ struct TetMesh {
   std::vector<uint8_t> vertex_flags;      // VertexFlag bits
   std::vector<int32_t> tets;              // 4 vertex indices per cell, positively oriented
   std::vector<uint8_t> cell_regions;      // region per cell (see CellRegion in tetrahedralize.h)
+  // Set by Tetrahedralize: cell t is grid->Cell(t), whether or not `tets` holds it. Whoever edits
+  // the cells of such a mesh resets it.
+  std::optional<GridTets> grid;
+  // Set by DropGridCells, cleared by RestoreGridCells: `tets` and `cell_regions` are freed and the
+  // cells are the grid's. A flag, not "tets is empty", so that a mesh whose cells were cleared
+  // (edited) is never read as the grid's.
+  bool cells_dropped = false;
 
   int64_t vertex_count() const { return static_cast<int64_t>(scalars.size()); }
-  int64_t tet_count() const { return static_cast<int64_t>(tets.size() / 4); }
+  int64_t tet_count() const {
+    return cells_dropped ? grid->tet_count() : static_cast<int64_t>(tets.size() / 4);
+  }
+  // The four vertices of cell t, from `tets` or, when they are dropped, from the grid.
+  void Cell(int64_t t, int32_t out[4]) const {
+    if (cells_dropped) {
+      grid->Cell(t, out);
+    } else {
+      for (int k = 0; k < 4; ++k) out[k] = tets[4 * t + k];
+    }
+  }
   Eigen::Vector3d Position(int64_t v) const {
     return {positions[3 * v], positions[3 * v + 1], positions[3 * v + 2]};
   }
 };
+
+// Frees the cells of a mesh that records its grid (mesh.grid set): tets and cell_regions, 17 bytes
+// per cell. Nothing happens to a mesh without a grid.
+void DropGridCells(TetMesh* mesh);
 
 // Vertex -> incident tets in compressed sparse rows: tets of vertex v are
 // tet_ids[offsets[v] .. offsets[v + 1]), in increasing tet id. The arrays are allocated without
@@ -57,6 +84,7 @@ struct VertexTetAdjacency {
 
 // Builds the CSR adjacency in two counting passes (no per-vertex allocation), each row sorted by
 // tet id; on up to `threads` threads (large meshes), with the same result on any count. O(V + T).
+// Reads the cells through TetMesh::Cell, so also with the cells dropped.
 VertexTetAdjacency BuildVertexTetAdjacency(const TetMesh& mesh, int threads = 1);
 // The same over any cell array whose tet t has its 4 vertices at cells[stride * t .. + 4): the
 // renderer's 8-int cells, so it can free the mesh's own tets before building it.

@@ -13,6 +13,45 @@
 #include "core/mesh/grid_tets.h"
 
 namespace decima {
+namespace {
+
+// Writes mesh->tets and mesh->cell_regions from mesh->grid and the vertex labels, a slice of
+// cubes per task.
+void FillGridCells(TetMesh* mesh, int threads) {
+  const GridTets& grid = *mesh->grid;
+  const int64_t nx = grid.nx(), ny = grid.ny(), nz = grid.nz();
+  const int64_t cubes = (nx - 1) * (ny - 1) * (nz - 1);
+  AssignOnHugePages(&mesh->tets, cubes * 5 * 4, 0);
+  mesh->cell_regions.resize(cubes * 5);
+  const uint8_t* labels = mesh->labels.data();
+  ParallelFor(nz - 1, threads, [&](int64_t k0, int64_t k1) {
+    for (int64_t k = k0; k < k1; ++k) {
+      for (int64_t j = 0; j + 1 < ny; ++j) {
+        int64_t cube = (nx - 1) * (j + (ny - 1) * k);
+        for (int64_t i = 0; i + 1 < nx; ++i, ++cube) {
+          const int32_t base = static_cast<int32_t>(i + nx * (j + ny * k));
+          const int parity = static_cast<int>((i + j + k) & 1);
+          int32_t* out = &mesh->tets[cube * 20];
+          uint8_t* region = &mesh->cell_regions[cube * 5];
+          for (int s = 0; s < 5; ++s) {
+            const int32_t* offset = grid.Offsets(parity, s);
+            int32_t* v = out + 4 * s;
+            for (int q = 0; q < 4; ++q) v[q] = base + offset[q];
+            region[s] = CellRegion(labels[v[0]], labels[v[1]], labels[v[2]], labels[v[3]]);
+          }
+        }
+      }
+    }
+  });
+}
+
+}  // namespace
+
+void RestoreGridCells(TetMesh* mesh, int threads) {
+  if (!mesh->cells_dropped) return;
+  FillGridCells(mesh, ResolveThreads(threads));
+  mesh->cells_dropped = false;
+}
 
 absl::StatusOr<TetMesh> Tetrahedralize(const Volume& image, const TetrahedralizeOptions& options,
                                        const ProgressFn& progress, const CancelToken* cancel) {
@@ -44,8 +83,6 @@ absl::StatusOr<TetMesh> Tetrahedralize(const Volume& image, const Tetrahedralize
   }
   mesh.interface_distance.resize(nv);
   mesh.vertex_flags.resize(nv);
-  AssignOnHugePages(&mesh.tets, cubes * 5 * 4, 0);
-  mesh.cell_regions.resize(cubes * 5);
   Report(progress, {"tetra", 0.0, "allocated", {}});
 
   // Vertices: one per voxel centre.
@@ -76,27 +113,8 @@ absl::StatusOr<TetMesh> Tetrahedralize(const Volume& image, const Tetrahedralize
   Report(progress, {"tetra", 0.3, "vertices placed", {}});
 
   // Cells: 5 per cube, cube c = i + (nx-1) * (j + (ny-1) * k) owns tets 5c .. 5c+4 (GridTets).
-  const GridTets grid(nx, ny, nz, linear.determinant() < 0);
-  const uint8_t* labels = mesh.labels.data();
-  ParallelFor(nz - 1, threads, [&](int64_t k0, int64_t k1) {
-    for (int64_t k = k0; k < k1; ++k) {
-      for (int64_t j = 0; j + 1 < ny; ++j) {
-        int64_t cube = (nx - 1) * (j + (ny - 1) * k);
-        for (int64_t i = 0; i + 1 < nx; ++i, ++cube) {
-          const int32_t base = static_cast<int32_t>(i + nx * (j + ny * k));
-          const int parity = static_cast<int>((i + j + k) & 1);
-          int32_t* out = &mesh.tets[cube * 20];
-          uint8_t* region = &mesh.cell_regions[cube * 5];
-          for (int s = 0; s < 5; ++s) {
-            const int32_t* offset = grid.Offsets(parity, s);
-            int32_t* v = out + 4 * s;
-            for (int q = 0; q < 4; ++q) v[q] = base + offset[q];
-            region[s] = CellRegion(labels[v[0]], labels[v[1]], labels[v[2]], labels[v[3]]);
-          }
-        }
-      }
-    }
-  });
+  mesh.grid = GridTets(nx, ny, nz, linear.determinant() < 0);
+  FillGridCells(&mesh, threads);
   DECIMA_RETURN_IF_ERROR(CheckCancelled(cancel, "tetrahedralize"));
   Report(progress, {"tetra",
                     1.0,

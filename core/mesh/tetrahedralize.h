@@ -36,6 +36,11 @@ absl::StatusOr<TetMesh> Tetrahedralize(const Volume& image,
                                        const ProgressFn& progress = nullptr,
                                        const CancelToken* cancel = nullptr);
 
+// Writes back the cells DropGridCells freed (tets and cell_regions, from mesh->grid and the
+// labels), the same as Tetrahedralize wrote; on `threads` threads (0: all). Nothing happens
+// unless the cells are dropped.
+void RestoreGridCells(TetMesh* mesh, int threads = 0);
+
 // Region of a cell from its vertex labels: the most frequent label, ties to the smaller one.
 // Inline: the simplifier's error terms ask for it for every scored cell.
 inline uint8_t CellRegion(uint8_t a, uint8_t b, uint8_t c, uint8_t d) {

@@ -312,8 +312,10 @@ Json PsnrFloorJson(const PsnrFloorSearch& s) {
 
 // simplify: feature-preserving cell collapse down to the target.
 // With a PSNR floor, the levels of the record searched for the deepest one that keeps it.
+// Memory: this stage is the job's peak, so a plain field run frees the original's cells while it
+// runs and writes them back after it (SimplifyDroppingCells); later stages see the same mesh.
 absl::StatusOr<SimplifyResult> SimplifyStage(const JobSpec& spec, const Volume& image,
-                                             const TetMesh& original,
+                                             TetMesh& original,
                                              const CheckpointOptions& checkpoints,
                                              const std::string& key, JobRun& run) {
   DECIMA_ASSIGN_OR_RETURN(Stage stage, run.Stage("simplify"));
@@ -340,8 +342,8 @@ absl::StatusOr<SimplifyResult> SimplifyStage(const JobSpec& spec, const Volume& 
                                                   /*refine=*/!Wants(spec, "levels"), &*search,
                                                   stage.Forward(), stage.cancel()));
     } else {
-      DECIMA_ASSIGN_OR_RETURN(simplified,
-                              Simplify(original, options, stage.Forward(), stage.cancel()));
+      DECIMA_ASSIGN_OR_RETURN(
+          simplified, SimplifyDroppingCells(&original, options, stage.Forward(), stage.cancel()));
     }
     SaveCheckpoint(checkpoints, stage, key, SerializeSimplifyResult(simplified));
   }

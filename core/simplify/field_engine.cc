@@ -384,7 +384,11 @@ class FieldEngine {
  public:
   FieldEngine(const TetMesh& mesh, const SimplifyOptions& options, int threads,
               SimplifyLevels* levels)
-      : in_(mesh), options_(options), threads_(threads), levels_(levels) {}
+      : in_(mesh),
+        grid_(mesh.cells_dropped ? &*mesh.grid : nullptr),
+        options_(options),
+        threads_(threads),
+        levels_(levels) {}
 
   absl::Status Run(int64_t target, double tolerance, const ProgressFn& progress,
                    const CancelToken* cancel, SimplifyResult* result);
@@ -529,13 +533,25 @@ class FieldEngine {
     return (b0 * (d1 * e2 - d2 * e1) - b1 * (d0 * e2 - d2 * e0) + b2 * (d0 * e1 - d1 * e0)) / 6;
   }
 
+  // Input cell c: loaded from the mesh's tets, or computed from its grid when they are dropped.
+  void InputCell(int64_t c, int32_t t[4]) const {
+    if (grid_ != nullptr) {
+      grid_->Cell(c, t);
+    } else {
+      const int32_t* in = &in_.tets[4 * c];
+      for (int k = 0; k < 4; ++k) t[k] = in[k];
+    }
+  }
   // Cell c as it is now: its input vertices, each replaced by the live vertex it became.
   void CellAt(int32_t c, int32_t t[4]) const {
-    const int32_t* in = &in_.tets[4 * int64_t(c)];
+    int32_t in[4];
+    InputCell(c, in);
     for (int k = 0; k < 4; ++k) t[k] = root_[in[k]];
   }
 
   const TetMesh& in_;
+  // The input's grid when its cells are dropped (TetMesh::cells_dropped), else null.
+  const GridTets* const grid_;
   const SimplifyOptions& options_;
   const int threads_;
   SimplifyLevels* const levels_;  // null: no level record
@@ -630,16 +646,14 @@ void FieldEngine::GatherStar(int32_t v, Star* star) {
   // adjacency rows), their input vertices (asked for all at once), then what those vertices
   // became.
   star->clear();
+  // With the cells dropped, a cell is computed from its id (no load to wait on).
   ForEachCell(v, [&](int32_t c) {
     star->emplace_back().id = c;
-    __builtin_prefetch(&in_.tets[4 * int64_t(c)]);
+    if (grid_ == nullptr) __builtin_prefetch(&in_.tets[4 * int64_t(c)]);
   });
   for (StarCell& sc : *star) {
-    const int32_t* in = &in_.tets[4 * int64_t(sc.id)];
-    for (int k = 0; k < 4; ++k) {
-      sc.v[k] = in[k];
-      __builtin_prefetch(&root_[in[k]]);
-    }
+    InputCell(sc.id, sc.v);
+    for (int k = 0; k < 4; ++k) __builtin_prefetch(&root_[sc.v[k]]);
   }
   for (StarCell& sc : *star) {
     for (int k = 0; k < 4; ++k) sc.v[k] = root_[sc.v[k]];
@@ -659,7 +673,8 @@ void FieldEngine::Setup() {
   // (In parallel: a flag is set, never cleared, so the order of the writes does not matter.)
   ParallelFor(nt_, threads_, 65536, [&](int64_t t0, int64_t t1) {
     for (int64_t t = t0; t < t1; ++t) {
-      const int32_t* c = &in_.tets[4 * t];
+      int32_t c[4];
+      InputCell(t, c);
       if (!HoldsTwoLabels(in_.labels.data(), c)) continue;
       for (int k = 0; k < 4; ++k) {
         std::atomic_ref<uint8_t>(flags_[c[k]]).fetch_or(kFeatureVertex, std::memory_order_relaxed);
@@ -690,8 +705,11 @@ void FieldEngine::Setup() {
   });
 
   // The mesh's volume in fixed blocks of cells: the same sum on any thread count.
-  const double total_volume =
-      BlockSum(nt_, threads_, 65536, [&](int64_t t) { return SignedVolume(&in_.tets[4 * t]); });
+  const double total_volume = BlockSum(nt_, threads_, 65536, [&](int64_t t) {
+    int32_t c[4];
+    InputCell(t, c);
+    return SignedVolume(c);
+  });
   if (options_.voxel_size_mm > 0) {
     voxel_volume_ = std::pow(options_.voxel_size_mm, 3);
   } else {
@@ -723,7 +741,8 @@ void FieldEngine::Setup() {
   // The gradient of cell c's linear interpolant, in its own frame (edge vectors from its first
   // vertex: differences of float positions, exact in double); NaN if the cell is not positive.
   auto gradient = [&](int64_t c) {
-    const int32_t* t = &in_.tets[4 * c];
+    int32_t t[4];
+    InputCell(c, t);
     auto at = [&](int k) {
       return Eigen::Vector3d(pos_[3 * t[k]], pos_[3 * t[k] + 1], pos_[3 * t[k] + 2]);
     };
@@ -776,7 +795,9 @@ void FieldEngine::Setup() {
           const int64_t c = cell_ids_[i];
           const Eigen::Vector3d g = windowed ? window[c - lo] : gradient(c);
           if (std::isnan(g.x())) continue;
-          const int32_t t0 = in_.tets[4 * c];
+          int32_t cell[4];
+          InputCell(c, cell);
+          const int32_t t0 = cell[0];
           const Eigen::Vector3d p0 =
               Eigen::Vector3d(pos_[3 * t0], pos_[3 * t0 + 1], pos_[3 * t0 + 2]) - origin;
           const double a[5] = {g.x(), g.y(), g.z(), -1.0,

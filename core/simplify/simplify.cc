@@ -11,6 +11,7 @@
 #include "absl/strings/str_format.h"
 #include "core/common/parallel.h"
 #include "core/common/status.h"
+#include "core/mesh/tetrahedralize.h"
 #include "core/simplify/collapse_engine.h"
 #include "core/simplify/field_engine.h"
 #include "core/simplify/field_refit.h"
@@ -27,7 +28,8 @@ using simplify_internal::Outcome;
 // vertices, positive volume).
 std::string CellProblem(const TetMesh& m, int64_t t) {
   const int64_t nv = m.vertex_count();
-  const int32_t* v = &m.tets[4 * t];
+  int32_t v[4];
+  m.Cell(t, v);
   for (int k = 0; k < 4; ++k) {
     if (v[k] < 0 || v[k] >= nv) {
       return absl::StrCat("cell ", t, " has vertex index ", v[k], " outside [0, ", nv, ")");
@@ -56,7 +58,11 @@ absl::Status ValidateMesh(const TetMesh& m, int threads) {
                             m.vertex_flags.size(), " flags"));
   }
   if (m.tets.size() % 4 != 0) return bad("tets size is not a multiple of 4");
-  if (m.tets.size() > size_t(std::numeric_limits<int32_t>::max())) {
+  if (m.cells_dropped && m.grid->vertex_count() != nv) {
+    return bad(absl::StrCat("has its cells dropped, and its grid ", m.grid->nx(), "x", m.grid->ny(),
+                            "x", m.grid->nz(), " does not have its ", nv, " vertices"));
+  }
+  if (4 * nt > int64_t(std::numeric_limits<int32_t>::max())) {
     return bad(absl::StrCat("has ", nt, " cells; at most ", std::numeric_limits<int32_t>::max() / 4,
                             " are supported (4 * cells must fit int32 indexes)"));
   }
@@ -284,6 +290,15 @@ absl::StatusOr<SimplifyResult> Simplify(const TetMesh& mesh, const SimplifyOptio
   DECIMA_RETURN_IF_ERROR(ValidateSimplifyOptions(options));
   const int threads = ResolveThreads(options.threads);
   DECIMA_RETURN_IF_ERROR(ValidateMesh(mesh, threads));
+  if (mesh.cells_dropped &&
+      (options.policy != SimplifyPolicy::kField || options.record_levels_to > 0)) {
+    // The cell-collapse engine and the level record (ExtractLevel, BaseMeshDigest) read `tets`.
+    return absl::InvalidArgumentError(
+        absl::StrCat("simplify: the input mesh's cells are dropped (DropGridCells); the ",
+                     SimplifyPolicyName(options.policy), " policy",
+                     options.record_levels_to > 0 ? " with record_levels_to" : "",
+                     " needs them restored (RestoreGridCells)"));
+  }
   DECIMA_RETURN_IF_ERROR(CheckCancelled(cancel, "simplify"));
 
   SimplifyResult result;
@@ -362,6 +377,17 @@ absl::StatusOr<SimplifyResult> Simplify(const TetMesh& mesh, const SimplifyOptio
     case StopReason::kPsnrFloor:
       break;  // never set by Simplify (see the enum); the search that sets it writes the message
   }
+  return result;
+}
+
+absl::StatusOr<SimplifyResult> SimplifyDroppingCells(TetMesh* mesh, const SimplifyOptions& options,
+                                                     const ProgressFn& progress,
+                                                     const CancelToken* cancel) {
+  const bool drop = mesh->grid && options.policy == SimplifyPolicy::kField &&
+                    options.record_levels_to == 0 && !mesh->cells_dropped;
+  if (drop) DropGridCells(mesh);
+  absl::StatusOr<SimplifyResult> result = Simplify(*mesh, options, progress, cancel);
+  if (drop) RestoreGridCells(mesh, options.threads);
   return result;
 }
 

@@ -176,6 +176,62 @@ TEST(GridTets, GivesTheCellsTetrahedralizeWrites) {
   }
 }
 
+// A mesh records its grid, so a stage can free its cells and get them back: dropped, it still
+// counts them and gives each through Cell; restored, tets and cell_regions are what
+// Tetrahedralize wrote (labelled phantom, either orientation); the adjacency built from the grid is
+// the one built from the array.
+TEST(GridTets, DroppedCellsAreCountedComputedAndRestoredAsTetrahedralizeWroteThem) {
+  for (const bool mirrored : {false, true}) {
+    HeadPhantomOptions o;
+    o.dims = {9, 8, 7};
+    o.region_means = {0, 100, 50};
+    auto p = MakeHeadPhantom(o);
+    ASSERT_TRUE(p.ok());
+    if (mirrored) {
+      p->image.direction.col(2) *= -1;
+      p->labels.direction = p->image.direction;
+    }
+    TetrahedralizeOptions opts;
+    opts.labels = &p->labels;
+    opts.threads = 2;
+    auto m = Tetrahedralize(p->image, opts);
+    ASSERT_TRUE(m.ok()) << m.status();
+    ASSERT_TRUE(m->grid.has_value());
+    EXPECT_EQ(m->grid->flip(), mirrored);
+    const TetMesh written = *m;
+    const VertexTetAdjacency from_array = BuildVertexTetAdjacency(written, 2);
+    DropGridCells(&*m);
+    ASSERT_TRUE(m->cells_dropped);
+    EXPECT_TRUE(m->tets.empty());
+    EXPECT_TRUE(m->cell_regions.empty());
+    EXPECT_EQ(m->tet_count(), written.tet_count());
+    for (int64_t t = 0; t < m->tet_count(); ++t) {
+      int32_t cell[4];
+      m->Cell(t, cell);
+      for (int q = 0; q < 4; ++q) ASSERT_EQ(cell[q], written.tets[4 * t + q]) << "tet " << t;
+      ASSERT_EQ(TetVolume(*m, t), TetVolume(written, t)) << "tet " << t;
+    }
+    const VertexTetAdjacency from_grid = BuildVertexTetAdjacency(*m, 2);
+    EXPECT_EQ(from_grid.offsets, from_array.offsets);
+    EXPECT_EQ(from_grid.tet_ids, from_array.tet_ids);
+    RestoreGridCells(&*m, 2);
+    EXPECT_FALSE(m->cells_dropped);
+    // Cells cleared by an editor (not dropped) are not read as the grid's.
+    TetMesh edited = written;
+    edited.tets.clear();
+    EXPECT_EQ(edited.tet_count(), 0);
+    EXPECT_EQ(m->tets, written.tets);
+    EXPECT_EQ(m->cell_regions, written.cell_regions);
+  }
+  // A mesh without a grid (read from a file, a simplified one) keeps its cells.
+  TetMesh plain;
+  plain.tets = {0, 1, 2, 3};
+  plain.cell_regions = {0};
+  DropGridCells(&plain);
+  EXPECT_EQ(plain.tets.size(), 4u);
+  EXPECT_FALSE(plain.cells_dropped);
+}
+
 TEST(Tetrahedralize, CellRegionIsMajorityWithTiesToSmaller) {
   EXPECT_EQ(CellRegion(2, 2, 1, 0), 2);
   EXPECT_EQ(CellRegion(2, 1, 2, 1), 1);

@@ -5,10 +5,12 @@
 #include <gmock/gmock.h>
 #include <gtest/gtest.h>
 
+#include <algorithm>
 #include <cmath>
 #include <cstdio>
 #include <fstream>
 #include <limits>
+#include <map>
 #include <nlohmann/json.hpp>
 #include <set>
 
@@ -381,6 +383,40 @@ TEST(RunJob, WritesOnlyTheOutputsAskedFor) {
   bad.vtu_compression_level = 10;
   EXPECT_EQ(ValidateJobSpec(bad, &field).code(), absl::StatusCode::kInvalidArgument);
   EXPECT_EQ(field, "vtu_compression_level");
+}
+
+// The field policy's simplify stage frees the original's cells while it runs (issue 30,
+// SimplifyDroppingCells) and writes them back: the render stage after it draws the same original
+// as a job whose policy keeps them (paper), pixel for pixel (the render, the picture's top
+// image_size rows; the caption below it names the policy and the reduction).
+TEST(RunJob, StagesAfterSimplifySeeTheOriginalCellsTheFieldRunDropped) {
+  const fs::path dir = decima::testing::MakeScratchDir("pipeline");
+  const fs::path input = PhantomFile(dir);
+  std::map<std::string, Image> original_png;
+  for (const char* policy : {"field", "paper"}) {
+    JobSpec spec = SmallSpec(input);
+    spec.policy = *ParseSimplifyPolicy(policy);
+    spec.target_reduction = 0.3;
+    auto result = RunJob(spec, dir / policy, nullptr, nullptr);
+    ASSERT_TRUE(result.ok()) << policy << ": " << result.status();
+    auto png = ReadPng(dir / policy / "original.png");
+    ASSERT_TRUE(png.ok()) << policy << ": " << png.status();
+    original_png[policy] = *std::move(png);
+  }
+  const Image& field = original_png["field"];
+  const Image& paper = original_png["paper"];
+  ASSERT_EQ(field.width, paper.width);
+  ASSERT_EQ(field.channels, paper.channels);
+  ASSERT_GE(field.height, SmallSpec(input).image_size);
+  const size_t render_bytes = size_t(field.width) * field.channels * SmallSpec(input).image_size;
+  const std::vector<uint8_t> field_render(field.pixels.begin(),
+                                          field.pixels.begin() + render_bytes);
+  const std::vector<uint8_t> paper_render(paper.pixels.begin(),
+                                          paper.pixels.begin() + render_bytes);
+  EXPECT_GT(
+      std::count_if(field_render.begin(), field_render.end(), [](uint8_t c) { return c > 0; }),
+      100);
+  EXPECT_EQ(field_render, paper_render);
 }
 
 // The Python with VTK (Debian's python3-vtk9 is /usr/bin/python3), or "" if none.

@@ -585,6 +585,93 @@ TEST(FieldPolicy, AMeshOfCornersStaysAsItIsAndSaysWhy) {
   EXPECT_NE(r->stop_message.find("target not reached"), std::string::npos) << r->stop_message;
 }
 
+// The engine on a mesh whose cells are dropped (computed from its grid) against the same mesh
+// with its tets: the same collapses, mesh and vertex map, on 1 and 2 threads (the parallel rounds,
+// whose frontier pass also reads cells), under both interface modes, and with the level record.
+void ExpectSameSimplification(const SimplifyResult& a, const SimplifyResult& b,
+                              const std::string& what) {
+  EXPECT_EQ(a.collapses, b.collapses) << what;
+  EXPECT_EQ(a.output_cells, b.output_cells) << what;
+  EXPECT_EQ(a.mesh.tets, b.mesh.tets) << what;
+  EXPECT_EQ(a.mesh.cell_regions, b.mesh.cell_regions) << what;
+  EXPECT_EQ(a.mesh.positions, b.mesh.positions) << what;
+  EXPECT_EQ(a.mesh.scalars, b.mesh.scalars) << what;
+  EXPECT_EQ(a.vertex_map, b.vertex_map) << what;
+  EXPECT_EQ(a.max_error, b.max_error) << what;
+}
+
+TEST(FieldPolicy, CellsFromTheGridGiveTheSameResultAsTheTets) {
+  auto pm = MakePhantomMesh(40, 40);
+  TetMesh dropped = pm.mesh;
+  DropGridCells(&dropped);
+  ASSERT_TRUE(dropped.cells_dropped);
+  for (int threads : {1, 2}) {
+    for (InterfaceMode mode : {InterfaceMode::kFree, InterfaceMode::kVoxelFaces}) {
+      SimplifyOptions o = Field(0.7, threads);
+      o.interfaces = mode;
+      const std::string what = std::to_string(threads) + " threads, " + InterfaceModeName(mode);
+      auto a = Simplify(pm.mesh, o);
+      auto b = Simplify(dropped, o);
+      ASSERT_TRUE(a.ok() && b.ok()) << what;
+      EXPECT_TRUE(a->reached_target) << what;
+      ExpectSameSimplification(*a, *b, what);
+    }
+    // The level record (Simplify keeps the cells for it: ExtractLevel reads them), so the engine
+    // is driven directly.
+    SimplifyOptions o = FieldWithoutRefit(0.5, threads);
+    SimplifyLevels la, lb;
+    SimplifyResult a, b;
+    ASSERT_TRUE(simplify_internal::RunFieldSimplify(pm.mesh, o, threads, pm.mesh.tet_count() / 2, 0,
+                                                    nullptr, nullptr, &a, &la)
+                    .ok());
+    ASSERT_TRUE(simplify_internal::RunFieldSimplify(dropped, o, threads, pm.mesh.tet_count() / 2, 0,
+                                                    nullptr, nullptr, &b, &lb)
+                    .ok());
+    const std::string what = std::to_string(threads) + " threads, levels";
+    ExpectSameSimplification(a, b, what);
+    EXPECT_GT(la.collapses(), 0);
+    EXPECT_EQ(la.removed_vertex, lb.removed_vertex) << what;
+    EXPECT_EQ(la.survivor, lb.survivor) << what;
+    EXPECT_EQ(la.cells_deleted, lb.cells_deleted) << what;
+  }
+}
+
+// SimplifyDroppingCells (what the job's simplify stage runs) gives Simplify's result and leaves
+// the mesh as it was; where the cells are needed (the other policies, the level record) it keeps
+// them, and Simplify itself refuses a mesh without them there, saying what to do.
+TEST(FieldPolicy, DroppingTheCellsForTheRunGivesTheSameResultAndRestoresThem) {
+  auto pm = MakePhantomMesh(24, 40);
+  const TetMesh before = pm.mesh;
+  auto expected = Simplify(before, Field(0.6));
+  auto r = SimplifyDroppingCells(&pm.mesh, Field(0.6));
+  ASSERT_TRUE(expected.ok() && r.ok());
+  ExpectSameSimplification(*expected, *r, "dropping");
+  EXPECT_EQ(pm.mesh.tets, before.tets);
+  EXPECT_EQ(pm.mesh.cell_regions, before.cell_regions);
+  EXPECT_FALSE(pm.mesh.cells_dropped);
+
+  SimplifyOptions levels = Field(0.6);
+  levels.record_levels_to = 0.7;
+  auto with_levels = SimplifyDroppingCells(&pm.mesh, levels);
+  ASSERT_TRUE(with_levels.ok()) << with_levels.status();
+  EXPECT_TRUE(with_levels->levels.has_value());
+  EXPECT_EQ(pm.mesh.tets, before.tets);
+
+  TetMesh dropped = before;
+  DropGridCells(&dropped);
+  SimplifyOptions paper = Field(0.3);
+  paper.policy = SimplifyPolicy::kPaper;
+  for (const SimplifyOptions& o : {paper, levels}) {
+    auto refused = Simplify(dropped, o);
+    ASSERT_FALSE(refused.ok());
+    EXPECT_EQ(refused.status().code(), absl::StatusCode::kInvalidArgument);
+    EXPECT_NE(refused.status().message().find("RestoreGridCells"), std::string::npos)
+        << refused.status();
+  }
+  auto paper_run = SimplifyDroppingCells(&pm.mesh, paper);
+  EXPECT_TRUE(paper_run.ok()) << paper_run.status();
+}
+
 TEST(SimplifyPolicyNames, EveryNameRoundTripsAndNothingElseParses) {
   for (SimplifyPolicy p :
        {SimplifyPolicy::kField, SimplifyPolicy::kPaper, SimplifyPolicy::kTetFusion}) {

@@ -2,6 +2,8 @@
 // (server/jobs/job_memory.h).
 #include "server/jobs/job_memory.h"
 
+#include <algorithm>
+
 #include "gmock/gmock.h"
 #include "gtest/gtest.h"
 
@@ -30,6 +32,21 @@ TEST(JobMemoryCheck, AVolumeUnderTheCapPassesAndOneOverItIsRefusedWithSizeEstima
   EXPECT_THAT(refused.message(), HasSubstr("(decima-server --worker-memory-mb)"));
   // Exactly at the estimate fits.
   EXPECT_TRUE(CheckJobMemory(big, "volumes/big", EstimateJobMemoryBytes(big)).ok());
+}
+
+// The 511x511x225 CT of issue 30 (291 M tets): with the original's cells dropped while simplify
+// runs, its peak stage is render (144 MiB + 67 B per tet, 18.3 GiB) and simplify is below it
+// (60 MiB + 58 B per tet, 15.8 GiB; 19.8 GiB before), so it fits the 18.8 GiB default limit of a
+// 24 GB machine.
+TEST(JobMemoryCheck, The511HeadCtIsEstimatedAtItsRenderStageUnderA24GBMachinesLimit) {
+  const v1::Volume ct = WithDims({511, 511, 225});
+  const int64_t tets = int64_t{5} * 510 * 510 * 224;
+  const int64_t render = (int64_t{144} << 20) + 67 * tets;
+  const int64_t simplify = (int64_t{60} << 20) + 58 * tets;
+  EXPECT_EQ(EstimateJobMemoryBytes(ct), std::max(render, simplify));
+  EXPECT_GT(render, simplify);
+  EXPECT_TRUE(CheckJobMemory(ct, "volumes/ct", int64_t(18.8 * (int64_t{1} << 30))).ok());
+  EXPECT_FALSE(CheckJobMemory(ct, "volumes/ct", int64_t(18.0 * (int64_t{1} << 30))).ok());
 }
 
 TEST(JobMemoryCheck, ADicomVolumeBeforeParsingIsNamedByItsBytes) {
