@@ -384,11 +384,7 @@ class FieldEngine {
  public:
   FieldEngine(const TetMesh& mesh, const SimplifyOptions& options, int threads,
               SimplifyLevels* levels)
-      : in_(mesh),
-        grid_(mesh.cells_dropped ? &*mesh.grid : nullptr),
-        options_(options),
-        threads_(threads),
-        levels_(levels) {}
+      : in_(mesh), options_(options), threads_(threads), levels_(levels) {}
 
   absl::Status Run(int64_t target, double tolerance, const ProgressFn& progress,
                    const CancelToken* cancel, SimplifyResult* result);
@@ -534,14 +530,7 @@ class FieldEngine {
   }
 
   // Input cell c: loaded from the mesh's tets, or computed from its grid when they are dropped.
-  void InputCell(int64_t c, int32_t t[4]) const {
-    if (grid_ != nullptr) {
-      grid_->Cell(c, t);
-    } else {
-      const int32_t* in = &in_.tets[4 * c];
-      for (int k = 0; k < 4; ++k) t[k] = in[k];
-    }
-  }
+  void InputCell(int64_t c, int32_t t[4]) const { in_.Cell(c, t); }
   // Cell c as it is now: its input vertices, each replaced by the live vertex it became.
   void CellAt(int32_t c, int32_t t[4]) const {
     int32_t in[4];
@@ -550,8 +539,6 @@ class FieldEngine {
   }
 
   const TetMesh& in_;
-  // The input's grid when its cells are dropped (TetMesh::cells_dropped), else null.
-  const GridTets* const grid_;
   const SimplifyOptions& options_;
   const int threads_;
   SimplifyLevels* const levels_;  // null: no level record
@@ -649,7 +636,7 @@ void FieldEngine::GatherStar(int32_t v, Star* star) {
   // With the cells dropped, a cell is computed from its id (no load to wait on).
   ForEachCell(v, [&](int32_t c) {
     star->emplace_back().id = c;
-    if (grid_ == nullptr) __builtin_prefetch(&in_.tets[4 * int64_t(c)]);
+    if (!in_.cells_dropped) __builtin_prefetch(&in_.tets[4 * int64_t(c)]);
   });
   for (StarCell& sc : *star) {
     InputCell(sc.id, sc.v);
