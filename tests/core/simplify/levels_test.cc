@@ -23,18 +23,7 @@ SimplifyOptions Field(double reduction, double floor, int threads = 2) {
   return o;
 }
 
-// Cells, labels, positions, values (after the refit) and the vertex map.
-void ExpectSameMesh(const SimplifyResult& a, const SimplifyResult& b, const std::string& what) {
-  EXPECT_EQ(a.output_cells, b.output_cells) << what;
-  EXPECT_EQ(a.mesh.tets, b.mesh.tets) << what;
-  EXPECT_EQ(a.mesh.cell_regions, b.mesh.cell_regions) << what;
-  EXPECT_EQ(a.mesh.labels, b.mesh.labels) << what;
-  EXPECT_EQ(a.mesh.positions, b.mesh.positions) << what;
-  EXPECT_EQ(a.mesh.scalars, b.mesh.scalars) << what;
-  EXPECT_EQ(a.mesh.vertex_flags, b.mesh.vertex_flags) << what;
-  EXPECT_EQ(a.vertex_map, b.vertex_map) << what;
-  EXPECT_EQ(a.reached_target, b.reached_target) << what;
-}
+using testing::ExpectSameMesh;
 
 // A mesh shorter than the parallel rounds' minimum runs the serial loop only, whose order does not
 // depend on the target: the level of a run to 70 % is a plain run (no record) to each reduction.

@@ -7,11 +7,13 @@
 #include <cmath>
 #include <functional>
 #include <map>
+#include <string>
 #include <vector>
 
 #include <gtest/gtest.h>
 
 #include "core/mesh/tetrahedralize.h"
+#include "core/simplify/simplify.h"
 #include "core/volume/phantom.h"
 #include "tests/testing/mesh_checks.h"
 
@@ -109,6 +111,21 @@ inline double TotalVolume(const TetMesh& m) {
   double total = 0;
   for (int64_t t = 0; t < m.tet_count(); ++t) total += TetVolume(m, t);
   return total;
+}
+
+// Two simplifications that must be one: cells, labels, positions, values, flags, the vertex map
+// and whether the target was reached.
+inline void ExpectSameMesh(const SimplifyResult& a, const SimplifyResult& b,
+                           const std::string& what) {
+  EXPECT_EQ(a.output_cells, b.output_cells) << what;
+  EXPECT_EQ(a.mesh.tets, b.mesh.tets) << what;
+  EXPECT_EQ(a.mesh.cell_regions, b.mesh.cell_regions) << what;
+  EXPECT_EQ(a.mesh.labels, b.mesh.labels) << what;
+  EXPECT_EQ(a.mesh.positions, b.mesh.positions) << what;
+  EXPECT_EQ(a.mesh.scalars, b.mesh.scalars) << what;
+  EXPECT_EQ(a.mesh.vertex_flags, b.mesh.vertex_flags) << what;
+  EXPECT_EQ(a.vertex_map, b.vertex_map) << what;
+  EXPECT_EQ(a.reached_target, b.reached_target) << what;
 }
 
 }  // namespace decima::testing
