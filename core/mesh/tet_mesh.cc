@@ -15,9 +15,9 @@ namespace {
 // The counting sort of BuildVertexTetAdjacency with per-chunk counters of type Slot: int32 where
 // every slot index fits (4 * tets < 2^31, the meshes Simplify takes), halving the counters' memory
 // (134 MB on phantom:256, freshly faulted on every call).
-// `cell(t, out)` writes tet t's four vertices.
-template <typename Slot, typename CellFn>
-void FillAdjacency(const CellFn& cell, int64_t nv, int64_t nt, int threads,
+// `cells(t0, t1, f)` calls f(t, cell) for the tets t0 <= t < t1 in order (TetMesh::ForEachCell).
+template <typename Slot, typename CellsFn>
+void FillAdjacency(const CellsFn& cells, int64_t nv, int64_t nt, int threads,
                    VertexTetAdjacency* adj) {
   // A counting sort in contiguous chunks of tets, one per thread: each chunk counts its own
   // entries per vertex, then fills its rows' slots after those of the chunks before it. Every
@@ -32,11 +32,9 @@ void FillAdjacency(const CellFn& cell, int64_t nv, int64_t nt, int threads,
       Slot* count = &cursor[c * nv];
       std::fill(count, count + nv, 0);
       const auto [t0, t1] = chunk_range(c);
-      for (int64_t t = t0; t < t1; ++t) {
-        int32_t c4[4];
-        cell(t, c4);
+      cells(t0, t1, [&](int64_t, const int32_t* c4) {
         for (int q = 0; q < 4; ++q) ++count[c4[q]];
-      }
+      });
     }
   });
   for (int64_t v = 0; v < nv; ++v) {
@@ -58,25 +56,23 @@ void FillAdjacency(const CellFn& cell, int64_t nv, int64_t nt, int threads,
     for (int64_t c = c0; c < c1; ++c) {
       Slot* next = &cursor[c * nv];
       const auto [t0, t1] = chunk_range(c);
-      for (int64_t t = t0; t < t1; ++t) {
-        int32_t c4[4];
-        cell(t, c4);
+      cells(t0, t1, [&](int64_t t, const int32_t* c4) {
         for (int q = 0; q < 4; ++q) adj->tet_ids[next[c4[q]]++] = int32_t(t);
-      }
+      });
     }
   });
 }
 
-template <typename CellFn>
-VertexTetAdjacency BuildAdjacency(const CellFn& cell, int64_t nv, int64_t nt, int threads) {
+template <typename CellsFn>
+VertexTetAdjacency BuildAdjacency(const CellsFn& cells, int64_t nv, int64_t nt, int threads) {
   VertexTetAdjacency adj;
   adj.offsets.resize(nv + 1);  // written below, by the row sums
   adj.offsets[0] = 0;
   adj.tet_ids.resize(4 * nt);  // every slot is written by the fill
   if (4 * nt < std::numeric_limits<int32_t>::max()) {
-    FillAdjacency<int32_t>(cell, nv, nt, threads, &adj);
+    FillAdjacency<int32_t>(cells, nv, nt, threads, &adj);
   } else {
-    FillAdjacency<int64_t>(cell, nv, nt, threads, &adj);
+    FillAdjacency<int64_t>(cells, nv, nt, threads, &adj);
   }
   return adj;
 }
@@ -92,9 +88,9 @@ void DropGridCells(TetMesh* mesh) {
 
 VertexTetAdjacency BuildVertexTetAdjacency(const TetMesh& mesh, int threads) {
   if (mesh.cells_dropped) {
-    const GridTets& grid = *mesh.grid;
-    return BuildAdjacency([&](int64_t t, int32_t out[4]) { grid.Cell(t, out); },
-                          mesh.vertex_count(), mesh.tet_count(), threads);
+    return BuildAdjacency(
+        [&](int64_t t0, int64_t t1, const auto& f) { mesh.grid->ForEachCell(t0, t1, f); },
+        mesh.vertex_count(), mesh.tet_count(), threads);
   }
   return BuildVertexTetAdjacency(mesh.tets.data(), 4, mesh.vertex_count(), mesh.tet_count(),
                                  threads);
@@ -103,8 +99,8 @@ VertexTetAdjacency BuildVertexTetAdjacency(const TetMesh& mesh, int threads) {
 VertexTetAdjacency BuildVertexTetAdjacency(const int32_t* cells, int64_t stride, int64_t nv,
                                            int64_t nt, int threads) {
   return BuildAdjacency(
-      [&](int64_t t, int32_t out[4]) {
-        for (int q = 0; q < 4; ++q) out[q] = cells[stride * t + q];
+      [&](int64_t t0, int64_t t1, const auto& f) {
+        for (int64_t t = t0; t < t1; ++t) f(t, cells + stride * t);
       },
       nv, nt, threads);
 }

@@ -64,6 +64,16 @@ struct TetMesh {
       for (int k = 0; k < 4; ++k) out[k] = tets[4 * t + k];
     }
   }
+  // f(t, cell) for t0 <= t < t1 in order: Cell(t) for a run of cells, without Cell's division per
+  // cell when they are dropped.
+  template <typename F>
+  void ForEachCell(int64_t t0, int64_t t1, F&& f) const {
+    if (cells_dropped) {
+      grid->ForEachCell(t0, t1, f);
+    } else {
+      for (int64_t t = t0; t < t1; ++t) f(t, static_cast<const int32_t*>(&tets[4 * t]));
+    }
+  }
   Eigen::Vector3d Position(int64_t v) const {
     return {positions[3 * v], positions[3 * v + 1], positions[3 * v + 2]};
   }

@@ -24,24 +24,12 @@ void FillGridCells(TetMesh* mesh, int threads) {
   AssignOnHugePages(&mesh->tets, cubes * 5 * 4, 0);
   mesh->cell_regions.resize(cubes * 5);
   const uint8_t* labels = mesh->labels.data();
+  const int64_t slice_cells = 5 * (nx - 1) * (ny - 1);
   ParallelFor(nz - 1, threads, [&](int64_t k0, int64_t k1) {
-    for (int64_t k = k0; k < k1; ++k) {
-      for (int64_t j = 0; j + 1 < ny; ++j) {
-        int64_t cube = (nx - 1) * (j + (ny - 1) * k);
-        for (int64_t i = 0; i + 1 < nx; ++i, ++cube) {
-          const int32_t base = static_cast<int32_t>(i + nx * (j + ny * k));
-          const int parity = static_cast<int>((i + j + k) & 1);
-          int32_t* out = &mesh->tets[cube * 20];
-          uint8_t* region = &mesh->cell_regions[cube * 5];
-          for (int s = 0; s < 5; ++s) {
-            const int32_t* offset = grid.Offsets(parity, s);
-            int32_t* v = out + 4 * s;
-            for (int q = 0; q < 4; ++q) v[q] = base + offset[q];
-            region[s] = CellRegion(labels[v[0]], labels[v[1]], labels[v[2]], labels[v[3]]);
-          }
-        }
-      }
-    }
+    grid.ForEachCell(k0 * slice_cells, k1 * slice_cells, [&](int64_t t, const int32_t* v) {
+      std::copy(v, v + 4, &mesh->tets[4 * t]);
+      mesh->cell_regions[t] = CellRegion(labels[v[0]], labels[v[1]], labels[v[2]], labels[v[3]]);
+    });
   });
 }
 

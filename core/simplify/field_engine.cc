@@ -659,14 +659,12 @@ void FieldEngine::Setup() {
   // free, they moved and took the label boundary with them (mean Dice 0.998 at 90 %).
   // (In parallel: a flag is set, never cleared, so the order of the writes does not matter.)
   ParallelFor(nt_, threads_, 65536, [&](int64_t t0, int64_t t1) {
-    for (int64_t t = t0; t < t1; ++t) {
-      int32_t c[4];
-      InputCell(t, c);
-      if (!HoldsTwoLabels(in_.labels.data(), c)) continue;
+    in_.ForEachCell(t0, t1, [&](int64_t, const int32_t* c) {
+      if (!HoldsTwoLabels(in_.labels.data(), c)) return;
       for (int k = 0; k < 4; ++k) {
         std::atomic_ref<uint8_t>(flags_[c[k]]).fetch_or(kFeatureVertex, std::memory_order_relaxed);
       }
-    }
+    });
   });
   dead_ = BitSet(nt_);
   free_interfaces_ = options_.interfaces == InterfaceMode::kFree;
@@ -692,11 +690,15 @@ void FieldEngine::Setup() {
   });
 
   // The mesh's volume in fixed blocks of cells: the same sum on any thread count.
-  const double total_volume = BlockSum(nt_, threads_, 65536, [&](int64_t t) {
-    int32_t c[4];
-    InputCell(t, c);
-    return SignedVolume(c);
-  });
+  // (Blocks of 65536 cells, each summed in order, then the blocks in order.)
+  constexpr int64_t kVolumeBlock = 65536;
+  const double total_volume =
+      BlockSum((nt_ + kVolumeBlock - 1) / kVolumeBlock, threads_, 1, [&](int64_t b) {
+        double sum = 0;
+        in_.ForEachCell(b * kVolumeBlock, std::min(nt_, (b + 1) * kVolumeBlock),
+                        [&](int64_t, const int32_t* c) { sum += SignedVolume(c); });
+        return sum;
+      });
   if (options_.voxel_size_mm > 0) {
     voxel_volume_ = std::pow(options_.voxel_size_mm, 3);
   } else {
@@ -725,11 +727,9 @@ void FieldEngine::Setup() {
   // numbering a block's cells are a window not much longer than the block's rows, and a mesh
   // numbered otherwise computes them per row as before.
   constexpr int64_t kBlockVertices = 65536;
-  // The gradient of cell c's linear interpolant, in its own frame (edge vectors from its first
+  // The gradient of cell t's linear interpolant, in its own frame (edge vectors from its first
   // vertex: differences of float positions, exact in double); NaN if the cell is not positive.
-  auto gradient = [&](int64_t c) {
-    int32_t t[4];
-    InputCell(c, t);
+  auto gradient = [&](const int32_t* t) {
     auto at = [&](int k) {
       return Eigen::Vector3d(pos_[3 * t[k]], pos_[3 * t[k] + 1], pos_[3 * t[k] + 2]);
     };
@@ -743,11 +743,17 @@ void FieldEngine::Setup() {
     if (!(det > 0)) return Eigen::Vector3d::Constant(std::nan("")).eval();
     return ((ds(1) * r0 + ds(2) * r1 + ds(3) * r2) / det).eval();
   };
+  // A window entry: the cell's gradient and its first vertex, the origin of its plane.
+  struct CellPlane {
+    Eigen::Vector3d gradient;
+    int32_t first;
+  };
+  auto plane = [&](const int32_t* t) { return CellPlane{gradient(t), t[0]}; };
   quadric_.resize(kQuadricSize * nv_);  // uninitialised: every entry is written below
   ParallelFor(nv_, threads_, 4096, [&](int64_t v0, int64_t v1) {
     Scratch scratch;
-    std::vector<Eigen::Vector3d> window;
-    int64_t window_lo = 0, window_hi = -1;  // the cells whose gradients window holds
+    std::vector<CellPlane> window;
+    int64_t window_lo = 0, window_hi = -1;  // the cells whose planes window holds
     for (int64_t b0 = v0; b0 < v1; b0 += kBlockVertices) {
       const int64_t b1 = std::min(v1, b0 + kBlockVertices);
       // Rows are sorted by cell id: the block's cells lie in [lo, hi].
@@ -771,7 +777,8 @@ void FieldEngine::Setup() {
           from = window_hi + 1;
         }
         window.resize(hi - lo + 1);
-        for (int64_t c = from; c <= hi; ++c) window[c - lo] = gradient(c);
+        in_.ForEachCell(from, hi + 1,
+                        [&](int64_t c, const int32_t* t) { window[c - lo] = plane(t); });
         window_lo = lo;
         window_hi = hi;
       }
@@ -780,11 +787,17 @@ void FieldEngine::Setup() {
         const Eigen::Vector3d origin(pos_[3 * v], pos_[3 * v + 1], pos_[3 * v + 2]);
         for (int64_t i = adjacency.offsets[v]; i < adjacency.offsets[v + 1]; ++i) {
           const int64_t c = cell_ids_[i];
-          const Eigen::Vector3d g = windowed ? window[c - lo] : gradient(c);
+          CellPlane p;
+          if (windowed) {
+            p = window[c - lo];
+          } else {
+            int32_t cell[4];
+            InputCell(c, cell);
+            p = plane(cell);
+          }
+          const Eigen::Vector3d& g = p.gradient;
           if (std::isnan(g.x())) continue;
-          int32_t cell[4];
-          InputCell(c, cell);
-          const int32_t t0 = cell[0];
+          const int32_t t0 = p.first;
           const Eigen::Vector3d p0 =
               Eigen::Vector3d(pos_[3 * t0], pos_[3 * t0 + 1], pos_[3 * t0 + 2]) - origin;
           const double a[5] = {g.x(), g.y(), g.z(), -1.0,

@@ -285,14 +285,23 @@ std::string SimplifyPolicyNames() {
   return out;
 }
 
+namespace {
+
+// Whether a run reads the input's cells only through TetMesh::Cell, so they may be dropped: the
+// field engine without a level record. The cell-collapse engine and the level record
+// (ExtractLevel, BaseMeshDigest) read `tets`.
+bool RunsWithoutCells(const SimplifyOptions& options) {
+  return options.policy == SimplifyPolicy::kField && options.record_levels_to == 0;
+}
+
+}  // namespace
+
 absl::StatusOr<SimplifyResult> Simplify(const TetMesh& mesh, const SimplifyOptions& options,
                                         const ProgressFn& progress, const CancelToken* cancel) {
   DECIMA_RETURN_IF_ERROR(ValidateSimplifyOptions(options));
   const int threads = ResolveThreads(options.threads);
   DECIMA_RETURN_IF_ERROR(ValidateMesh(mesh, threads));
-  if (mesh.cells_dropped &&
-      (options.policy != SimplifyPolicy::kField || options.record_levels_to > 0)) {
-    // The cell-collapse engine and the level record (ExtractLevel, BaseMeshDigest) read `tets`.
+  if (mesh.cells_dropped && !RunsWithoutCells(options)) {
     return absl::InvalidArgumentError(
         absl::StrCat("simplify: the input mesh's cells are dropped (DropGridCells); the ",
                      SimplifyPolicyName(options.policy), " policy",
@@ -383,8 +392,7 @@ absl::StatusOr<SimplifyResult> Simplify(const TetMesh& mesh, const SimplifyOptio
 absl::StatusOr<SimplifyResult> SimplifyDroppingCells(TetMesh* mesh, const SimplifyOptions& options,
                                                      const ProgressFn& progress,
                                                      const CancelToken* cancel) {
-  const bool drop = mesh->grid && options.policy == SimplifyPolicy::kField &&
-                    options.record_levels_to == 0 && !mesh->cells_dropped;
+  const bool drop = mesh->grid && RunsWithoutCells(options) && !mesh->cells_dropped;
   if (drop) DropGridCells(mesh);
   absl::StatusOr<SimplifyResult> result = Simplify(*mesh, options, progress, cancel);
   if (drop) RestoreGridCells(mesh, options.threads);

@@ -95,6 +95,7 @@ struct BenchOptions {
   std::vector<double> extract_levels;
   double min_psnr = 0;  // 0: no floor
   bool psnr_refine = true;
+  std::string simplify_cells = "dropped";
   std::string mesh_compression = VtuCompressorName(VtuWriteOptions().compressor);
   int size = 512;
   std::string view = "anterior";
@@ -200,7 +201,8 @@ absl::Status RunSimplify(const BenchOptions& o, BenchState& state, Json& out) {
     // Without, what the job's simplify stage runs: the cells dropped for the run and restored.
     auto r = o.min_psnr > 0 ? pipeline::SimplifyToPsnrFloor(state.image, *state.mesh, so,
                                                             o.min_psnr, o.psnr_refine, &search)
-                            : SimplifyDroppingCells(&*state.mesh, so);
+             : o.simplify_cells == "kept" ? Simplify(*state.mesh, so)
+                                          : SimplifyDroppingCells(&*state.mesh, so);
     if (!r.ok()) return r.status();
     state.simplified = *std::move(r);
     return absl::OkStatus();
@@ -238,6 +240,7 @@ absl::Status RunSimplify(const BenchOptions& o, BenchState& state, Json& out) {
       out["min_psnr"]["deeper_psnr_db"] = search.deeper->psnr_db;
     }
   }
+  out["simplify_cells"] = o.min_psnr > 0 ? "kept" : o.simplify_cells;
   out["cells_removed_per_second"] = (r.input_cells - r.output_cells) / out["seconds"].get<double>();
 
   FidelityOptions fo;
@@ -412,6 +415,11 @@ int Main(int argc, char** argv) {
   app.add_option("--psnr-refine", o.psnr_refine,
                  "with --min-psnr: 1 = refine the levels' answer with runs (a job without the "
                  "levels output), 0 = levels only (a job with it)")
+      ->capture_default_str();
+  app.add_option("--simplify-cells", o.simplify_cells,
+                 "simplify: dropped (the job's way: the input's cells freed and computed from "
+                 "the grid, then restored) or kept (read from the array; the same mesh)")
+      ->check(CLI::IsMember({"dropped", "kept"}))
       ->capture_default_str();
   app.add_option("--size", o.size, "render: image width and height in pixels")
       ->check(CLI::Range(16, 4096))

@@ -5,6 +5,7 @@
 #include <array>
 #include <cmath>
 #include <map>
+#include <utility>
 #include <vector>
 
 #include <gtest/gtest.h>
@@ -172,6 +173,37 @@ TEST(GridTets, GivesTheCellsTetrahedralizeWrites) {
               << "tet " << t << " vertex " << q << (mirrored ? " (mirrored)" : "");
         }
       }
+    }
+  }
+}
+
+// ForEachCell steps from cube to cube instead of dividing each id: from any start (inside a cube,
+// at the end of a row or of a slice) it gives Cell(t) for every t of the range, in order.
+TEST(GridTets, ForEachCellStepsThroughTheCellsCellComputes) {
+  for (const std::array<int64_t, 3> dims :
+       {std::array<int64_t, 3>{2, 2, 2}, {5, 4, 3}, {4, 7, 6}, {3, 2, 5}}) {
+    const GridTets grid(dims[0], dims[1], dims[2], false);
+    const int64_t nt = grid.tet_count(), row = 5 * (dims[0] - 1);
+    const int64_t slice = row * (dims[1] - 1);
+    for (const auto& [t0, t1] :
+         std::vector<std::pair<int64_t, int64_t>>{{0, nt},
+                                                  {3, nt},
+                                                  {row - 1, nt - 2},
+                                                  {slice - 2, slice + row + 3},
+                                                  {nt - 1, nt},
+                                                  {7, 7}}) {
+      if (t0 > t1 || t1 > nt) continue;
+      int64_t expected = t0;
+      grid.ForEachCell(t0, t1, [&](int64_t t, const int32_t* cell) {
+        ASSERT_EQ(t, expected);
+        int32_t want[4];
+        grid.Cell(t, want);
+        for (int q = 0; q < 4; ++q) {
+          ASSERT_EQ(cell[q], want[q]) << "tet " << t << " of [" << t0 << ", " << t1 << ")";
+        }
+        ++expected;
+      });
+      EXPECT_EQ(expected, t1) << "range [" << t0 << ", " << t1 << ")";
     }
   }
 }
