@@ -233,7 +233,8 @@ TEST(JobMemoryTest, EstimateIsWithinAQuarterOfTheMeasuredPeaks) {
   for (const Measured& m : {Measured{{128, 128, 53}, 408},        // CT head, small
                             Measured{{256, 256, 113}, 2470},      // CT head
                             Measured{{181, 217, 181}, 2470},      // ch2
-                            Measured{{301, 370, 316}, 11189}}) {  // ch2better
+                            Measured{{301, 370, 316}, 11189},     // ch2better
+                            Measured{{511, 511, 225}, 16507}}) {  // 511 CT, 80 %, via the server
     v1::Volume v;
     for (int64_t d : m.dims) v.add_dims(d);
     const double estimate_mib = EstimateJobMemoryBytes(v) / 1048576.0;
