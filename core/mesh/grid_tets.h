@@ -38,13 +38,39 @@ class GridTets {
     for (int q = 0; q < 4; ++q) out[q] = base + offset[q];
   }
 
+  // The tet across face q (the face opposite vertex q of Cell(t)) of tet t, or -1 when that face
+  // is on the hull of the grid. The same tet as matching faces of the materialized mesh gives
+  // (RenderableMesh's adjacency, TetAcrossFace), without holding any per-tet array.
+  int64_t Neighbour(int64_t t, int q) const {
+    const int64_t cube = t / 5;
+    const int s = static_cast<int>(t - 5 * cube);
+    const int64_t i = cube % (nx_ - 1);
+    const int64_t jk = cube / (nx_ - 1);
+    const int64_t j = jk % (ny_ - 1);
+    const int64_t k = jk / (ny_ - 1);
+    const Across& a = across_[(i + j + k) & 1][s][q];
+    if (a.axis < 0) return 5 * cube + a.s;
+    const int64_t at = a.axis == 0 ? i : a.axis == 1 ? j : k;
+    const int64_t last = (a.axis == 0 ? nx_ : a.axis == 1 ? ny_ : nz_) - 2;
+    if (a.dir > 0 ? at == last : at == 0) return -1;
+    return 5 * (cube + a.dir * cube_stride_[a.axis]) + a.s;
+  }
+
   // The vertex-id offsets from a cube's corner (i, j, k) of tet s of an even (0) or odd (1) cube.
   const int32_t* Offsets(int parity, int s) const { return offsets_[parity][s]; }
 
  private:
+  // Where face q of tet s of a cube leads: tet `s` of the same cube (axis -1) or of the next cube
+  // along `axis` in direction `dir` (+1 / -1).
+  struct Across {
+    int8_t axis = -1, dir = 0, s = 0;
+  };
+
   int64_t nx_ = 0, ny_ = 0, nz_ = 0;
   bool flip_ = false;
   int32_t offsets_[2][5][4] = {};
+  Across across_[2][5][4] = {};
+  int64_t cube_stride_[3] = {};
 };
 
 }  // namespace decima
