@@ -38,6 +38,12 @@ GridTets::GridTets(int64_t nx, int64_t ny, int64_t nz, bool flip)
   cube_stride_[0] = 1;
   cube_stride_[1] = nx - 1;
   cube_stride_[2] = (nx - 1) * (ny - 1);
+  vertex_stride_[0] = 1;
+  vertex_stride_[1] = static_cast<int32_t>(nx);
+  vertex_stride_[2] = static_cast<int32_t>(nx * ny);
+  last_[0] = static_cast<int32_t>(nx - 2);
+  last_[1] = static_cast<int32_t>(ny - 2);
+  last_[2] = static_cast<int32_t>(nz - 2);
   TetTemplate corners[2];  // per parity, in the stored vertex order (after the flip)
   for (int parity = 0; parity < 2; ++parity) {
     TetTemplate t = parity ? kOddCube : kEvenCube;

@@ -430,23 +430,36 @@ struct Entry {
   int32_t code;  // 4 * tet + local face
 };
 
-// Cell sources of the one ray-casting loop: the vertices of tet t (a pointer to 4 ids, into the
-// source's own array or into `buf`) and the tet across its face q (-1 on the hull).
-// A materialized mesh: RenderableMesh::cells, 8 ints per tet.
+// Cell sources of the one ray-casting loop. A Place is where a walk is: At(t) makes it from a tet
+// id, Id gives the id back, Vertices the 4 vertex ids (a pointer into the source's own array or
+// into `buf`), and Step moves it across face q (false, unmoved, on the hull).
+// A materialized mesh: RenderableMesh::cells, 8 ints per tet, the Place is the tet id.
 struct MeshCells {
+  using Place = int32_t;
   const int32_t* cells;
-  const int32_t* Vertices(int64_t t, int32_t* /*buf*/) const { return &cells[8 * t]; }
-  int32_t Neighbour(int64_t t, int q) const { return cells[8 * t + 4 + q]; }
+  Place At(int64_t t) const { return static_cast<int32_t>(t); }
+  int64_t Id(Place p) const { return p; }
+  const int32_t* Vertices(Place p, int32_t* /*buf*/) const { return &cells[8 * int64_t{p}]; }
+  bool Step(Place& p, int q) const {
+    const int32_t n = cells[8 * int64_t{p} + 4 + q];
+    if (n < 0) return false;
+    p = n;
+    return true;
+  }
 };
 
-// The original grid: both computed from the cell id (GridTets), nothing read per tet.
+// The original grid: vertices and neighbours computed from the tet's cube (GridTets::Place, so a
+// step costs no division), nothing read per tet.
 struct GridCells {
+  using Place = GridTets::Place;
   const GridTets* grid;
-  const int32_t* Vertices(int64_t t, int32_t* buf) const {
-    grid->Cell(t, buf);
+  Place At(int64_t t) const { return grid->At(t); }
+  int64_t Id(const Place& p) const { return grid->Id(p); }
+  const int32_t* Vertices(const Place& p, int32_t* buf) const {
+    grid->Cell(p, buf);
     return buf;
   }
-  int32_t Neighbour(int64_t t, int q) const { return static_cast<int32_t>(grid->Neighbour(t, q)); }
+  bool Step(Place& p, int q) const { return grid->Step(p, q); }
 };
 
 // What Render reads of its input besides the cells.
@@ -511,9 +524,9 @@ double Walk(const Frame<Cells>& f, Entry e, double px, double py, double len_per
   const double inv_step = 1.0 / f.options->step_mm;
   const float tmin = f.options->min_transmittance;
 
-  int32_t t = e.code >> 2;
+  typename Cells::Place place = cells.At(e.code >> 2);
   const int eq = e.code & 3;
-  const int32_t* cell = cells.Vertices(t, buf);
+  const int32_t* cell = cells.Vertices(place, buf);
   int32_t a = cell[kFaceVerts[eq][0]], b = cell[kFaceVerts[eq][1]], c = cell[kFaceVerts[eq][2]];
   double eab = Orient(sv, a, b, px, py), ebc = Orient(sv, b, c, px, py),
          eca = Orient(sv, c, a, px, py);
@@ -528,7 +541,7 @@ double Walk(const Frame<Cells>& f, Entry e, double px, double py, double len_per
 
   int stuck = 0;
   for (;;) {
-    cell = cells.Vertices(t, buf);
+    cell = cells.Vertices(place, buf);
     int qa = 0, qb = 0, qc = 0, qd = 0;
     for (int q = 0; q < 4; ++q) {
       const int32_t v = cell[q];
@@ -599,8 +612,8 @@ double Walk(const Frame<Cells>& f, Entry e, double px, double py, double len_per
     }
     scalar = next_scalar;
     if (acc.t < tmin) return depth;
-    t = cells.Neighbour(t, exit_q);
-    if (t < 0 || (f.visible != nullptr && !VisibleBit(f.visible, t))) return depth;
+    if (!cells.Step(place, exit_q)) return depth;
+    if (f.visible != nullptr && !VisibleBit(f.visible, cells.Id(place))) return depth;
   }
 }
 
@@ -773,7 +786,7 @@ absl::StatusOr<RenderedImage> RenderCells(const RenderInput& mesh, const Cells& 
       uint64_t word = 0;
       const int64_t t_end = std::min(nt, 64 * (w + 1));
       for (int64_t t = 64 * w; t < t_end; ++t) {
-        const int32_t* c = cells.Vertices(t, buf);
+        const int32_t* c = cells.Vertices(cells.At(t), buf);
         const float s0 = mesh.scalars[c[0]], s1 = mesh.scalars[c[1]], s2 = mesh.scalars[c[2]],
                     s3 = mesh.scalars[c[3]];
         const bool vis = !table.Transparent(std::min({s0, s1, s2, s3}), std::max({s0, s1, s2, s3}));
@@ -805,9 +818,10 @@ absl::StatusOr<RenderedImage> RenderCells(const RenderInput& mesh, const Cells& 
     ParallelRanges(nt, threads, [&](int th, int64_t t0, int64_t t1) {
       for (int64_t t = t0; t < t1; ++t) {
         if (!VisibleBit(visible.data(), t)) continue;
+        const typename Cells::Place here = cells.At(t);
         for (int q = 0; q < 4; ++q) {
-          const int32_t n = cells.Neighbour(t, q);
-          if (n < 0 || !VisibleBit(visible.data(), n)) {
+          typename Cells::Place next = here;
+          if (!cells.Step(next, q) || !VisibleBit(visible.data(), cells.Id(next))) {
             entry_parts[th].push_back(int32_t(4 * t + q));
           }
         }
@@ -831,7 +845,7 @@ absl::StatusOr<RenderedImage> RenderCells(const RenderInput& mesh, const Cells& 
         std::copy_n(&(*mesh.boundary_vertices)[3 * int64_t{item}], 3, fv);
       } else {
         code = item;
-        const int32_t* c = cells.Vertices(code >> 2, buf);
+        const int32_t* c = cells.Vertices(cells.At(code >> 2), buf);
         const int q = code & 3;
         for (int k = 0; k < 3; ++k) fv[k] = c[kFaceVerts[q][k]];
         // Wind outwards from the actual geometry, so inverted tets do not flip their faces.
