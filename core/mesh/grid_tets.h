@@ -75,13 +75,71 @@ class GridTets {
     }
   }
 
+  // A tet with its cube decoded, for walks from tet to tet without a division per step (the
+  // renderer's ray casting): At(t) decodes once, Step moves across a face.
+  struct Place {
+    int64_t cube = 0;
+    int32_t base = 0;  // vertex id of the cube's corner (i, j, k)
+    int32_t ijk[3] = {};
+    int s = 0, parity = 0;
+  };
+  Place At(int64_t t) const {
+    Place p;
+    p.cube = t / 5;
+    p.s = static_cast<int>(t - 5 * p.cube);
+    const int64_t jk = p.cube / (nx_ - 1);
+    p.ijk[0] = static_cast<int32_t>(p.cube - jk * (nx_ - 1));
+    p.ijk[2] = static_cast<int32_t>(jk / (ny_ - 1));
+    p.ijk[1] = static_cast<int32_t>(jk - int64_t{p.ijk[2]} * (ny_ - 1));
+    p.base = static_cast<int32_t>(p.ijk[0] + nx_ * (p.ijk[1] + ny_ * p.ijk[2]));
+    p.parity = (p.ijk[0] + p.ijk[1] + p.ijk[2]) & 1;
+    return p;
+  }
+  int64_t Id(const Place& p) const { return 5 * p.cube + p.s; }
+  void Cell(const Place& p, int32_t out[4]) const {
+    const int32_t* offset = offsets_[p.parity][p.s];
+    for (int q = 0; q < 4; ++q) out[q] = p.base + offset[q];
+  }
+  // Moves `p` to the tet across its face q; false (p unchanged) when that face is on the hull.
+  bool Step(Place& p, int q) const {
+    const Across& a = across_[p.parity][p.s][q];
+    if (a.axis >= 0) {
+      const int32_t at = p.ijk[a.axis];
+      if (a.dir > 0 ? at == last_[a.axis] : at == 0) return false;
+      p.ijk[a.axis] = at + a.dir;
+      p.cube += a.dir * cube_stride_[a.axis];
+      p.base += a.dir * vertex_stride_[a.axis];
+      p.parity ^= 1;
+    }
+    p.s = a.s;
+    return true;
+  }
+
+  // The tet across face q (the face opposite vertex q of Cell(t)) of tet t, or -1 when that face
+  // is on the hull of the grid. The same tet as matching faces of the materialized mesh gives
+  // (RenderableMesh's adjacency, TetAcrossFace), without holding any per-tet array.
+  int64_t Neighbour(int64_t t, int q) const {
+    Place p = At(t);
+    return Step(p, q) ? Id(p) : -1;
+  }
+
   // The vertex-id offsets from a cube's corner (i, j, k) of tet s of an even (0) or odd (1) cube.
   const int32_t* Offsets(int parity, int s) const { return offsets_[parity][s]; }
 
  private:
+  // Where face q of tet s of a cube leads: tet `s` of the same cube (axis -1) or of the next cube
+  // along `axis` in direction `dir` (+1 / -1).
+  struct Across {
+    int8_t axis = -1, dir = 0, s = 0;
+  };
+
   int64_t nx_ = 0, ny_ = 0, nz_ = 0;
   bool flip_ = false;
   int32_t offsets_[2][5][4] = {};
+  Across across_[2][5][4] = {};
+  int64_t cube_stride_[3] = {};
+  int32_t vertex_stride_[3] = {};
+  int32_t last_[3] = {};  // the largest cube index along each axis
 };
 
 }  // namespace decima

@@ -35,6 +35,26 @@ void FillGridCells(TetMesh* mesh, int threads) {
 
 }  // namespace
 
+void GridVertexPositions(const Volume& image, float* out, int threads) {
+  const int64_t nx = image.dims[0], ny = image.dims[1], nz = image.dims[2];
+  const Eigen::Matrix3d linear = image.direction * image.spacing.asDiagonal();
+  ParallelFor(nz, ResolveThreads(threads), [&](int64_t k0, int64_t k1) {
+    for (int64_t k = k0; k < k1; ++k) {
+      for (int64_t j = 0; j < ny; ++j) {
+        const Eigen::Vector3d row =
+            image.origin + linear * Eigen::Vector3d(0, double(j), double(k));
+        for (int64_t i = 0; i < nx; ++i) {
+          const int64_t v = i + nx * (j + ny * k);
+          const Eigen::Vector3d p = row + linear.col(0) * double(i);
+          out[3 * v] = static_cast<float>(p.x());
+          out[3 * v + 1] = static_cast<float>(p.y());
+          out[3 * v + 2] = static_cast<float>(p.z());
+        }
+      }
+    }
+  });
+}
+
 void RestoreGridCells(TetMesh* mesh, int threads) {
   if (!mesh->cells_dropped) return;
   FillGridCells(mesh, ResolveThreads(threads));
@@ -74,20 +94,15 @@ absl::StatusOr<TetMesh> Tetrahedralize(const Volume& image, const Tetrahedralize
   Report(progress, {"tetra", 0.0, "allocated", {}});
 
   // Vertices: one per voxel centre.
+  GridVertexPositions(image, mesh.positions.data(), threads);
   const Eigen::Matrix3d linear = image.direction * image.spacing.asDiagonal();
   const float inf = std::numeric_limits<float>::infinity();
   ParallelFor(nz, threads, [&](int64_t k0, int64_t k1) {
     for (int64_t k = k0; k < k1; ++k) {
       for (int64_t j = 0; j < ny; ++j) {
-        const Eigen::Vector3d row =
-            image.origin + linear * Eigen::Vector3d(0, double(j), double(k));
         const bool jk_edge = j == 0 || j == ny - 1 || k == 0 || k == nz - 1;
         for (int64_t i = 0; i < nx; ++i) {
           const int64_t v = i + nx * (j + ny * k);
-          const Eigen::Vector3d p = row + linear.col(0) * double(i);
-          mesh.positions[3 * v] = static_cast<float>(p.x());
-          mesh.positions[3 * v + 1] = static_cast<float>(p.y());
-          mesh.positions[3 * v + 2] = static_cast<float>(p.z());
           const float d = options.interface_distance ? options.interface_distance[v] : inf;
           mesh.interface_distance[v] = d;
           uint8_t flags = std::abs(d) <= options.feature_threshold_voxels ? kFeatureVertex : 0;

@@ -36,6 +36,12 @@ absl::StatusOr<TetMesh> Tetrahedralize(const Volume& image,
                                        const ProgressFn& progress = nullptr,
                                        const CancelToken* cancel = nullptr);
 
+// The vertex positions Tetrahedralize stores (voxel centres in LPS mm, 3 floats per voxel into
+// `out`), for code that needs the grid's vertices without the mesh (the renderer's original,
+// issue 30): one function, so both get the same floats (a different evaluation order once gave
+// 1-ulp depth differences). On `threads` threads (0: all); the result does not depend on it.
+void GridVertexPositions(const Volume& image, float* out, int threads = 0);
+
 // Writes back the cells DropGridCells freed (tets and cell_regions, from mesh->grid and the
 // labels), the same as Tetrahedralize wrote; on `threads` threads (0: all). Nothing happens
 // unless the cells are dropped.

@@ -475,28 +475,16 @@ absl::Status MeasureFidelityStep(const Volume& image, const SegmentResult& seg,
   return absl::OkStatus();
 }
 
-// Every view of the spec, original and simplified with the same camera and transfer function.
-// Memory: the original's renderable mesh (8 int32 per tet plus positions, about 170 bytes per
-// voxel) is the job's largest array, so the original is rendered in every view first and its
-// renderable mesh freed before the simplified one is built; neither ever shares the heap with
-// the other. With `release_original` (no later stage needs it), the original TetMesh is consumed
-// by the build (its arrays freed or moved as they are copied), so the TetMesh, its renderable
-// form and the build's adjacency are never all resident. The pictures do not depend on this.
-absl::Status RenderViews(const JobSpec& spec, const Volume& image, TetMesh& original,
-                         bool release_original, const TetMesh& simplified, const Stage& stage,
-                         Rendered* out) {
-  stage.Report(0, "building the original's renderable mesh");
-  std::optional<RenderableMesh> original_r;
-  if (release_original) {
-    DECIMA_ASSIGN_OR_RETURN(original_r,
-                            BuildRenderableMesh(std::move(original), {}, stage.cancel()));
-  } else {
-    DECIMA_ASSIGN_OR_RETURN(original_r, BuildRenderableMesh(original, {}, stage.cancel()));
-  }
+// The original in every view of the spec, from its renderable form (RenderableGrid or
+// RenderableMesh, which render the same pixels): chooses the transfer function and the cameras
+// (from the original's bounds, so the simplified pictures align pixel by pixel).
+template <typename Renderable>
+absl::Status RenderOriginalViews(const JobSpec& spec, const Volume& image,
+                                 const Renderable& original_r, const Stage& stage, Rendered* out) {
   DECIMA_ASSIGN_OR_RETURN(
       out->transfer_function,
-      ChooseTransferFunction(spec.transfer_function, image, original_r->scalar_range));
-  out->caption.preset = ChosenPresetName(spec.transfer_function, image, original_r->scalar_range);
+      ChooseTransferFunction(spec.transfer_function, image, original_r.scalar_range));
+  out->caption.preset = ChosenPresetName(spec.transfer_function, image, original_r.scalar_range);
   ViewOptions vo;
   vo.width = vo.height = spec.image_size;
   const double steps = 2.0 * spec.views.size();
@@ -504,14 +492,45 @@ absl::Status RenderViews(const JobSpec& spec, const Volume& image, TetMesh& orig
     ViewRender v;
     v.name = spec.views[i];
     DECIMA_ASSIGN_OR_RETURN(const ViewDirection view, ParseView(v.name));
-    // Both renders use the original's bounds so the pictures align pixel by pixel.
-    DECIMA_ASSIGN_OR_RETURN(v.camera, MakeViewCamera(view, original_r->bounds, vo));
+    DECIMA_ASSIGN_OR_RETURN(v.camera, MakeViewCamera(view, original_r.bounds, vo));
     DECIMA_ASSIGN_OR_RETURN(
-        v.original, Render(*original_r, v.camera, out->transfer_function, {}, stage.cancel()));
+        v.original, Render(original_r, v.camera, out->transfer_function, {}, stage.cancel()));
     stage.Report((i + 1.0) / (steps + 1), absl::StrCat(v.name, ": original rendered"));
     out->views.push_back(std::move(v));
   }
-  original_r.reset();
+  return absl::OkStatus();
+}
+
+// Every view of the spec, original and simplified with the same camera and transfer function.
+// Memory (issue 30): the original is rendered straight from the voxel grid (RenderableGrid:
+// positions and scalars, 16 bytes per voxel; the cells and their neighbours are computed from
+// the cell id), and with `release_original` (no later stage needs it) the original TetMesh is
+// freed before that, so no per-tet array of the original is resident while rendering. The
+// original is rendered in every view first and its renderable form freed before the simplified
+// one is built. With spec.original_from == kMesh the earlier path: the original's RenderableMesh
+// (8 int32 per tet plus positions, about 170 bytes per voxel), built consuming the TetMesh when
+// it may be released. The pictures do not depend on either choice.
+absl::Status RenderViews(const JobSpec& spec, const Volume& image, TetMesh& original,
+                         bool release_original, const TetMesh& simplified, const Stage& stage,
+                         Rendered* out) {
+  if (spec.original_from == JobSpec::OriginalSource::kGrid) {
+    if (release_original) original = TetMesh();
+    stage.Report(0, "preparing the original grid for rendering");
+    DECIMA_ASSIGN_OR_RETURN(const RenderableGrid original_r,
+                            BuildRenderableGrid(image, {}, stage.cancel()));
+    DECIMA_RETURN_IF_ERROR(RenderOriginalViews(spec, image, original_r, stage, out));
+  } else {
+    stage.Report(0, "building the original's renderable mesh");
+    std::optional<RenderableMesh> original_r;
+    if (release_original) {
+      DECIMA_ASSIGN_OR_RETURN(original_r,
+                              BuildRenderableMesh(std::move(original), {}, stage.cancel()));
+    } else {
+      DECIMA_ASSIGN_OR_RETURN(original_r, BuildRenderableMesh(original, {}, stage.cancel()));
+    }
+    DECIMA_RETURN_IF_ERROR(RenderOriginalViews(spec, image, *original_r, stage, out));
+  }
+  const double steps = 2.0 * spec.views.size();
   stage.Report(spec.views.size() / (steps + 1), "building the simplified renderable mesh");
   DECIMA_ASSIGN_OR_RETURN(const RenderableMesh simplified_r,
                           BuildRenderableMesh(simplified, {}, stage.cancel()));

@@ -59,6 +59,11 @@ struct JobSpec {
   std::vector<std::string> views{"anterior"};  // 1..16 names ParseView accepts
   int image_size = 512;                        // pixels, 16..4096
   std::string transfer_function = "auto";      // preset name, "auto" (from modality), or JSON text
+  // Where the render stage takes the original from: the voxel grid (RenderableGrid, nothing held
+  // per tet; issue 30) or the materialized 5-tet mesh (the earlier path, kept so decima-bench
+  // --original-from can compare the two). The pictures and metrics are the same either way.
+  enum class OriginalSource { kGrid, kMesh };
+  OriginalSource original_from = OriginalSource::kGrid;
   // Artifacts (kOutputKinds), in that order; metrics.json is always written.
   // "levels" is not a default: it takes the run down to record_levels_to (core/pipeline/README.md).
   std::vector<std::string> outputs{"vtu", "labels", "images", "segmentation", "report"};

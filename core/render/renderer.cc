@@ -14,6 +14,7 @@
 #include "absl/strings/str_cat.h"
 #include "core/common/parallel.h"
 #include "core/common/status.h"
+#include "core/mesh/tetrahedralize.h"
 
 namespace decima {
 namespace {
@@ -38,23 +39,36 @@ constexpr int kFaceVerts[4][3] = {{1, 2, 3}, {0, 3, 2}, {0, 1, 3}, {0, 2, 1}};
 
 }  // namespace
 
-Bounds MeshBounds(const TetMesh& mesh) {
+namespace {
+
+// MeshBounds and MeshScalarRange over bare arrays, shared with the grid so both get the same.
+Bounds BoundsOf(const std::vector<float>& positions) {
   Bounds b;
-  if (mesh.vertex_count() == 0) return b;
-  b.min = b.max = mesh.Position(0);
-  for (int64_t v = 1; v < mesh.vertex_count(); ++v) {
-    const Eigen::Vector3d p = mesh.Position(v);
+  const int64_t nv = static_cast<int64_t>(positions.size() / 3);
+  if (nv == 0) return b;
+  const auto position = [&](int64_t v) {
+    return Eigen::Vector3d(positions[3 * v], positions[3 * v + 1], positions[3 * v + 2]);
+  };
+  b.min = b.max = position(0);
+  for (int64_t v = 1; v < nv; ++v) {
+    const Eigen::Vector3d p = position(v);
     b.min = b.min.cwiseMin(p);
     b.max = b.max.cwiseMax(p);
   }
   return b;
 }
 
-ScalarRange MeshScalarRange(const TetMesh& mesh) {
-  if (mesh.scalars.empty()) return {};
-  const auto [lo, hi] = std::minmax_element(mesh.scalars.begin(), mesh.scalars.end());
+ScalarRange ScalarRangeOf(const std::vector<float>& scalars) {
+  if (scalars.empty()) return {};
+  const auto [lo, hi] = std::minmax_element(scalars.begin(), scalars.end());
   return {*lo, *hi};
 }
+
+}  // namespace
+
+Bounds MeshBounds(const TetMesh& mesh) { return BoundsOf(mesh.positions); }
+
+ScalarRange MeshScalarRange(const TetMesh& mesh) { return ScalarRangeOf(mesh.scalars); }
 
 namespace {
 
@@ -220,6 +234,45 @@ absl::StatusOr<RenderableMesh> BuildRenderableMesh(TetMesh&& mesh,
   return BuildRenderable(mesh, &mesh, options, cancel);
 }
 
+absl::StatusOr<RenderableGrid> BuildRenderableGrid(const Volume& image,
+                                                   const RenderableMeshOptions& options,
+                                                   const CancelToken* cancel) {
+  const int64_t nx = image.dims[0], ny = image.dims[1], nz = image.dims[2];
+  if (nx < 2 || ny < 2 || nz < 2) {
+    return absl::InvalidArgumentError(absl::StrCat("render grid: volume ", Describe(image),
+                                                   " needs at least 2 voxels along every axis"));
+  }
+  const int64_t nv = image.voxel_count(), nt = 5 * (nx - 1) * (ny - 1) * (nz - 1);
+  // The same limits as BuildRenderableMesh: entry codes are 4 * tet + face in an int32.
+  if (nv > std::numeric_limits<int32_t>::max() || nt >= (int64_t{1} << 29)) {
+    return absl::InvalidArgumentError(absl::StrCat("render grid: ", Describe(image), " gives ", nt,
+                                                   " tets, beyond the 32-bit limits"));
+  }
+  RenderableGrid out;
+  const Eigen::Matrix3d linear = image.direction * image.spacing.asDiagonal();
+  out.grid = GridTets(nx, ny, nz, linear.determinant() < 0);
+  out.scalars = image.ToFloat();
+  for (int64_t v = 0; v < nv; ++v) {
+    if (!std::isfinite(out.scalars[v])) {
+      return absl::InvalidArgumentError(
+          absl::StrCat("render grid: voxel ", v, " of ", Describe(image), " is not finite"));
+    }
+  }
+  DECIMA_RETURN_IF_ERROR(CheckCancelled(cancel, "render"));
+  out.positions.resize(3 * nv);
+  GridVertexPositions(image, out.positions.data(), options.threads);
+  for (int64_t i = 0; i < 3 * nv; ++i) {
+    if (!std::isfinite(out.positions[i])) {
+      return absl::InvalidArgumentError(
+          absl::StrCat("render grid: voxel ", i / 3, " of ", Describe(image),
+                       " has a non-finite position (check the origin, spacing and direction)"));
+    }
+  }
+  out.bounds = BoundsOf(out.positions);
+  out.scalar_range = ScalarRangeOf(out.scalars);
+  return out;
+}
+
 namespace {
 
 // A vertex in screen space. Orthographic: a = depth, b = scalar. Perspective: a = 1 / depth,
@@ -377,15 +430,62 @@ struct Entry {
   int32_t code;  // 4 * tet + local face
 };
 
+// Cell sources of the one ray-casting loop. A Place is where a walk is: At(t) makes it from a tet
+// id, Id gives the id back, Vertices the 4 vertex ids (a pointer into the source's own array or
+// into `buf`), and Step moves it across face q (false, unmoved, on the hull).
+// A materialized mesh: RenderableMesh::cells, 8 ints per tet, the Place is the tet id.
+struct MeshCells {
+  using Place = int32_t;
+  const int32_t* cells;
+  Place At(int64_t t) const { return static_cast<int32_t>(t); }
+  int64_t Id(Place p) const { return p; }
+  const int32_t* Vertices(Place p, int32_t* /*buf*/) const { return &cells[8 * int64_t{p}]; }
+  bool Step(Place& p, int q) const {
+    const int32_t n = cells[8 * int64_t{p} + 4 + q];
+    if (n < 0) return false;
+    p = n;
+    return true;
+  }
+};
+
+// The original grid: vertices and neighbours computed from the tet's cube (GridTets::Place, so a
+// step costs no division), nothing read per tet.
+struct GridCells {
+  using Place = GridTets::Place;
+  const GridTets* grid;
+  Place At(int64_t t) const { return grid->At(t); }
+  int64_t Id(const Place& p) const { return grid->Id(p); }
+  const int32_t* Vertices(const Place& p, int32_t* buf) const {
+    grid->Cell(p, buf);
+    return buf;
+  }
+  bool Step(Place& p, int q) const { return grid->Step(p, q); }
+};
+
+// What Render reads of its input besides the cells.
+struct RenderInput {
+  const float* positions;
+  const float* scalars;
+  int64_t nv = 0, nt = 0;
+  // The hull's faces and their outward vertices (RenderableMesh's), or nullptr: then the entry
+  // faces of a fully visible mesh are found from the neighbours, the same set.
+  const std::vector<int32_t>* boundary_faces = nullptr;
+  const std::vector<int32_t>* boundary_vertices = nullptr;
+};
+
+// Visibility of tet t in a bit per tet (see Render).
+inline bool VisibleBit(const uint64_t* bits, int64_t t) { return (bits[t >> 6] >> (t & 63)) & 1; }
+
+template <typename Cells>
 struct Frame {
-  const RenderableMesh* mesh;
+  Cells cells;
   const ScreenVertex* sv;
   const TfTable* tf;
   const RenderOptions* options;
   const Camera* camera;
-  // Per tet: 1 if the transfer function is non-zero somewhere on its scalar range; nullptr when
-  // every tet is.
-  const uint8_t* visible = nullptr;
+  // Per tet a bit: 1 if the transfer function is non-zero somewhere on its scalar range; nullptr
+  // when every tet is.
+  const uint64_t* visible = nullptr;
   std::vector<int64_t> entry_offsets;  // per pixel, CSR into entries
   std::vector<Entry> entries;
 };
@@ -415,17 +515,18 @@ inline void Interpolate(const ScreenVertex* sv, int32_t a, int32_t b, int32_t c,
 
 // Walks one ray from boundary entry `e` until it leaves the mesh or becomes opaque.
 // Returns the depth where it left.
-template <bool kPersp>
-double Walk(const Frame& f, Entry e, double px, double py, double len_per_depth, Accum& acc,
+template <bool kPersp, typename Cells>
+double Walk(const Frame<Cells>& f, Entry e, double px, double py, double len_per_depth, Accum& acc,
             RenderStats& stats, bool* lost) {
-  const int32_t* cells = f.mesh->cells.data();
+  const Cells& cells = f.cells;
+  int32_t buf[4];
   const ScreenVertex* sv = f.sv;
   const double inv_step = 1.0 / f.options->step_mm;
   const float tmin = f.options->min_transmittance;
 
-  int32_t t = e.code >> 2;
+  typename Cells::Place place = cells.At(e.code >> 2);
   const int eq = e.code & 3;
-  const int32_t* cell = &cells[8 * int64_t{t}];
+  const int32_t* cell = cells.Vertices(place, buf);
   int32_t a = cell[kFaceVerts[eq][0]], b = cell[kFaceVerts[eq][1]], c = cell[kFaceVerts[eq][2]];
   double eab = Orient(sv, a, b, px, py), ebc = Orient(sv, b, c, px, py),
          eca = Orient(sv, c, a, px, py);
@@ -440,7 +541,7 @@ double Walk(const Frame& f, Entry e, double px, double py, double len_per_depth,
 
   int stuck = 0;
   for (;;) {
-    cell = &cells[8 * int64_t{t}];
+    cell = cells.Vertices(place, buf);
     int qa = 0, qb = 0, qc = 0, qd = 0;
     for (int q = 0; q < 4; ++q) {
       const int32_t v = cell[q];
@@ -511,13 +612,13 @@ double Walk(const Frame& f, Entry e, double px, double py, double len_per_depth,
     }
     scalar = next_scalar;
     if (acc.t < tmin) return depth;
-    t = cell[4 + exit_q];
-    if (t < 0 || (f.visible != nullptr && !f.visible[t])) return depth;
+    if (!cells.Step(place, exit_q)) return depth;
+    if (f.visible != nullptr && !VisibleBit(f.visible, cells.Id(place))) return depth;
   }
 }
 
-template <bool kPersp>
-void RenderTile(const Frame& f, int x0, int y0, int x1, int y1, RenderedImage& img,
+template <bool kPersp, typename Cells>
+void RenderTile(const Frame<Cells>& f, int x0, int y0, int x1, int y1, RenderedImage& img,
                 RenderStats& stats) {
   const Camera& cam = *f.camera;
   const double s = cam.Scale();
@@ -591,9 +692,13 @@ absl::Status WriteRenderedPng(const RenderedImage& image, const std::filesystem:
   return WritePng(path, image.ToImage());
 }
 
-absl::StatusOr<RenderedImage> Render(const RenderableMesh& mesh, const Camera& camera,
-                                     const TransferFunction& tf, const RenderOptions& options,
-                                     const CancelToken* cancel) {
+namespace {
+
+// The one Render, over either cell source.
+template <typename Cells>
+absl::StatusOr<RenderedImage> RenderCells(const RenderInput& mesh, const Cells& cells,
+                                          const Camera& camera, const TransferFunction& tf,
+                                          const RenderOptions& options, const CancelToken* cancel) {
   const auto start = Clock::now();
   DECIMA_RETURN_IF_ERROR(ValidateCamera(camera));
   DECIMA_RETURN_IF_ERROR(tf.Validate());
@@ -609,7 +714,7 @@ absl::StatusOr<RenderedImage> Render(const RenderableMesh& mesh, const Camera& c
   if (!(options.min_transmittance >= 0 && options.min_transmittance < 1)) {
     return absl::InvalidArgumentError("render: min_transmittance must be in [0, 1)");
   }
-  if (mesh.tet_count() == 0) return absl::InvalidArgumentError("render: the mesh has no tets");
+  if (mesh.nt == 0) return absl::InvalidArgumentError("render: the mesh has no tets");
 
   RenderedImage img;
   img.width = camera.width;
@@ -621,7 +726,7 @@ absl::StatusOr<RenderedImage> Render(const RenderableMesh& mesh, const Camera& c
   const int threads = ResolveThreads(options.threads);
 
   // Project every vertex; count those on or behind the camera plane.
-  const int64_t nv = mesh.vertex_count();
+  const int64_t nv = mesh.nv;
   std::vector<ScreenVertex> sv(nv);
   std::vector<int64_t> behind(threads, 0);
   ParallelRanges(nv, threads, [&](int th, int64_t v0, int64_t v1) {
@@ -655,8 +760,8 @@ absl::StatusOr<RenderedImage> Render(const RenderableMesh& mesh, const Camera& c
   }
   DECIMA_RETURN_IF_ERROR(CheckCancelled(cancel, "render"));
 
-  Frame f;
-  f.mesh = &mesh;
+  Frame<Cells> f;
+  f.cells = cells;
   f.sv = sv.data();
   TfTable table(tf);
   f.tf = &table;
@@ -668,19 +773,27 @@ absl::StatusOr<RenderedImage> Render(const RenderableMesh& mesh, const Camera& c
   // tets' faces on the hull or next to an invisible tet, and stop when the next tet is
   // invisible; a later entry on the same pixel continues the ray behind the gap. The image is
   // the same as walking every tet (the skipped segments integrate to zero).
-  const int64_t nt = mesh.tet_count();
-  const int32_t* cells = mesh.cells.data();
-  std::vector<uint8_t> visible(nt);
+  // One bit per tet (1/8 of a byte array: the grid's original holds nothing else per tet), written
+  // a 64-bit word per tet block so threads never share a word.
+  const int64_t nt = mesh.nt;
+  const int64_t nwords = (nt + 63) / 64;
+  std::vector<uint64_t> visible(nwords);
   std::vector<int64_t> visible_count(threads, 0);
-  ParallelRanges(nt, threads, [&](int th, int64_t t0, int64_t t1) {
+  ParallelRanges(nwords, threads, [&](int th, int64_t w0, int64_t w1) {
     int64_t n = 0;
-    for (int64_t t = t0; t < t1; ++t) {
-      const int32_t* c = &cells[8 * t];
-      const float s0 = mesh.scalars[c[0]], s1 = mesh.scalars[c[1]], s2 = mesh.scalars[c[2]],
-                  s3 = mesh.scalars[c[3]];
-      const bool vis = !table.Transparent(std::min({s0, s1, s2, s3}), std::max({s0, s1, s2, s3}));
-      visible[t] = vis;
-      n += vis;
+    int32_t buf[4];
+    for (int64_t w = w0; w < w1; ++w) {
+      uint64_t word = 0;
+      const int64_t t_end = std::min(nt, 64 * (w + 1));
+      for (int64_t t = 64 * w; t < t_end; ++t) {
+        const int32_t* c = cells.Vertices(cells.At(t), buf);
+        const float s0 = mesh.scalars[c[0]], s1 = mesh.scalars[c[1]], s2 = mesh.scalars[c[2]],
+                    s3 = mesh.scalars[c[3]];
+        const bool vis = !table.Transparent(std::min({s0, s1, s2, s3}), std::max({s0, s1, s2, s3}));
+        word |= uint64_t{vis} << (t - 64 * w);
+        n += vis;
+      }
+      visible[w] = word;
     }
     visible_count[th] = n;
   });
@@ -689,10 +802,13 @@ absl::StatusOr<RenderedImage> Render(const RenderableMesh& mesh, const Camera& c
   img.stats.visible_tets = n_visible;
   f.visible = n_visible == nt ? nullptr : visible.data();
 
-  // Entry faces (4 * tet + q) with their vertices wound outwards from the visible tet.
+  // Entry faces (4 * tet + q) with their vertices wound outwards from the visible tet: a fully
+  // visible mesh with a stored hull enters through it, anything else through the faces of
+  // visible tets whose neighbour is absent or invisible (for a fully visible mesh, its hull).
+  const bool hull_list = n_visible == nt && mesh.boundary_faces != nullptr;
   std::vector<std::vector<int32_t>> entry_parts(threads);
-  if (n_visible == nt) {
-    const int64_t nb = static_cast<int64_t>(mesh.boundary_faces.size());
+  if (hull_list) {
+    const int64_t nb = static_cast<int64_t>(mesh.boundary_faces->size());
     for (int th = 0; th < threads; ++th) {
       for (int64_t i = nb * th / threads; i < nb * (th + 1) / threads; ++i) {
         entry_parts[th].push_back(int32_t(i));
@@ -701,10 +817,13 @@ absl::StatusOr<RenderedImage> Render(const RenderableMesh& mesh, const Camera& c
   } else if (n_visible > 0) {
     ParallelRanges(nt, threads, [&](int th, int64_t t0, int64_t t1) {
       for (int64_t t = t0; t < t1; ++t) {
-        if (!visible[t]) continue;
+        if (!VisibleBit(visible.data(), t)) continue;
+        const typename Cells::Place here = cells.At(t);
         for (int q = 0; q < 4; ++q) {
-          const int32_t n = cells[8 * t + 4 + q];
-          if (n < 0 || !visible[n]) entry_parts[th].push_back(int32_t(4 * t + q));
+          typename Cells::Place next = here;
+          if (!cells.Step(next, q) || !VisibleBit(visible.data(), cells.Id(next))) {
+            entry_parts[th].push_back(int32_t(4 * t + q));
+          }
         }
       }
     });
@@ -717,21 +836,20 @@ absl::StatusOr<RenderedImage> Render(const RenderableMesh& mesh, const Camera& c
     Entry e;
   };
   std::vector<std::vector<PixelEntry>> raw_parts(threads);
-  const bool hull_list = n_visible == nt;
   ParallelRanges(threads, threads, [&](int th, int64_t, int64_t) {
     std::vector<PixelEntry>& raw = raw_parts[th];
     for (const int32_t item : entry_parts[th]) {
-      int32_t code, fv[3];
+      int32_t code, fv[3], buf[4];
       if (hull_list) {
-        code = mesh.boundary_faces[item];
-        std::copy_n(&mesh.boundary_vertices[3 * int64_t{item}], 3, fv);
+        code = (*mesh.boundary_faces)[item];
+        std::copy_n(&(*mesh.boundary_vertices)[3 * int64_t{item}], 3, fv);
       } else {
         code = item;
-        const int32_t* c = &cells[8 * int64_t{code >> 2}];
+        const int32_t* c = cells.Vertices(cells.At(code >> 2), buf);
         const int q = code & 3;
         for (int k = 0; k < 3; ++k) fv[k] = c[kFaceVerts[q][k]];
         // Wind outwards from the actual geometry, so inverted tets do not flip their faces.
-        const float* P = mesh.positions.data();
+        const float* P = mesh.positions;
         auto pos = [&](int32_t v) {
           return Eigen::Vector3d(P[3 * int64_t{v}], P[3 * int64_t{v} + 1], P[3 * int64_t{v} + 2]);
         };
@@ -838,6 +956,38 @@ absl::StatusOr<RenderedImage> Render(const RenderableMesh& mesh, const Camera& c
   img.stats = total;
   img.stats.seconds = Since(start);
   return img;
+}
+
+}  // namespace
+
+absl::StatusOr<RenderedImage> Render(const RenderableMesh& mesh, const Camera& camera,
+                                     const TransferFunction& tf, const RenderOptions& options,
+                                     const CancelToken* cancel) {
+  RenderInput in;
+  in.positions = mesh.positions.data();
+  in.scalars = mesh.scalars.data();
+  in.nv = mesh.vertex_count();
+  in.nt = mesh.tet_count();
+  in.boundary_faces = &mesh.boundary_faces;
+  in.boundary_vertices = &mesh.boundary_vertices;
+  return RenderCells(in, MeshCells{mesh.cells.data()}, camera, tf, options, cancel);
+}
+
+absl::StatusOr<RenderedImage> Render(const RenderableGrid& grid, const Camera& camera,
+                                     const TransferFunction& tf, const RenderOptions& options,
+                                     const CancelToken* cancel) {
+  if (grid.positions.size() != size_t(3 * grid.vertex_count()) ||
+      grid.vertex_count() != grid.grid.vertex_count()) {
+    return absl::InvalidArgumentError(absl::StrCat(
+        "render grid: ", grid.vertex_count(), " scalars and ", grid.positions.size(),
+        " position floats do not fit a grid of ", grid.grid.vertex_count(), " vertices"));
+  }
+  RenderInput in;
+  in.positions = grid.positions.data();
+  in.scalars = grid.scalars.data();
+  in.nv = grid.vertex_count();
+  in.nt = grid.tet_count();
+  return RenderCells(in, GridCells{&grid.grid}, camera, tf, options, cancel);
 }
 
 absl::StatusOr<RenderedImage> Render(const TetMesh& mesh, const Camera& camera,

@@ -21,6 +21,12 @@
 // image, sorted by depth per pixel), and leave when the next tet is invisible or absent; a
 // later entry of the same pixel continues the ray. So non-convex meshes and gaps are handled,
 // and the image equals that of walking every tet.
+//
+// Cell sources: one ray-casting loop reads its cells through a small source type, either a
+// RenderableMesh (cells and neighbours stored, 32 bytes per tet) or a RenderableGrid, the
+// original 5-tet grid mesh whose cells and neighbours are GridTets's functions of the cell id
+// (nothing stored per tet; issue 30). The grid renders exactly as the materialized mesh of the
+// same volume (same pixels, tested).
 #pragma once
 
 #include <array>
@@ -33,6 +39,7 @@
 #include "core/mesh/tet_mesh.h"
 #include "core/render/camera.h"
 #include "core/render/transfer_function.h"
+#include "core/volume/volume.h"
 
 namespace decima {
 
@@ -71,6 +78,28 @@ absl::StatusOr<RenderableMesh> BuildRenderableMesh(const TetMesh& mesh,
 // built, so the mesh, the result and the adjacency are never all resident (on the 5-tet grid mesh
 // of a job, about 100 bytes per voxel less at the peak). Same result.
 absl::StatusOr<RenderableMesh> BuildRenderableMesh(TetMesh&& mesh,
+                                                   const RenderableMeshOptions& options = {},
+                                                   const CancelToken* cancel = nullptr);
+
+// The 5-tet mesh of a voxel grid (Tetrahedralize's) as the renderer needs it, without its cells:
+// per voxel the position (the floats Tetrahedralize stores, GridVertexPositions) and the scalar,
+// 16 bytes, against about 170 per voxel for the RenderableMesh of the same mesh. Cell t and its
+// neighbours are grid.Cell(t) and grid.Neighbour(t, q).
+struct RenderableGrid {
+  GridTets grid;
+  std::vector<float> positions;  // 3 per vertex, LPS mm
+  std::vector<float> scalars;    // 1 per vertex (the voxel values as float)
+  Bounds bounds;
+  ScalarRange scalar_range;
+
+  int64_t vertex_count() const { return static_cast<int64_t>(scalars.size()); }
+  int64_t tet_count() const { return grid.tet_count(); }
+};
+
+// The renderable form of Tetrahedralize(image) without building that mesh. Errors:
+// InvalidArgument (a dimension below 2, more cells than 32-bit codes address, a non-finite
+// voxel value, naming the voxel); Cancelled.
+absl::StatusOr<RenderableGrid> BuildRenderableGrid(const Volume& image,
                                                    const RenderableMeshOptions& options = {},
                                                    const CancelToken* cancel = nullptr);
 
@@ -119,6 +148,12 @@ struct RenderedImage {
 // (size outside 1..8192, non-orthonormal basis, bad fov or width), a mesh crossing the camera
 // plane, an invalid transfer function or options; Cancelled.
 absl::StatusOr<RenderedImage> Render(const RenderableMesh& mesh, const Camera& camera,
+                                     const TransferFunction& tf, const RenderOptions& options = {},
+                                     const CancelToken* cancel = nullptr);
+
+// The same for the grid: the same image, pixel for pixel, as rendering the RenderableMesh of
+// Tetrahedralize(image).
+absl::StatusOr<RenderedImage> Render(const RenderableGrid& grid, const Camera& camera,
                                      const TransferFunction& tf, const RenderOptions& options = {},
                                      const CancelToken* cancel = nullptr);
 

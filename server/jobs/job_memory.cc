@@ -15,17 +15,20 @@ namespace {
 // `decima-bench --job-out` measured on the CT head at 128x128x53 and 256x256x113 (50 %, field):
 // simplify holds the original mesh's per-vertex arrays and the engine's arrays (the original's
 // cells, 17 bytes per tet, are dropped while it runs and computed from the grid: issue 30; the
-// line was 32 MiB + 73 B/tet before), render holds the original's renderable mesh and its
-// vertex-tet adjacency while it is built, and is now the job's peak. The other stages stay below
-// these two (segment ~30, tetra ~120 bytes per voxel). Checked on ch2 (simplify 2 % below its
-// measured 2034 MiB) and ch2better.
+// line was 32 MiB + 73 B/tet before), render measures the fidelity against the original mesh and
+// then renders the original straight from the voxel grid (RenderableGrid, 16 bytes per voxel, the
+// original mesh freed first; issue 30): 100 MiB + 44 B/tet, fitted to its measured peaks on the
+// two CT heads (273.5 and 1607 MiB; 128x128x113: 496.5 measured, 479 estimated). It was
+// 144 MiB + 67 B/tet with the materialized renderable mesh, then the job's peak; simplify is now.
+// The other stages stay below these two (segment ~30, tetra ~120 bytes per voxel). Checked on
+// ch2 (simplify 2 % below its measured 2034 MiB) and ch2better.
 struct StageModel {
   int64_t base_bytes;
   int64_t bytes_per_tet;
 };
 constexpr StageModel kStages[] = {
     {int64_t{60} << 20, 58},   // simplify
-    {int64_t{144} << 20, 67},  // render
+    {int64_t{100} << 20, 44},  // render
 };
 constexpr int64_t kSaturated = int64_t{1} << 50;
 constexpr int64_t kRuntimeBytes = int64_t{1} << 30;  // libraries, thread stacks, malloc arenas

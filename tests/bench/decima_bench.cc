@@ -3,10 +3,10 @@
 //   decima-bench --input PATH|phantom:NxNxN --stages load,segment,tetra,simplify,render
 //                [--regions K] [--reduction F] [--policy field|paper|tetfusion] [--size W]
 //                [--record-levels-to F [--extract-levels R,...]] [--min-psnr DB] [--view NAME]
-//                [--repeat N] --json
+//                [--original-from grid|mesh|both] [--repeat N] --json
 //   decima-bench --input PATH --job-out DIR [--regions K] [--reduction F] [--policy P]
 //                [--interfaces M] [--min-psnr DB] [--mesh-compression zlib|lzma] [--size W]
-//                [--view NAME]
+//                [--view NAME] [--original-from grid|mesh|both]
 //
 // Every stage runs --repeat times on the output of the previous stage; `seconds` is the median
 // and `seconds_all` every run. The process's peak resident memory after the stage is reported
@@ -19,12 +19,24 @@
 // from its metrics.json (`peak_rss_mb`, `stage_peak_rss_mb`), bytes per voxel and per tet of
 // the original mesh, and the stage seconds: the peak-memory regression benchmark of issue 30.
 // It is the figure the server's job child reports, less the child's few MB of gRPC libraries.
+//
+// --original-from grid|mesh|both (default grid): where the original is rendered from, the voxel
+// grid (RenderableGrid, the pipeline's default) or its materialized 5-tet mesh (RenderableMesh,
+// the earlier path; issue 30). In the render stage, `both` renders the original both ways in this
+// process and reports each one's build and render seconds under "grid" and "mesh" and whether
+// the pixels are identical. With --job-out, `both` runs the job twice, each in a forked child (so
+// each peak RSS is its own), into DIR/grid and DIR/mesh, prints both JSON objects and whether
+// the PNGs are byte-identical and metrics.json is the same but for times and memory.
 #include <sys/resource.h>
+#include <sys/wait.h>
+#include <unistd.h>
 
 #include <algorithm>
 #include <chrono>
 #include <cmath>
 #include <cstdlib>
+#include <filesystem>
+#include <fstream>
 #include <functional>
 #include <iostream>
 #include <optional>
@@ -99,6 +111,7 @@ struct BenchOptions {
   std::string mesh_compression = VtuCompressorName(VtuWriteOptions().compressor);
   int size = 512;
   std::string view = "anterior";
+  std::string original_from = "grid";  // grid, mesh or both
 };
 
 struct BenchState {
@@ -274,29 +287,80 @@ absl::Status RunSimplify(const BenchOptions& o, BenchState& state, Json& out) {
   return absl::OkStatus();
 }
 
+// Renders the original from `renderable` (a RenderableGrid or RenderableMesh) --repeat times into
+// out["seconds"...]; the last image in *image.
+template <typename Renderable>
+absl::Status TimeOriginal(const BenchOptions& o, const Renderable& renderable, const Camera& camera,
+                          const TransferFunction& tf, Json& out,
+                          std::optional<RenderedImage>* image) {
+  return Time(o.repeat, out, [&]() -> absl::Status {
+    auto r = Render(renderable, camera, tf);
+    if (!r.ok()) return r.status();
+    *image = *std::move(r);
+    return absl::OkStatus();
+  });
+}
+
+double SecondsSince(std::chrono::steady_clock::time_point start) {
+  return std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
+}
+
 absl::Status RunRender(const BenchOptions& o, BenchState& state, Json& out) {
   auto view = ParseView(o.view);
   if (!view.ok()) return view.status();
-  auto original = BuildRenderableMesh(*state.mesh);
-  if (!original.ok()) return original.status();
+  const bool grid = o.original_from != "mesh", mesh = o.original_from != "grid";
+  std::optional<RenderableGrid> from_grid;
+  std::optional<RenderableMesh> from_mesh;
+  Json build;
+  if (grid) {
+    const auto start = std::chrono::steady_clock::now();
+    auto r = BuildRenderableGrid(state.image);
+    if (!r.ok()) return r.status();
+    from_grid = *std::move(r);
+    build["grid"] = SecondsSince(start);
+  }
+  if (mesh) {
+    const auto start = std::chrono::steady_clock::now();
+    auto r = BuildRenderableMesh(*state.mesh);
+    if (!r.ok()) return r.status();
+    from_mesh = *std::move(r);
+    build["mesh"] = SecondsSince(start);
+  }
+  const Bounds bounds = grid ? from_grid->bounds : from_mesh->bounds;
+  const ScalarRange range = grid ? from_grid->scalar_range : from_mesh->scalar_range;
+  const int64_t tets = grid ? from_grid->tet_count() : from_mesh->tet_count();
   ViewOptions vo;
   vo.width = vo.height = o.size;
-  auto camera = MakeViewCamera(*view, original->bounds, vo);
+  auto camera = MakeViewCamera(*view, bounds, vo);
   if (!camera.ok()) return camera.status();
-  const bool ct = state.image.modality == "CT" || original->scalar_range.max > 1500;
-  auto tf = TransferFunctionPreset(ct ? "ct" : "mri-t1", original->scalar_range);
+  const bool ct = state.image.modality == "CT" || range.max > 1500;
+  auto tf = TransferFunctionPreset(ct ? "ct" : "mri-t1", range);
   if (!tf.ok()) return tf.status();
-  std::optional<RenderedImage> image;
-  absl::Status s = Time(o.repeat, out, [&]() -> absl::Status {
-    auto r = Render(*original, *camera, *tf);
-    if (!r.ok()) return r.status();
-    image = *std::move(r);
-    return absl::OkStatus();
-  });
-  if (!s.ok()) return s;
+  std::optional<RenderedImage> image, mesh_image;
+  out["original_from"] = o.original_from;
+  if (grid && mesh) {
+    Json g, m;
+    absl::Status s = TimeOriginal(o, *from_grid, *camera, *tf, g, &image);
+    if (!s.ok()) return s;
+    s = TimeOriginal(o, *from_mesh, *camera, *tf, m, &mesh_image);
+    if (!s.ok()) return s;
+    g["build_seconds"] = build["grid"];
+    m["build_seconds"] = build["mesh"];
+    out["grid"] = g;
+    out["mesh"] = m;
+    out["identical_pixels"] = image->rgb == mesh_image->rgb && image->alpha == mesh_image->alpha;
+    out["seconds"] = g["seconds"];
+  } else {
+    absl::Status s = grid ? TimeOriginal(o, *from_grid, *camera, *tf, out, &image)
+                          : TimeOriginal(o, *from_mesh, *camera, *tf, out, &image);
+    if (!s.ok()) return s;
+    out["build_seconds"] = grid ? build["grid"] : build["mesh"];
+  }
   out["size"] = o.size;
   out["view"] = o.view;
-  out["tets"] = original->tet_count();
+  out["tets"] = tets;
+  from_grid.reset();
+  from_mesh.reset();
   if (state.simplified) {
     auto simplified = BuildRenderableMesh(state.simplified->mesh);
     if (!simplified.ok()) return simplified.status();
@@ -311,8 +375,8 @@ absl::Status RunRender(const BenchOptions& o, BenchState& state, Json& out) {
   return absl::OkStatus();
 }
 
-// The whole job in this process; prints the job's own memory figures (see the file comment).
-int RunWholeJob(const BenchOptions& o, const std::string& out_dir) {
+// The whole job in this process; its own memory figures in *out (see the file comment).
+int RunWholeJob(const BenchOptions& o, const std::string& out_dir, Json* out_json) {
   pipeline::JobSpec spec;
   spec.input = o.input;
   spec.regions = o.regions;
@@ -323,6 +387,8 @@ int RunWholeJob(const BenchOptions& o, const std::string& out_dir) {
   spec.mesh_compression = *ParseVtuCompressor(o.mesh_compression);  // the flag checks the name
   spec.image_size = o.size;
   spec.views = {o.view};
+  spec.original_from = o.original_from == "mesh" ? pipeline::JobSpec::OriginalSource::kMesh
+                                                 : pipeline::JobSpec::OriginalSource::kGrid;
   auto result = pipeline::RunJob(spec, out_dir, nullptr, nullptr, {});
   if (!result.ok()) {
     std::cerr << "decima-bench: job: " << result.status() << "\n";
@@ -354,7 +420,82 @@ int RunWholeJob(const BenchOptions& o, const std::string& out_dir) {
   out["seconds"] = metrics["seconds"];
   out["cells_after"] = metrics["simplification"]["cells_after"];
   out["fidelity"] = metrics["fidelity"];
-  std::cout << out.dump(2) << std::endl;
+  out["original_from"] = o.original_from;
+  *out_json = out;
+  return 0;
+}
+
+// metrics.json without what differs between two runs of one job: times and memory.
+Json WithoutRunFigures(const Json& j) {
+  if (j.is_object()) {
+    Json out = Json::object();
+    for (const auto& [key, value] : j.items()) {
+      if (key.find("seconds") == std::string::npos && key.find("rss") == std::string::npos) {
+        out[key] = WithoutRunFigures(value);
+      }
+    }
+    return out;
+  }
+  if (!j.is_array()) return j;
+  Json out = Json::array();
+  for (const auto& v : j) out.push_back(WithoutRunFigures(v));
+  return out;
+}
+
+std::string FileBytes(const std::filesystem::path& path) {
+  std::ifstream in(path, std::ios::binary);
+  return {std::istreambuf_iterator<char>(in), std::istreambuf_iterator<char>()};
+}
+
+// --job-out with --original-from both: the job from the grid and from the mesh, each in a forked
+// child (called before any thread starts), then the comparison (see the file comment).
+int RunWholeJobBothWays(const BenchOptions& o, const std::string& out_dir) {
+  namespace fs = std::filesystem;
+  Json both;
+  for (const char* source : {"grid", "mesh"}) {
+    const fs::path dir = fs::path(out_dir) / source;
+    std::cout.flush();
+    const pid_t pid = fork();
+    if (pid < 0) {
+      std::cerr << "decima-bench: fork failed\n";
+      return 1;
+    }
+    if (pid == 0) {
+      BenchOptions one = o;
+      one.original_from = source;
+      Json out;
+      int rc = RunWholeJob(one, dir.string(), &out);
+      if (rc == 0) {
+        std::ofstream f(dir / "bench.json");
+        f << out.dump(2);
+        rc = f.good() ? 0 : 1;
+      }
+      std::_Exit(rc);
+    }
+    int status = 0;
+    if (waitpid(pid, &status, 0) != pid || !WIFEXITED(status) || WEXITSTATUS(status) != 0) {
+      std::cerr << "decima-bench: the job with the original from the " << source << " failed\n";
+      return 1;
+    }
+    std::ifstream in(dir / "bench.json");
+    both[source] = Json::parse(in);
+  }
+  bool pngs_identical = true;
+  Json pngs = Json::array();
+  for (const auto& entry : fs::directory_iterator(fs::path(out_dir) / "grid")) {
+    if (entry.path().extension() != ".png") continue;
+    const fs::path other = fs::path(out_dir) / "mesh" / entry.path().filename();
+    const bool same = FileBytes(entry.path()) == FileBytes(other);
+    pngs_identical = pngs_identical && same;
+    pngs.push_back({{"name", entry.path().filename().string()}, {"identical", same}});
+  }
+  both["pngs"] = pngs;
+  both["pngs_identical"] = pngs_identical && !pngs.empty();
+  const Json grid_metrics = Json::parse(FileBytes(fs::path(out_dir) / "grid" / "metrics.json"));
+  const Json mesh_metrics = Json::parse(FileBytes(fs::path(out_dir) / "mesh" / "metrics.json"));
+  both["metrics_identical_but_times_and_memory"] =
+      WithoutRunFigures(grid_metrics) == WithoutRunFigures(mesh_metrics);
+  std::cout << both.dump(2) << std::endl;
   return 0;
 }
 
@@ -427,6 +568,11 @@ int Main(int argc, char** argv) {
   app.add_option("--view", o.view,
                  "render: view preset (anterior, lateral, superior, oblique, ...)")
       ->capture_default_str();
+  app.add_option("--original-from", o.original_from,
+                 "render the original from the voxel grid, from its materialized mesh, or both "
+                 "(compared; see the file comment)")
+      ->check(CLI::IsMember({"grid", "mesh", "both"}))
+      ->capture_default_str();
   std::string job_out;
   app.add_option("--job-out", job_out,
                  "Run the whole job (RunJob) into this folder instead of the stages and print "
@@ -438,7 +584,13 @@ int Main(int argc, char** argv) {
     return 2;
   }
 
-  if (!job_out.empty()) return RunWholeJob(o, job_out);
+  if (!job_out.empty()) {
+    if (o.original_from == "both") return RunWholeJobBothWays(o, job_out);
+    Json out;
+    const int rc = RunWholeJob(o, job_out, &out);
+    if (rc == 0) std::cout << out.dump(2) << std::endl;
+    return rc;
+  }
 
   const std::vector<std::string> order = {"load", "segment", "tetra", "simplify", "render"};
   std::vector<std::string> requested = absl::StrSplit(stages_arg, ',', absl::SkipEmpty());

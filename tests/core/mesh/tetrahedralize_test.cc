@@ -360,5 +360,42 @@ TEST(MeshTopology, BoundarySurfaceIsTheBoxHullFacingOutwards) {
   EXPECT_NEAR(volume, BoxVolume(v), 1e-6);
 }
 
+// GridTets::Neighbour against the adjacency of the materialized mesh (TetAcrossFace over its
+// vertex-tet lists): every face of every tet, on odd and even dims (so both cube parities meet
+// every side), with and without an orientation-reversing direction (the stored vertex order, and
+// so which face is q, changes with it).
+TEST(GridTets, NeighbourIsTheTetAcrossTheFaceOfTheMaterializedMesh) {
+  struct Case {
+    std::array<int64_t, 3> dims;
+    bool flip;
+  };
+  for (const Case& c : {Case{{2, 2, 2}, false}, Case{{3, 3, 3}, false}, Case{{5, 4, 6}, false},
+                        Case{{4, 5, 3}, true}, Case{{7, 3, 4}, true}, Case{{6, 6, 5}, false}}) {
+    SCOPED_TRACE(::testing::Message() << c.dims[0] << "x" << c.dims[1] << "x" << c.dims[2]
+                                      << (c.flip ? " flipped" : ""));
+    Volume v = Ramp(c.dims);
+    if (c.flip) v.direction.col(2) *= -1;
+    auto m = Tetrahedralize(v);
+    ASSERT_TRUE(m.ok()) << m.status();
+    ASSERT_TRUE(m->grid.has_value());
+    ASSERT_EQ(m->grid->flip(), c.flip);
+    const VertexTetAdjacency adj = BuildVertexTetAdjacency(*m);
+    int64_t boundary = 0;
+    for (int64_t t = 0; t < m->tet_count(); ++t) {
+      const int32_t* tv = &m->tets[4 * t];
+      for (int q = 0; q < 4; ++q) {
+        int32_t f[3], n = 0;
+        for (int r = 0; r < 4; ++r)
+          if (r != q) f[n++] = tv[r];
+        const int64_t expected = TetAcrossFace(*m, adj, t, f[0], f[1], f[2]);
+        ASSERT_EQ(m->grid->Neighbour(t, q), expected) << "tet " << t << " face " << q;
+        boundary += expected < 0;
+      }
+    }
+    const int64_t nx = c.dims[0], ny = c.dims[1], nz = c.dims[2];
+    EXPECT_EQ(boundary, 4 * ((nx - 1) * (ny - 1) + (nx - 1) * (nz - 1) + (ny - 1) * (nz - 1)));
+  }
+}
+
 }  // namespace
 }  // namespace decima
