@@ -122,6 +122,37 @@ int NrrdEntry(const uint8_t* data, size_t size) {
   return 0;
 }
 
+int VolumeHeaderEntry(const uint8_t* data, size_t size) {
+  SetLastInputAccepted(false);
+  if (size < 1) return 0;
+  struct Layout {
+    const char* name;
+    std::initializer_list<const char*> data_names;
+  };
+  static const Layout kLayouts[] = {{"v.nii", {}},  {"v.hdr", {"v.img"}},
+                                    {"v.mha", {}},  {"v.mhd", {"a.raw", "a.zraw"}},
+                                    {"v.nrrd", {}}, {"v.nhdr", {"a.raw", "a.raw.gz"}}};
+  const Layout& l = kLayouts[data[0] % 6];
+  const fs::path path = WriteVolumeFiles("header", data + 1, size - 1, l.name, l.data_names);
+  auto probe = io::ProbeVolume(path);
+  if (!probe.ok()) {
+    Require(
+        probe.status().message().find(path.string()) != std::string_view::npos ||
+            probe.status().message().find(path.parent_path().string()) != std::string_view::npos,
+        "a refused header names its file");
+    return 0;
+  }
+  SetLastInputAccepted(true);
+  Require(probe->parsed, "a file's header is parsed (only a DICOM folder is not)");
+  int64_t voxels = 1;
+  for (int64_t d : probe->dims) {
+    Require(d >= 1 && d <= kMaxVoxels, "each dim is in 1..kMaxVoxels");
+    voxels *= d;  // each <= 2^31 and the running product <= 2^31: no overflow
+    Require(voxels <= kMaxVoxels, "the voxel count is at most kMaxVoxels");
+  }
+  return 0;
+}
+
 int DicomEntry(const uint8_t* data, size_t size) {
   // Each part is one file of a series folder. The preflight must decide every part; the folder
   // then goes through the GDCM-backed listing and reader, which must not crash or abort.
