@@ -3,7 +3,6 @@
 #include <unistd.h>
 
 #include <algorithm>
-#include <string_view>
 
 #include "absl/strings/str_cat.h"
 #include "server/files/disk_space.h"
@@ -108,12 +107,13 @@ absl::Status ValidateVolumeSize(const google::protobuf::RepeatedField<int64_t>& 
     return absl::InvalidArgumentError(
         absl::StrCat("dims: expected 3 counts (x, y, z), got ", dims.size()));
   }
+  constexpr const char* kAxes[] = {"x", "y", "z"};
   int64_t voxels = 1;
   for (int i = 0; i < 3; ++i) {
     const int64_t d = dims[i];
     if (d < 1 || d > kMaxVolumeDim) {
-      return absl::InvalidArgumentError(absl::StrCat("dims: ", std::string_view("xyz" + i, 1),
-                                                     " is ", d, ", expected 1 to ", kMaxVolumeDim));
+      return absl::InvalidArgumentError(
+          absl::StrCat("dims: ", kAxes[i], " is ", d, ", expected 1 to ", kMaxVolumeDim));
     }
     // Compared before multiplying, so the product never overflows.
     if (voxels > kMaxVolumeVoxels / d) {

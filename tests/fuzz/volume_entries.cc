@@ -125,15 +125,29 @@ int NrrdEntry(const uint8_t* data, size_t size) {
 int VolumeHeaderEntry(const uint8_t* data, size_t size) {
   SetLastInputAccepted(false);
   if (size < 1) return 0;
-  struct Layout {
-    const char* name;
-    std::initializer_list<const char*> data_names;
-  };
-  static const Layout kLayouts[] = {{"v.nii", {}},  {"v.hdr", {"v.img"}},
-                                    {"v.mha", {}},  {"v.mhd", {"a.raw", "a.zraw"}},
-                                    {"v.nrrd", {}}, {"v.nhdr", {"a.raw", "a.raw.gz"}}};
-  const Layout& l = kLayouts[data[0] % 6];
-  const fs::path path = WriteVolumeFiles("header", data + 1, size - 1, l.name, l.data_names);
+  const uint8_t* in = data + 1;
+  const size_t n = size - 1;
+  fs::path path;
+  switch (data[0] % 6) {
+    case 0:
+      path = WriteVolumeFiles("header", in, n, "v.nii", {});
+      break;
+    case 1:
+      path = WriteVolumeFiles("header", in, n, "v.hdr", {"v.img"});
+      break;
+    case 2:
+      path = WriteVolumeFiles("header", in, n, "v.mha", {});
+      break;
+    case 3:
+      path = WriteVolumeFiles("header", in, n, "v.mhd", {"a.raw", "a.zraw"});
+      break;
+    case 4:
+      path = WriteVolumeFiles("header", in, n, "v.nrrd", {});
+      break;
+    default:
+      path = WriteVolumeFiles("header", in, n, "v.nhdr", {"a.raw", "a.raw.gz"});
+      break;
+  }
   auto probe = io::ProbeVolume(path);
   if (!probe.ok()) {
     Require(
