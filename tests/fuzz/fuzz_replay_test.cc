@@ -31,6 +31,11 @@ TEST(FuzzReplay, EveryNrrdSeedRunsThroughItsEntry) { ReplayCorpus("nrrd", NrrdEn
 // The volume corpora through the client's pre-upload header check: each seed's first byte (its
 // layout bit) becomes VolumeHeaderEntry's selector of the same layout, so every NIfTI, MetaImage
 // and NRRD seed is probed as the file it is; ok-* seeds (read by the readers) must be accepted.
+TEST(FuzzReplay, EveryVolumeHeaderSeedRunsThroughItsEntry) {
+  ReplayCorpus("volume_header", VolumeHeaderEntry);
+}
+// The same seeds from their own corpora (tests/fuzz/corpus/volume_header is a copy of them with
+// the layout byte remapped, for the libFuzzer campaign).
 TEST(FuzzReplay, EveryVolumeSeedRunsThroughTheClientHeaderCheck) {
   int ok = 0, seeds = 0;
   for (const auto& [corpus, first] :
