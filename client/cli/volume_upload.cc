@@ -2,9 +2,34 @@
 
 #include <cstdio>
 
+#include "core/io/volume_io.h"
+#include "decima/v1/jobs.grpc.pb.h"
+
 namespace decima::client {
 
 namespace fs = std::filesystem;
+
+int CheckJobMemoryBeforeUpload(CliContext& ctx, const fs::path& input, const v1::JobSpec& spec) {
+  std::error_code ec;
+  if (fs::is_directory(input, ec)) return kOk;  // DICOM: dims only after reading the series
+  auto header = io::ProbeVolume(input);
+  if (!header.ok() || !header->parsed) return kOk;  // CreateVolume names what is wrong
+  v1::CheckJobMemoryRequest req;
+  *req.mutable_spec() = spec;
+  req.set_display_name(input.filename().string());
+  for (int64_t d : header->dims) req.add_dims(d);
+  req.set_size_bytes(static_cast<int64_t>(fs::file_size(input, ec)));
+  if (ec) req.set_size_bytes(0);
+  auto jobs = v1::Jobs::NewStub(ctx.conn.channel);
+  v1::CheckJobMemoryResponse resp;  // fits, the estimate and the limit: nothing to show
+  grpc::Status s = WithRetry(ctx, [&] {
+    auto call = ctx.conn.Context();
+    return jobs->CheckJobMemory(call.get(), req, &resp);
+  });
+  if (s.error_code() == grpc::StatusCode::UNIMPLEMENTED) return kOk;  // an older server
+  if (!s.ok()) return Report(ctx, s, "submit");
+  return kOk;
+}
 
 int MakeVolume(CliContext& ctx, const fs::path& input, const std::string& series,
                const std::string& request_id, std::string* name) {

@@ -188,6 +188,9 @@ void DeleteVolumes(CliContext& ctx, const std::vector<std::string>& names) {
 int SubmitOne(CliContext& ctx, const SubmitOptions& o, const std::string& input) {
   v1::CreateJobRequest req;
   auto* spec = req.mutable_spec();
+  if (int frc = FillSpec(o, spec); frc != kOk) return frc;
+  // A job that cannot fit is refused before its volume is uploaded.
+  if (int mrc = CheckJobMemoryBeforeUpload(ctx, input, *spec); mrc != kOk) return mrc;
   int rc = MakeVolume(ctx, input, o.series, o.request_id, spec->mutable_volume());
   if (rc != kOk) return rc;
   if (!o.label_map.empty()) {
@@ -195,7 +198,6 @@ int SubmitOne(CliContext& ctx, const SubmitOptions& o, const std::string& input)
                     spec->mutable_label_map());
     if (rc != kOk) return rc;
   }
-  if (int frc = FillSpec(o, spec); frc != kOk) return frc;
   req.set_request_id(o.request_id.empty() ? NewRequestId() : o.request_id);
   v1::Job job;
   grpc::Status s = CreateJob(ctx, o, req, &job);
@@ -237,10 +239,13 @@ int QueueStudy(CliContext& ctx, const SubmitOptions& o, const v1::JobSpec& commo
   ctx.last_error.clear();
   v1::CreateJobRequest jreq;
   *jreq.mutable_spec() = common;
-  int vrc = study.dicom()
-                ? UploadVolume(ctx, study.input, study.files, study.display_name, study.series_uid,
-                               rid, jreq.mutable_spec()->mutable_volume())
-                : MakeVolume(ctx, study.input, "", rid, jreq.mutable_spec()->mutable_volume());
+  int vrc = study.dicom() ? kOk : CheckJobMemoryBeforeUpload(ctx, study.input, common);
+  if (vrc == kOk) {
+    vrc = study.dicom()
+              ? UploadVolume(ctx, study.input, study.files, study.display_name, study.series_uid,
+                             rid, jreq.mutable_spec()->mutable_volume())
+              : MakeVolume(ctx, study.input, "", rid, jreq.mutable_spec()->mutable_volume());
+  }
   if (vrc == kOk) {
     jreq.set_request_id(rid.empty() ? NewRequestId() : rid);
     v1::Job job;

@@ -86,12 +86,9 @@ absl::StatusOr<v1::Job> SubmitJob(const ServiceDeps& d, const Principal& caller,
     }
     // Refused now rather than failed when a worker takes it: nothing is queued. The estimate
     // is the volume's (a label map is small beside the job).
-    const int64_t cap = d.options->job_memory_cap_bytes;
-    if (std::string_view(name) == "spec.volume" && cap > 0) {
-      if (auto fits = CheckJobMemory(*vol, value, cap); !fits.ok()) {
-        detail->set_field(name);
-        detail->set_limit("worker_memory_mb");
-        detail->set_limit_value(cap >> 20);
+    if (std::string_view(name) == "spec.volume") {
+      if (auto fits = CheckJobFits(*vol, value, d.options->job_memory_cap_bytes, name, detail);
+          !fits.ok()) {
         return fits;
       }
     }
@@ -168,6 +165,37 @@ class JobsService final : public v1::Jobs::Service {
     if (!job.ok()) return Fail(ctx, job.status(), detail);
     *resp = std::move(*job);
     return grpc::Status::OK;
+  }
+
+  // CreateJob's memory check before the volume exists: a caller that may create jobs asks with
+  // the dims of a file's header, and nothing is stored or audited (it changes nothing).
+  grpc::Status CheckJobMemory(grpc::ServerContext* ctx, const v1::CheckJobMemoryRequest* req,
+                              v1::CheckJobMemoryResponse* resp) override {
+    return Guarded(d_, ctx, [&](const Principal& caller) -> grpc::Status {
+      if (auto may = CallGuard::MayCreate(caller, "jobs"); !may.ok()) return may;
+      if (req->display_name().size() > 1024) {
+        return InvalidField(ctx, "display_name", "too long (at most 1024 bytes)");
+      }
+      std::string field;
+      if (auto st = ValidateVolumeSize(req->dims(), req->size_bytes(), &field); !st.ok()) {
+        v1::ErrorDetail detail;
+        detail.set_field(field);
+        return Fail(ctx, st, detail);
+      }
+      v1::Volume volume;
+      *volume.mutable_dims() = req->dims();
+      volume.set_size_bytes(req->size_bytes());
+      const int64_t cap = d_.options->job_memory_cap_bytes;
+      const std::string name = req->display_name().empty() ? "the volume" : req->display_name();
+      v1::ErrorDetail detail;
+      int64_t needed = 0;
+      auto fits = CheckJobFits(volume, name, cap, "dims", &detail, &needed);
+      if (!fits.ok()) return Fail(ctx, fits, detail);
+      resp->set_fits(true);
+      resp->set_estimate_mb((needed + (int64_t{1} << 20) - 1) >> 20);
+      resp->set_limit_mb(cap > 0 ? cap >> 20 : 0);
+      return grpc::Status::OK;
+    });
   }
 
   grpc::Status GetJob(grpc::ServerContext* ctx, const v1::GetJobRequest* req,

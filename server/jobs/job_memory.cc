@@ -90,6 +90,50 @@ absl::Status CheckJobMemory(const v1::Volume& volume, const std::string& volume_
                    " (decima-server --worker-memory-mb); nothing was run"));
 }
 
+absl::Status CheckJobFits(const v1::Volume& volume, const std::string& volume_name, int64_t cap,
+                          const std::string& field, v1::ErrorDetail* detail, int64_t* needed) {
+  if (needed) *needed = EstimateJobMemoryBytes(volume);
+  if (cap <= 0) return absl::OkStatus();
+  absl::Status fits = CheckJobMemory(volume, volume_name, cap);
+  if (!fits.ok()) {
+    detail->set_field(field);
+    detail->set_limit("worker_memory_mb");
+    detail->set_limit_value(cap >> 20);
+  }
+  return fits;
+}
+
+absl::Status ValidateVolumeSize(const google::protobuf::RepeatedField<int64_t>& dims,
+                                int64_t size_bytes, std::string* field) {
+  *field = "dims";
+  if (dims.size() != 3) {
+    return absl::InvalidArgumentError(
+        absl::StrCat("dims: expected 3 counts (x, y, z), got ", dims.size()));
+  }
+  constexpr const char* kAxes[] = {"x", "y", "z"};
+  int64_t voxels = 1;
+  for (int i = 0; i < 3; ++i) {
+    const int64_t d = dims[i];
+    if (d < 1 || d > kMaxVolumeDim) {
+      return absl::InvalidArgumentError(
+          absl::StrCat("dims: ", kAxes[i], " is ", d, ", expected 1 to ", kMaxVolumeDim));
+    }
+    // Compared before multiplying, so the product never overflows.
+    if (voxels > kMaxVolumeVoxels / d) {
+      return absl::InvalidArgumentError(absl::StrCat("dims: ", dims[0], "x", dims[1], "x", dims[2],
+                                                     " is more than ", kMaxVolumeVoxels,
+                                                     " voxels"));
+    }
+    voxels *= d;
+  }
+  if (size_bytes < 0) {
+    *field = "size_bytes";
+    return absl::InvalidArgumentError(absl::StrCat("size_bytes: ", size_bytes, " is negative"));
+  }
+  field->clear();
+  return absl::OkStatus();
+}
+
 int64_t JobAddressSpaceLimitBytes(int64_t needed, int64_t cap) {
   return std::min(cap, 2 * needed + kRuntimeBytes);
 }

@@ -10,6 +10,7 @@
 #include <string>
 
 #include "absl/status/status.h"
+#include "decima/v1/errors.pb.h"
 #include "decima/v1/volumes.pb.h"
 
 namespace decima::server {
@@ -32,6 +33,26 @@ int64_t JobMemoryCapBytes(int64_t worker_memory_mb);
 // it. Checked when a job is submitted and again by the runner (another replica's limit may be
 // lower than the one that took the job).
 absl::Status CheckJobMemory(const v1::Volume& volume, const std::string& volume_name, int64_t cap);
+
+// The one submit-time decision, shared by CreateJob (on the stored volume) and CheckJobMemory
+// (on the dims a client read from a file's header before uploading it): CheckJobMemory under
+// `cap`, and on refusal `detail` names `field` and the limit (worker_memory_mb, in MiB). A cap of
+// 0 or less admits every job. `needed` (may be null) receives the estimate.
+absl::Status CheckJobFits(const v1::Volume& volume, const std::string& volume_name, int64_t cap,
+                          const std::string& field, v1::ErrorDetail* detail,
+                          int64_t* needed = nullptr);
+
+// The largest count along one axis and in all a client may declare before uploading: above
+// what core/io accepts (kMaxVoxels, 2^31 in all), so every file the server would take passes,
+// and low enough that the estimate cannot overflow.
+inline constexpr int64_t kMaxVolumeDim = int64_t{1} << 31;
+inline constexpr int64_t kMaxVolumeVoxels = int64_t{1} << 40;
+
+// Dims a client declares (CheckJobMemory): exactly three, each in [1, kMaxVolumeDim], product
+// at most kMaxVolumeVoxels, and size_bytes >= 0. On error InvalidArgument whose message starts
+// with the field, and `field` set to it ("dims" or "size_bytes").
+absl::Status ValidateVolumeSize(const google::protobuf::RepeatedField<int64_t>& dims,
+                                int64_t size_bytes, std::string* field);
 
 // The address-space limit for a job with estimate `needed` under `cap`: room for twice the
 // estimate plus the runtime's fixed mappings, never above the cap.

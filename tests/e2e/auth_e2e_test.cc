@@ -528,6 +528,20 @@ TEST_F(OwnershipE2E, EveryRpcByEveryRoleGetsTheExpectedCode) {
          if (c == OK) WaitFinal(name);
          return c;
        }},
+      {"Jobs.CheckJobMemory (a role that may submit may ask)",
+       {OK, OK, PD, OK, UA},
+       [&](const std::string& t) {
+         v1::CheckJobMemoryRequest r;
+         r.set_display_name("phantom.nii");
+         for (int64_t d : {24, 24, 16}) r.add_dims(d);
+         r.set_size_bytes(static_cast<int64_t>(phantom.size()));
+         v1::CheckJobMemoryResponse resp;
+         auto s = jobs_->CheckJobMemory(Ctx(t).get(), r, &resp);
+         if (s.ok()) {
+           EXPECT_TRUE(resp.fits());
+         }
+         return s.error_code();
+       }},
       {"Jobs.GetJob",
        {OK, PD, OK, OK, UA},
        [&](const std::string& t) {
@@ -632,7 +646,7 @@ TEST_F(OwnershipE2E, EveryRpcByEveryRoleGetsTheExpectedCode) {
       ++checked;
     }
   }
-  EXPECT_EQ(checked, 17 * 5);
+  EXPECT_EQ(checked, 18 * 5);
   // Health stays open without credentials.
   CliResult h = RunCli(server_->address(), {"health"});
   EXPECT_EQ(h.rc, 0) << h.err;

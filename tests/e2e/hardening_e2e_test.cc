@@ -299,6 +299,29 @@ TEST_F(HardeningE2E, DecompressionBombCostsTheServerNothingAndItsJobIsRefusedWit
       << "the server's peak RSS grew by " << (after - before) << " bytes";
 }
 
+// Issue 30: a job that cannot fit is refused at submit from the file's header (CheckJobMemory),
+// with CreateJob's message, before a byte is uploaded: no blob, no partial upload, no volume on
+// the server. A job that fits on the same server uploads as before (the counts can move).
+TEST_F(HardeningE2E, AJobOverTheMemoryLimitIsRefusedBeforeAnyByteIsUploaded) {
+  ServerProcess server(scratch_ / "data", {"--worker-memory-mb", "2048"});
+  const fs::path blobs = server.data_dir() / "blobs";
+  const fs::path big = scratch_ / "big.nii.gz";
+  WriteNiftiGzBomb(big, 1024, 1024, 512);
+  CliResult r = RunCli(server.address(), {"submit", big.string()}, 120s * kSlowdown);
+  EXPECT_EQ(r.rc, 1) << r.err;
+  EXPECT_THAT(r.err, HasSubstr("big.nii.gz (1024x1024x512 voxels) needs about"));
+  EXPECT_THAT(r.err, HasSubstr("more than the job limit of 2.0 GB"));
+  EXPECT_THAT(r.err, HasSubstr("--worker-memory-mb"));
+  EXPECT_THAT(r.err, Not(HasSubstr("upload")));  // no progress line: nothing was sent
+  EXPECT_EQ(FileCount(blobs / "sha256"), 0u);
+  EXPECT_EQ(FileCount(blobs / "partial"), 0u);
+  EXPECT_TRUE(ListVolumes(server.address()).empty());
+  r = RunCli(server.address(), {"-q", "submit", volume_.string()}, 60s * kSlowdown);
+  ASSERT_EQ(r.rc, 0) << r.err;
+  EXPECT_EQ(FileCount(blobs / "sha256"), 1u);
+  EXPECT_EQ(ListVolumes(server.address()).size(), 1u);
+}
+
 // Issue case 4: a folder with two series is refused with the list, processed when one is
 // chosen, and an unknown UID is refused at CreateVolume.
 TEST_F(HardeningE2E, SeriesInstanceUidIsHonouredEndToEnd) {

@@ -31,6 +31,13 @@ int NiftiEntry(const uint8_t* data, size_t size);
 int MetaImageEntry(const uint8_t* data, size_t size);
 // As NiftiEntry for ReadNrrd: .nrrd, or (bit 0) .nhdr with the detached files a.raw, a.raw.gz.
 int NrrdEntry(const uint8_t* data, size_t size);
+// The header check `decima submit` runs before an upload (client/cli/volume_upload.h: ProbeVolume
+// on the file alone, issue 30). First byte % 6 picks the file: .nii, .hdr + .img, .mha,
+// .mhd + a.raw/a.zraw, .nrrd, .nhdr + a.raw/a.raw.gz; the rest as the entries above. The probe
+// must return a Status whose error names the file; dims it accepts are each >= 1 with a product
+// <= kMaxVoxels (so CheckJobMemory's ValidateVolumeSize takes them: a file the server would
+// accept is never refused by the pre-upload check).
+int VolumeHeaderEntry(const uint8_t* data, size_t size);
 // Each part is one file of a folder: every part goes through the structural preflight, the
 // folder through ListDicomSeries, ReadDicomSeries (GDCM) and ReadVolume, which must agree and
 // never crash or abort; a volume returned passes Validate.

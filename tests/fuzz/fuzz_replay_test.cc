@@ -28,6 +28,34 @@ TEST(FuzzReplay, EveryMetaImageSeedRunsThroughItsEntry) {
   ReplayCorpus("metaimage", MetaImageEntry);
 }
 TEST(FuzzReplay, EveryNrrdSeedRunsThroughItsEntry) { ReplayCorpus("nrrd", NrrdEntry); }
+// The volume corpora through the client's pre-upload header check: each seed's first byte (its
+// layout bit) becomes VolumeHeaderEntry's selector of the same layout, so every NIfTI, MetaImage
+// and NRRD seed is probed as the file it is; ok-* seeds (read by the readers) must be accepted.
+TEST(FuzzReplay, EveryVolumeHeaderSeedRunsThroughItsEntry) {
+  ReplayCorpus("volume_header", VolumeHeaderEntry);
+}
+// The same seeds from their own corpora (tests/fuzz/corpus/volume_header is a copy of them with
+// the layout byte remapped, for the libFuzzer campaign).
+TEST(FuzzReplay, EveryVolumeSeedRunsThroughTheClientHeaderCheck) {
+  int ok = 0, seeds = 0;
+  for (const auto& [corpus, first] :
+       std::vector<std::pair<const char*, uint8_t>>{{"nifti", 0}, {"metaimage", 2}, {"nrrd", 4}}) {
+    for (const fs::path& p : Seeds(corpus)) {
+      SCOPED_TRACE(p.string());
+      std::string b = Bytes(p);
+      if (b.empty()) continue;
+      b[0] = static_cast<char>(first + (b[0] & 1));
+      VolumeHeaderEntry(reinterpret_cast<const uint8_t*>(b.data()), b.size());
+      ++seeds;
+      if (p.filename().string().rfind("ok-", 0) == 0) {
+        EXPECT_TRUE(LastInputAccepted());
+        ++ok;
+      }
+    }
+  }
+  EXPECT_GE(seeds, 25);
+  EXPECT_GE(ok, 3);
+}
 TEST(FuzzReplay, EveryDicomSeedRunsThroughItsEntry) { ReplayCorpus("dicom", DicomEntry); }
 TEST(FuzzReplay, EveryCheckpointSeedRunsThroughItsEntry) {
   ReplayCorpus("checkpoint", CheckpointEntry);

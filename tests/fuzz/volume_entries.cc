@@ -122,6 +122,51 @@ int NrrdEntry(const uint8_t* data, size_t size) {
   return 0;
 }
 
+int VolumeHeaderEntry(const uint8_t* data, size_t size) {
+  SetLastInputAccepted(false);
+  if (size < 1) return 0;
+  const uint8_t* in = data + 1;
+  const size_t n = size - 1;
+  fs::path path;
+  switch (data[0] % 6) {
+    case 0:
+      path = WriteVolumeFiles("header", in, n, "v.nii", {});
+      break;
+    case 1:
+      path = WriteVolumeFiles("header", in, n, "v.hdr", {"v.img"});
+      break;
+    case 2:
+      path = WriteVolumeFiles("header", in, n, "v.mha", {});
+      break;
+    case 3:
+      path = WriteVolumeFiles("header", in, n, "v.mhd", {"a.raw", "a.zraw"});
+      break;
+    case 4:
+      path = WriteVolumeFiles("header", in, n, "v.nrrd", {});
+      break;
+    default:
+      path = WriteVolumeFiles("header", in, n, "v.nhdr", {"a.raw", "a.raw.gz"});
+      break;
+  }
+  auto probe = io::ProbeVolume(path);
+  if (!probe.ok()) {
+    Require(
+        probe.status().message().find(path.string()) != std::string_view::npos ||
+            probe.status().message().find(path.parent_path().string()) != std::string_view::npos,
+        "a refused header names its file");
+    return 0;
+  }
+  SetLastInputAccepted(true);
+  Require(probe->parsed, "a file's header is parsed (only a DICOM folder is not)");
+  int64_t voxels = 1;
+  for (int64_t d : probe->dims) {
+    Require(d >= 1 && d <= kMaxVoxels, "each dim is in 1..kMaxVoxels");
+    voxels *= d;  // each <= 2^31 and the running product <= 2^31: no overflow
+    Require(voxels <= kMaxVoxels, "the voxel count is at most kMaxVoxels");
+  }
+  return 0;
+}
+
 int DicomEntry(const uint8_t* data, size_t size) {
   // Each part is one file of a series folder. The preflight must decide every part; the folder
   // then goes through the GDCM-backed listing and reader, which must not crash or abort.

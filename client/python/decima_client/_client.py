@@ -24,6 +24,7 @@ import uuid
 
 import grpc
 
+from . import _header
 from . import _inputs
 from . import errors
 from .proto import artifacts_pb2, artifacts_pb2_grpc, jobs_pb2, jobs_pb2_grpc
@@ -524,6 +525,7 @@ class Client:
         if label_map is not None:
             _inputs.collect(label_map)
         self._ensure_reachable("submit")
+        self._check_job_memory(path_or_folder, job_spec)
         volume = self._make_volume(path_or_folder, series or "", request_id or "")
         job_spec.volume = volume.name
         # A reused volume is the caller's from before: never deleted on a refusal.
@@ -550,6 +552,23 @@ class Client:
                             pass  # the job's refusal is the error to report
             raise
         return Job(self, job)
+
+    def _check_job_memory(self, path, job_spec):
+        """Issue 30: a job that cannot fit the server's memory limit is refused before its
+        volume is uploaded (ResourceExhausted with the server's message: size, estimate, limit,
+        the flag). Not checked: a DICOM folder (its dims are known only after reading the
+        series), a header _header.read_dims cannot parse (the upload goes on and CreateVolume
+        names the problem), a server older than the RPC (UNIMPLEMENTED: CreateJob refuses)."""
+        dims = _header.read_dims(path)
+        if dims is None:
+            return
+        req = jobs_pb2.CheckJobMemoryRequest(
+            spec=job_spec, display_name=os.path.basename(os.fspath(path)), dims=list(dims),
+            size_bytes=os.path.getsize(path))
+        try:
+            self._unary("submit", self._jobs.CheckJobMemory, req)
+        except errors.Unimplemented:
+            return
 
     def _resolve(self, job):
         """A job name from a Job, "jobs/{id}", an id, or a unique prefix of one."""

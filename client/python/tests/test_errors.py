@@ -2,10 +2,12 @@
 `decima` CLI: a bad spec, a wrong token, a missing file, an unreachable server, a server that
 never answers or stops answering, an upload over the limit, refused TLS handshakes. Each raises
 a typed error whose text is the line the CLI prints for the same failure, and nothing hangs."""
+import gzip
 import os
 import shutil
 import signal
 import socket
+import struct
 import subprocess
 import time
 
@@ -160,6 +162,100 @@ def test_an_upload_over_the_servers_limit_carries_the_limit_in_the_error_detail(
         rc, _, err = run_cli(cli_bin, srv.address, ["submit", str(big)])
         assert str(e.value) in err.splitlines(), err
         assert e.value.exit_code == rc == 1
+        client.close()
+    finally:
+        srv.stop()
+
+
+def _write_nifti_gz_zeros(path, nx, ny, nz, nifti2=False):
+    """A gzipped NIfTI (1 or 2) of uint8 zeros: a small file that declares a big volume."""
+    if nifti2:
+        hdr = bytearray(544)
+        struct.pack_into("<i", hdr, 0, 540)
+        hdr[4:12] = b"n+2\0\r\n\x1a\n"
+        struct.pack_into("<hh", hdr, 12, 2, 8)  # uint8
+        struct.pack_into("<8q", hdr, 16, 3, nx, ny, nz, 1, 1, 1, 1)
+        struct.pack_into("<4d", hdr, 104, 1.0, 1.0, 1.0, 1.0)
+        struct.pack_into("<q", hdr, 168, 544)  # vox_offset
+    else:
+        hdr = bytearray(352)
+        struct.pack_into("<i", hdr, 0, 348)
+        struct.pack_into("<8h", hdr, 40, 3, nx, ny, nz, 1, 1, 1, 1)
+        struct.pack_into("<hh", hdr, 70, 2, 8)  # uint8
+        struct.pack_into("<4f", hdr, 76, 1.0, 1.0, 1.0, 1.0)
+        struct.pack_into("<f", hdr, 108, 352.0)
+        hdr[344:348] = b"n+1\0"
+    zeros = bytes(1 << 20)
+    with gzip.open(path, "wb", compresslevel=1) as f:
+        f.write(bytes(hdr))
+        left = nx * ny * nz
+        while left > 0:
+            n = min(left, len(zeros))
+            f.write(zeros[:n])
+            left -= n
+    return str(path)
+
+
+def test_the_header_reader_reads_every_format_and_refuses_broken_headers(tmp_path):
+    from decima_client import _header
+    assert _header.read_dims(write_tiny_nifti(tmp_path / "t.nii")) == (12, 10, 8)
+    gz = _write_nifti_gz_zeros(tmp_path / "z.nii.gz", 20, 6, 4)
+    assert _header.read_dims(gz) == (20, 6, 4)
+    assert _header.read_dims(_write_nifti_gz_zeros(tmp_path / "z2.nii.gz", 7, 5, 3,
+                                                   nifti2=True)) == (7, 5, 3)
+    (tmp_path / "a.mha").write_bytes(b"ObjectType = Image\nNDims = 3\nDimSize = 9 8 7\n"
+                                     b"ElementType = MET_UCHAR\nElementDataFile = LOCAL\n"
+                                     + bytes(9 * 8 * 7))
+    assert _header.read_dims(tmp_path / "a.mha") == (9, 8, 7)
+    (tmp_path / "a.nrrd").write_bytes(b"NRRD0004\ntype: uchar\ndimension: 3\nsizes: 5 4 3\n"
+                                      b"encoding: raw\n\n" + bytes(60))
+    assert _header.read_dims(tmp_path / "a.nrrd") == (5, 4, 3)
+    # Broken: each None (submit then uploads and the server names the problem), never a raise.
+    nii = open(write_tiny_nifti(tmp_path / "b.nii"), "rb").read()
+    bad = {
+        "truncated.nii": nii[:100],
+        "magic.nii": b"\0" * 352,
+        "zero.nii": nii[:42] + struct.pack("<h", 0) + nii[44:],
+        "negative.nii": nii[:42] + struct.pack("<h", -5) + nii[44:],
+        "garbage.nii.gz": b"\x1f\x8b" + os.urandom(200),
+        "nodims.mha": b"ObjectType = Image\nElementDataFile = LOCAL\n",
+        "text.mha": b"DimSize = a b c\n",
+        "negative.nrrd": b"NRRD0004\nsizes: 5 -4 3\n\n",
+        "magic.nrrd": b"NOPE\nsizes: 5 4 3\n\n",
+        "empty.nrrd": b"",
+    }
+    for name, data in bad.items():
+        (tmp_path / name).write_bytes(data)
+        assert _header.read_dims(tmp_path / name) is None, name
+    assert _header.read_dims(tmp_path) is None  # a folder (DICOM): not checked
+
+
+def test_a_job_over_the_memory_limit_is_refused_before_any_upload_as_the_cli(server_bin, cli_bin,
+                                                                            tmp_path):
+    work = tmp_path / "server"
+    work.mkdir()
+    srv = Server(server_bin, str(work), extra=["--worker-memory-mb", "2048"])
+    try:
+        big = _write_nifti_gz_zeros(tmp_path / "big.nii.gz", 512, 512, 256)
+        client = decima_client.Client(srv.address, token=TOKEN, timeout=30)
+        with pytest.raises(errors.ResourceExhausted) as e:
+            client.submit(big)
+        assert "big.nii.gz (512x512x256 voxels) needs about" in str(e.value)
+        assert "--worker-memory-mb" in str(e.value)
+        assert e.value.detail.field == "dims"
+        assert (e.value.detail.limit, e.value.detail.limit_value) == ("worker_memory_mb", 2048)
+        # Nothing went up: no blob, no partial upload, no volume.
+        for sub in ("sha256", "partial"):
+            folder = os.path.join(srv.data_dir, "blobs", sub)
+            assert not os.path.isdir(folder) or not any(
+                files for _, _, files in os.walk(folder)), sub
+        assert volume_names(client) == set()
+        rc, _, err = run_cli(cli_bin, srv.address, ["submit", big])
+        assert rc == e.value.exit_code == 1, err
+        assert "big.nii.gz (512x512x256 voxels) needs about" in err
+        # A job that fits goes up as before.
+        job = client.submit(write_tiny_nifti(tmp_path / "small.nii", seed=31), **QUICK)
+        assert job.name.startswith("jobs/")
         client.close()
     finally:
         srv.stop()

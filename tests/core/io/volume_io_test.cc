@@ -184,6 +184,61 @@ TEST(ProbeVolume, RefusesRawDataShorterThanTheHeaderPromisesAndUnknownFiles) {
   EXPECT_EQ(ProbeVolume(dir / "missing.nii").status().code(), absl::StatusCode::kNotFound);
 }
 
+// Issue 30: `decima submit` reads the dims with ProbeVolume before uploading (client/cli/
+// volume_upload.h), so a broken header there is a Status naming the file, never a crash or a
+// wrong dims. NIfTI-1 plain and gzipped, NRRD written by hand (the project writes none), and
+// headers broken each way a file arrives broken.
+TEST(ProbeVolume, GivesTheClientsDimsOrAnErrorNamingTheFileForBrokenHeaders) {
+  const fs::path dir = decima::testing::MakeScratchDir("probe-client");
+  const Volume v = PatternVolume({6, 5, 4}, VoxelType::kUInt8);
+  ASSERT_TRUE(WriteNifti(v, dir / "a.nii").ok());
+  ASSERT_TRUE(WriteNifti(v, dir / "a.nii.gz").ok());
+  ASSERT_TRUE(WriteMetaImage(v, dir / "a.mha").ok());
+  WriteText(dir / "a.nrrd", std::string("NRRD0004\ntype: uchar\ndimension: 3\nsizes: 6 5 4\n"
+                                        "encoding: raw\n\n") +
+                                std::string(6 * 5 * 4, '\0'));
+  for (const char* name : {"a.nii", "a.nii.gz", "a.mha", "a.nrrd"}) {
+    auto probe = ProbeVolume(dir / name);
+    ASSERT_TRUE(probe.ok()) << name << ": " << probe.status();
+    EXPECT_EQ(probe->dims, (std::array<int64_t, 3>{6, 5, 4})) << name;
+  }
+  const auto nii = testing::ReadAll(dir / "a.nii");
+  auto with_dim = [&](int16_t d) {
+    auto b = nii;
+    std::memcpy(b.data() + 42, &d, 2);  // dim[1]
+    return b;
+  };
+  auto bad_magic = nii;
+  std::memcpy(bad_magic.data() + 344, "xx1\0", 4);
+  std::vector<uint8_t> gz_garbage = {0x1f, 0x8b, 8, 0};
+  for (int i = 0; i < 300; ++i) gz_garbage.push_back(static_cast<uint8_t>(i * 37));
+  const std::vector<std::pair<std::string, std::vector<uint8_t>>> broken = {
+      {"truncated.nii", std::vector<uint8_t>(nii.begin(), nii.begin() + 100)},
+      {"empty.nii", {}},
+      {"magic.nii", bad_magic},
+      {"zero.nii", with_dim(0)},
+      {"negative.nii", with_dim(-6)},
+      {"garbage.nii.gz", gz_garbage},
+  };
+  for (const auto& [name, bytes] : broken) {
+    testing::WriteAll(dir / name, bytes);
+    auto probe = ProbeVolume(dir / name);
+    EXPECT_FALSE(probe.ok()) << name;
+    EXPECT_THAT(std::string(probe.status().message()), HasSubstr(name));
+  }
+  WriteText(dir / "neg.nrrd",
+            "NRRD0004\ntype: uchar\ndimension: 3\nsizes: 6 -5 4\n"
+            "encoding: raw\n\n");
+  WriteText(dir / "nodims.mha",
+            "ObjectType = Image\nNDims = 3\nElementType = MET_UCHAR\n"
+            "ElementDataFile = LOCAL\n");
+  for (const char* name : {"neg.nrrd", "nodims.mha"}) {
+    auto probe = ProbeVolume(dir / name);
+    EXPECT_FALSE(probe.ok()) << name;
+    EXPECT_THAT(std::string(probe.status().message()), HasSubstr(name));
+  }
+}
+
 TEST(ProbeVolume, AFolderIsDicomOnlyIfEveryFileCarriesTheMarker) {
   const fs::path dir = decima::testing::MakeScratchDir("probe-dicom");
   std::vector<uint8_t> dicm(200, 0);

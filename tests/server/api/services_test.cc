@@ -21,6 +21,7 @@
 #include "google/protobuf/descriptor.pb.h"
 #include "grpc/reflection/v1alpha/reflection.grpc.pb.h"
 #include "gtest/gtest.h"
+#include "server/jobs/job_memory.h"
 #include "server/util/sha256.h"
 #include "tests/server/jobs/bad_job_specs.h"
 #include "tests/testing/test_data.h"
@@ -260,6 +261,87 @@ TEST_F(ServicesTest, AJobOverTheMemoryLimitIsRefusedAtSubmitAndQueuesNothing) {
   req.mutable_spec()->set_volume("volumes/v");  // no dims, no bytes: under any limit
   EXPECT_TRUE(jobs->CreateJob(Ctx().get(), req, &job).ok());
   EXPECT_EQ(*store_->CountJobs(v1::QUEUED), 1);
+}
+
+// Issue 30: CheckJobMemory answers before any upload with CreateJob's decision on the same
+// volume: the same code, message and detail (but naming dims), and refuses dims it cannot trust.
+TEST_F(ServicesTest, CheckJobMemoryGivesCreateJobsDecisionBeforeTheVolumeExists) {
+  job_memory_cap_bytes_ = int64_t{1} << 30;
+  Start();
+  auto jobs = v1::Jobs::NewStub(channel_);
+  v1::CheckJobMemoryRequest req;
+  req.set_display_name("head.nii.gz");
+  req.set_size_bytes(12345);
+  for (int64_t d : {64, 64, 32}) req.add_dims(d);
+  v1::CheckJobMemoryResponse resp;
+  grpc::Status s = jobs->CheckJobMemory(Ctx().get(), req, &resp);
+  ASSERT_TRUE(s.ok()) << s.error_message();
+  EXPECT_TRUE(resp.fits());
+  EXPECT_EQ(resp.limit_mb(), 1024);
+  v1::Volume small;
+  for (int64_t d : {64, 64, 32}) small.add_dims(d);
+  EXPECT_EQ(resp.estimate_mb(), (EstimateJobMemoryBytes(small) + (1 << 20) - 1) >> 20);
+  EXPECT_GT(resp.estimate_mb(), 0);
+  EXPECT_LE(resp.estimate_mb(), 1024);
+
+  // Does not fit: CreateJob's refusal (the same message for the same dims), nothing queued.
+  req.clear_dims();
+  for (int64_t d : {1024, 1024, 1024}) req.add_dims(d);
+  auto ctx = Ctx();
+  s = jobs->CheckJobMemory(ctx.get(), req, &resp);
+  EXPECT_EQ(s.error_code(), grpc::RESOURCE_EXHAUSTED) << s.error_message();
+  EXPECT_THAT(s.error_message(), HasSubstr("head.nii.gz (1024x1024x1024 voxels) needs about"));
+  EXPECT_THAT(s.error_message(), HasSubstr("more than the job limit of 1.0 GB"));
+  EXPECT_THAT(s.error_message(), HasSubstr("--worker-memory-mb"));
+  const v1::ErrorDetail detail = Detail(*ctx);
+  EXPECT_EQ(detail.field(), "dims");
+  EXPECT_EQ(detail.limit(), "worker_memory_mb");
+  EXPECT_EQ(detail.limit_value(), 1024);
+  v1::Volume big;
+  big.set_name("volumes/big");
+  for (int64_t d : {1024, 1024, 1024}) big.add_dims(d);
+  bool created = false;
+  ASSERT_TRUE(store_->CreateVolume("big", big, "", "", &created).ok());
+  v1::CreateJobRequest create;
+  create.mutable_spec()->set_volume("volumes/big");
+  v1::Job job;
+  grpc::Status cs = jobs->CreateJob(Ctx().get(), create, &job);
+  EXPECT_EQ(cs.error_code(), s.error_code());
+  const std::string tail = s.error_message().substr(s.error_message().find(" needs about"));
+  EXPECT_THAT(cs.error_message(), HasSubstr(tail));
+  EXPECT_EQ(*store_->CountJobs(v1::QUEUED), 0);
+
+  // Bad dims: INVALID_ARGUMENT naming the field.
+  const std::vector<std::pair<std::vector<int64_t>, std::string>> bad = {
+      {{}, "dims"},
+      {{64, 64}, "dims"},
+      {{64, 64, 64, 1}, "dims"},
+      {{64, 0, 64}, "dims"},
+      {{64, -3, 64}, "dims"},
+      {{(int64_t{1} << 31) + 1, 2, 2}, "dims"},
+      {{int64_t{1} << 31, int64_t{1} << 31, int64_t{1} << 31}, "dims"},  // 2^93: overflows
+      {{INT64_MAX, INT64_MAX, INT64_MAX}, "dims"},
+  };
+  for (const auto& [dims, field] : bad) {
+    req.clear_dims();
+    for (int64_t d : dims) req.add_dims(d);
+    auto bctx = Ctx();
+    s = jobs->CheckJobMemory(bctx.get(), req, &resp);
+    EXPECT_EQ(s.error_code(), grpc::INVALID_ARGUMENT) << dims.size() << " " << s.error_message();
+    EXPECT_THAT(s.error_message(), ::testing::StartsWith(field + ":"));
+    EXPECT_EQ(Detail(*bctx).field(), field);
+  }
+  req.clear_dims();
+  for (int64_t d : {8, 8, 8}) req.add_dims(d);
+  req.set_size_bytes(-1);
+  auto nctx = Ctx();
+  s = jobs->CheckJobMemory(nctx.get(), req, &resp);
+  EXPECT_EQ(s.error_code(), grpc::INVALID_ARGUMENT) << s.error_message();
+  EXPECT_EQ(Detail(*nctx).field(), "size_bytes");
+
+  // The caller check is CreateJob's: no token, no answer.
+  req.set_size_bytes(1);
+  EXPECT_EQ(jobs->CheckJobMemory(Ctx("").get(), req, &resp).error_code(), grpc::UNAUTHENTICATED);
 }
 
 // A job whose level record a queued level job will read cannot be deleted until that job has
