@@ -6,6 +6,7 @@
 #include <gtest/gtest.h>
 
 #include <algorithm>
+#include <array>
 #include <cmath>
 #include <cstdio>
 #include <fstream>
@@ -30,11 +31,13 @@ using testing::HuPhantomFile;
 namespace fs = std::filesystem;
 using ::testing::HasSubstr;
 
-// A 24^3 three-region head phantom written as NIfTI: the pipeline reads files, not Volumes.
-fs::path PhantomFile(const fs::path& dir) {
+// A three-region head phantom (24x24x20 at 2 mm unless asked otherwise) written as NIfTI: the
+// pipeline reads files, not Volumes.
+fs::path PhantomFile(const fs::path& dir, std::array<int64_t, 3> dims = {24, 24, 20},
+                     std::array<double, 3> spacing = {2, 2, 2}) {
   HeadPhantomOptions o;
-  o.dims = {24, 24, 20};
-  o.spacing = {2, 2, 2};
+  o.dims = dims;
+  o.spacing = Eigen::Vector3d(spacing[0], spacing[1], spacing[2]);
   o.noise_sigma = 20;
   auto p = MakeHeadPhantom(o);
   EXPECT_TRUE(p.ok()) << p.status();
@@ -442,14 +445,7 @@ nlohmann::json WithoutRunFigures(nlohmann::json j) {
 // memory. Two views, a phantom with odd and even dims.
 TEST(RunJob, TheOriginalFromTheGridGivesTheSamePicturesAndMetricsAsFromTheMesh) {
   const fs::path dir = decima::testing::MakeScratchDir("pipeline");
-  HeadPhantomOptions o;
-  o.dims = {25, 22, 19};
-  o.spacing = {1.9, 2.1, 2.3};
-  o.noise_sigma = 20;
-  auto p = MakeHeadPhantom(o);
-  ASSERT_TRUE(p.ok()) << p.status();
-  const fs::path input = dir / "odd.nii.gz";
-  ASSERT_TRUE(io::WriteNifti(p->image, input).ok());
+  const fs::path input = PhantomFile(dir, {25, 22, 19}, {1.9, 2.1, 2.3});
   std::map<std::string, JobResult> results;
   for (auto [name, source] : {std::pair{"grid", JobSpec::OriginalSource::kGrid},
                               std::pair{"mesh", JobSpec::OriginalSource::kMesh}}) {
