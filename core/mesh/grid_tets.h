@@ -25,56 +25,6 @@ class GridTets {
   int64_t vertex_count() const { return nx_ * ny_ * nz_; }
   int64_t tet_count() const { return 5 * (nx_ - 1) * (ny_ - 1) * (nz_ - 1); }
 
-  // The four vertices of tet t (0 <= t < tet_count()), in the order Tetrahedralize stores them.
-  void Cell(int64_t t, int32_t out[4]) const {
-    const int64_t cube = t / 5;
-    const int s = static_cast<int>(t - 5 * cube);
-    const int64_t i = cube % (nx_ - 1);
-    const int64_t jk = cube / (nx_ - 1);
-    const int64_t j = jk % (ny_ - 1);
-    const int64_t k = jk / (ny_ - 1);
-    const int32_t base = static_cast<int32_t>(i + nx_ * (j + ny_ * k));
-    const int32_t* offset = offsets_[(i + j + k) & 1][s];
-    for (int q = 0; q < 4; ++q) out[q] = base + offset[q];
-  }
-
-  // f(t, cell) for t0 <= t < t1 in increasing t, cell being Cell(t): the cube is stepped instead
-  // of divided out of every id, for the passes that read all cells in order (three 64-bit
-  // divisions per cell made them slower than reading stored cells).
-  template <typename F>
-  void ForEachCell(int64_t t0, int64_t t1, F&& f) const {
-    if (t0 >= t1) return;
-    const int64_t cube = t0 / 5;
-    int s = static_cast<int>(t0 - 5 * cube);
-    int64_t i = cube % (nx_ - 1);
-    const int64_t jk = cube / (nx_ - 1);
-    int64_t j = jk % (ny_ - 1);
-    int64_t k = jk / (ny_ - 1);
-    int32_t base = static_cast<int32_t>(i + nx_ * (j + ny_ * k));
-    int parity = static_cast<int>((i + j + k) & 1);
-    int32_t out[4];
-    for (int64_t t = t0; t < t1; ++t) {
-      const int32_t* offset = offsets_[parity][s];
-      for (int q = 0; q < 4; ++q) out[q] = base + offset[q];
-      f(t, static_cast<const int32_t*>(out));
-      if (++s < 5) continue;
-      // Next cube: one vertex on along x; past a row's last cube also over the row's last vertex,
-      // past a slice's last row also over the slice's last row of vertices.
-      s = 0;
-      ++base;
-      parity ^= 1;
-      if (++i < nx_ - 1) continue;
-      i = 0;
-      ++base;
-      if (++j == ny_ - 1) {
-        j = 0;
-        ++k;
-        base += static_cast<int32_t>(nx_);
-      }
-      parity = static_cast<int>((j + k) & 1);
-    }
-  }
-
   // A tet with its cube decoded, for walks from tet to tet without a division per step (the
   // renderer's ray casting): At(t) decodes once, Step moves across a face.
   struct Place {
@@ -115,6 +65,39 @@ class GridTets {
     return true;
   }
 
+  // The four vertices of tet t (0 <= t < tet_count()), in the order Tetrahedralize stores them.
+  void Cell(int64_t t, int32_t out[4]) const { Cell(At(t), out); }
+
+  // f(t, cell) for t0 <= t < t1 in increasing t, cell being Cell(t): the place is stepped from
+  // cube to cube instead of decoded from every id, for the passes that read all cells in order
+  // (three 64-bit divisions per cell made them slower than reading stored cells).
+  template <typename F>
+  void ForEachCell(int64_t t0, int64_t t1, F&& f) const {
+    if (t0 >= t1) return;
+    Place p = At(t0);
+    int32_t out[4];
+    for (int64_t t = t0; t < t1; ++t) {
+      Cell(p, out);
+      f(t, static_cast<const int32_t*>(out));
+      if (++p.s < 5) continue;
+      // Next cube: one vertex on along x; past a row's last cube also over the row's last vertex,
+      // past a slice's last row also over the slice's last row of vertices.
+      p.s = 0;
+      ++p.cube;
+      ++p.base;
+      p.parity ^= 1;
+      if (++p.ijk[0] <= last_[0]) continue;
+      p.ijk[0] = 0;
+      ++p.base;
+      if (++p.ijk[1] > last_[1]) {
+        p.ijk[1] = 0;
+        ++p.ijk[2];
+        p.base += vertex_stride_[1];
+      }
+      p.parity = (p.ijk[1] + p.ijk[2]) & 1;
+    }
+  }
+
   // The tet across face q (the face opposite vertex q of Cell(t)) of tet t, or -1 when that face
   // is on the hull of the grid. The same tet as matching faces of the materialized mesh gives
   // (RenderableMesh's adjacency, TetAcrossFace), without holding any per-tet array.
@@ -122,9 +105,6 @@ class GridTets {
     Place p = At(t);
     return Step(p, q) ? Id(p) : -1;
   }
-
-  // The vertex-id offsets from a cube's corner (i, j, k) of tet s of an even (0) or odd (1) cube.
-  const int32_t* Offsets(int parity, int s) const { return offsets_[parity][s]; }
 
  private:
   // Where face q of tet s of a cube leads: tet `s` of the same cube (axis -1) or of the next cube

@@ -432,7 +432,8 @@ struct Entry {
 
 // Cell sources of the one ray-casting loop. A Place is where a walk is: At(t) makes it from a tet
 // id, Id gives the id back, Vertices the 4 vertex ids (a pointer into the source's own array or
-// into `buf`), and Step moves it across face q (false, unmoved, on the hull).
+// into `buf`), and Step moves it across face q (false, unmoved, on the hull); ForEachCell(t0, t1,
+// f) calls f(t, vertices) for a run of ids in order (the grid steps instead of decoding each).
 // A materialized mesh: RenderableMesh::cells, 8 ints per tet, the Place is the tet id.
 struct MeshCells {
   using Place = int32_t;
@@ -440,6 +441,10 @@ struct MeshCells {
   Place At(int64_t t) const { return static_cast<int32_t>(t); }
   int64_t Id(Place p) const { return p; }
   const int32_t* Vertices(Place p, int32_t* /*buf*/) const { return &cells[8 * int64_t{p}]; }
+  template <typename F>
+  void ForEachCell(int64_t t0, int64_t t1, F&& f) const {
+    for (int64_t t = t0; t < t1; ++t) f(t, &cells[8 * t]);
+  }
   bool Step(Place& p, int q) const {
     const int32_t n = cells[8 * int64_t{p} + 4 + q];
     if (n < 0) return false;
@@ -460,6 +465,10 @@ struct GridCells {
     return buf;
   }
   bool Step(Place& p, int q) const { return grid->Step(p, q); }
+  template <typename F>
+  void ForEachCell(int64_t t0, int64_t t1, F&& f) const {
+    grid->ForEachCell(t0, t1, f);
+  }
 };
 
 // What Render reads of its input besides the cells.
@@ -781,18 +790,15 @@ absl::StatusOr<RenderedImage> RenderCells(const RenderInput& mesh, const Cells& 
   std::vector<int64_t> visible_count(threads, 0);
   ParallelRanges(nwords, threads, [&](int th, int64_t w0, int64_t w1) {
     int64_t n = 0;
-    int32_t buf[4];
     for (int64_t w = w0; w < w1; ++w) {
       uint64_t word = 0;
-      const int64_t t_end = std::min(nt, 64 * (w + 1));
-      for (int64_t t = 64 * w; t < t_end; ++t) {
-        const int32_t* c = cells.Vertices(cells.At(t), buf);
+      cells.ForEachCell(64 * w, std::min(nt, 64 * (w + 1)), [&](int64_t t, const int32_t* c) {
         const float s0 = mesh.scalars[c[0]], s1 = mesh.scalars[c[1]], s2 = mesh.scalars[c[2]],
                     s3 = mesh.scalars[c[3]];
         const bool vis = !table.Transparent(std::min({s0, s1, s2, s3}), std::max({s0, s1, s2, s3}));
         word |= uint64_t{vis} << (t - 64 * w);
         n += vis;
-      }
+      });
       visible[w] = word;
     }
     visible_count[th] = n;
