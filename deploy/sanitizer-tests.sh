@@ -42,11 +42,18 @@ run_ctest() {  # build dir, label regex
 }
 
 status=0
+# Prints how long each phase took, so a CI log shows where the sanitizer half's time goes.
+phase_start=$SECONDS
+phase() {  # name
+  echo "sanitizer-tests: $1 took $((SECONDS - phase_start)) s"
+  phase_start=$SECONDS
+}
 
 asan=${ASAN_BUILD_DIR:-build-asan}
 configure "$asan" address
 # Only the executables of the unit label (tests/CMakeLists.txt's per-label targets).
 cmake --build "$asan" -j "$jobs" --target tests-unit
+phase "asan build"
 asan_logs=$PWD/$asan/sanitizer-logs
 rm -rf "$asan_logs" && mkdir -p "$asan_logs"
 LSAN_OPTIONS="suppressions=$PWD/tests/lsan.supp:print_suppressions=0" \
@@ -54,6 +61,7 @@ ASAN_OPTIONS="log_path=$asan_logs/asan:detect_leaks=1:strict_string_checks=1" \
 UBSAN_OPTIONS="log_path=$asan_logs/ubsan:print_stacktrace=1:halt_on_error=1" \
   run_ctest "$asan" unit || status=1
 check_logs "$asan_logs" || status=1
+phase "asan tests"
 
 tsan=${TSAN_BUILD_DIR:-build-tsan}
 configure "$tsan" thread
@@ -61,11 +69,13 @@ configure "$tsan" thread
 # add_dependencies bring decima-server and decima).
 cmake --build "$tsan" -j "$jobs" --target tests-server tests-client service_e2e_test \
   hardening_e2e_test
+phase "tsan build"
 tsan_logs=$PWD/$tsan/sanitizer-logs
 rm -rf "$tsan_logs" && mkdir -p "$tsan_logs"
 # OMP_NUM_THREADS=1: libgomp is not instrumented, its hand-offs would be reported as races.
 TSAN_OPTIONS="suppressions=$PWD/tests/tsan.supp:log_path=$tsan_logs/tsan:second_deadlock_stack=1" \
 OMP_NUM_THREADS=1 run_ctest "$tsan" "server|client" || status=1
+phase "tsan server and client tests"
 # The end-to-end suites whose subject is concurrency in the service (queue, leases, watchers,
 # restarts, uploads); the CLI, README, PACS and scale-out suites run in the plain build, where
 # the job pipeline is not slowed down eight-fold.
@@ -73,5 +83,6 @@ TSAN_OPTIONS="suppressions=$PWD/tests/tsan.supp:log_path=$tsan_logs/tsan:second_
 OMP_NUM_THREADS=1 ctest --test-dir "$tsan" -R '^(ServiceE2E|HardeningE2E)\.' --output-on-failure \
   -j "$jobs" --timeout 900 || status=1
 check_logs "$tsan_logs" || status=1
+phase "tsan e2e tests"
 
 exit $status
