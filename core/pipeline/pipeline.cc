@@ -310,10 +310,21 @@ Json PsnrFloorJson(const PsnrFloorSearch& s) {
   return j;
 }
 
+// Whether a stage after simplify reads the original mesh's cells: the level record (written from
+// the original and the collapses), the curve (simplifies the original again) and the render from
+// the materialized mesh. Every other stage reads its vertices only (the fidelity's feature counts)
+// or the voxel grid, so the cells the field run dropped stay dropped (issue 30: 17 bytes per cell,
+// 85 per voxel, off the write and render peaks).
+bool NeedsOriginalCells(const JobSpec& spec) {
+  return Wants(spec, "levels") || Wants(spec, "curve") ||
+         spec.original_from == JobSpec::OriginalSource::kMesh;
+}
+
 // simplify: feature-preserving cell collapse down to the target.
 // With a PSNR floor, the levels of the record searched for the deepest one that keeps it.
 // Memory: this stage is the job's peak, so a plain field run frees the original's cells while it
-// runs and writes them back after it (SimplifyDroppingCells); later stages see the same mesh.
+// runs (SimplifyDroppingCells) and writes them back only for a later stage that reads them
+// (NeedsOriginalCells); on every path the cells are dropped after it when none does.
 absl::StatusOr<SimplifyResult> SimplifyStage(const JobSpec& spec, const Volume& image,
                                              TetMesh& original,
                                              const CheckpointOptions& checkpoints,
@@ -343,9 +354,14 @@ absl::StatusOr<SimplifyResult> SimplifyStage(const JobSpec& spec, const Volume& 
                                                   stage.Forward(), stage.cancel()));
     } else {
       DECIMA_ASSIGN_OR_RETURN(
-          simplified, SimplifyDroppingCells(&original, options, stage.Forward(), stage.cancel()));
+          simplified, SimplifyDroppingCells(&original, options, stage.Forward(), stage.cancel(),
+                                            NeedsOriginalCells(spec)));
     }
     SaveCheckpoint(checkpoints, stage, key, SerializeSimplifyResult(simplified));
+  }
+  // The paths that kept the cells (a resumed stage, a level, a PSNR floor, other policies).
+  if (!NeedsOriginalCells(spec) && original.grid && !original.cells_dropped) {
+    DropGridCells(&original);
   }
   stage.End();
   run.metrics()["simplification"] =

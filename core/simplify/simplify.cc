@@ -391,11 +391,12 @@ absl::StatusOr<SimplifyResult> Simplify(const TetMesh& mesh, const SimplifyOptio
 
 absl::StatusOr<SimplifyResult> SimplifyDroppingCells(TetMesh* mesh, const SimplifyOptions& options,
                                                      const ProgressFn& progress,
-                                                     const CancelToken* cancel) {
+                                                     const CancelToken* cancel,
+                                                     bool restore_cells) {
   const bool drop = mesh->grid && RunsWithoutCells(options) && !mesh->cells_dropped;
   if (drop) DropGridCells(mesh);
   absl::StatusOr<SimplifyResult> result = Simplify(*mesh, options, progress, cancel);
-  if (drop) RestoreGridCells(mesh, options.threads);
+  if (drop && restore_cells) RestoreGridCells(mesh, options.threads);
   return result;
 }
 

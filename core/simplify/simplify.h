@@ -236,9 +236,11 @@ absl::StatusOr<SimplifyResult> Simplify(const TetMesh& mesh, const SimplifyOptio
 // records its grid (Tetrahedralize's), under the field policy without record_levels_to, has its
 // tets and cell_regions dropped (DropGridCells: 17 bytes per cell less at the job's peak) and
 // restored (RestoreGridCells) before this returns, whatever it returns. The same result as
-// Simplify; the mesh is as it was.
+// Simplify; the mesh is as it was. With `restore_cells` false a caller that needs the cells no
+// more keeps them dropped (mesh->cells_dropped says whether they were).
 absl::StatusOr<SimplifyResult> SimplifyDroppingCells(TetMesh* mesh, const SimplifyOptions& options,
                                                      const ProgressFn& progress = nullptr,
-                                                     const CancelToken* cancel = nullptr);
+                                                     const CancelToken* cancel = nullptr,
+                                                     bool restore_cells = true);
 
 }  // namespace decima
