@@ -117,7 +117,11 @@ absl::StatusOr<TetMesh> Tetrahedralize(const Volume& image, const Tetrahedralize
 
   // Cells: 5 per cube, cube c = i + (nx-1) * (j + (ny-1) * k) owns tets 5c .. 5c+4 (GridTets).
   mesh.grid = GridTets(nx, ny, nz, linear.determinant() < 0);
-  FillGridCells(&mesh, threads);
+  if (options.cells) {
+    FillGridCells(&mesh, threads);
+  } else {
+    mesh.cells_dropped = true;
+  }
   DECIMA_RETURN_IF_ERROR(CheckCancelled(cancel, "tetrahedralize"));
   Report(progress, {"tetra",
                     1.0,

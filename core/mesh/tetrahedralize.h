@@ -24,6 +24,10 @@ struct TetrahedralizeOptions {
   float feature_threshold_voxels = 0.5f;
   // Worker threads (0 = hardware concurrency). The output does not depend on it.
   int threads = 0;
+  // false: the cells (tets, cell_regions: 17 bytes per cell) are not written and the mesh comes
+  // with cells_dropped set, as after DropGridCells; RestoreGridCells writes them. For a caller
+  // whose readers take cells through TetMesh::Cell (a job's plain field run, issue 30).
+  bool cells = true;
 };
 
 // Builds the mesh with positions in LPS mm (volume geometry applied), scalars = voxel values as

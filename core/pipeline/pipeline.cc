@@ -259,15 +259,6 @@ absl::StatusOr<RegionTable> RegionTableOf(const JobSpec& spec, const Volume& ima
 }
 
 // tetra: the voxel grid as tetrahedra, region interfaces from the segmentation.
-absl::StatusOr<TetMesh> TetrahedralizeStage(const Volume& image, const SegmentResult& seg,
-                                            JobRun& run) {
-  DECIMA_ASSIGN_OR_RETURN(const Stage stage, run.Stage("tetra"));
-  TetrahedralizeOptions to;
-  to.labels = &seg.labels;
-  to.interface_distance = seg.interface_distance_voxels.data();
-  return Tetrahedralize(image, to, stage.Forward(), stage.cancel());
-}
-
 SimplifyOptions SimplifyOptionsOf(const JobSpec& spec) {
   SimplifyOptions o;
   o.policy = spec.policy;
@@ -282,6 +273,37 @@ SimplifyOptions SimplifyOptionsOf(const JobSpec& spec) {
     o.record_levels_to = std::max(o.record_levels_to, PsnrSearchDepth(spec.target_reduction));
   }
   return o;
+}
+
+// Whether a stage after simplify reads the original mesh's cells: the level record (written from
+// the original and the collapses), the curve (simplifies the original again) and the render from
+// the materialized mesh. Every other stage reads its vertices only (the fidelity's feature counts)
+// or the voxel grid, so the cells the field run dropped stay dropped (issue 30: 17 bytes per cell,
+// 85 per voxel, off the write and render peaks).
+bool NeedsOriginalCells(const JobSpec& spec) {
+  return Wants(spec, "levels") || Wants(spec, "curve") ||
+         spec.original_from == JobSpec::OriginalSource::kMesh;
+}
+
+// Whether any stage reads the original mesh's cells: one after simplify (NeedsOriginalCells), or
+// the simplify stage itself, unless it is a plain field run (RunsWithoutCells; a level record's
+// extraction and a PSNR floor's search read them too).
+bool OriginalCellsRead(const JobSpec& spec) {
+  return NeedsOriginalCells(spec) || spec.levels_file || spec.min_psnr ||
+         !RunsWithoutCells(SimplifyOptionsOf(spec));
+}
+
+// tetra: the 5-tet grid mesh. Its cells (17 bytes per cell, 85 per voxel) are written only when
+// a stage reads them (OriginalCellsRead); otherwise they are computed from the cell id throughout
+// the job (issue 30: off the tetra, simplify, write and render peaks).
+absl::StatusOr<TetMesh> TetrahedralizeStage(const JobSpec& spec, const Volume& image,
+                                            const SegmentResult& seg, JobRun& run) {
+  DECIMA_ASSIGN_OR_RETURN(const Stage stage, run.Stage("tetra"));
+  TetrahedralizeOptions to;
+  to.labels = &seg.labels;
+  to.interface_distance = seg.interface_distance_voxels.data();
+  to.cells = OriginalCellsRead(spec);
+  return Tetrahedralize(image, to, stage.Forward(), stage.cancel());
 }
 
 Json PsnrFloorJson(const PsnrFloorSearch& s) {
@@ -308,16 +330,6 @@ Json PsnrFloorJson(const PsnrFloorSearch& s) {
   j["step"] = kPsnrSearchStep;
   j["seconds"] = s.seconds;
   return j;
-}
-
-// Whether a stage after simplify reads the original mesh's cells: the level record (written from
-// the original and the collapses), the curve (simplifies the original again) and the render from
-// the materialized mesh. Every other stage reads its vertices only (the fidelity's feature counts)
-// or the voxel grid, so the cells the field run dropped stay dropped (issue 30: 17 bytes per cell,
-// 85 per voxel, off the write and render peaks).
-bool NeedsOriginalCells(const JobSpec& spec) {
-  return Wants(spec, "levels") || Wants(spec, "curve") ||
-         spec.original_from == JobSpec::OriginalSource::kMesh;
 }
 
 // simplify: feature-preserving cell collapse down to the target.
@@ -904,7 +916,7 @@ absl::StatusOr<JobResult> RunJob(const JobSpec& spec, const std::filesystem::pat
                           SegmentStage(spec, image, checkpoints, segment_key, run));
   DECIMA_ASSIGN_OR_RETURN(const RegionTable regions, RegionTableOf(spec, image, seg, run));
   // Not const: the render stage frees it once nothing after it needs the original.
-  DECIMA_ASSIGN_OR_RETURN(TetMesh original, TetrahedralizeStage(image, seg, run));
+  DECIMA_ASSIGN_OR_RETURN(TetMesh original, TetrahedralizeStage(spec, image, seg, run));
   // The interface distances (voxels and mm, 8 bytes per voxel) are read only by the tetra stage,
   // which copies the first into the mesh's vertices (its checkpoint is written already): freed
   // here, they no longer sit under the simplify and render peaks.

@@ -285,16 +285,9 @@ std::string SimplifyPolicyNames() {
   return out;
 }
 
-namespace {
-
-// Whether a run reads the input's cells only through TetMesh::Cell, so they may be dropped: the
-// field engine without a level record. The cell-collapse engine and the level record
-// (ExtractLevel, BaseMeshDigest) read `tets`.
 bool RunsWithoutCells(const SimplifyOptions& options) {
   return options.policy == SimplifyPolicy::kField && options.record_levels_to == 0;
 }
-
-}  // namespace
 
 absl::StatusOr<SimplifyResult> Simplify(const TetMesh& mesh, const SimplifyOptions& options,
                                         const ProgressFn& progress, const CancelToken* cancel) {

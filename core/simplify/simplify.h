@@ -232,6 +232,12 @@ absl::StatusOr<SimplifyResult> Simplify(const TetMesh& mesh, const SimplifyOptio
                                         const ProgressFn& progress = nullptr,
                                         const CancelToken* cancel = nullptr);
 
+// Whether Simplify with `options` reads the input's cells only through TetMesh::Cell, so a grid
+// mesh may come with its cells dropped (DropGridCells, or Tetrahedralize without cells): the
+// field engine without a level record. The cell-collapse engine and the level record
+// (ExtractLevel, BaseMeshDigest) read `tets`.
+bool RunsWithoutCells(const SimplifyOptions& options);
+
 // Simplify(*mesh, ...), with the mesh's cells freed for the run when they can be: a mesh that
 // records its grid (Tetrahedralize's), under the field policy without record_levels_to, has its
 // tets and cell_regions dropped (DropGridCells: 17 bytes per cell less at the job's peak) and

@@ -246,6 +246,22 @@ TEST(GridTets, DroppedCellsAreCountedComputedAndRestoredAsTetrahedralizeWroteThe
     const VertexTetAdjacency from_grid = BuildVertexTetAdjacency(*m, 2);
     EXPECT_EQ(from_grid.offsets, from_array.offsets);
     EXPECT_EQ(from_grid.tet_ids, from_array.tet_ids);
+    // Tetrahedralize without cells gives the mesh DropGridCells leaves: the same vertices and
+    // grid, no cell written.
+    TetrahedralizeOptions without = opts;
+    without.cells = false;
+    auto bare = Tetrahedralize(p->image, without);
+    ASSERT_TRUE(bare.ok()) << bare.status();
+    EXPECT_TRUE(bare->cells_dropped);
+    EXPECT_TRUE(bare->tets.empty());
+    EXPECT_TRUE(bare->cell_regions.empty());
+    EXPECT_EQ(bare->tet_count(), written.tet_count());
+    EXPECT_EQ(bare->positions, written.positions);
+    EXPECT_EQ(bare->vertex_flags, written.vertex_flags);
+    EXPECT_EQ(bare->labels, written.labels);
+    RestoreGridCells(&*bare, 1);
+    EXPECT_EQ(bare->tets, written.tets);
+    EXPECT_EQ(bare->cell_regions, written.cell_regions);
     RestoreGridCells(&*m, 2);
     EXPECT_FALSE(m->cells_dropped);
     // Cells cleared by an editor (not dropped) are not read as the grid's.
