@@ -383,8 +383,8 @@ enum class Drained { kLimit, kStopCost, kEmpty, kCancelled };
 class FieldEngine {
  public:
   FieldEngine(const TetMesh& mesh, const SimplifyOptions& options, int threads,
-              SimplifyLevels* levels)
-      : in_(mesh), options_(options), threads_(threads), levels_(levels) {}
+              SimplifyLevels* levels, const FieldWindow* window = nullptr)
+      : in_(mesh), options_(options), threads_(threads), levels_(levels), window_(window) {}
 
   absl::Status Run(int64_t target, double tolerance, const ProgressFn& progress,
                    const CancelToken* cancel, SimplifyResult* result);
@@ -541,7 +541,11 @@ class FieldEngine {
   const TetMesh& in_;
   const SimplifyOptions& options_;
   const int threads_;
-  SimplifyLevels* const levels_;  // null: no level record
+  SimplifyLevels* const levels_;     // null: no level record
+  const FieldWindow* const window_;  // null: the whole mesh (field_engine.h)
+  // With a window: per input cell, the output cell Finish gives it (-1: deleted), and per input
+  // vertex the input cell whose bucket lists it when the loop ended (-1: none).
+  std::vector<int32_t> sample_home_;
 
   int64_t nv_ = 0, nt_ = 0;
   const float* pos_ = nullptr;  // the input positions, mm (they never change)
@@ -652,13 +656,15 @@ void FieldEngine::Setup() {
   nt_ = in_.tet_count();
   pos_ = in_.positions.data();
   flags_ = in_.vertex_flags;
-  ApplyFeatureThreshold(options_, in_.interface_distance, &flags_);
+  const bool window_flags = window_ != nullptr && window_->flags_complete;
+  if (!window_flags) ApplyFeatureThreshold(options_, in_.interface_distance, &flags_);
   // With a label per vertex, the interface is the set of cells that hold two labels, and every
   // vertex of such a cell is on it. The distance threshold misses some: a 5-tet cell's diagonal
   // reaches a vertex 1.12 voxels from the level set (20,680 of the CT head's 141,494). Left
   // free, they moved and took the label boundary with them (mean Dice 0.998 at 90 %).
   // (In parallel: a flag is set, never cleared, so the order of the writes does not matter.)
-  ParallelFor(nt_, threads_, 65536, [&](int64_t t0, int64_t t1) {
+  // A window's flags come from the input grid's cells (its carried cells are simplified ones).
+  ParallelFor(window_flags ? 0 : nt_, threads_, 65536, [&](int64_t t0, int64_t t1) {
     in_.ForEachCell(t0, t1, [&](int64_t, const int32_t* c) {
       if (!HoldsTwoLabels(in_.labels.data(), c)) return;
       for (int k = 0; k < 4; ++k) {
@@ -671,6 +677,17 @@ void FieldEngine::Setup() {
   if (free_interfaces_) {
     bucket_head_.assign(nt_, -1);
     sample_next_.assign(nv_, -1);
+    if (window_ != nullptr && window_->sample_cell != nullptr) {
+      // Samples of removed voxel centres carried in from the window before: each goes back into
+      // the bucket of the cell that listed it there. Backwards, so a bucket lists its samples by
+      // increasing vertex id.
+      for (int64_t s = nv_ - 1; s >= 0; --s) {
+        const int32_t c = window_->sample_cell[s];
+        if (c < 0) continue;
+        sample_next_[s] = bucket_head_[c];
+        bucket_head_[c] = int32_t(s);
+      }
+    }
   }
 
   VertexTetAdjacency adjacency = BuildVertexTetAdjacency(in_, threads_);
@@ -712,6 +729,10 @@ void FieldEngine::Setup() {
   for (float s : in_.scalars) {
     lo_s = std::min(lo_s, s);
     hi_s = std::max(hi_s, s);
+  }
+  if (window_ != nullptr) {  // the whole volume's range, so that windows break ties alike
+    lo_s = window_->scalar_lo;
+    hi_s = window_->scalar_hi;
   }
   const double range = nv_ > 0 ? std::max(1e-6, double(hi_s) - double(lo_s)) : 1;
   const double voxel = std::cbrt(voxel_volume_);
@@ -954,6 +975,7 @@ Freedom FieldEngine::Classify(int32_t u, Scratch& s, int32_t along[2]) const {
 // (unsorted, costs not set). s.star must hold u's cells.
 void FieldEngine::Targets(int32_t u, Scratch& s) {
   s.candidates.clear();
+  if (window_ != nullptr && window_->frozen != nullptr && window_->frozen[u]) return;
   int32_t along[2];
   const Freedom freedom = Classify(u, s, along);
   if (freedom == Freedom::kPinned) return;
@@ -1784,6 +1806,12 @@ absl::Status FieldEngine::Run(int64_t target, double tolerance, const ProgressFn
     levels_->base_cells = nt_;
     levels_->exhausted = removed < target;
   }
+  if (window_ != nullptr && free_interfaces_) {
+    sample_home_.assign(nv_, -1);
+    for (int64_t c = 0; c < nt_; ++c) {
+      for (int32_t s = bucket_head_[c]; s >= 0; s = sample_next_[s]) sample_home_[s] = int32_t(c);
+    }
+  }
   ReleaseQueue();
   Finish(result);
   return absl::OkStatus();
@@ -1875,6 +1903,19 @@ void FieldEngine::Finish(SimplifyResult* result) {
     }
   });
   const std::vector<int64_t> first_cell = first_slots(nt_, live_cell);
+  if (window_ != nullptr && window_->sample_home != nullptr) {
+    // Input cell -> output cell, for the samples' buckets.
+    std::vector<int32_t> cell_index(nt_, -1);
+    for (int64_t t = 0, i = 0; t < nt_; ++t) {
+      if (live_cell(t)) cell_index[t] = int32_t(i++);
+    }
+    std::vector<int32_t>& home = *window_->sample_home;
+    home.assign(nv_, -1);
+    for (int64_t v = 0; v < int64_t(sample_home_.size()); ++v) {
+      if (sample_home_[v] >= 0) home[v] = cell_index[sample_home_[v]];
+    }
+    std::vector<int32_t>().swap(sample_home_);
+  }
   out.tets.resize(4 * first_cell[ranges]);
   out.cell_regions.resize(first_cell[ranges]);
   ParallelFor(ranges, threads_, [&](int64_t r0, int64_t r1) {
@@ -1975,6 +2016,14 @@ absl::Status RunFieldSimplify(const TetMesh& mesh, const SimplifyOptions& option
                               SimplifyLevels* levels) {
   FieldEngine engine(mesh, options, threads, levels);
   return engine.Run(target, tolerance, progress, cancel, result);
+}
+
+absl::Status RunFieldSimplifyWindow(const TetMesh& mesh, const SimplifyOptions& options,
+                                    int threads, int64_t target, const FieldWindow& window,
+                                    const ProgressFn& progress, const CancelToken* cancel,
+                                    SimplifyResult* result) {
+  FieldEngine engine(mesh, options, threads, nullptr, &window);
+  return engine.Run(target, 0, progress, cancel, result);
 }
 
 }  // namespace decima::simplify_internal
