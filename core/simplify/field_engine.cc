@@ -345,6 +345,7 @@ struct NewCell {
 // What one run of the greedy loop owns: its queue, its working memory and its counts. The serial
 // loop has one; in a parallel round every block of the mesh gets one (README "Parallel rounds").
 struct Worker {
+  double last_cost = 0;  // the queue cost of the last collapse (FieldWindow pacing)
   QueueHeap heap;
   Scratch scratch;
   std::vector<int32_t> touched, changed;
@@ -1380,6 +1381,7 @@ Drained FieldEngine::Drain(Worker& w, int64_t limit, float stop_cost, bool in_bl
     if (w.log != nullptr) w.log->push_back({u, v, deleted, float(cost)});
     const double wt = quadric_[kQuadricSize * int64_t(u) + kWeightEntry];
     w.last_error = wt > 0 ? std::sqrt(std::max(0.0, cost) / wt) : 0;
+    w.last_cost = cost;
     w.max_error = std::max(w.max_error, w.last_error);
     // Every vertex whose neighbourhood changed is re-scored now, so the queue order is exact.
     // For a free vertex x only two of its candidates can have changed: u is gone and v may be
@@ -1451,6 +1453,7 @@ namespace {
 // Adds w's counts to *to.
 void AddCounts(const Worker& w, Worker* to) {
   to->removed += w.removed;
+  to->last_cost = std::max(to->last_cost, w.last_cost);
   to->collapses += w.collapses;
   to->pops += w.pops;
   to->invalid_tries += w.invalid_tries;
@@ -1746,9 +1749,13 @@ absl::Status FieldEngine::Run(int64_t target, double tolerance, const ProgressFn
   // The rounds need a target to pace them; with an error tolerance the serial loop does it all.
   Worker rounds;
   int64_t removed = 0;
-  if (tolerance == 0 && target < nt_) {
+  // A paced window: at least min_target cells, then on while the queue's cheapest entry costs at
+  // most stop_cost, up to `target`.
+  const bool paced = window_ != nullptr && window_->min_target >= 0;
+  const int64_t min_target = paced ? std::min(window_->min_target, target) : target;
+  if (tolerance == 0 && min_target < nt_) {
     absl::Status status;
-    removed = ParallelRounds(target, progress, cancel, &rounds, &status);
+    removed = ParallelRounds(min_target, progress, cancel, &rounds, &status);
     slab_axis_ = -1;  // the serial loop keeps no intervals
     DECIMA_RETURN_IF_ERROR(status);
   }
@@ -1763,10 +1770,18 @@ absl::Status FieldEngine::Run(int64_t target, double tolerance, const ProgressFn
     w.Reset(std::move(entries));
   }
   const int64_t step = std::max<int64_t>(1, target / 50);
+  double relative_stop = -1;  // FieldWindow::stop_cost_factor times the cost at min_target
   for (;;) {
-    const int64_t limit = std::min(target - removed, w.removed + step);
-    const Drained drained =
-        Drain(w, limit, std::numeric_limits<float>::infinity(), false, tolerance, cancel);
+    const bool below = removed + w.removed < min_target;
+    const int64_t limit = std::min((below ? min_target : target) - removed, w.removed + step);
+    if (paced && !below && !(relative_stop >= 0)) {
+      relative_stop =
+          window_->stop_cost_factor * (w.collapses > 0 ? w.last_cost : rounds.last_cost);
+    }
+    const float stop_cost = paced && !below && window_->stop_cost_factor > 0
+                                ? float(relative_stop)
+                                : std::numeric_limits<float>::infinity();
+    const Drained drained = Drain(w, limit, stop_cost, false, tolerance, cancel);
     if (drained == Drained::kCancelled) return CheckCancelled(cancel, "simplify");
     const int64_t total = removed + w.removed;
     Report(progress, {"simplify",
@@ -1779,6 +1794,7 @@ absl::Status FieldEngine::Run(int64_t target, double tolerance, const ProgressFn
       DECIMA_RETURN_IF_ERROR(Record(serial_log));
       serial_log.clear();
     }
+    if (paced && drained == Drained::kLimit && total >= min_target && total < target) continue;
     if (drained != Drained::kLimit || total >= target) break;
   }
   removed += w.removed;

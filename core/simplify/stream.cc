@@ -1,6 +1,7 @@
 #include "core/simplify/stream.h"
 
 #include <algorithm>
+#include <array>
 #include <cmath>
 #include <limits>
 #include <string>
@@ -115,13 +116,88 @@ absl::StatusOr<SimplifyResult> SimplifyStreamed(const TetMesh& mesh, const Simpl
   int64_t seen_cells = 0;  // original cells of the slabs so far
   int64_t window_count = 0, peak_window_cells = 0;
   bool stalled = false;
+  // Pacing (README "Streamed simplification"): a window removes at least the lower of its slab's
+  // two shares of the target (by cells, by roughness below) and goes on towards the higher one
+  // while the queue's cheapest collapse costs at most kStopCostFactor times the cost at the lower:
+  // a rough slab is not forced far past what is cheap in it, an easy one gives more.
+  constexpr double kStopCostFactor = 8;
+
+  // Share of the target per slab: by how many of its voxels are easy to remove. A voxel's
+  // roughness is its field's second differences along the three axes (0 where the field is
+  // linear, as the quadric cost of removing it is), times the engine's feature factor on the
+  // interfaces. The voxels below the roughness quantile at the target share the target: a slab
+  // of air gets much of it, a slab of bone and brain little, as the in-memory run's single queue
+  // decides. (Per slab, a histogram of log roughness: no per-voxel array.)
+  constexpr int kBins = 256;
+  const int64_t slabs_total = (cube_layers + slab_voxels - 1) / slab_voxels;
+  std::vector<double> slab_weight(slabs_total, 1.0);
+  {
+    std::vector<std::array<int64_t, kBins>> hist(slabs_total);
+    for (auto& h : hist) h.fill(0);
+    const double range = std::max(1e-6, window.scalar_hi - window.scalar_lo);
+    const float* sc = mesh.scalars.data();
+    const int64_t nx = grid.nx(), ny = grid.ny(), nz = grid.nz();
+    // Vertex layer z counts for the slab whose cube layers hold it from below (the top layer for
+    // the last slab).
+    auto slab_of = [&](int64_t z) {
+      const int64_t c = std::min(z, cube_layers - 1);
+      return std::min<int64_t>(slabs_total - 1, (c * slabs_total) / cube_layers);
+    };
+    for (int64_t z = 0; z < nz; ++z) {
+      auto& h = hist[slab_of(z)];
+      for (int64_t y = 0; y < ny; ++y) {
+        for (int64_t x = 0; x < nx; ++x) {
+          const int64_t g = x + nx * (y + ny * z);
+          double r = 0;
+          const int64_t stride[3] = {1, nx, layer};
+          const int64_t at[3] = {x, y, z}, size[3] = {nx, ny, nz};
+          for (int a = 0; a < 3; ++a) {
+            if (at[a] == 0 || at[a] == size[a] - 1) continue;
+            r += std::abs(double(sc[g + stride[a]]) + sc[g - stride[a]] - 2.0 * sc[g]);
+          }
+          if (flags[g] & kFeatureVertex) r *= 4;
+          const double t = r / range * 1e6;
+          const int bin = t < 1 ? 0 : std::min(kBins - 1, 1 + int(8 * std::log2(t)));
+          ++h[bin];
+        }
+      }
+    }
+    std::array<int64_t, kBins> all{};
+    for (const auto& h : hist) {
+      for (int b = 0; b < kBins; ++b) all[b] += h[b];
+    }
+    // The bin where the easiest target share of the voxels ends, and how much of it counts.
+    const double want = options.target_reduction * double(nv);
+    double below = 0, part = 1;
+    int qbin = kBins - 1;
+    for (int b = 0; b < kBins; ++b) {
+      if (below + double(all[b]) >= want) {
+        qbin = b;
+        part = all[b] > 0 ? (want - below) / double(all[b]) : 1;
+        break;
+      }
+      below += double(all[b]);
+    }
+    for (int64_t k = 0; k < slabs_total; ++k) {
+      double w = 0;
+      for (int b = 0; b < qbin; ++b) w += double(hist[k][b]);
+      w += part * double(hist[k][qbin]);
+      slab_weight[k] = w;
+    }
+  }
+  double weight_total = 0;
+  for (double w : slab_weight) weight_total += w;
+  double weight_seen = 0;
 
   std::vector<int32_t> local, globals;
   std::vector<uint8_t> frozen;
   std::vector<int32_t> sample_cell, sample_home;
-  for (int64_t z0 = 0; z0 < cube_layers; z0 += slab_voxels) {
+  // Slabs of equal depth (at most slab_voxels): a thin last slab would have to make up the
+  // windows' shortfall on its own.
+  const int64_t slabs = (cube_layers + slab_voxels - 1) / slab_voxels;
+  for (int64_t k = 0; k < slabs; ++k) {
     DECIMA_RETURN_IF_ERROR(CheckCancelled(cancel, "simplify"));
-    const int64_t z1 = std::min<int64_t>(z0 + slab_voxels, cube_layers);
+    const int64_t z0 = k * cube_layers / slabs, z1 = (k + 1) * cube_layers / slabs;
     const bool last = z1 == cube_layers;
     const int64_t ncarried = int64_t(carried.size() / 4);
     const int64_t removed_before = seen_cells - int64_t(out_cells.size() / 4) - ncarried;
@@ -174,9 +250,23 @@ absl::StatusOr<SimplifyResult> SimplifyStreamed(const TetMesh& mesh, const Simpl
     window.frozen = frozen.data();
     window.sample_cell = free_interfaces ? sample_cell.data() : nullptr;
     window.sample_home = free_interfaces ? &sample_home : nullptr;
-    const int64_t want =
-        last ? target : int64_t(std::ceil(options.target_reduction * double(seen_cells)));
-    const int64_t window_target = std::clamp<int64_t>(want - removed_before, 0, wnt);
+    weight_seen += slab_weight[k];
+    const int64_t want = last ? target
+                         : weight_total > 0
+                             ? int64_t(std::ceil(double(target) * weight_seen / weight_total))
+                             : int64_t(std::ceil(options.target_reduction * double(seen_cells)));
+    const int64_t need = std::clamp<int64_t>(want - removed_before, 0, wnt);
+    int64_t window_target = need;
+    window.min_target = -1;
+    window.stop_cost_factor = 0;
+    if (!last) {
+      const int64_t uniform = std::clamp<int64_t>(
+          int64_t(std::ceil(options.target_reduction * double(seen_cells))) - removed_before, 0,
+          wnt);
+      window.min_target = std::min(uniform, need);
+      window_target = std::max(uniform, need);
+      window.stop_cost_factor = kStopCostFactor;
+    }
     SimplifyResult wr;
     SimplifyOptions o = wopt;
     o.refit_iterations = 0;

