@@ -336,7 +336,13 @@ absl::StatusOr<SimplifyResult> SimplifyStreamed(const TetMesh& mesh, const Simpl
           {"error", wr.max_error}}});
   }
 
-  // The output: the written-out cells on the grid vertices they use, in grid order.
+  // The output: the written-out cells on the grid vertices they use, in grid order. What only the
+  // windows needed goes first (the output's cells are renumbered in place).
+  std::vector<uint8_t>().swap(finalized);
+  std::vector<uint8_t>().swap(flags);
+  for (auto* v : {&local, &globals, &sample_cell, &sample_home}) std::vector<int32_t>().swap(*v);
+  std::vector<uint8_t>().swap(frozen);
+  out_cells.shrink_to_fit();
   std::vector<int32_t> index(nv, -1);
   for (int32_t g : out_cells) index[g] = 0;
   TetMesh& out = result.mesh;
@@ -346,9 +352,8 @@ absl::StatusOr<SimplifyResult> SimplifyStreamed(const TetMesh& mesh, const Simpl
     index[g] = n++;
     AppendVertex(mesh, mesh.vertex_flags, g, &out);
   }
-  out.tets.resize(out_cells.size());
-  for (size_t i = 0; i < out_cells.size(); ++i) out.tets[i] = index[out_cells[i]];
-  std::vector<int32_t>().swap(out_cells);
+  out.tets = std::move(out_cells);
+  for (int32_t& v : out.tets) v = index[v];
   const int64_t ont = out.tet_count();
   out.cell_regions.resize(ont);
   for (int64_t c = 0; c < ont; ++c) {
