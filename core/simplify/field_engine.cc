@@ -345,6 +345,7 @@ struct NewCell {
 // What one run of the greedy loop owns: its queue, its working memory and its counts. The serial
 // loop has one; in a parallel round every block of the mesh gets one (README "Parallel rounds").
 struct Worker {
+  double last_cost = 0;  // the queue cost of the last collapse (FieldWindow pacing)
   QueueHeap heap;
   Scratch scratch;
   std::vector<int32_t> touched, changed;
@@ -383,8 +384,8 @@ enum class Drained { kLimit, kStopCost, kEmpty, kCancelled };
 class FieldEngine {
  public:
   FieldEngine(const TetMesh& mesh, const SimplifyOptions& options, int threads,
-              SimplifyLevels* levels)
-      : in_(mesh), options_(options), threads_(threads), levels_(levels) {}
+              SimplifyLevels* levels, const FieldWindow* window = nullptr)
+      : in_(mesh), options_(options), threads_(threads), levels_(levels), window_(window) {}
 
   absl::Status Run(int64_t target, double tolerance, const ProgressFn& progress,
                    const CancelToken* cancel, SimplifyResult* result);
@@ -541,7 +542,11 @@ class FieldEngine {
   const TetMesh& in_;
   const SimplifyOptions& options_;
   const int threads_;
-  SimplifyLevels* const levels_;  // null: no level record
+  SimplifyLevels* const levels_;     // null: no level record
+  const FieldWindow* const window_;  // null: the whole mesh (field_engine.h)
+  // With a window: per input cell, the output cell Finish gives it (-1: deleted), and per input
+  // vertex the input cell whose bucket lists it when the loop ended (-1: none).
+  std::vector<int32_t> sample_home_;
 
   int64_t nv_ = 0, nt_ = 0;
   const float* pos_ = nullptr;  // the input positions, mm (they never change)
@@ -652,13 +657,15 @@ void FieldEngine::Setup() {
   nt_ = in_.tet_count();
   pos_ = in_.positions.data();
   flags_ = in_.vertex_flags;
-  ApplyFeatureThreshold(options_, in_.interface_distance, &flags_);
+  const bool window_flags = window_ != nullptr && window_->flags_complete;
+  if (!window_flags) ApplyFeatureThreshold(options_, in_.interface_distance, &flags_);
   // With a label per vertex, the interface is the set of cells that hold two labels, and every
   // vertex of such a cell is on it. The distance threshold misses some: a 5-tet cell's diagonal
   // reaches a vertex 1.12 voxels from the level set (20,680 of the CT head's 141,494). Left
   // free, they moved and took the label boundary with them (mean Dice 0.998 at 90 %).
   // (In parallel: a flag is set, never cleared, so the order of the writes does not matter.)
-  ParallelFor(nt_, threads_, 65536, [&](int64_t t0, int64_t t1) {
+  // A window's flags come from the input grid's cells (its carried cells are simplified ones).
+  ParallelFor(window_flags ? 0 : nt_, threads_, 65536, [&](int64_t t0, int64_t t1) {
     in_.ForEachCell(t0, t1, [&](int64_t, const int32_t* c) {
       if (!HoldsTwoLabels(in_.labels.data(), c)) return;
       for (int k = 0; k < 4; ++k) {
@@ -671,6 +678,17 @@ void FieldEngine::Setup() {
   if (free_interfaces_) {
     bucket_head_.assign(nt_, -1);
     sample_next_.assign(nv_, -1);
+    if (window_ != nullptr && window_->sample_cell != nullptr) {
+      // Samples of removed voxel centres carried in from the window before: each goes back into
+      // the bucket of the cell that listed it there. Backwards, so a bucket lists its samples by
+      // increasing vertex id.
+      for (int64_t s = nv_ - 1; s >= 0; --s) {
+        const int32_t c = window_->sample_cell[s];
+        if (c < 0) continue;
+        sample_next_[s] = bucket_head_[c];
+        bucket_head_[c] = int32_t(s);
+      }
+    }
   }
 
   VertexTetAdjacency adjacency = BuildVertexTetAdjacency(in_, threads_);
@@ -712,6 +730,10 @@ void FieldEngine::Setup() {
   for (float s : in_.scalars) {
     lo_s = std::min(lo_s, s);
     hi_s = std::max(hi_s, s);
+  }
+  if (window_ != nullptr) {  // the whole volume's range, so that windows break ties alike
+    lo_s = window_->scalar_lo;
+    hi_s = window_->scalar_hi;
   }
   const double range = nv_ > 0 ? std::max(1e-6, double(hi_s) - double(lo_s)) : 1;
   const double voxel = std::cbrt(voxel_volume_);
@@ -954,6 +976,7 @@ Freedom FieldEngine::Classify(int32_t u, Scratch& s, int32_t along[2]) const {
 // (unsorted, costs not set). s.star must hold u's cells.
 void FieldEngine::Targets(int32_t u, Scratch& s) {
   s.candidates.clear();
+  if (window_ != nullptr && window_->frozen != nullptr && window_->frozen[u]) return;
   int32_t along[2];
   const Freedom freedom = Classify(u, s, along);
   if (freedom == Freedom::kPinned) return;
@@ -1358,6 +1381,7 @@ Drained FieldEngine::Drain(Worker& w, int64_t limit, float stop_cost, bool in_bl
     if (w.log != nullptr) w.log->push_back({u, v, deleted, float(cost)});
     const double wt = quadric_[kQuadricSize * int64_t(u) + kWeightEntry];
     w.last_error = wt > 0 ? std::sqrt(std::max(0.0, cost) / wt) : 0;
+    w.last_cost = cost;
     w.max_error = std::max(w.max_error, w.last_error);
     // Every vertex whose neighbourhood changed is re-scored now, so the queue order is exact.
     // For a free vertex x only two of its candidates can have changed: u is gone and v may be
@@ -1429,6 +1453,7 @@ namespace {
 // Adds w's counts to *to.
 void AddCounts(const Worker& w, Worker* to) {
   to->removed += w.removed;
+  to->last_cost = std::max(to->last_cost, w.last_cost);
   to->collapses += w.collapses;
   to->pops += w.pops;
   to->invalid_tries += w.invalid_tries;
@@ -1724,9 +1749,13 @@ absl::Status FieldEngine::Run(int64_t target, double tolerance, const ProgressFn
   // The rounds need a target to pace them; with an error tolerance the serial loop does it all.
   Worker rounds;
   int64_t removed = 0;
-  if (tolerance == 0 && target < nt_) {
+  // A paced window: at least min_target cells, then on while the queue's cheapest entry costs at
+  // most stop_cost, up to `target`.
+  const bool paced = window_ != nullptr && window_->min_target >= 0;
+  const int64_t min_target = paced ? std::min(window_->min_target, target) : target;
+  if (tolerance == 0 && min_target < nt_) {
     absl::Status status;
-    removed = ParallelRounds(target, progress, cancel, &rounds, &status);
+    removed = ParallelRounds(min_target, progress, cancel, &rounds, &status);
     slab_axis_ = -1;  // the serial loop keeps no intervals
     DECIMA_RETURN_IF_ERROR(status);
   }
@@ -1741,10 +1770,18 @@ absl::Status FieldEngine::Run(int64_t target, double tolerance, const ProgressFn
     w.Reset(std::move(entries));
   }
   const int64_t step = std::max<int64_t>(1, target / 50);
+  double relative_stop = -1;  // FieldWindow::stop_cost_factor times the cost at min_target
   for (;;) {
-    const int64_t limit = std::min(target - removed, w.removed + step);
-    const Drained drained =
-        Drain(w, limit, std::numeric_limits<float>::infinity(), false, tolerance, cancel);
+    const bool below = removed + w.removed < min_target;
+    const int64_t limit = std::min((below ? min_target : target) - removed, w.removed + step);
+    if (paced && !below && !(relative_stop >= 0)) {
+      relative_stop =
+          window_->stop_cost_factor * (w.collapses > 0 ? w.last_cost : rounds.last_cost);
+    }
+    const float stop_cost = paced && !below && window_->stop_cost_factor > 0
+                                ? float(relative_stop)
+                                : std::numeric_limits<float>::infinity();
+    const Drained drained = Drain(w, limit, stop_cost, false, tolerance, cancel);
     if (drained == Drained::kCancelled) return CheckCancelled(cancel, "simplify");
     const int64_t total = removed + w.removed;
     Report(progress, {"simplify",
@@ -1757,6 +1794,7 @@ absl::Status FieldEngine::Run(int64_t target, double tolerance, const ProgressFn
       DECIMA_RETURN_IF_ERROR(Record(serial_log));
       serial_log.clear();
     }
+    if (paced && drained == Drained::kLimit && total >= min_target && total < target) continue;
     if (drained != Drained::kLimit || total >= target) break;
   }
   removed += w.removed;
@@ -1783,6 +1821,12 @@ absl::Status FieldEngine::Run(int64_t target, double tolerance, const ProgressFn
     levels_->base_vertices = nv_;
     levels_->base_cells = nt_;
     levels_->exhausted = removed < target;
+  }
+  if (window_ != nullptr && free_interfaces_) {
+    sample_home_.assign(nv_, -1);
+    for (int64_t c = 0; c < nt_; ++c) {
+      for (int32_t s = bucket_head_[c]; s >= 0; s = sample_next_[s]) sample_home_[s] = int32_t(c);
+    }
   }
   ReleaseQueue();
   Finish(result);
@@ -1875,6 +1919,19 @@ void FieldEngine::Finish(SimplifyResult* result) {
     }
   });
   const std::vector<int64_t> first_cell = first_slots(nt_, live_cell);
+  if (window_ != nullptr && window_->sample_home != nullptr) {
+    // Input cell -> output cell, for the samples' buckets.
+    std::vector<int32_t> cell_index(nt_, -1);
+    for (int64_t t = 0, i = 0; t < nt_; ++t) {
+      if (live_cell(t)) cell_index[t] = int32_t(i++);
+    }
+    std::vector<int32_t>& home = *window_->sample_home;
+    home.assign(nv_, -1);
+    for (int64_t v = 0; v < int64_t(sample_home_.size()); ++v) {
+      if (sample_home_[v] >= 0) home[v] = cell_index[sample_home_[v]];
+    }
+    std::vector<int32_t>().swap(sample_home_);
+  }
   out.tets.resize(4 * first_cell[ranges]);
   out.cell_regions.resize(first_cell[ranges]);
   ParallelFor(ranges, threads_, [&](int64_t r0, int64_t r1) {
@@ -1975,6 +2032,14 @@ absl::Status RunFieldSimplify(const TetMesh& mesh, const SimplifyOptions& option
                               SimplifyLevels* levels) {
   FieldEngine engine(mesh, options, threads, levels);
   return engine.Run(target, tolerance, progress, cancel, result);
+}
+
+absl::Status RunFieldSimplifyWindow(const TetMesh& mesh, const SimplifyOptions& options,
+                                    int threads, int64_t target, const FieldWindow& window,
+                                    const ProgressFn& progress, const CancelToken* cancel,
+                                    SimplifyResult* result) {
+  FieldEngine engine(mesh, options, threads, nullptr, &window);
+  return engine.Run(target, 0, progress, cancel, result);
 }
 
 }  // namespace decima::simplify_internal

@@ -25,6 +25,37 @@ absl::Status RunFieldSimplify(const TetMesh& mesh, const SimplifyOptions& option
                               const CancelToken* cancel, SimplifyResult* result,
                               SimplifyLevels* levels = nullptr);
 
+// A window of a streamed simplification (stream.h): a part of the mesh whose open boundary is
+// frozen. Every pointer is per input vertex of the window's mesh and may be null.
+struct FieldWindow {
+  // 1: the vertex is never removed (it may be a survivor): the window's open top plane and the
+  // vertices shared with cells already written out. A collapse changes only the cells around the
+  // removed vertex, so the window's result is a valid part of the whole mesh.
+  const uint8_t* frozen = nullptr;
+  // InterfaceMode::kFree: for a vertex of no cell (a voxel centre removed in an earlier window),
+  // the cell whose label-guard bucket lists it at set-up; -1 for the others.
+  const int32_t* sample_cell = nullptr;
+  // The vertex flags already hold ApplyFeatureThreshold and the two-label cells of the input grid
+  // (the window's carried cells are simplified ones, whose labels would flag other vertices).
+  bool flags_complete = true;
+  // The whole volume's scalar range (the tie break between equal costs is scaled by it).
+  double scalar_lo = 0, scalar_hi = 1;
+  // Pacing: >= 0, the window removes at least this many cells, then goes on (up to the target)
+  // while the cheapest collapse's queue cost is at most stop_cost_factor times the cost of the
+  // collapse that reached min_target; -1: exactly the target.
+  int64_t min_target = -1;
+  double stop_cost_factor = 0;
+  // Out, InterfaceMode::kFree: per input vertex, the output cell whose bucket lists it (-1: none,
+  // e.g. a surviving vertex).
+  std::vector<int32_t>* sample_home = nullptr;
+};
+
+// RunFieldSimplify of one window (no levels, no tolerance). Frozen vertices are never removed.
+absl::Status RunFieldSimplifyWindow(const TetMesh& mesh, const SimplifyOptions& options,
+                                    int threads, int64_t target, const FieldWindow& window,
+                                    const ProgressFn& progress, const CancelToken* cancel,
+                                    SimplifyResult* result);
+
 // What the field policy's rules say of one half-edge collapse u -> v of the input mesh, for tests
 // that drive a single collapse (CheckFieldCollapse).
 enum class FieldCollapseCheck {

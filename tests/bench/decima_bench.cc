@@ -66,6 +66,7 @@
 #include "core/simplify/levels_io.h"
 #include "core/simplify/simplify.h"
 #include "core/simplify/simplify_json.h"
+#include "core/simplify/stream.h"
 #include "core/volume/phantom.h"
 #include "tests/bench/bench_util.h"
 
@@ -75,6 +76,8 @@ namespace {
 using bench::LoadAverage;
 using bench::ParsePhantom;
 using bench::PeakRssMb;
+using bench::ResetPeakRss;
+using bench::StatusHwmMb;
 
 using Json = nlohmann::ordered_json;
 
@@ -108,6 +111,7 @@ struct BenchOptions {
   double min_psnr = 0;  // 0: no floor
   bool psnr_refine = true;
   std::string simplify_cells = "dropped";
+  int stream_slab_voxels = 0;  // simplify: 0 = in memory, else SimplifyStreamed's slab
   std::string mesh_compression = VtuCompressorName(VtuWriteOptions().compressor);
   int size = 512;
   std::string view = "anterior";
@@ -208,8 +212,21 @@ absl::Status RunSimplify(const BenchOptions& o, BenchState& state, Json& out) {
   so.refit_iterations = o.refit_iterations;
   so.record_levels_to = o.record_levels_to;
   pipeline::PsnrFloorSearch search;
+  // The stage's own peak: the kernel's high-water mark (VmHWM) reset before it (clear_refs 5),
+  // since ru_maxrss keeps the earlier stages' peaks.
+  const bool hwm_reset = ResetPeakRss();
   absl::Status s = Time(o.repeat, out, [&]() -> absl::Status {
     state.simplified.reset();
+    if (o.stream_slab_voxels > 0) {
+      // Streamed: the grid's cells are read from the grid (dropped), as the job's stage does.
+      const bool drop = !state.mesh->cells_dropped;
+      if (drop) DropGridCells(&*state.mesh);
+      auto r = SimplifyStreamed(*state.mesh, so, o.stream_slab_voxels);
+      if (drop) RestoreGridCells(&*state.mesh, so.threads);
+      if (!r.ok()) return r.status();
+      state.simplified = *std::move(r);
+      return absl::OkStatus();
+    }
     // With a floor, what a job with JobSpec::min_psnr runs: the search is part of the time.
     // Without, what the job's simplify stage runs: the cells dropped for the run and restored.
     auto r = o.min_psnr > 0 ? pipeline::SimplifyToPsnrFloor(state.image, *state.mesh, so,
@@ -254,6 +271,11 @@ absl::Status RunSimplify(const BenchOptions& o, BenchState& state, Json& out) {
     }
   }
   out["simplify_cells"] = o.min_psnr > 0 ? "kept" : o.simplify_cells;
+  out["stream_slab_voxels"] = o.stream_slab_voxels;
+  if (hwm_reset) {
+    out["stage_peak_rss_mb"] = StatusHwmMb();
+    out["stage_peak_bytes_per_voxel"] = StatusHwmMb() * 1048576.0 / state.image.voxel_count();
+  }
   out["cells_removed_per_second"] = (r.input_cells - r.output_cells) / out["seconds"].get<double>();
 
   FidelityOptions fo;
@@ -561,6 +583,11 @@ int Main(int argc, char** argv) {
                  "simplify: dropped (the job's way: the input's cells freed and computed from "
                  "the grid, then restored) or kept (read from the array; the same mesh)")
       ->check(CLI::IsMember({"dropped", "kept"}))
+      ->capture_default_str();
+  app.add_option("--stream-slab-voxels", o.stream_slab_voxels,
+                 "simplify, field policy: stream through the volume in slabs of this many voxel "
+                 "layers along z (SimplifyStreamed; 0 = in memory)")
+      ->check(CLI::Range(0, 1 << 20))
       ->capture_default_str();
   app.add_option("--size", o.size, "render: image width and height in pixels")
       ->check(CLI::Range(16, 4096))

@@ -1,0 +1,39 @@
+// Streamed simplification (issue 30): the field policy over a grid mesh in slabs of voxel layers
+// along z, so that the engine's per-vertex state (quadrics, queue records, adjacency, label
+// buckets: ~290 bytes per voxel) is held for one window at a time instead of the whole volume.
+// README.md "Streamed simplification" has the design and the measurements.
+//
+// A sliding window (after Vo, Callahan, Lindstrom, Pascucci, Silva, "Streaming simplification of
+// tetrahedral meshes", TVCG 2007): window k is the cells carried over from window k-1 plus the
+// grid cells of slab k (slab_voxels cube layers). The vertices on its open top plane and those
+// shared with cells already written out are frozen (never removed), so the window is simplified
+// on its own with the engine's rules unchanged; then the cells lying wholly at or below the middle
+// of slab k are written out and the rest carried on. The label guard's samples (removed voxel
+// centres) stay in the buckets of the cells that carry them. Each window removes the cells that
+// bring the run's total to target_reduction of the original cells it has seen so far.
+#pragma once
+
+#include "absl/status/statusor.h"
+#include "core/common/progress.h"
+#include "core/mesh/tet_mesh.h"
+#include "core/simplify/simplify.h"
+
+namespace decima {
+
+// Slabs thinner than this are refused: the frozen top plane and the written-out half would leave
+// a window almost nothing to collapse.
+inline constexpr int kMinStreamSlabVoxels = 4;
+
+// Simplify(mesh, options) in slabs of `slab_voxels` cube layers along z. `mesh` must record its
+// grid (Tetrahedralize's; its cells may be dropped); options: the field policy, a target
+// (target_reduction > 0), no error tolerance, no record_levels_to. slab_voxels >= the grid's
+// cube layers (nz - 1): one window, exactly Simplify. The result has SimplifyResult's shape
+// (compacted explicit mesh, vertex_map onto it, refit over the whole output); pass_stats holds
+// one entry per window. InvalidArgument (naming the option) for what it refuses; the output does
+// not depend on options.threads.
+absl::StatusOr<SimplifyResult> SimplifyStreamed(const TetMesh& mesh, const SimplifyOptions& options,
+                                                int slab_voxels,
+                                                const ProgressFn& progress = nullptr,
+                                                const CancelToken* cancel = nullptr);
+
+}  // namespace decima
