@@ -38,6 +38,7 @@
 #include "core/simplify/levels_io.h"
 #include "core/simplify/simplify.h"
 #include "core/simplify/simplify_json.h"
+#include "core/simplify/stream.h"
 #include "core/volume/regions.h"
 
 namespace decima::pipeline {
@@ -115,6 +116,7 @@ std::string SimplifyKey(const JobSpec& spec, const std::string& segment_key) {
   }
   // Only when set, so the keys of jobs without a floor stay what they were.
   if (spec.min_psnr) absl::StrAppend(&key, absl::StrFormat(" min_psnr=%.17g", *spec.min_psnr));
+  if (spec.stream_slab_voxels > 0) absl::StrAppend(&key, " slabs=", spec.stream_slab_voxels);
   return key;
 }
 
@@ -364,6 +366,14 @@ absl::StatusOr<SimplifyResult> SimplifyStage(const JobSpec& spec, const Volume& 
                               SimplifyToPsnrFloor(image, original, options, *spec.min_psnr,
                                                   /*refine=*/!Wants(spec, "levels"), &*search,
                                                   stage.Forward(), stage.cancel()));
+    } else if (spec.stream_slab_voxels > 0) {
+      // The cells are dropped as for the in-memory run: the windows compute theirs from the grid.
+      const bool drop = !original.cells_dropped;
+      if (drop) DropGridCells(&original);
+      absl::StatusOr<SimplifyResult> streamed = SimplifyStreamed(
+          original, options, spec.stream_slab_voxels, stage.Forward(), stage.cancel());
+      if (drop) RestoreGridCells(&original, options.threads);
+      DECIMA_ASSIGN_OR_RETURN(simplified, std::move(streamed));
     } else {
       DECIMA_ASSIGN_OR_RETURN(
           simplified, SimplifyDroppingCells(&original, options, stage.Forward(), stage.cancel(),
@@ -848,6 +858,30 @@ absl::Status ValidateJobSpec(const JobSpec& spec, std::string* field) {
                                    "needs the field policy, whose recorded levels the floor is "
                                    "searched in; the policy is ",
                                    SimplifyPolicyName(spec.policy))));
+    }
+  }
+
+  if (spec.stream_slab_voxels != 0) {
+    auto refuse = [&](const std::string& why) {
+      return check("stream_slab_voxels",
+                   absl::InvalidArgumentError(absl::StrCat(spec.stream_slab_voxels, ": ", why)));
+    };
+    if (spec.stream_slab_voxels < kMinStreamSlabVoxels) {
+      return refuse(absl::StrCat("expected 0 (in memory) or at least ", kMinStreamSlabVoxels,
+                                 " voxel layers per slab"));
+    }
+    if (spec.policy != SimplifyPolicy::kField) {
+      return refuse(
+          absl::StrCat("streamed simplification runs the field policy only; the policy is ",
+                       SimplifyPolicyName(spec.policy)));
+    }
+    if (spec.min_psnr || spec.levels_file || Wants(spec, "levels") || Wants(spec, "curve")) {
+      return refuse(
+          "streamed simplification makes one mesh at target_reduction: no PSNR floor, level "
+          "record, 'levels' or 'curve' output with it");
+    }
+    if (!(spec.target_reduction > 0) || spec.error_tolerance > 0) {
+      return refuse("streamed simplification needs a target_reduction > 0 and no error_tolerance");
     }
   }
 

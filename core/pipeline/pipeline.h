@@ -55,6 +55,11 @@ struct JobSpec {
   // "fidelity.psnr_db"), found by bisection (psnr_floor.h). target_reduction stays the maximum:
   // whichever stops first wins. Unset: no floor.
   std::optional<double> min_psnr;
+  // Streamed simplification (issue 30; core/simplify/stream.h): > 0 simplifies the grid mesh in
+  // slabs of this many voxel layers along z, so the engine holds one window's state instead of
+  // the whole volume's. 0 (the default) simplifies in memory. Field policy only, without a PSNR
+  // floor, a level record or the "levels" output; >= kMinStreamSlabVoxels.
+  int stream_slab_voxels = 0;
   // Rendering.
   std::vector<std::string> views{"anterior"};  // 1..16 names ParseView accepts
   int image_size = 512;                        // pixels, 16..4096
