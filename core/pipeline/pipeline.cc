@@ -367,13 +367,12 @@ absl::StatusOr<SimplifyResult> SimplifyStage(const JobSpec& spec, const Volume& 
                                                   /*refine=*/!Wants(spec, "levels"), &*search,
                                                   stage.Forward(), stage.cancel()));
     } else if (spec.stream_slab_voxels > 0) {
-      // The cells are dropped as for the in-memory run: the windows compute theirs from the grid.
-      const bool drop = !original.cells_dropped;
-      if (drop) DropGridCells(&original);
-      absl::StatusOr<SimplifyResult> streamed = SimplifyStreamed(
-          original, options, spec.stream_slab_voxels, stage.Forward(), stage.cancel());
-      if (drop) RestoreGridCells(&original, options.threads);
-      DECIMA_ASSIGN_OR_RETURN(simplified, std::move(streamed));
+      // The windows compute their cells from the grid, so the original's stay dropped (the tetra
+      // stage wrote none unless a later stage reads them: those are refused with streaming).
+      DropGridCells(&original);
+      DECIMA_ASSIGN_OR_RETURN(
+          simplified, SimplifyStreamed(original, options, spec.stream_slab_voxels, stage.Forward(),
+                                       stage.cancel()));
     } else {
       DECIMA_ASSIGN_OR_RETURN(
           simplified, SimplifyDroppingCells(&original, options, stage.Forward(), stage.cancel(),

@@ -406,6 +406,7 @@ int RunWholeJob(const BenchOptions& o, const std::string& out_dir, Json* out_jso
   spec.policy = *ParseSimplifyPolicy(o.policy);  // the flag accepts only known names
   spec.interfaces = *ParseInterfaceMode(o.interfaces);
   if (o.min_psnr > 0) spec.min_psnr = o.min_psnr;  // --reduction stays the maximum, as in a job
+  spec.stream_slab_voxels = o.stream_slab_voxels;
   spec.mesh_compression = *ParseVtuCompressor(o.mesh_compression);  // the flag checks the name
   spec.image_size = o.size;
   spec.views = {o.view};
@@ -586,7 +587,8 @@ int Main(int argc, char** argv) {
       ->capture_default_str();
   app.add_option("--stream-slab-voxels", o.stream_slab_voxels,
                  "simplify, field policy: stream through the volume in slabs of this many voxel "
-                 "layers along z (SimplifyStreamed; 0 = in memory)")
+                 "layers along z (SimplifyStreamed; 0 = in memory); with --job-out the job's "
+                 "JobSpec::stream_slab_voxels")
       ->check(CLI::Range(0, 1 << 20))
       ->capture_default_str();
   app.add_option("--size", o.size, "render: image width and height in pixels")
