@@ -353,13 +353,20 @@ absl::Status RefitValues(const TetMesh& original, const std::vector<int32_t>& ve
   return absl::OkStatus();
 }
 
-void ReportRefit(const ProgressFn& progress, const RefitStats& refit) {
+absl::Status RefitAndReport(const TetMesh& original, const std::vector<int32_t>& vertex_map,
+                            TetMesh* simplified, int iterations, int threads,
+                            const CancelToken* cancel, const ProgressFn& progress) {
+  if (iterations <= 0) return absl::OkStatus();
+  RefitStats refit;
+  DECIMA_RETURN_IF_ERROR(
+      RefitValues(original, vertex_map, simplified, iterations, threads, cancel, &refit));
   Report(progress,
          {"simplify",
           1.0,
           absl::StrFormat("values refit to %d samples in %d steps: RMS %.3g -> %.3g", refit.samples,
                           refit.iterations, refit.rms_before, refit.rms_after),
           {{"refit_rms_before", refit.rms_before}, {"refit_rms_after", refit.rms_after}}});
+  return absl::OkStatus();
 }
 
 }  // namespace decima::simplify_internal

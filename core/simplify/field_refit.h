@@ -34,8 +34,11 @@ absl::Status RefitValues(const TetMesh& original, const std::vector<int32_t>& ve
                          TetMesh* simplified, int iterations, int threads,
                          const CancelToken* cancel, RefitStats* stats);
 
-// The progress event of a finished refit (stage "simplify", at 1.0), as a job and a level
-// extraction report it.
-void ReportRefit(const ProgressFn& progress, const RefitStats& refit);
+// RefitValues with `iterations` > 0 (nothing otherwise), then its progress event (stage
+// "simplify", at 1.0, the sample count and the RMS before and after): what a field run, a
+// streamed run and a level extraction do last.
+absl::Status RefitAndReport(const TetMesh& original, const std::vector<int32_t>& vertex_map,
+                            TetMesh* simplified, int iterations, int threads,
+                            const CancelToken* cancel, const ProgressFn& progress);
 
 }  // namespace decima::simplify_internal

@@ -176,12 +176,8 @@ absl::StatusOr<SimplifyResult> ExtractLevel(const TetMesh& base, const SimplifyL
   live_cell = {};
   index = {};
   rep = {};
-  if (levels.refit_iterations > 0) {
-    simplify_internal::RefitStats refit;
-    DECIMA_RETURN_IF_ERROR(simplify_internal::RefitValues(
-        base, result.vertex_map, &out, levels.refit_iterations, threads, cancel, &refit));
-    simplify_internal::ReportRefit(progress, refit);
-  }
+  DECIMA_RETURN_IF_ERROR(simplify_internal::RefitAndReport(
+      base, result.vertex_map, &out, levels.refit_iterations, threads, cancel, progress));
   result.output_cells = cells;
   result.achieved_reduction = nt > 0 ? 1.0 - double(cells) / double(nt) : 0;
   result.reached_target = has_target && removed >= target;

@@ -10,8 +10,8 @@
 #include <vector>
 
 #include "absl/strings/str_cat.h"
-#include "core/common/status.h"
 #include "core/common/atomic_file.h"
+#include "core/common/status.h"
 #include "core/simplify/levels.h"
 
 namespace decima {

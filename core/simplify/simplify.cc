@@ -334,13 +334,9 @@ absl::StatusOr<SimplifyResult> Simplify(const TetMesh& mesh, const SimplifyOptio
     DECIMA_RETURN_IF_ERROR(simplify_internal::RunFieldSimplify(
         mesh, options, threads, target, has_tolerance ? options.error_tolerance : 0, progress,
         cancel, &result));
-    if (options.refit_iterations > 0) {
-      simplify_internal::RefitStats refit;
-      DECIMA_RETURN_IF_ERROR(simplify_internal::RefitValues(mesh, result.vertex_map, &result.mesh,
-                                                            options.refit_iterations, threads,
-                                                            cancel, &refit));
-      simplify_internal::ReportRefit(progress, refit);
-    }
+    DECIMA_RETURN_IF_ERROR(simplify_internal::RefitAndReport(mesh, result.vertex_map, &result.mesh,
+                                                             options.refit_iterations, threads,
+                                                             cancel, progress));
   } else {
     DECIMA_RETURN_IF_ERROR(
         RunCellCollapse(mesh, options, threads, target, has_target, progress, cancel, &result));

@@ -367,12 +367,8 @@ absl::StatusOr<SimplifyResult> SimplifyStreamed(const TetMesh& mesh, const Simpl
     while (merged_into[r] >= 0 && merged_into[r] != r) r = merged_into[r];
     result.vertex_map[g] = index[r];
   }
-  if (options.refit_iterations > 0) {
-    simplify_internal::RefitStats refit;
-    DECIMA_RETURN_IF_ERROR(simplify_internal::RefitValues(
-        mesh, result.vertex_map, &out, options.refit_iterations, threads, cancel, &refit));
-    simplify_internal::ReportRefit(progress, refit);
-  }
+  DECIMA_RETURN_IF_ERROR(simplify_internal::RefitAndReport(
+      mesh, result.vertex_map, &out, options.refit_iterations, threads, cancel, progress));
   result.output_cells = ont;
   result.achieved_reduction = 1.0 - double(ont) / double(input_cells);
   const int64_t removed = input_cells - ont;

@@ -19,19 +19,12 @@ namespace decima {
 namespace {
 
 using testing::FaceUse;
+using testing::FieldOptions;
 using testing::Labeled;
 using testing::MakeLabeled;
 using testing::MakePhantomMesh;
 using testing::SimpleInterfaceDistance;
 using testing::TotalVolume;
-
-SimplifyOptions Field(double reduction, int threads = 2) {
-  SimplifyOptions o;
-  o.policy = SimplifyPolicy::kField;
-  o.target_reduction = reduction;
-  o.threads = threads;
-  return o;
-}
 
 // The voxel staircase kept as a set (InterfaceMode::kVoxelFaces): what the tests of the interface
 // layers below check. field_labels_test checks the default, free interfaces.
@@ -42,7 +35,7 @@ SimplifyOptions VoxelFaces(SimplifyOptions o) {
 
 // The same without the refit: every vertex left keeps its voxel sample.
 SimplifyOptions FieldWithoutRefit(double reduction, int threads = 2) {
-  SimplifyOptions o = Field(reduction, threads);
+  SimplifyOptions o = FieldOptions(reduction, threads);
   o.refit_iterations = 0;
   return o;
 }
@@ -123,7 +116,7 @@ TEST(FieldPolicy, LinearRampIsReproducedExactlyAtEveryReduction) {
       16, [](int64_t i, int64_t j, int64_t k) { return 3.0 * i - 2.0 * j + 0.5 * k; },
       [](int64_t, int64_t, int64_t) { return 0; });
   for (double reduction : {0.5, 0.8, 0.9}) {
-    auto r = Simplify(lin.mesh, Field(reduction));
+    auto r = Simplify(lin.mesh, FieldOptions(reduction));
     ASSERT_TRUE(r.ok()) << r.status();
     EXPECT_TRUE(r->reached_target) << reduction << ": " << r->stop_message;
     auto m = MeasureFidelity(lin.image, r->mesh);
@@ -160,7 +153,7 @@ Labeled Blocks(int64_t n, double noise) {
 
 TEST(FieldPolicy, PlanarInterfacesReachNinetyPercentWithInterfacesLabelsAndHullKept) {
   const Labeled b = Blocks(24, 5);
-  auto r = Simplify(b.mesh, VoxelFaces(Field(0.9)));
+  auto r = Simplify(b.mesh, VoxelFaces(FieldOptions(0.9)));
   ASSERT_TRUE(r.ok()) << r.status();
   EXPECT_TRUE(r->reached_target) << r->stop_message;
   EXPECT_GE(r->achieved_reduction, 0.9);
@@ -188,7 +181,7 @@ TEST(FieldPolicy, InterfaceCornersNeverMove) {
       [](int64_t i, int64_t j, int64_t k) {
         return i >= 6 && i < 14 && j >= 6 && j < 14 && k >= 6 && k < 14 ? 1 : 0;
       });
-  auto r = Simplify(b.mesh, VoxelFaces(Field(0.99)));
+  auto r = Simplify(b.mesh, VoxelFaces(FieldOptions(0.99)));
   ASSERT_TRUE(r.ok()) << r.status();
   EXPECT_GT(r->achieved_reduction, 0.8);
   int checked = 0;
@@ -219,7 +212,7 @@ void ExpectPlaneKeptAtNinetyPercent(float feature_threshold_voxels) {
       n, [](int64_t i, int64_t j, int64_t k) { return double(3 * i - 2 * j + 5 * k); },
       [](int64_t, int64_t, int64_t k) { return k >= n / 2 ? 1 : 0; },
       [](int64_t, int64_t, int64_t k) { return std::abs(double(k) + 0.5 - double(n / 2)); });
-  SimplifyOptions o = Field(0.9);
+  SimplifyOptions o = FieldOptions(0.9);
   o.feature_threshold_voxels = feature_threshold_voxels;
   auto r = Simplify(b.mesh, o);
   ASSERT_TRUE(r.ok()) << r.status();
@@ -309,7 +302,7 @@ TEST(FieldPolicy, KeepsPaperGuaranteesAndBeatsPaperOnTheField) {
   SimplifyOptions paper;
   paper.target_reduction = 0.5;
   auto p = Simplify(pm.mesh, paper);
-  auto f = Simplify(pm.mesh, Field(0.5));
+  auto f = Simplify(pm.mesh, FieldOptions(0.5));
   ASSERT_TRUE(p.ok() && f.ok());
   EXPECT_TRUE(f->reached_target);
   auto mp = MeasureFidelity(pm.phantom.image, p->mesh, fo);
@@ -371,7 +364,7 @@ TEST(FieldPolicy, ShapeGuardKeepsEveryDihedralAngleAboveTheFloor) {
   auto pm = MakePhantomMesh(24, 40);
   const double input_min = MeasureQuality(pm.mesh, 0).min_dihedral_deg;
   ASSERT_GT(input_min, 45);  // 5 tets per cube: 54.7 deg
-  SimplifyOptions o = Field(0.7);
+  SimplifyOptions o = FieldOptions(0.7);
   o.min_dihedral_degrees = 0;
   auto unguarded = Simplify(pm.mesh, o);
   o.min_dihedral_degrees = 8;
@@ -381,15 +374,15 @@ TEST(FieldPolicy, ShapeGuardKeepsEveryDihedralAngleAboveTheFloor) {
   EXPECT_LT(MeasureQuality(unguarded->mesh, 0).min_dihedral_deg, 8);
   EXPECT_GE(MeasureQuality(guarded->mesh, 0).min_dihedral_deg, 8 - 1e-9);
   ExpectBoxHull(guarded->mesh, pm.mesh);
-  SimplifyOptions bad = Field(0.5);
+  SimplifyOptions bad = FieldOptions(0.5);
   bad.min_dihedral_degrees = 31;
   EXPECT_EQ(Simplify(pm.mesh, bad).status().code(), absl::StatusCode::kInvalidArgument);
 }
 
 TEST(FieldPolicy, SameResultOnOneAndTwoThreads) {
   auto pm = MakePhantomMesh(20, 40);
-  auto a = Simplify(pm.mesh, Field(0.6, 1));
-  auto b = Simplify(pm.mesh, Field(0.6, 2));
+  auto a = Simplify(pm.mesh, FieldOptions(0.6, 1));
+  auto b = Simplify(pm.mesh, FieldOptions(0.6, 2));
   ASSERT_TRUE(a.ok() && b.ok());
   EXPECT_GT(a->collapses, 0);
   EXPECT_EQ(a->mesh.tets, b->mesh.tets);
@@ -427,8 +420,8 @@ TEST(FieldPolicy, ParallelRoundsGiveTheSameResultOnOneTwoAndThreeThreads) {
 // each): a mesh large enough for two ranges checks that the split changes no sum.
 TEST(FieldPolicy, RefitSameResultOnOneAndTwoThreadsWithSplitRanges) {
   auto pm = MakePhantomMesh(48, 40);
-  auto a = Simplify(pm.mesh, Field(0.2, 1));
-  auto b = Simplify(pm.mesh, Field(0.2, 2));
+  auto a = Simplify(pm.mesh, FieldOptions(0.2, 1));
+  auto b = Simplify(pm.mesh, FieldOptions(0.2, 2));
   ASSERT_TRUE(a.ok() && b.ok());
   EXPECT_GT(pm.mesh.vertex_count(), 2 * 16384);
   EXPECT_GT(a->mesh.vertex_count(), 2 * 16384);
@@ -481,8 +474,8 @@ TEST(FieldPolicy, RefitLocatesAroundTheMappedVertexAsTheWholeMeshSearchDoes) {
 
 TEST(FieldPolicy, ToleranceStopsTheLoopAndSaysSo) {
   auto pm = MakePhantomMesh(16, 40);
-  SimplifyOptions o = Field(0);  // no target: run to the tolerance
-  o.error_tolerance = 5;         // RMS field error in image units
+  SimplifyOptions o = FieldOptions(0);  // no target: run to the tolerance
+  o.error_tolerance = 5;                // RMS field error in image units
   auto r = Simplify(pm.mesh, o);
   ASSERT_TRUE(r.ok()) << r.status();
   EXPECT_EQ(r->stop_reason, StopReason::kErrorTolerance) << r->stop_message;
@@ -497,7 +490,7 @@ TEST(FieldPolicy, ReportsProgressAndHonoursCancellation) {
   double last = -1;
   bool monotone = true;
   std::string last_message;
-  auto r = Simplify(pm.mesh, Field(0.5), [&](const Progress& e) {
+  auto r = Simplify(pm.mesh, FieldOptions(0.5), [&](const Progress& e) {
     EXPECT_EQ(e.stage, "simplify");
     monotone &= e.fraction >= last;
     last = e.fraction;
@@ -512,7 +505,7 @@ TEST(FieldPolicy, ReportsProgressAndHonoursCancellation) {
   EXPECT_DOUBLE_EQ(last, 1.0);
   CancelToken cancel;
   cancel.Cancel();
-  auto c = Simplify(pm.mesh, Field(0.5), nullptr, &cancel);
+  auto c = Simplify(pm.mesh, FieldOptions(0.5), nullptr, &cancel);
   EXPECT_EQ(c.status().code(), absl::StatusCode::kCancelled);
 }
 
@@ -559,7 +552,7 @@ TEST(FieldPolicy, CancelDuringTheParallelRoundsStopsThem) {
   CancelToken cancel;
   int rounds = 0;
   auto r = Simplify(
-      pm.mesh, Field(0.7),
+      pm.mesh, FieldOptions(0.7),
       [&](const Progress& e) {
         if (e.message.find("slabs removed") == std::string::npos) return;
         ++rounds;
@@ -576,7 +569,7 @@ TEST(FieldPolicy, AMeshOfCornersStaysAsItIsAndSaysWhy) {
   const Labeled cube = MakeLabeled(
       2, [](int64_t i, int64_t j, int64_t k) { return double(i + 2 * j + 4 * k); },
       [](int64_t, int64_t, int64_t) { return 0; });
-  auto r = Simplify(cube.mesh, Field(0.5));
+  auto r = Simplify(cube.mesh, FieldOptions(0.5));
   ASSERT_TRUE(r.ok()) << r.status();
   EXPECT_FALSE(r->reached_target);
   EXPECT_EQ(r->stop_reason, StopReason::kNoValidCollapse) << r->stop_message;
@@ -602,7 +595,7 @@ TEST(FieldPolicy, CellsFromTheGridGiveTheSameResultAsTheTets) {
   ASSERT_TRUE(dropped.cells_dropped);
   for (int threads : {1, 2}) {
     for (InterfaceMode mode : {InterfaceMode::kFree, InterfaceMode::kVoxelFaces}) {
-      SimplifyOptions o = Field(0.7, threads);
+      SimplifyOptions o = FieldOptions(0.7, threads);
       o.interfaces = mode;
       const std::string what = std::to_string(threads) + " threads, " + InterfaceModeName(mode);
       auto a = Simplify(pm.mesh, o);
@@ -637,15 +630,15 @@ TEST(FieldPolicy, CellsFromTheGridGiveTheSameResultAsTheTets) {
 TEST(FieldPolicy, DroppingTheCellsForTheRunGivesTheSameResultAndRestoresThem) {
   auto pm = MakePhantomMesh(24, 40);
   const TetMesh before = pm.mesh;
-  auto expected = Simplify(before, Field(0.6));
-  auto r = SimplifyDroppingCells(&pm.mesh, Field(0.6));
+  auto expected = Simplify(before, FieldOptions(0.6));
+  auto r = SimplifyDroppingCells(&pm.mesh, FieldOptions(0.6));
   ASSERT_TRUE(expected.ok() && r.ok());
   ExpectSameSimplification(*expected, *r, "dropping");
   EXPECT_EQ(pm.mesh.tets, before.tets);
   EXPECT_EQ(pm.mesh.cell_regions, before.cell_regions);
   EXPECT_FALSE(pm.mesh.cells_dropped);
 
-  SimplifyOptions levels = Field(0.6);
+  SimplifyOptions levels = FieldOptions(0.6);
   levels.record_levels_to = 0.7;
   auto with_levels = SimplifyDroppingCells(&pm.mesh, levels);
   ASSERT_TRUE(with_levels.ok()) << with_levels.status();
@@ -654,7 +647,7 @@ TEST(FieldPolicy, DroppingTheCellsForTheRunGivesTheSameResultAndRestoresThem) {
 
   TetMesh dropped = before;
   DropGridCells(&dropped);
-  SimplifyOptions paper = Field(0.3);
+  SimplifyOptions paper = FieldOptions(0.3);
   paper.policy = SimplifyPolicy::kPaper;
   for (const SimplifyOptions& o : {paper, levels}) {
     auto refused = Simplify(dropped, o);

@@ -50,6 +50,26 @@ struct Labeled {
 // stand-in interface distance (SimpleInterfaceDistance: feature vertices = voxels with a
 // 6-neighbour of another label) or, when `distance` is given, with its per-voxel interface distance
 // in voxels.
+// The grid mesh of `image` with `labels` and the per-voxel interface distance `dist` (voxels).
+inline TetMesh MeshWithLabels(const Volume& image, const Volume& labels,
+                              const std::vector<float>& dist) {
+  TetrahedralizeOptions t;
+  t.labels = &labels;
+  t.interface_distance = dist.data();
+  auto mesh = Tetrahedralize(image, t);
+  EXPECT_TRUE(mesh.ok()) << mesh.status();
+  return mesh.ok() ? *std::move(mesh) : TetMesh();
+}
+
+// The field policy to `reduction` on `threads` threads, every other option its default.
+inline SimplifyOptions FieldOptions(double reduction, int threads = 2) {
+  SimplifyOptions o;
+  o.policy = SimplifyPolicy::kField;
+  o.target_reduction = reduction;
+  o.threads = threads;
+  return o;
+}
+
 template <typename ValueFn, typename LabelFn>
 Labeled MakeLabeled(int64_t n, ValueFn value, LabelFn label,
                     std::function<double(int64_t, int64_t, int64_t)> distance = nullptr) {
@@ -71,12 +91,7 @@ Labeled MakeLabeled(int64_t n, ValueFn value, LabelFn label,
       for (int64_t j = 0; j < n; ++j)
         for (int64_t i = 0; i < n; ++i, ++p) dist[p] = float(distance(i, j, k));
   }
-  TetrahedralizeOptions t;
-  t.labels = &out.labels;
-  t.interface_distance = dist.data();
-  auto mesh = Tetrahedralize(out.image, t);
-  EXPECT_TRUE(mesh.ok()) << mesh.status();
-  out.mesh = *std::move(mesh);
+  out.mesh = MeshWithLabels(out.image, out.labels, dist);
   return out;
 }
 

@@ -22,6 +22,8 @@ namespace {
 
 using testing::ExpectSameMesh;
 using testing::FaceUse;
+using testing::FieldOptions;
+using testing::MeshWithLabels;
 using testing::SimpleInterfaceDistance;
 
 struct Case {
@@ -38,22 +40,8 @@ Case MakeCase(std::array<int64_t, 3> dims, double noise = 40) {
   auto p = MakeHeadPhantom(o);
   EXPECT_TRUE(p.ok()) << p.status();
   Case c{std::move(p->image), std::move(p->labels), {}};
-  const std::vector<float> dist = SimpleInterfaceDistance(c.labels);
-  TetrahedralizeOptions t;
-  t.labels = &c.labels;
-  t.interface_distance = dist.data();
-  auto m = Tetrahedralize(c.image, t);
-  EXPECT_TRUE(m.ok()) << m.status();
-  c.mesh = *std::move(m);
+  c.mesh = MeshWithLabels(c.image, c.labels, SimpleInterfaceDistance(c.labels));
   return c;
-}
-
-SimplifyOptions Field(double reduction, int threads = 2) {
-  SimplifyOptions o;
-  o.policy = SimplifyPolicy::kField;
-  o.target_reduction = reduction;
-  o.threads = threads;
-  return o;
 }
 
 FidelityMetrics Measure(const Volume& image, const Volume& labels, const TetMesh& mesh) {
@@ -84,7 +72,7 @@ void ExpectValidMesh(const TetMesh& m, double volume, const std::string& what) {
 // Streamed against in-memory on one case: cells and PSNR within 0.5 %, labels exact, valid.
 void CompareWithInMemory(const Case& c, double reduction, int slab, const std::string& what,
                          double psnr_tolerance = 0.005) {
-  const SimplifyOptions o = Field(reduction);
+  const SimplifyOptions o = FieldOptions(reduction);
   auto whole = Simplify(c.mesh, o);
   ASSERT_TRUE(whole.ok()) << whole.status();
   auto streamed = SimplifyStreamed(c.mesh, o, slab);
@@ -131,8 +119,8 @@ TEST(SimplifyStreamedTest, MatchesInMemoryWithThinSlabs) {
 
 TEST(SimplifyStreamedTest, SameOutputOnOneAndTwoThreads) {
   const Case c = MakeCase({24, 22, 29});
-  auto one = SimplifyStreamed(c.mesh, Field(0.8, 1), 6);
-  auto two = SimplifyStreamed(c.mesh, Field(0.8, 2), 6);
+  auto one = SimplifyStreamed(c.mesh, FieldOptions(0.8, 1), 6);
+  auto two = SimplifyStreamed(c.mesh, FieldOptions(0.8, 2), 6);
   ASSERT_TRUE(one.ok() && two.ok());
   EXPECT_GT(one->passes, 1);  // really streamed
   ExpectSameMesh(*one, *two, "streamed, 1 vs 2 threads");
@@ -141,12 +129,12 @@ TEST(SimplifyStreamedTest, SameOutputOnOneAndTwoThreads) {
 TEST(SimplifyStreamedTest, OneWindowIsTheInMemoryRun) {
   const Case c = MakeCase({20, 20, 17});  // 16 cube layers
   for (int slab : {16, 40}) {
-    auto whole = Simplify(c.mesh, Field(0.7));
-    auto streamed = SimplifyStreamed(c.mesh, Field(0.7), slab);
+    auto whole = Simplify(c.mesh, FieldOptions(0.7));
+    auto streamed = SimplifyStreamed(c.mesh, FieldOptions(0.7), slab);
     ASSERT_TRUE(whole.ok() && streamed.ok());
     ExpectSameMesh(*whole, *streamed, "slab " + std::to_string(slab));
   }
-  auto split = SimplifyStreamed(c.mesh, Field(0.7), 15);  // two windows: not the same run
+  auto split = SimplifyStreamed(c.mesh, FieldOptions(0.7), 15);  // two windows: not the same run
   ASSERT_TRUE(split.ok());
   EXPECT_EQ(split->passes, 2);
 }
@@ -154,24 +142,25 @@ TEST(SimplifyStreamedTest, OneWindowIsTheInMemoryRun) {
 TEST(SimplifyStreamedTest, RefusesWhatItCannotStream) {
   const Case c = MakeCase({12, 12, 12});
   for (int slab : {-1, 0, 1, 2, 3}) {
-    auto r = SimplifyStreamed(c.mesh, Field(0.5), slab);
+    auto r = SimplifyStreamed(c.mesh, FieldOptions(0.5), slab);
     ASSERT_FALSE(r.ok()) << slab;
     EXPECT_EQ(r.status().code(), absl::StatusCode::kInvalidArgument);
     EXPECT_NE(r.status().message().find("stream_slab_voxels"), std::string::npos) << r.status();
   }
-  SimplifyOptions paper = Field(0.5);
+  SimplifyOptions paper = FieldOptions(0.5);
   paper.policy = SimplifyPolicy::kPaper;
   EXPECT_NE(SimplifyStreamed(c.mesh, paper, 4).status().message().find("policy"),
             std::string::npos);
-  SimplifyOptions levels = Field(0.5);
+  SimplifyOptions levels = FieldOptions(0.5);
   levels.record_levels_to = 0.8;
   EXPECT_NE(SimplifyStreamed(c.mesh, levels, 4).status().message().find("record_levels_to"),
             std::string::npos);
-  EXPECT_NE(SimplifyStreamed(c.mesh, Field(0), 4).status().message().find("target_reduction"),
-            std::string::npos);
+  EXPECT_NE(
+      SimplifyStreamed(c.mesh, FieldOptions(0), 4).status().message().find("target_reduction"),
+      std::string::npos);
   TetMesh explicit_mesh = c.mesh;
   explicit_mesh.grid.reset();
-  EXPECT_NE(SimplifyStreamed(explicit_mesh, Field(0.5), 4).status().message().find("grid"),
+  EXPECT_NE(SimplifyStreamed(explicit_mesh, FieldOptions(0.5), 4).status().message().find("grid"),
             std::string::npos);
 }
 
@@ -192,7 +181,8 @@ TEST(FieldWindowTest, FrozenVerticesAreNeverRemoved) {
     w.scalar_hi = hi;
     SimplifyResult r;
     const absl::Status s = simplify_internal::RunFieldSimplifyWindow(
-        c.mesh, Field(0.8), 2, int64_t(0.8 * double(c.mesh.tet_count())), w, nullptr, nullptr, &r);
+        c.mesh, FieldOptions(0.8), 2, int64_t(0.8 * double(c.mesh.tet_count())), w, nullptr,
+        nullptr, &r);
     EXPECT_TRUE(s.ok()) << s;
     return r;
   };
