@@ -6,15 +6,12 @@
 
 #include <array>
 #include <cstdint>
-#include <cstdio>
 #include <cstdlib>
 #include <optional>
 #include <string>
 #include <vector>
 
-#include <cstdio>
 #include "absl/status/statusor.h"
-
 #include "absl/strings/numbers.h"
 #include "absl/strings/str_split.h"
 
@@ -25,28 +22,6 @@ inline double PeakRssMb() {
   rusage usage{};
   getrusage(RUSAGE_SELF, &usage);
   return usage.ru_maxrss / 1024.0;
-}
-
-// Resets the kernel's peak resident set of this process (VmHWM) to the current one, so that
-// StatusHwmMb measures one stage; false where /proc/self/clear_refs refuses it.
-inline bool ResetPeakRss() {
-  std::FILE* f = std::fopen("/proc/self/clear_refs", "w");
-  if (f == nullptr) return false;
-  const bool ok = std::fputs("5", f) >= 0;
-  return std::fclose(f) == 0 && ok;
-}
-
-// VmHWM of /proc/self/status, MB (-1 if unreadable): the peak since the last ResetPeakRss.
-inline double StatusHwmMb() {
-  std::FILE* f = std::fopen("/proc/self/status", "r");
-  if (f == nullptr) return -1;
-  char line[256];
-  double kb = -1;
-  while (std::fgets(line, sizeof line, f) != nullptr) {
-    if (std::sscanf(line, "VmHWM: %lf kB", &kb) == 1) break;
-  }
-  std::fclose(f);
-  return kb / 1024.0;
 }
 
 // 1-minute load average, or -1 if unknown: the figures say how busy the machine was.

@@ -55,6 +55,7 @@
 #include "core/mesh/tetrahedralize.h"
 #include "core/metrics/fidelity.h"
 #include "core/metrics/fidelity_json.h"
+#include "core/pipeline/job_run.h"
 #include "core/pipeline/pipeline.h"
 #include "core/pipeline/psnr_floor.h"
 #include "core/render/camera.h"
@@ -76,8 +77,6 @@ namespace {
 using bench::LoadAverage;
 using bench::ParsePhantom;
 using bench::PeakRssMb;
-using bench::ResetPeakRss;
-using bench::StatusHwmMb;
 
 using Json = nlohmann::ordered_json;
 
@@ -212,9 +211,9 @@ absl::Status RunSimplify(const BenchOptions& o, BenchState& state, Json& out) {
   so.refit_iterations = o.refit_iterations;
   so.record_levels_to = o.record_levels_to;
   pipeline::PsnrFloorSearch search;
-  // The stage's own peak: the kernel's high-water mark (VmHWM) reset before it (clear_refs 5),
-  // since ru_maxrss keeps the earlier stages' peaks.
-  const bool hwm_reset = ResetPeakRss();
+  // The stage's own peak, as a job measures it (VmHWM reset before the stage), since ru_maxrss
+  // keeps the earlier stages' peaks.
+  pipeline::PeakRss stage_peak;
   absl::Status s = Time(o.repeat, out, [&]() -> absl::Status {
     state.simplified.reset();
     if (o.stream_slab_voxels > 0) {
@@ -272,9 +271,11 @@ absl::Status RunSimplify(const BenchOptions& o, BenchState& state, Json& out) {
   }
   out["simplify_cells"] = o.min_psnr > 0 ? "kept" : o.simplify_cells;
   out["stream_slab_voxels"] = o.stream_slab_voxels;
-  if (hwm_reset) {
-    out["stage_peak_rss_mb"] = StatusHwmMb();
-    out["stage_peak_bytes_per_voxel"] = StatusHwmMb() * 1048576.0 / state.image.voxel_count();
+  if (stage_peak.resettable()) {
+    stage_peak.EndStage("simplify");
+    const double mb = stage_peak.stages()["simplify"].get<double>();
+    out["stage_peak_rss_mb"] = mb;
+    out["stage_peak_bytes_per_voxel"] = mb * 1048576.0 / state.image.voxel_count();
   }
   out["cells_removed_per_second"] = (r.input_cells - r.output_cells) / out["seconds"].get<double>();
 
