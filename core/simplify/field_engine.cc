@@ -656,23 +656,12 @@ void FieldEngine::Setup() {
   nv_ = in_.vertex_count();
   nt_ = in_.tet_count();
   pos_ = in_.positions.data();
-  flags_ = in_.vertex_flags;
-  const bool window_flags = window_ != nullptr && window_->flags_complete;
-  if (!window_flags) ApplyFeatureThreshold(options_, in_.interface_distance, &flags_);
-  // With a label per vertex, the interface is the set of cells that hold two labels, and every
-  // vertex of such a cell is on it. The distance threshold misses some: a 5-tet cell's diagonal
-  // reaches a vertex 1.12 voxels from the level set (20,680 of the CT head's 141,494). Left
-  // free, they moved and took the label boundary with them (mean Dice 0.998 at 90 %).
-  // (In parallel: a flag is set, never cleared, so the order of the writes does not matter.)
   // A window's flags come from the input grid's cells (its carried cells are simplified ones).
-  ParallelFor(window_flags ? 0 : nt_, threads_, 65536, [&](int64_t t0, int64_t t1) {
-    in_.ForEachCell(t0, t1, [&](int64_t, const int32_t* c) {
-      if (!HoldsTwoLabels(in_.labels.data(), c)) return;
-      for (int k = 0; k < 4; ++k) {
-        std::atomic_ref<uint8_t>(flags_[c[k]]).fetch_or(kFeatureVertex, std::memory_order_relaxed);
-      }
-    });
-  });
+  if (window_ != nullptr && window_->flags_complete) {
+    flags_ = in_.vertex_flags;
+  } else {
+    FieldVertexFlags(in_, options_, threads_, &flags_);
+  }
   dead_ = BitSet(nt_);
   free_interfaces_ = options_.interfaces == InterfaceMode::kFree;
   if (free_interfaces_) {
@@ -2032,6 +2021,26 @@ absl::Status RunFieldSimplify(const TetMesh& mesh, const SimplifyOptions& option
                               SimplifyLevels* levels) {
   FieldEngine engine(mesh, options, threads, levels);
   return engine.Run(target, tolerance, progress, cancel, result);
+}
+
+void FieldVertexFlags(const TetMesh& mesh, const SimplifyOptions& options, int threads,
+                      std::vector<uint8_t>* flags) {
+  *flags = mesh.vertex_flags;
+  ApplyFeatureThreshold(options, mesh.interface_distance, flags);
+  // With a label per vertex, the interface is the set of cells that hold two labels, and every
+  // vertex of such a cell is on it. The distance threshold misses some: a 5-tet cell's diagonal
+  // reaches a vertex 1.12 voxels from the level set (20,680 of the CT head's 141,494). Left
+  // free, they moved and took the label boundary with them (mean Dice 0.998 at 90 %).
+  // (In parallel: a flag is set, never cleared, so the order of the writes does not matter.)
+  uint8_t* f = flags->data();
+  ParallelFor(mesh.tet_count(), threads, 65536, [&](int64_t t0, int64_t t1) {
+    mesh.ForEachCell(t0, t1, [&](int64_t, const int32_t* c) {
+      if (!HoldsTwoLabels(mesh.labels.data(), c)) return;
+      for (int k = 0; k < 4; ++k) {
+        std::atomic_ref<uint8_t>(f[c[k]]).fetch_or(kFeatureVertex, std::memory_order_relaxed);
+      }
+    });
+  });
 }
 
 absl::Status RunFieldSimplifyWindow(const TetMesh& mesh, const SimplifyOptions& options,

@@ -50,6 +50,12 @@ struct FieldWindow {
   std::vector<int32_t>* sample_home = nullptr;
 };
 
+// The vertex flags the field policy works with: `mesh`'s, with ApplyFeatureThreshold, and
+// kFeatureVertex on every vertex of a cell that holds two labels. On `threads`; the result does
+// not depend on them. A streamed run computes them once on the whole grid (FieldWindow).
+void FieldVertexFlags(const TetMesh& mesh, const SimplifyOptions& options, int threads,
+                      std::vector<uint8_t>* flags);
+
 // RunFieldSimplify of one window (no levels, no tolerance). Frozen vertices are never removed.
 absl::Status RunFieldSimplifyWindow(const TetMesh& mesh, const SimplifyOptions& options,
                                     int threads, int64_t target, const FieldWindow& window,

@@ -79,13 +79,8 @@ absl::StatusOr<SimplifyResult> SimplifyStreamed(const TetMesh& mesh, const Simpl
 
   // What every window shares with the in-memory run: the feature flags of the input grid's cells,
   // the scalar range, the voxel size.
-  std::vector<uint8_t> flags = mesh.vertex_flags;
-  simplify_internal::ApplyFeatureThreshold(options, mesh.interface_distance, &flags);
-  grid.ForEachCell(0, input_cells, [&](int64_t, const int32_t* c) {
-    const uint8_t* l = mesh.labels.data();
-    if (l[c[1]] == l[c[0]] && l[c[2]] == l[c[0]] && l[c[3]] == l[c[0]]) return;
-    for (int k = 0; k < 4; ++k) flags[c[k]] |= kFeatureVertex;
-  });
+  std::vector<uint8_t> flags;
+  simplify_internal::FieldVertexFlags(mesh, options, threads, &flags);
   simplify_internal::FieldWindow window;
   window.flags_complete = true;
   window.scalar_lo = std::numeric_limits<double>::infinity();
