@@ -147,8 +147,13 @@ TEST_F(ServiceE2E, ServerKilledWithJobsQueuedAndRunningCompletesEveryJobAfterRes
   std::vector<std::string> jobs;
   {
     ServerProcess server(data, {"--workers", "1", "--allow-faults"});
+    // The first job must still be running when the third submit returns: under ThreadSanitizer
+    // each CLI process takes over a second to start, and a one-second job had finished before the
+    // test looked (CI, stop 42).
+    const std::string first_sleep = "sleep:" + std::to_string(kSlowdown == 1 ? 1 : 6);
     for (int i = 0; i < 3; ++i) {
-      CliResult r = RunCli(server.address(), {"submit", volume_.string(), "--fault", "sleep:1"});
+      CliResult r = RunCli(server.address(),
+                           {"submit", volume_.string(), "--fault", i == 0 ? first_sleep : "sleep:1"});
       ASSERT_EQ(r.rc, 0) << r.err;
       jobs.push_back(FirstLine(r.out));
     }
