@@ -63,6 +63,10 @@ void DescribeJob(CliContext& ctx, const v1::Job& j) {
                 s.levels_of().c_str());
   }
   if (s.has_min_psnr()) std::printf("  min_psnr %g dB\n", s.min_psnr());
+  if (s.stream_slab_voxels() > 0) {
+    std::printf("  simplified in slabs of %d voxel layers (stream_slab_voxels)\n",
+                s.stream_slab_voxels());
+  }
   if (!s.interfaces().empty()) std::printf("  interfaces %s\n", s.interfaces().c_str());
   if (!s.mesh_compression().empty()) {
     std::printf("  mesh_compression %s\n", s.mesh_compression().c_str());

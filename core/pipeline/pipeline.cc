@@ -388,6 +388,8 @@ absl::StatusOr<SimplifyResult> SimplifyStage(const JobSpec& spec, const Volume& 
   run.metrics()["simplification"] =
       SimplifyResultToJson(simplified, options, original.vertex_count());
   if (spec.levels_file) run.metrics()["simplification"]["from_levels"] = true;
+  // 0: in memory; else the slab depth, the server's choice when the spec left it open.
+  run.metrics()["simplification"]["stream_slab_voxels"] = spec.stream_slab_voxels;
   if (spec.min_psnr) {
     // A resumed stage has its mesh and stop message but not the probes of the search.
     run.metrics()["min_psnr"] =
@@ -769,6 +771,21 @@ absl::Status DiffStage(const JobSpec& spec, const Volume& image, const SegmentRe
 
 }  // namespace
 
+std::string StreamingRefusal(const JobSpec& spec) {
+  if (spec.policy != SimplifyPolicy::kField) {
+    return absl::StrCat("streamed simplification runs the field policy only; the policy is ",
+                        SimplifyPolicyName(spec.policy));
+  }
+  if (spec.min_psnr || spec.levels_file || Wants(spec, "levels") || Wants(spec, "curve")) {
+    return "streamed simplification makes one mesh at target_reduction: no PSNR floor, level "
+           "record, 'levels' or 'curve' output with it";
+  }
+  if (!(spec.target_reduction > 0) || spec.error_tolerance > 0) {
+    return "streamed simplification needs a target_reduction > 0 and no error_tolerance";
+  }
+  return "";
+}
+
 absl::Status ValidateJobSpec(const JobSpec& spec, std::string* field) {
   // Each value goes through its module's validator on otherwise default options, so the
   // failing one is known by name and the ranges exist once, in the module that owns them.
@@ -869,19 +886,7 @@ absl::Status ValidateJobSpec(const JobSpec& spec, std::string* field) {
       return refuse(absl::StrCat("expected 0 (in memory) or at least ", kMinStreamSlabVoxels,
                                  " voxel layers per slab"));
     }
-    if (spec.policy != SimplifyPolicy::kField) {
-      return refuse(
-          absl::StrCat("streamed simplification runs the field policy only; the policy is ",
-                       SimplifyPolicyName(spec.policy)));
-    }
-    if (spec.min_psnr || spec.levels_file || Wants(spec, "levels") || Wants(spec, "curve")) {
-      return refuse(
-          "streamed simplification makes one mesh at target_reduction: no PSNR floor, level "
-          "record, 'levels' or 'curve' output with it");
-    }
-    if (!(spec.target_reduction > 0) || spec.error_tolerance > 0) {
-      return refuse("streamed simplification needs a target_reduction > 0 and no error_tolerance");
-    }
+    if (std::string why = StreamingRefusal(spec); !why.empty()) return refuse(why);
   }
 
   if (spec.views.empty() || spec.views.size() > 16) {

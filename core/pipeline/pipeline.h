@@ -101,6 +101,13 @@ bool Wants(const JobSpec& spec, const char* kind);
 // ParseView and the transfer-function parser, so it accepts exactly what RunJob can run.
 absl::Status ValidateJobSpec(const JobSpec& spec, std::string* field = nullptr);
 
+// Why `spec` cannot be simplified in slabs (stream_slab_voxels > 0), in words for an error
+// message ("streamed simplification runs the field policy only; ..."), or empty when it can:
+// the field policy, a target_reduction > 0 and no error tolerance, no PSNR floor, level record,
+// "levels" or "curve" output. ValidateJobSpec refuses a streamed spec with it; the server asks
+// before choosing to stream a job that does not fit in memory.
+std::string StreamingRefusal(const JobSpec& spec);
+
 struct Artifact {
   std::string name;  // "mesh.vtu", "diff.png", ...
   std::filesystem::path path;

@@ -318,17 +318,19 @@ absl::StatusOr<SimplifyResult> SimplifyStreamed(const TetMesh& mesh, const Simpl
           carried_samples.emplace_back(globals[v], carried_index[h]);
       }
     }
-    Report(
-        progress,
-        {"simplify",
-         double(z1) / double(cube_layers),
-         absl::StrFormat("window %d (z %d..%d): %d cells, %d removed, %d written out, %d carried",
-                         window_count, z0, z1, wnt, wnt - ont, int64_t(out_cells.size() / 4),
-                         int64_t(carried.size() / 4)),
-         {{"pass", double(window_count)},
-          {"cells_removed",
-           double(seen_cells - int64_t(out_cells.size() / 4) - int64_t(carried.size() / 4))},
-          {"error", wr.max_error}}});
+    Report(progress,
+           {"simplify",
+            double(z1) / double(cube_layers),
+            absl::StrFormat(
+                "slab %d of %d (z %d..%d): %d cells, %d removed, %d written out, %d carried",
+                window_count, slabs, z0, z1, wnt, wnt - ont, int64_t(out_cells.size() / 4),
+                int64_t(carried.size() / 4)),
+            {{"pass", double(window_count)},
+             {"slab", double(window_count)},
+             {"slabs", double(slabs)},
+             {"cells_removed",
+              double(seen_cells - int64_t(out_cells.size() / 4) - int64_t(carried.size() / 4))},
+             {"error", wr.max_error}}});
   }
 
   // The output: the written-out cells on the grid vertices they use, in grid order. What only the

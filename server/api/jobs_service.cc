@@ -66,6 +66,7 @@ absl::StatusOr<v1::Job> SubmitJob(const ServiceDeps& d, const Principal& caller,
     detail->set_field(field);
     return spec.status();
   }
+  JobMemoryPlan plan;
   // The volumes must exist now (NOT_FOUND); their files are resolved when the job runs.
   for (const auto& [name, value] :
        {std::pair<const char*, const std::string&>{"spec.volume", spec->volume()},
@@ -87,12 +88,16 @@ absl::StatusOr<v1::Job> SubmitJob(const ServiceDeps& d, const Principal& caller,
     // Refused now rather than failed when a worker takes it: nothing is queued. The estimate
     // is the volume's (a label map is small beside the job).
     if (std::string_view(name) == "spec.volume") {
-      if (auto fits = CheckJobFits(*vol, value, d.options->job_memory_cap_bytes, name, detail);
+      if (auto fits = CheckJobFits(*vol, value, *spec, d.options->job_memory_cap_bytes, name,
+                                   detail, &plan);
           !fits.ok()) {
         return fits;
       }
     }
   }
+  // In memory or in slabs, decided once here and stored, so every replica runs the job the same
+  // way and GetJob shows how.
+  if (!spec->has_stream_slab_voxels()) spec->set_stream_slab_voxels(plan.stream_slab_voxels);
   const std::string id = NewId();
   const DataDir& dd = d.options->data_dir;
   if (!fault.empty()) {
@@ -188,12 +193,13 @@ class JobsService final : public v1::Jobs::Service {
       const int64_t cap = d_.options->job_memory_cap_bytes;
       const std::string name = req->display_name().empty() ? "the volume" : req->display_name();
       v1::ErrorDetail detail;
-      int64_t needed = 0;
-      auto fits = CheckJobFits(volume, name, cap, "dims", &detail, &needed);
+      JobMemoryPlan plan;
+      auto fits = CheckJobFits(volume, name, req->spec(), cap, "dims", &detail, &plan);
       if (!fits.ok()) return Fail(ctx, fits, detail);
       resp->set_fits(true);
-      resp->set_estimate_mb((needed + (int64_t{1} << 20) - 1) >> 20);
+      resp->set_estimate_mb((plan.estimate_bytes + (int64_t{1} << 20) - 1) >> 20);
       resp->set_limit_mb(cap > 0 ? cap >> 20 : 0);
+      resp->set_stream_slab_voxels(plan.stream_slab_voxels);
       return grpc::Status::OK;
     });
   }

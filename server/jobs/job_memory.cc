@@ -3,9 +3,11 @@
 #include <unistd.h>
 
 #include <algorithm>
+#include <span>
 
 #include "absl/strings/str_cat.h"
 #include "server/files/disk_space.h"
+#include "server/jobs/job_spec.h"
 
 namespace decima::server {
 namespace {
@@ -20,35 +22,40 @@ namespace {
 // original mesh freed first; issue 30): 100 MiB + 44 B/tet, fitted to its measured peaks on the
 // two CT heads (273.5 and 1607 MiB; 128x128x113: 496.5 measured, 479 estimated). It was
 // 144 MiB + 67 B/tet with the materialized renderable mesh, then the job's peak; simplify is now.
-// The other stages stay below these two (segment ~30, tetra ~120 bytes per voxel). Checked on
+// The other stages stay below these two (segment ~30, tetra ~40 bytes per voxel). Checked on
 // ch2 (simplify 2 % below its measured 2034 MiB) and ch2better.
 struct StageModel {
   int64_t base_bytes;
-  int64_t bytes_per_tet;
+  double bytes_per_tet;       // per tet of the grid mesh
+  double bytes_per_kept_tet;  // per tet of it the simplified mesh keeps, (1 - reduction) of them
+  double bytes_per_window_voxel = 0;  // per voxel of one slab (slab_voxels layers), streamed
 };
-constexpr StageModel kStages[] = {
-    {int64_t{60} << 20, 58},   // simplify
-    {int64_t{100} << 20, 44},  // render
+constexpr StageModel kInMemoryStages[] = {
+    {int64_t{60} << 20, 58, 0},   // simplify
+    {int64_t{100} << 20, 44, 0},  // render
+};
+// Simplified in slabs (core/simplify/stream.h), fitted to `decima-bench --job-out DIR
+// --stream-slab-voxels 16` on the CT head 256x256x113 at 50 and 80 % (simplify 1493 and 1096
+// MiB, render 1590 and 810; checked on the 511x511x225 CT at 80 %: simplify 7981 measured, 7671
+// estimated). The simplify stage holds the input's vertex arrays, the output mesh and its refit
+// (both scale with the cells kept) and one window's engine state (about 100 bytes per voxel of
+// a slab, from W=8/16/32 on the 256 head); render the fidelity samples and the simplified mesh.
+constexpr StageModel kStreamedStages[] = {
+    {int64_t{100} << 20, 18.2, 38.1, 100},  // simplify
+    {int64_t{100} << 20, 5.5, 74.9, 0},     // render
 };
 constexpr int64_t kSaturated = int64_t{1} << 50;
 constexpr int64_t kRuntimeBytes = int64_t{1} << 30;  // libraries, thread stacks, malloc arenas
 
-// Tets of the 5-tet decomposition of the voxel grid: 5 per cube between voxel centres.
-int64_t GridTets(const v1::Volume& volume, int64_t voxels) {
-  if (volume.dims_size() != 3) return 5 * voxels;  // DICOM before parsing: about 5 per voxel
-  int64_t cubes = 1;
-  for (int64_t d : volume.dims()) cubes *= std::max<int64_t>(d - 1, 1);
-  return 5 * cubes;
-}
-
 }  // namespace
 
-int64_t EstimateJobMemoryBytes(const v1::Volume& volume) {
+int64_t EstimateJobMemoryBytes(const v1::Volume& volume, int stream_slab_voxels,
+                               double target_reduction) {
   int64_t voxels = 0;
   if (volume.dims_size() == 3) {
     voxels = 1;
     for (int64_t d : volume.dims()) {
-      if (d <= 0) return kStages[0].base_bytes;
+      if (d <= 0) return kInMemoryStages[0].base_bytes;
       // Saturate instead of overflowing: such a volume is refused anyway.
       voxels = voxels > kSaturated / d ? kSaturated : voxels * d;
     }
@@ -56,15 +63,60 @@ int64_t EstimateJobMemoryBytes(const v1::Volume& volume) {
     voxels = std::max<int64_t>(volume.size_bytes(), 0) / 2;
   }
   if (voxels >= kSaturated / 5) return kSaturated;
-  const int64_t tets = GridTets(volume, voxels);
-  int64_t peak = 0;
-  for (const StageModel& s : kStages) {
-    const int64_t stage = tets >= (kSaturated - s.base_bytes) / s.bytes_per_tet
-                              ? kSaturated
-                              : s.base_bytes + tets * s.bytes_per_tet;
-    peak = std::max(peak, stage);
+  // Tets of the 5-tet decomposition of the voxel grid: 5 per cube between voxel centres (about 5
+  // per voxel for DICOM before parsing), and the voxels of one slab of cube layers.
+  double tets = 5.0 * double(voxels), window_voxels = 0;
+  int64_t cube_layers = 0;
+  if (volume.dims_size() == 3) {
+    double cubes = 1;
+    for (int64_t d : volume.dims()) cubes *= double(std::max<int64_t>(d - 1, 1));
+    tets = 5 * cubes;
+    cube_layers = std::max<int64_t>(volume.dims(2) - 1, 1);
+    window_voxels = double(volume.dims(0)) * double(volume.dims(1)) *
+                    double(std::min<int64_t>(stream_slab_voxels, cube_layers));
+  } else {
+    // Shape unknown: slices of 512x512 voxels (a CT's).
+    window_voxels = 512.0 * 512.0 * stream_slab_voxels;
   }
-  return peak;
+  // A slab holding every cube layer is the in-memory run (SimplifyStreamed calls Simplify).
+  const bool streamed =
+      stream_slab_voxels > 0 && (cube_layers == 0 || stream_slab_voxels < cube_layers);
+  const double kept = 1 - std::clamp(target_reduction, 0.0, 1.0);
+  double peak = 0;
+  for (const StageModel& s : streamed ? std::span<const StageModel>(kStreamedStages)
+                                      : std::span<const StageModel>(kInMemoryStages)) {
+    peak = std::max(peak, double(s.base_bytes) +
+                              tets * (s.bytes_per_tet + kept * s.bytes_per_kept_tet) +
+                              window_voxels * s.bytes_per_window_voxel);
+  }
+  return peak >= double(kSaturated) ? kSaturated : int64_t(peak);
+}
+
+JobMemoryPlan PlanJobMemory(const v1::Volume& volume, const v1::JobSpec& spec, int64_t cap) {
+  JobMemoryPlan plan;
+  v1::JobSpec named = spec;
+  // CheckJobMemory asks before the volume exists; any well-formed name stands for it.
+  if (named.volume().empty()) named.set_volume("volumes/pending");
+  named.clear_stream_slab_voxels();
+  const absl::StatusOr<pipeline::JobSpec> parsed = JobSpecFromProto(named);
+  const double reduction =
+      parsed.ok() ? parsed->target_reduction : pipeline::JobSpec{}.target_reduction;
+  plan.streaming_refusal =
+      parsed.ok() ? pipeline::StreamingRefusal(*parsed) : std::string(parsed.status().message());
+  plan.streamed_estimate_bytes = EstimateJobMemoryBytes(volume, kServerStreamSlabVoxels, reduction);
+  if (spec.has_stream_slab_voxels()) {
+    plan.stream_slab_voxels = spec.stream_slab_voxels();
+    plan.estimate_bytes = EstimateJobMemoryBytes(volume, plan.stream_slab_voxels, reduction);
+    return plan;
+  }
+  plan.estimate_bytes = EstimateJobMemoryBytes(volume, 0, reduction);
+  if (cap <= 0 || plan.estimate_bytes <= cap || !plan.streaming_refusal.empty() ||
+      plan.streamed_estimate_bytes >= plan.estimate_bytes) {
+    return plan;
+  }
+  plan.stream_slab_voxels = kServerStreamSlabVoxels;
+  plan.estimate_bytes = plan.streamed_estimate_bytes;
+  return plan;
 }
 
 int64_t DefaultJobMemoryCapBytes() {
@@ -78,23 +130,39 @@ int64_t JobMemoryCapBytes(int64_t worker_memory_mb) {
   return worker_memory_mb > 0 ? worker_memory_mb << 20 : DefaultJobMemoryCapBytes();
 }
 
-absl::Status CheckJobMemory(const v1::Volume& volume, const std::string& volume_name, int64_t cap) {
-  const int64_t needed = EstimateJobMemoryBytes(volume);
-  if (needed <= cap) return absl::OkStatus();
+absl::Status CheckJobMemory(const v1::Volume& volume, const std::string& volume_name, int64_t cap,
+                            const JobMemoryPlan& plan) {
+  if (plan.estimate_bytes <= cap) return absl::OkStatus();
   std::string dims;
   for (int64_t d : volume.dims()) absl::StrAppend(&dims, dims.empty() ? "" : "x", d);
+  std::string how =
+      plan.stream_slab_voxels > 0
+          ? absl::StrCat(" simplified in slabs of ", plan.stream_slab_voxels, " voxel layers")
+          : "";
+  // What streaming would change, when it would make the job fit.
+  std::string instead;
+  if (plan.stream_slab_voxels == 0 && plan.streamed_estimate_bytes <= cap) {
+    instead = plan.streaming_refusal.empty()
+                  ? absl::StrCat("; simplified in slabs (stream_slab_voxels ",
+                                 kServerStreamSlabVoxels, ", or left unset) it would need about ",
+                                 HumanBytes(plan.streamed_estimate_bytes))
+                  : absl::StrCat("; in slabs it would need about ",
+                                 HumanBytes(plan.streamed_estimate_bytes), ", but ",
+                                 plan.streaming_refusal);
+  }
   return absl::ResourceExhaustedError(
       absl::StrCat(volume_name, " (", dims.empty() ? HumanBytes(volume.size_bytes()) : dims,
-                   dims.empty() ? "" : " voxels", ") needs about ", HumanBytes(needed),
-                   " of memory, more than the job limit of ", HumanBytes(cap),
-                   " (decima-server --worker-memory-mb); nothing was run"));
+                   dims.empty() ? "" : " voxels", ") needs about ", HumanBytes(plan.estimate_bytes),
+                   " of memory", how, ", more than the job limit of ", HumanBytes(cap),
+                   " (decima-server --worker-memory-mb)", instead, "; nothing was run"));
 }
 
-absl::Status CheckJobFits(const v1::Volume& volume, const std::string& volume_name, int64_t cap,
-                          const std::string& field, v1::ErrorDetail* detail, int64_t* needed) {
-  if (needed) *needed = EstimateJobMemoryBytes(volume);
+absl::Status CheckJobFits(const v1::Volume& volume, const std::string& volume_name,
+                          const v1::JobSpec& spec, int64_t cap, const std::string& field,
+                          v1::ErrorDetail* detail, JobMemoryPlan* plan) {
+  *plan = PlanJobMemory(volume, spec, cap);
   if (cap <= 0) return absl::OkStatus();
-  absl::Status fits = CheckJobMemory(volume, volume_name, cap);
+  absl::Status fits = CheckJobMemory(volume, volume_name, cap, *plan);
   if (!fits.ok()) {
     detail->set_field(field);
     detail->set_limit("worker_memory_mb");

@@ -112,10 +112,13 @@ absl::StatusOr<JobRunner::Prepared> JobRunner::Prepare(const v1::Job& job, int64
   request.set_input(input->string());
   request.set_series_instance_uid(volume.series_instance_uid());
   const int64_t cap = JobMemoryCapBytes(options_.worker_memory_mb);
-  if (auto fits = CheckJobMemory(volume, job.spec().volume(), cap); !fits.ok()) return fits;
+  const JobMemoryPlan plan = PlanJobMemory(volume, job.spec(), cap);
+  if (auto fits = CheckJobMemory(volume, job.spec().volume(), cap, plan); !fits.ok()) return fits;
+  // A job stored before CreateJob chose (spec without stream_slab_voxels) runs as planned here.
+  request.mutable_spec()->set_stream_slab_voxels(plan.stream_slab_voxels);
   Prepared prepared;
 #if !defined(__SANITIZE_ADDRESS__) && !defined(__SANITIZE_THREAD__)
-  prepared.memory_limit_bytes = JobAddressSpaceLimitBytes(EstimateJobMemoryBytes(volume), cap);
+  prepared.memory_limit_bytes = JobAddressSpaceLimitBytes(plan.estimate_bytes, cap);
 #endif
   request.set_memory_limit_bytes(prepared.memory_limit_bytes);
   request.set_job_name(job.name());

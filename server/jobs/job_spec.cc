@@ -178,6 +178,8 @@ absl::StatusOr<pipeline::JobSpec> JobSpecFromProto(const v1::JobSpec& spec, std:
     if (!spec.has_target_reduction()) p.target_reduction = 0;
   }
 
+  if (spec.has_stream_slab_voxels()) p.stream_slab_voxels = spec.stream_slab_voxels();
+
   std::string bad;
   absl::Status st = pipeline::ValidateJobSpec(p, &bad);
   if (!st.ok()) return Invalid(field, absl::StrCat("spec.", bad), std::string(st.message()));
@@ -210,6 +212,8 @@ absl::StatusOr<v1::JobSpec> NormalizeJobSpec(const v1::JobSpec& spec, std::strin
   out.set_vtu_compression_level(p->vtu_compression_level);
   out.set_mesh_compression(VtuCompressorName(p->mesh_compression));
   if (p->min_psnr) out.set_min_psnr(*p->min_psnr);
+  // Left unset for CreateJob to choose once it knows the volume (PlanJobMemory).
+  if (spec.has_stream_slab_voxels()) out.set_stream_slab_voxels(p->stream_slab_voxels);
   out.set_levels_of(spec.levels_of());
   return out;
 }

@@ -387,6 +387,51 @@ TEST_F(CliE2E, BadMinPsnrIsRefusedAtSubmitAndQueuesNothingAndAFloorStopIsNoWarni
   EXPECT_THAT(r.out, HasSubstr("min_psnr 1e+06 dB"));
 }
 
+// Issue 30: --stream-slab-voxels reaches the pipeline through the API: the job is simplified in
+// slabs (its progress counts them, status and metrics.json say so), every voxel keeps its label;
+// a depth the pipeline cannot run is refused before anything is uploaded, and one the spec
+// cannot use (a PSNR floor) by the server, naming the field.
+TEST_F(CliE2E, StreamSlabVoxelsSimplifiesInSlabsAndBadDepthsAreRefused) {
+  ServerProcess server(scratch_ / "data");
+  for (const char* bad : {"--stream-slab-voxels=3", "--stream-slab-voxels=-1"}) {
+    CliResult r = RunCli(server.address(), {"submit", volume_.string(), bad});
+    EXPECT_EQ(r.rc, 2) << bad << "\n" << r.err;
+    EXPECT_THAT(r.err, HasSubstr("expected 0 (in memory) or at least 4")) << bad;
+  }
+  EXPECT_TRUE(ListVolumes(server.address()).empty()) << "nothing uploaded";
+  CliResult r = RunCli(server.address(), {"submit", volume_.string(), "--stream-slab-voxels", "4",
+                                          "--min-psnr", "40"});
+  EXPECT_NE(r.rc, 0) << r.err;
+  EXPECT_THAT(r.err, HasSubstr("spec.stream_slab_voxels"));
+  EXPECT_THAT(r.err, HasSubstr("no PSNR floor"));
+
+  // The phantom's 7 cube layers in slabs of 4: two windows.
+  const fs::path out = scratch_ / "streamed";
+  r = RunCli(server.address(),
+             {"submit", volume_.string(), "--stream-slab-voxels", "4", "--reduction", "0.3",
+              "--image-size", "32", "--outputs", "vtu", "--watch", "--out", out.string()});
+  ASSERT_EQ(r.rc, 0) << r.err;
+  const std::string job = FirstLine(r.out);
+  CliResult w = RunCli(server.address(), {"watch", job, "-o", "json"});
+  EXPECT_EQ(w.rc, 0) << w.err;
+  std::vector<std::string> slabs;
+  for (const auto& l : Lines(w.out)) {
+    auto j = nlohmann::json::parse(l, nullptr, false);
+    ASSERT_FALSE(j.is_discarded()) << l;
+    const std::string message = j.value("/progress/message"_json_pointer, std::string());
+    if (message.rfind("slab ", 0) == 0) slabs.push_back(message.substr(0, 11));
+  }
+  EXPECT_EQ(slabs, (std::vector<std::string>{"slab 1 of 2", "slab 2 of 2"})) << w.out;
+  r = RunCli(server.address(), {"status", job});
+  EXPECT_EQ(r.rc, 0) << r.err;
+  EXPECT_THAT(r.out, HasSubstr("simplified in slabs of 4 voxel layers"));
+  auto metrics = nlohmann::json::parse(ReadFile(out / "metrics.json"), nullptr, false);
+  ASSERT_TRUE(metrics.is_object()) << ReadFile(out / "metrics.json");
+  EXPECT_EQ(metrics["simplification"]["stream_slab_voxels"], 4);
+  EXPECT_EQ(metrics["fidelity"]["label_mismatch"], 0.0);
+  EXPECT_TRUE(fs::exists(out / "mesh.vtu"));
+}
+
 TEST_F(CliE2E, ListIsATableAndJsonLinesWithTheFlagBeforeOrAfterTheVerb) {
   ServerProcess server(scratch_ / "data");
   TwoSucceededJobs(server);

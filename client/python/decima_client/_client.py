@@ -50,7 +50,8 @@ _SPEC_KEYS = {"regions": "regions", "class_means": "class_means", "region_names"
               "image_size": "image_size", "transfer_function": "transfer_function",
               "outputs": "outputs", "vtu_compression_level": "vtu_compression_level",
               "vtu_level": "vtu_compression_level", "min_psnr": "min_psnr",
-              "interfaces": "interfaces", "mesh_compression": "mesh_compression"}
+              "interfaces": "interfaces", "mesh_compression": "mesh_compression",
+              "stream_slab_voxels": "stream_slab_voxels"}
 # fetch(outputs=...) kinds, as the CLI's --only: kind -> file name.
 _KIND_FILES = {"vtu": "mesh.vtu", "msh": "mesh.msh", "medit": "mesh.mesh", "levels": "mesh.levels",
                "labels": "labels.nii.gz", "segmentation": "segmentation.png",
@@ -510,7 +511,9 @@ class Client:
         outputs (["vtu", "labels", ...]), vtu_compression_level (or vtu_level),
         mesh_compression ("zlib" or "lzma": mesh.vtu's compressor), min_psnr (a
         PSNR floor in dB, field policy: as far as possible while the PSNR stays >= it; the
-        reduction, if given, is the maximum).
+        reduction, if given, is the maximum), stream_slab_voxels (simplify in slabs of this
+        many voxel layers, >= 4, for about half the memory; 0 = in memory; unset: the server
+        streams only a job that does not fit in memory).
         series: the SeriesInstanceUID to use when a DICOM folder holds several.
         label_map: a label map on the same grid (a file), instead of the segmentation.
         request_id: the AIP-155 idempotency key; a retried submit with it returns the same job.

@@ -263,6 +263,66 @@ TEST_F(ServicesTest, AJobOverTheMemoryLimitIsRefusedAtSubmitAndQueuesNothing) {
   EXPECT_EQ(*store_->CountJobs(v1::QUEUED), 1);
 }
 
+// Issue 30: a job that does not fit in memory but fits in slabs is queued simplified in slabs of
+// kServerStreamSlabVoxels, the choice stored in its spec (GetJob shows it, every replica runs it
+// so); CheckJobMemory answers the same before the upload. A spec that chose is kept: 0 (in memory)
+// is refused with what slabs would need.
+TEST_F(ServicesTest, AJobThatFitsOnlyInSlabsIsQueuedInSlabsAndTheChoiceIsStored) {
+  v1::Volume ct;
+  ct.set_name("volumes/ct");
+  for (int64_t d : {511, 511, 400}) ct.add_dims(d);
+  const int64_t in_memory = EstimateJobMemoryBytes(ct, 0, 0.5);
+  const int64_t streamed = EstimateJobMemoryBytes(ct, kServerStreamSlabVoxels, 0.5);
+  ASSERT_LT(streamed, in_memory);
+  job_memory_cap_bytes_ = (streamed + in_memory) / 2;
+  Start();
+  bool created = false;
+  ASSERT_TRUE(store_->CreateVolume("ct", ct, "", "", &created).ok());
+  auto jobs = v1::Jobs::NewStub(channel_);
+
+  v1::CheckJobMemoryRequest check;
+  check.set_display_name("ct.nii.gz");
+  for (int64_t d : ct.dims()) check.add_dims(d);
+  v1::CheckJobMemoryResponse fits;
+  grpc::Status s = jobs->CheckJobMemory(Ctx().get(), check, &fits);
+  ASSERT_TRUE(s.ok()) << s.error_message();
+  EXPECT_EQ(fits.stream_slab_voxels(), kServerStreamSlabVoxels);
+  EXPECT_EQ(fits.estimate_mb(), (streamed + (1 << 20) - 1) >> 20);
+
+  v1::CreateJobRequest req;
+  req.mutable_spec()->set_volume("volumes/ct");
+  v1::Job job;
+  s = jobs->CreateJob(Ctx().get(), req, &job);
+  ASSERT_TRUE(s.ok()) << s.error_message();
+  EXPECT_TRUE(job.spec().has_stream_slab_voxels());
+  EXPECT_EQ(job.spec().stream_slab_voxels(), kServerStreamSlabVoxels);
+  auto stored = store_->GetJob(job.name().substr(5));
+  ASSERT_TRUE(stored.ok()) << stored.status();
+  EXPECT_EQ(stored->spec().stream_slab_voxels(), kServerStreamSlabVoxels);
+
+  // In memory by choice: refused, and told what slabs would need.
+  req.mutable_spec()->set_stream_slab_voxels(0);
+  s = jobs->CreateJob(Ctx().get(), req, &job);
+  EXPECT_EQ(s.error_code(), grpc::RESOURCE_EXHAUSTED) << s.error_message();
+  EXPECT_THAT(s.error_message(), HasSubstr("simplified in slabs (stream_slab_voxels 16, or left "
+                                           "unset) it would need about "));
+  // A PSNR floor cannot be streamed: refused with the reason.
+  req.mutable_spec()->clear_stream_slab_voxels();
+  req.mutable_spec()->set_min_psnr(50);
+  req.mutable_spec()->set_target_reduction(0.5);
+  s = jobs->CreateJob(Ctx().get(), req, &job);
+  EXPECT_EQ(s.error_code(), grpc::RESOURCE_EXHAUSTED) << s.error_message();
+  EXPECT_THAT(s.error_message(), HasSubstr("no PSNR floor"));
+  // A slab depth the pipeline refuses is named.
+  req.mutable_spec()->clear_min_psnr();
+  req.mutable_spec()->set_stream_slab_voxels(3);
+  auto ctx = Ctx();
+  s = jobs->CreateJob(ctx.get(), req, &job);
+  EXPECT_EQ(s.error_code(), grpc::INVALID_ARGUMENT) << s.error_message();
+  EXPECT_EQ(Detail(*ctx).field(), "spec.stream_slab_voxels");
+  EXPECT_EQ(*store_->CountJobs(v1::QUEUED), 1);
+}
+
 // Issue 30: CheckJobMemory answers before any upload with CreateJob's decision on the same
 // volume: the same code, message and detail (but naming dims), and refuses dims it cannot trust.
 TEST_F(ServicesTest, CheckJobMemoryGivesCreateJobsDecisionBeforeTheVolumeExists) {
