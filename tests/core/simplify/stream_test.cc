@@ -99,10 +99,11 @@ void CompareWithInMemory(const Case& c, double reduction, int slab, const std::s
   }
 }
 
-// On the noisy phantoms the slabs' shares by roughness (stream.cc) follow the noise, and the
-// streamed PSNR is 0.2-0.9 % below the in-memory run's: 1 % here, not the 0.5 % (which
-// the CT head meets with slabs of 16, below). README "Streamed simplification".
-constexpr double kPhantomPsnrTolerance = 0.01;
+// The 0.5 % holds on the noisy phantoms too since the pacing is a global cost threshold
+// (stream.cc): streamed PSNR -0.20 % to +0.13 % of the in-memory run's on the cases below. With
+// the shares by roughness it was 0.2-0.9 % below, and slabs of 4 at 80 % missed the cells by 5.5 %
+// when the Newton step was taken once (the measuring pass's count missed by 7.6 %).
+constexpr double kPhantomPsnrTolerance = 0.005;
 
 TEST(SimplifyStreamedTest, MatchesInMemoryOnPhantomOddDepth) {
   const Case c = MakeCase({28, 26, 31});  // nz odd: 30 cube layers, 4 slabs of 7-8
@@ -224,6 +225,8 @@ TEST(SimplifyStreamedTest, MatchesInMemoryOnCtHead) {
   Case c{*std::move(image), std::move(seg->labels), *std::move(mesh)};
   CompareWithInMemory(c, 0.5, 16, "CT head 50% slab 16");
   CompareWithInMemory(c, 0.8, 16, "CT head 80% slab 16");
+  CompareWithInMemory(c, 0.8, 8, "CT head 80% slab 8");
+  CompareWithInMemory(c, 0.5, 8, "CT head 50% slab 8");
 }
 
 }  // namespace
