@@ -122,8 +122,9 @@ absl::StatusOr<SimplifyResult> SimplifyStreamed(const TetMesh& mesh, const Simpl
   double tau = -1, band = 0;     // the threshold; cells removed in (tau1 / 2, tau1]
   int64_t measured_removed = 0;  // by the last measuring pass
   int measuring_passes = 0;
+  double last_tau = -1;  // the threshold of the last measuring pass
   constexpr int kMaxMeasuringPasses = 3;
-  constexpr double kMeasureTolerance = 0.01;
+  constexpr double kMeasureTolerance = 0.03;
   std::vector<int32_t> local, globals;
   std::vector<uint8_t> frozen;
   std::vector<int32_t> sample_cell, sample_home;
@@ -292,12 +293,19 @@ absl::StatusOr<SimplifyResult> SimplifyStreamed(const TetMesh& mesh, const Simpl
     }
     if (!measure) break;
     // A Newton step on the removed cells as a function of ln tau, at most a factor of 4 a pass
-    // (the count is flat in tau: a 1.5x threshold moves it by ~2 % on the CT head at 80 %);
-    // another measuring pass while the count misses the target by more than kMeasureTolerance.
+    // (the count is flat in tau: a 1.5x threshold moves it by ~2 % on the CT head at 80 %). The
+    // slope: from the second measuring pass on, the secant through the last two passes; before,
+    // the cells that the collapses in (tau / 2, tau] removed. Another measuring pass while the
+    // count misses the target by more than kMeasureTolerance.
     const int64_t measured =
         seen_cells - int64_t(out_cells.size() / 4) - int64_t(carried.size() / 4);
-    const double slope = band / std::log(2.0);
+    double slope = band / std::log(2.0);
+    if (measuring_passes > 0 && tau != last_tau && tau > 0 && last_tau > 0) {
+      const double secant = double(measured - measured_removed) / std::log(tau / last_tau);
+      if (secant > 0) slope = secant;
+    }
     const double step = slope > 0 ? (double(target) - double(measured)) / slope : 0;
+    last_tau = tau;
     tau *= std::exp(std::clamp(step, -std::log(4.0), std::log(4.0)));
     measured_removed = measured;
     ++measuring_passes;
