@@ -113,13 +113,12 @@ absl::StatusOr<SimplifyResult> SimplifyStreamed(const TetMesh& mesh, const Simpl
   bool stalled = false;
   // Pacing (README "Streamed simplification"): one cost threshold for every window, as the
   // in-memory run's single queue ends with about every collapse below some cost done.
-  // A measuring pass finds it: its first window removes its share of the target by cells, the
-  // cost of its last collapse is the first threshold tau1, every later window (the last one too)
-  // collapses while the queue's cheapest cost is at most tau1. From what that pass removed, R1,
-  // and how many cells its collapses in (tau1 / 2, tau1] removed (the slope of the removed cells
-  // in ln tau), one Newton step gives tau2; the final pass collapses up to tau2 in every window
-  // but the last, which removes exactly what is left.
-  double tau = -1, band = 0;     // the threshold; cells removed in (tau1 / 2, tau1]
+  // Measuring passes find it: in the first, window 0 removes its share of the target by cells and
+  // the cost of its last collapse is the first threshold; in every measuring pass every other
+  // window (the last one too) collapses while the queue's cheapest cost is at most the threshold.
+  // A Newton step on the cells the pass removed gives the next threshold (below). The final pass
+  // collapses up to it in every window but the last, which removes exactly what is left.
+  double tau = -1, band = 0;     // the threshold; cells removed at costs in (tau / 2, tau]
   int64_t measured_removed = 0;  // by the last measuring pass
   int measuring_passes = 0;
   double last_tau = -1;  // the threshold of the last measuring pass
@@ -273,7 +272,7 @@ absl::StatusOr<SimplifyResult> SimplifyStreamed(const TetMesh& mesh, const Simpl
         }
       }
       if (measure) {
-        if (k == 0) tau = cost_log.empty() ? 0 : cost_log.back().first;
+        if (pass == 0 && k == 0) tau = cost_log.empty() ? 0 : cost_log.back().first;
         for (const auto& [c, d] : cost_log) {
           if (c > tau / 2 && c <= tau) band += d;
         }
