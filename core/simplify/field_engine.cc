@@ -345,7 +345,6 @@ struct NewCell {
 // What one run of the greedy loop owns: its queue, its working memory and its counts. The serial
 // loop has one; in a parallel round every block of the mesh gets one (README "Parallel rounds").
 struct Worker {
-  double last_cost = 0;  // the queue cost of the last collapse (FieldWindow pacing)
   QueueHeap heap;
   Scratch scratch;
   std::vector<int32_t> touched, changed;
@@ -1370,7 +1369,6 @@ Drained FieldEngine::Drain(Worker& w, int64_t limit, float stop_cost, bool in_bl
     if (w.log != nullptr) w.log->push_back({u, v, deleted, float(cost)});
     const double wt = quadric_[kQuadricSize * int64_t(u) + kWeightEntry];
     w.last_error = wt > 0 ? std::sqrt(std::max(0.0, cost) / wt) : 0;
-    w.last_cost = cost;
     w.max_error = std::max(w.max_error, w.last_error);
     // Every vertex whose neighbourhood changed is re-scored now, so the queue order is exact.
     // For a free vertex x only two of its candidates can have changed: u is gone and v may be
@@ -1442,7 +1440,6 @@ namespace {
 // Adds w's counts to *to.
 void AddCounts(const Worker& w, Worker* to) {
   to->removed += w.removed;
-  to->last_cost = std::max(to->last_cost, w.last_cost);
   to->collapses += w.collapses;
   to->pops += w.pops;
   to->invalid_tries += w.invalid_tries;
@@ -1738,19 +1735,18 @@ absl::Status FieldEngine::Run(int64_t target, double tolerance, const ProgressFn
   // The rounds need a target to pace them; with an error tolerance the serial loop does it all.
   Worker rounds;
   int64_t removed = 0;
-  // A paced window: at least min_target cells, then on while the queue's cheapest entry costs at
-  // most stop_cost, up to `target`.
-  const bool paced = window_ != nullptr && window_->min_target >= 0;
-  const int64_t min_target = paced ? std::min(window_->min_target, target) : target;
-  if (tolerance == 0 && min_target < nt_) {
+  // A paced window (FieldWindow::stop_cost): the serial loop alone, up to the threshold.
+  const bool paced = window_ != nullptr && window_->stop_cost >= 0;
+  if (tolerance == 0 && !paced && target < nt_) {
     absl::Status status;
-    removed = ParallelRounds(min_target, progress, cancel, &rounds, &status);
+    removed = ParallelRounds(target, progress, cancel, &rounds, &status);
     slab_axis_ = -1;  // the serial loop keeps no intervals
     DECIMA_RETURN_IF_ERROR(status);
   }
   Worker w;
   std::vector<LoggedCollapse> serial_log;
-  if (levels_ != nullptr) w.log = &serial_log;
+  const bool log_costs = levels_ == nullptr && window_ != nullptr && window_->cost_log != nullptr;
+  if (levels_ != nullptr || log_costs) w.log = &serial_log;
   {
     std::vector<HeapEntry> entries;
     for (int64_t v = 0; v < nv_; ++v) {
@@ -1759,17 +1755,11 @@ absl::Status FieldEngine::Run(int64_t target, double tolerance, const ProgressFn
     w.Reset(std::move(entries));
   }
   const int64_t step = std::max<int64_t>(1, target / 50);
-  double relative_stop = -1;  // FieldWindow::stop_cost_factor times the cost at min_target
+  const float stop_cost =
+      paced ? float(std::min<double>(window_->stop_cost, std::numeric_limits<float>::max()))
+            : std::numeric_limits<float>::infinity();
   for (;;) {
-    const bool below = removed + w.removed < min_target;
-    const int64_t limit = std::min((below ? min_target : target) - removed, w.removed + step);
-    if (paced && !below && !(relative_stop >= 0)) {
-      relative_stop =
-          window_->stop_cost_factor * (w.collapses > 0 ? w.last_cost : rounds.last_cost);
-    }
-    const float stop_cost = paced && !below && window_->stop_cost_factor > 0
-                                ? float(relative_stop)
-                                : std::numeric_limits<float>::infinity();
+    const int64_t limit = std::min(target - removed, w.removed + step);
     const Drained drained = Drain(w, limit, stop_cost, false, tolerance, cancel);
     if (drained == Drained::kCancelled) return CheckCancelled(cancel, "simplify");
     const int64_t total = removed + w.removed;
@@ -1783,8 +1773,13 @@ absl::Status FieldEngine::Run(int64_t target, double tolerance, const ProgressFn
       DECIMA_RETURN_IF_ERROR(Record(serial_log));
       serial_log.clear();
     }
-    if (paced && drained == Drained::kLimit && total >= min_target && total < target) continue;
     if (drained != Drained::kLimit || total >= target) break;
+  }
+  if (log_costs) {
+    window_->cost_log->clear();
+    for (const LoggedCollapse& c : serial_log) {
+      window_->cost_log->emplace_back(c.cost, int32_t(c.deleted));
+    }
   }
   removed += w.removed;
   AddCounts(w, &rounds);

@@ -5,6 +5,7 @@
 #pragma once
 
 #include <cstdint>
+#include <utility>
 #include <vector>
 
 #include "absl/status/status.h"
@@ -40,11 +41,12 @@ struct FieldWindow {
   bool flags_complete = true;
   // The whole volume's scalar range (the tie break between equal costs is scaled by it).
   double scalar_lo = 0, scalar_hi = 1;
-  // Pacing: >= 0, the window removes at least this many cells, then goes on (up to the target)
-  // while the cheapest collapse's queue cost is at most stop_cost_factor times the cost of the
-  // collapse that reached min_target; -1: exactly the target.
-  int64_t min_target = -1;
-  double stop_cost_factor = 0;
+  // Pacing by a cost threshold (the streamed run's): >= 0, the serial loop alone (no parallel
+  // rounds) runs until the target is reached or the queue's cheapest cost exceeds this (infinity:
+  // the target alone); -1: the engine's usual rounds and loop, up to the target.
+  double stop_cost = -1;
+  // Out, if set: the serial loop's collapses in order, (queue cost, cells removed) each.
+  std::vector<std::pair<float, int32_t>>* cost_log = nullptr;
   // Out, InterfaceMode::kFree: per input vertex, the output cell whose bucket lists it (-1: none,
   // e.g. a surviving vertex).
   std::vector<int32_t>* sample_home = nullptr;

@@ -111,226 +111,214 @@ absl::StatusOr<SimplifyResult> SimplifyStreamed(const TetMesh& mesh, const Simpl
   int64_t seen_cells = 0;  // original cells of the slabs so far
   int64_t window_count = 0, peak_window_cells = 0;
   bool stalled = false;
-  // Pacing (README "Streamed simplification"): a window removes at least the lower of its slab's
-  // two shares of the target (by cells, by roughness below) and goes on towards the higher one
-  // while the queue's cheapest collapse costs at most kStopCostFactor times the cost at the lower:
-  // a rough slab is not forced far past what is cheap in it, an easy one gives more.
-  constexpr double kStopCostFactor = 8;
-
-  // Share of the target per slab: by how many of its voxels are easy to remove. A voxel's
-  // roughness is its field's second differences along the three axes (0 where the field is
-  // linear, as the quadric cost of removing it is), times the engine's feature factor on the
-  // interfaces. The voxels below the roughness quantile at the target share the target: a slab
-  // of air gets much of it, a slab of bone and brain little, as the in-memory run's single queue
-  // decides. (Per slab, a histogram of log roughness: no per-voxel array.)
-  constexpr int kBins = 256;
-  const int64_t slabs_total = (cube_layers + slab_voxels - 1) / slab_voxels;
-  std::vector<double> slab_weight(slabs_total, 1.0);
-  {
-    std::vector<std::array<int64_t, kBins>> hist(slabs_total);
-    for (auto& h : hist) h.fill(0);
-    const double range = std::max(1e-6, window.scalar_hi - window.scalar_lo);
-    const float* sc = mesh.scalars.data();
-    const int64_t nx = grid.nx(), ny = grid.ny(), nz = grid.nz();
-    // Vertex layer z counts for the slab whose cube layers hold it from below (the top layer for
-    // the last slab).
-    auto slab_of = [&](int64_t z) {
-      const int64_t c = std::min(z, cube_layers - 1);
-      return std::min<int64_t>(slabs_total - 1, (c * slabs_total) / cube_layers);
-    };
-    for (int64_t z = 0; z < nz; ++z) {
-      auto& h = hist[slab_of(z)];
-      for (int64_t y = 0; y < ny; ++y) {
-        for (int64_t x = 0; x < nx; ++x) {
-          const int64_t g = x + nx * (y + ny * z);
-          double r = 0;
-          const int64_t stride[3] = {1, nx, layer};
-          const int64_t at[3] = {x, y, z}, size[3] = {nx, ny, nz};
-          for (int a = 0; a < 3; ++a) {
-            if (at[a] == 0 || at[a] == size[a] - 1) continue;
-            r += std::abs(double(sc[g + stride[a]]) + sc[g - stride[a]] - 2.0 * sc[g]);
-          }
-          if (flags[g] & kFeatureVertex) r *= 4;
-          const double t = r / range * 1e6;
-          const int bin = t < 1 ? 0 : std::min(kBins - 1, 1 + int(8 * std::log2(t)));
-          ++h[bin];
-        }
-      }
-    }
-    std::array<int64_t, kBins> all{};
-    for (const auto& h : hist) {
-      for (int b = 0; b < kBins; ++b) all[b] += h[b];
-    }
-    // The bin where the easiest target share of the voxels ends, and how much of it counts.
-    const double want = options.target_reduction * double(nv);
-    double below = 0, part = 1;
-    int qbin = kBins - 1;
-    for (int b = 0; b < kBins; ++b) {
-      if (below + double(all[b]) >= want) {
-        qbin = b;
-        part = all[b] > 0 ? (want - below) / double(all[b]) : 1;
-        break;
-      }
-      below += double(all[b]);
-    }
-    for (int64_t k = 0; k < slabs_total; ++k) {
-      double w = 0;
-      for (int b = 0; b < qbin; ++b) w += double(hist[k][b]);
-      w += part * double(hist[k][qbin]);
-      slab_weight[k] = w;
-    }
-  }
-  double weight_total = 0;
-  for (double w : slab_weight) weight_total += w;
-  double weight_seen = 0;
-
+  // Pacing (README "Streamed simplification"): one cost threshold for every window, as the
+  // in-memory run's single queue ends with about every collapse below some cost done.
+  // Measuring passes find it: in the first, window 0 removes its share of the target by cells and
+  // the cost of its last collapse is the first threshold; in every measuring pass every other
+  // window (the last one too) collapses while the queue's cheapest cost is at most the threshold.
+  // A Newton step on the cells the pass removed gives the next threshold (below). The final pass
+  // collapses up to it in every window but the last, which removes exactly what is left.
+  double tau = -1, band = 0;     // the threshold; cells removed at costs in (tau / 2, tau]
+  int64_t measured_removed = 0;  // by the last measuring pass
+  int measuring_passes = 0;
+  double last_tau = -1;  // the threshold of the last measuring pass
+  constexpr int kMaxMeasuringPasses = 3;
+  constexpr double kMeasureTolerance = 0.03;
   std::vector<int32_t> local, globals;
   std::vector<uint8_t> frozen;
   std::vector<int32_t> sample_cell, sample_home;
+  std::vector<std::pair<float, int32_t>> cost_log;
   // Slabs of equal depth (at most slab_voxels): a thin last slab would have to make up the
   // windows' shortfall on its own.
   const int64_t slabs = (cube_layers + slab_voxels - 1) / slab_voxels;
-  for (int64_t k = 0; k < slabs; ++k) {
-    DECIMA_RETURN_IF_ERROR(CheckCancelled(cancel, "simplify"));
-    const int64_t z0 = k * cube_layers / slabs, z1 = (k + 1) * cube_layers / slabs;
-    const bool last = z1 == cube_layers;
-    const int64_t ncarried = int64_t(carried.size() / 4);
-    const int64_t removed_before = seen_cells - int64_t(out_cells.size() / 4) - ncarried;
-    seen_cells += (z1 - z0) * layer_tets;
+  bool measure = true;
+  for (int pass = 0;; ++pass) {
+    if (pass > 0) {
+      carried.clear();
+      carried_samples.clear();
+      out_cells.clear();
+      std::fill(finalized.begin(), finalized.end(), 0);
+      std::fill(merged_into.begin(), merged_into.end(), -1);
+      seen_cells = window_count = peak_window_cells = 0;
+      stalled = false;
+      result.collapses = 0;
+      result.max_error = 0;
+      result.pass_stats.clear();
+      band = 0;
+    }
+    for (int64_t k = 0; k < slabs; ++k) {
+      DECIMA_RETURN_IF_ERROR(CheckCancelled(cancel, "simplify"));
+      const int64_t z0 = k * cube_layers / slabs, z1 = (k + 1) * cube_layers / slabs;
+      const bool last = z1 == cube_layers;
+      const int64_t ncarried = int64_t(carried.size() / 4);
+      const int64_t removed_before = seen_cells - int64_t(out_cells.size() / 4) - ncarried;
+      seen_cells += (z1 - z0) * layer_tets;
 
-    // The window's vertices: those of its cells and its carried samples, numbered by grid id
-    // (so the window keeps the grid's z-major order the engine's slabs and caches expect).
-    int64_t lo_id = z0 * layer;
-    for (int32_t g : carried) lo_id = std::min<int64_t>(lo_id, g);
-    for (const auto& s : carried_samples) lo_id = std::min<int64_t>(lo_id, s.first);
-    const int64_t hi_id = (z1 + 1) * layer;  // past the top plane
-    local.assign(hi_id - lo_id, -1);
-    for (int32_t g : carried) local[g - lo_id] = 0;
-    for (const auto& s : carried_samples) local[s.first - lo_id] = 0;
-    for (int64_t g = z0 * layer; g < hi_id; ++g) local[g - lo_id] = 0;
-    globals.clear();
-    for (int64_t i = 0; i < hi_id - lo_id; ++i) {
-      if (local[i] < 0) continue;
-      local[i] = int32_t(globals.size());
-      globals.push_back(int32_t(lo_id + i));
-    }
-    const int64_t wnv = int64_t(globals.size());
-    TetMesh wm;
-    wm.positions.reserve(3 * wnv);
-    for (int32_t g : globals) AppendVertex(mesh, flags, g, &wm);
-    const int64_t wnt = ncarried + (z1 - z0) * layer_tets;
-    peak_window_cells = std::max(peak_window_cells, wnt);
-    wm.tets.resize(4 * wnt);
-    wm.cell_regions.resize(wnt);
-    for (int64_t i = 0; i < 4 * ncarried; ++i) wm.tets[i] = local[carried[i] - lo_id];
-    grid.ForEachCell(z0 * layer_tets, z1 * layer_tets, [&](int64_t t, const int32_t* c) {
-      const int64_t i = ncarried + t - z0 * layer_tets;
-      for (int k = 0; k < 4; ++k) wm.tets[4 * i + k] = local[c[k] - lo_id];
-    });
-    for (int64_t i = 0; i < wnt; ++i) {
-      const int32_t* c = &wm.tets[4 * i];
-      wm.cell_regions[i] =
-          CellRegion(wm.labels[c[0]], wm.labels[c[1]], wm.labels[c[2]], wm.labels[c[3]]);
-    }
-    std::vector<int32_t>().swap(carried);
-    frozen.assign(wnv, 0);
-    for (int64_t v = 0; v < wnv; ++v) {
-      const int64_t g = globals[v];
-      frozen[v] = finalized[g] || (!last && g / layer == z1);
-    }
-    sample_cell.assign(wnv, -1);
-    for (const auto& [g, c] : carried_samples) sample_cell[local[g - lo_id]] = c;
-    std::vector<std::pair<int32_t, int32_t>>().swap(carried_samples);
-
-    window.frozen = frozen.data();
-    window.sample_cell = free_interfaces ? sample_cell.data() : nullptr;
-    window.sample_home = free_interfaces ? &sample_home : nullptr;
-    weight_seen += slab_weight[k];
-    const int64_t want = last ? target
-                         : weight_total > 0
-                             ? int64_t(std::ceil(double(target) * weight_seen / weight_total))
-                             : int64_t(std::ceil(options.target_reduction * double(seen_cells)));
-    const int64_t need = std::clamp<int64_t>(want - removed_before, 0, wnt);
-    int64_t window_target = need;
-    window.min_target = -1;
-    window.stop_cost_factor = 0;
-    if (!last) {
-      const int64_t uniform = std::clamp<int64_t>(
-          int64_t(std::ceil(options.target_reduction * double(seen_cells))) - removed_before, 0,
-          wnt);
-      window.min_target = std::min(uniform, need);
-      window_target = std::max(uniform, need);
-      window.stop_cost_factor = kStopCostFactor;
-    }
-    SimplifyResult wr;
-    SimplifyOptions o = wopt;
-    o.refit_iterations = 0;
-    DECIMA_RETURN_IF_ERROR(simplify_internal::RunFieldSimplifyWindow(wm, o, threads, window_target,
-                                                                     window, nullptr, cancel, &wr));
-    ++window_count;
-    result.collapses += wr.collapses;
-    result.max_error = std::max(result.max_error, wr.max_error);
-    for (const SimplifyPassStats& s : wr.pass_stats) result.pass_stats.push_back(s);
-    stalled = wr.stop_reason != StopReason::kTargetReached;
-
-    // Output vertex -> grid id: a survivor is copied by Finish with its own position, and voxel
-    // centres are distinct points.
-    const int64_t onv = wr.mesh.vertex_count();
-    std::vector<int32_t> out_global(onv, -1);
-    for (int64_t v = 0; v < wnv; ++v) {
-      const int32_t o = wr.vertex_map[v];
-      if (o < 0 || out_global[o] >= 0) continue;
-      if (wr.mesh.positions[3 * o] == wm.positions[3 * v] &&
-          wr.mesh.positions[3 * o + 1] == wm.positions[3 * v + 1] &&
-          wr.mesh.positions[3 * o + 2] == wm.positions[3 * v + 2]) {
-        out_global[o] = globals[v];
+      // The window's vertices: those of its cells and its carried samples, numbered by grid id
+      // (so the window keeps the grid's z-major order the engine's slabs and caches expect).
+      int64_t lo_id = z0 * layer;
+      for (int32_t g : carried) lo_id = std::min<int64_t>(lo_id, g);
+      for (const auto& s : carried_samples) lo_id = std::min<int64_t>(lo_id, s.first);
+      const int64_t hi_id = (z1 + 1) * layer;  // past the top plane
+      local.assign(hi_id - lo_id, -1);
+      for (int32_t g : carried) local[g - lo_id] = 0;
+      for (const auto& s : carried_samples) local[s.first - lo_id] = 0;
+      for (int64_t g = z0 * layer; g < hi_id; ++g) local[g - lo_id] = 0;
+      globals.clear();
+      for (int64_t i = 0; i < hi_id - lo_id; ++i) {
+        if (local[i] < 0) continue;
+        local[i] = int32_t(globals.size());
+        globals.push_back(int32_t(lo_id + i));
       }
-    }
-    for (int64_t v = 0; v < wnv; ++v) {
-      const int32_t o = wr.vertex_map[v];
-      if (o >= 0) merged_into[globals[v]] = out_global[o];
-    }
-    // Written out: the cells wholly at or below the middle of the slab (all of them at the end).
-    const int64_t cut = last ? grid.nz() : z0 + (z1 - z0 + 1) / 2;
-    const int64_t ont = wr.mesh.tet_count();
-    std::vector<int32_t> carried_index(ont, -1);
-    for (int64_t c = 0; c < ont; ++c) {
-      int32_t t[4];
-      int64_t top = 0;
-      for (int k = 0; k < 4; ++k) {
-        t[k] = out_global[wr.mesh.tets[4 * c + k]];
-        top = std::max<int64_t>(top, t[k] / layer);
+      const int64_t wnv = int64_t(globals.size());
+      TetMesh wm;
+      wm.positions.reserve(3 * wnv);
+      for (int32_t g : globals) AppendVertex(mesh, flags, g, &wm);
+      const int64_t wnt = ncarried + (z1 - z0) * layer_tets;
+      peak_window_cells = std::max(peak_window_cells, wnt);
+      wm.tets.resize(4 * wnt);
+      wm.cell_regions.resize(wnt);
+      for (int64_t i = 0; i < 4 * ncarried; ++i) wm.tets[i] = local[carried[i] - lo_id];
+      grid.ForEachCell(z0 * layer_tets, z1 * layer_tets, [&](int64_t t, const int32_t* c) {
+        const int64_t i = ncarried + t - z0 * layer_tets;
+        for (int k = 0; k < 4; ++k) wm.tets[4 * i + k] = local[c[k] - lo_id];
+      });
+      for (int64_t i = 0; i < wnt; ++i) {
+        const int32_t* c = &wm.tets[4 * i];
+        wm.cell_regions[i] =
+            CellRegion(wm.labels[c[0]], wm.labels[c[1]], wm.labels[c[2]], wm.labels[c[3]]);
       }
-      if (top <= cut) {
-        for (int k = 0; k < 4; ++k) {
-          out_cells.push_back(t[k]);
-          finalized[t[k]] = 1;
-        }
-      } else {
-        carried_index[c] = int32_t(carried.size() / 4);
-        carried.insert(carried.end(), t, t + 4);
-      }
-    }
-    if (free_interfaces) {
+      std::vector<int32_t>().swap(carried);
+      frozen.assign(wnv, 0);
       for (int64_t v = 0; v < wnv; ++v) {
-        const int32_t h = sample_home[v];
-        if (h >= 0 && carried_index[h] >= 0)
-          carried_samples.emplace_back(globals[v], carried_index[h]);
+        const int64_t g = globals[v];
+        frozen[v] = finalized[g] || (!last && g / layer == z1);
       }
+      sample_cell.assign(wnv, -1);
+      for (const auto& [g, c] : carried_samples) sample_cell[local[g - lo_id]] = c;
+      std::vector<std::pair<int32_t, int32_t>>().swap(carried_samples);
+
+      window.frozen = frozen.data();
+      window.sample_cell = free_interfaces ? sample_cell.data() : nullptr;
+      window.sample_home = free_interfaces ? &sample_home : nullptr;
+      // The window's pacing (see above): the measuring pass's first window by cells, every other
+      // window of either pass up to the threshold, the final pass's last window exactly what is
+      // left (with the engine's parallel rounds).
+      cost_log.clear();
+      window.cost_log = measure ? &cost_log : nullptr;
+      window.stop_cost = last && !measure ? -1.0 : tau;
+      int64_t window_target = std::clamp<int64_t>(target - removed_before, 0, wnt);
+      if (measure && pass == 0 && k == 0) {
+        window.stop_cost = std::numeric_limits<double>::infinity();
+        window_target = std::clamp<int64_t>(
+            int64_t(std::ceil(options.target_reduction * double(seen_cells))), 0, wnt);
+      } else if (measure) {
+        window_target = wnt;
+      }
+      SimplifyResult wr;
+      SimplifyOptions o = wopt;
+      o.refit_iterations = 0;
+      DECIMA_RETURN_IF_ERROR(simplify_internal::RunFieldSimplifyWindow(
+          wm, o, threads, window_target, window, nullptr, cancel, &wr));
+      ++window_count;
+      result.collapses += wr.collapses;
+      result.max_error = std::max(result.max_error, wr.max_error);
+      for (const SimplifyPassStats& s : wr.pass_stats) result.pass_stats.push_back(s);
+      stalled = wr.stop_reason != StopReason::kTargetReached;
+
+      // Output vertex -> grid id: a survivor is copied by Finish with its own position, and voxel
+      // centres are distinct points.
+      const int64_t onv = wr.mesh.vertex_count();
+      std::vector<int32_t> out_global(onv, -1);
+      for (int64_t v = 0; v < wnv; ++v) {
+        const int32_t o = wr.vertex_map[v];
+        if (o < 0 || out_global[o] >= 0) continue;
+        if (wr.mesh.positions[3 * o] == wm.positions[3 * v] &&
+            wr.mesh.positions[3 * o + 1] == wm.positions[3 * v + 1] &&
+            wr.mesh.positions[3 * o + 2] == wm.positions[3 * v + 2]) {
+          out_global[o] = globals[v];
+        }
+      }
+      for (int64_t v = 0; v < wnv; ++v) {
+        const int32_t o = wr.vertex_map[v];
+        if (o >= 0) merged_into[globals[v]] = out_global[o];
+      }
+      // Written out: the cells wholly at or below the middle of the slab (all of them at the end).
+      const int64_t cut = last ? grid.nz() : z0 + (z1 - z0 + 1) / 2;
+      const int64_t ont = wr.mesh.tet_count();
+      std::vector<int32_t> carried_index(ont, -1);
+      for (int64_t c = 0; c < ont; ++c) {
+        int32_t t[4];
+        int64_t top = 0;
+        for (int k = 0; k < 4; ++k) {
+          t[k] = out_global[wr.mesh.tets[4 * c + k]];
+          top = std::max<int64_t>(top, t[k] / layer);
+        }
+        if (top <= cut) {
+          for (int k = 0; k < 4; ++k) {
+            out_cells.push_back(t[k]);
+            finalized[t[k]] = 1;
+          }
+        } else {
+          carried_index[c] = int32_t(carried.size() / 4);
+          carried.insert(carried.end(), t, t + 4);
+        }
+      }
+      if (free_interfaces) {
+        for (int64_t v = 0; v < wnv; ++v) {
+          const int32_t h = sample_home[v];
+          if (h >= 0 && carried_index[h] >= 0)
+            carried_samples.emplace_back(globals[v], carried_index[h]);
+        }
+      }
+      if (measure) {
+        if (pass == 0 && k == 0) tau = cost_log.empty() ? 0 : cost_log.back().first;
+        for (const auto& [c, d] : cost_log) {
+          if (c > tau / 2 && c <= tau) band += d;
+        }
+      }
+      // The stage's fraction: measuring pass p in [p, p + 1] / (2 kMaxMeasuringPasses), the
+      // final pass in [1/2, 1], so it never goes back however many measuring passes run.
+      const double slab_fraction = double(z1) / double(cube_layers);
+      Report(progress,
+             {"simplify",
+              measure ? (measuring_passes + slab_fraction) / (2.0 * kMaxMeasuringPasses)
+                      : 0.5 + 0.5 * slab_fraction,
+              absl::StrFormat("slab %d of %d, %s (z %d..%d, threshold %g): %d cells, %d removed, "
+                              "%d written out, %d carried",
+                              window_count, slabs,
+                              measure ? absl::StrCat("measuring pass ", measuring_passes + 1)
+                                      : std::string("final pass"),
+                              z0, z1, tau, wnt, wnt - ont, int64_t(out_cells.size() / 4),
+                              int64_t(carried.size() / 4)),
+              {{"pass", double(window_count)},
+               {"slab", double(window_count)},
+               {"slabs", double(slabs)},
+               {"measuring_pass", measure ? double(measuring_passes + 1) : 0.0},
+               {"cells_removed",
+                double(seen_cells - int64_t(out_cells.size() / 4) - int64_t(carried.size() / 4))},
+               {"error", wr.max_error}}});
     }
-    Report(progress,
-           {"simplify",
-            double(z1) / double(cube_layers),
-            absl::StrFormat(
-                "slab %d of %d (z %d..%d): %d cells, %d removed, %d written out, %d carried",
-                window_count, slabs, z0, z1, wnt, wnt - ont, int64_t(out_cells.size() / 4),
-                int64_t(carried.size() / 4)),
-            {{"pass", double(window_count)},
-             {"slab", double(window_count)},
-             {"slabs", double(slabs)},
-             {"cells_removed",
-              double(seen_cells - int64_t(out_cells.size() / 4) - int64_t(carried.size() / 4))},
-             {"error", wr.max_error}}});
+    if (!measure) break;
+    // A Newton step on the removed cells as a function of ln tau, at most a factor of 4 a pass
+    // (the count is flat in tau: a 1.5x threshold moves it by ~2 % on the CT head at 80 %). The
+    // slope: from the second measuring pass on, the secant through the last two passes; before,
+    // the cells that the collapses in (tau / 2, tau] removed. Another measuring pass while the
+    // count misses the target by more than kMeasureTolerance.
+    const int64_t measured =
+        seen_cells - int64_t(out_cells.size() / 4) - int64_t(carried.size() / 4);
+    double slope = band / std::log(2.0);
+    if (measuring_passes > 0 && tau != last_tau && tau > 0 && last_tau > 0) {
+      const double secant = double(measured - measured_removed) / std::log(tau / last_tau);
+      if (secant > 0) slope = secant;
+    }
+    const double step = slope > 0 ? (double(target) - double(measured)) / slope : 0;
+    last_tau = tau;
+    tau *= std::exp(std::clamp(step, -std::log(4.0), std::log(4.0)));
+    measured_removed = measured;
+    ++measuring_passes;
+    measure = measuring_passes < kMaxMeasuringPasses &&
+              std::abs(double(measured - target)) > kMeasureTolerance * double(target);
   }
 
   // The output: the written-out cells on the grid vertices they use, in grid order. What only the
@@ -374,9 +362,11 @@ absl::StatusOr<SimplifyResult> SimplifyStreamed(const TetMesh& mesh, const Simpl
   result.stop_reason =
       result.reached_target ? StopReason::kTargetReached : StopReason::kNoValidCollapse;
   result.stop_message = absl::StrFormat(
-      "%s: removed %d of %d cells (%.2f%%) in %d windows of %d voxel layers (largest %d cells)%s",
+      "%s: removed %d of %d cells (%.2f%%) in %d windows of %d voxel layers (largest %d cells), "
+      "cost threshold %g (%d measuring passes, the last removed %d)%s",
       result.reached_target ? "target reached" : "target not reached", removed, input_cells,
-      100 * result.achieved_reduction, window_count, slab_voxels, peak_window_cells,
+      100 * result.achieved_reduction, window_count, slab_voxels, peak_window_cells, tau,
+      measuring_passes, measured_removed,
       stalled ? "; the last window found no valid collapse left" : "");
   return result;
 }

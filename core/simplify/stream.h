@@ -9,8 +9,9 @@
 // shared with cells already written out are frozen (never removed), so the window is simplified
 // on its own with the engine's rules unchanged; then the cells lying wholly at or below the middle
 // of slab k are written out and the rest carried on. The label guard's samples (removed voxel
-// centres) stay in the buckets of the cells that carry them. Each window removes the cells that
-// bring the run's total to target_reduction of the original cells it has seen so far.
+// centres) stay in the buckets of the cells that carry them. Every window but the last collapses
+// while the queue's cheapest cost is at most one global threshold, found by measuring passes of
+// the same windows; the last one removes exactly what is left of the target.
 #pragma once
 
 #include "absl/status/statusor.h"

@@ -414,14 +414,19 @@ TEST_F(CliE2E, StreamSlabVoxelsSimplifiesInSlabsAndBadDepthsAreRefused) {
   const std::string job = FirstLine(r.out);
   CliResult w = RunCli(server.address(), {"watch", job, "-o", "json"});
   EXPECT_EQ(w.rc, 0) << w.err;
+  // Measuring passes over the slabs find the cost threshold, then the final pass makes the mesh.
+  // The job thins its progress events out (at most a few a second), but keeps a stage's first
+  // and the one that completes it.
   std::vector<std::string> slabs;
   for (const auto& l : Lines(w.out)) {
     auto j = nlohmann::json::parse(l, nullptr, false);
     ASSERT_FALSE(j.is_discarded()) << l;
     const std::string message = j.value("/progress/message"_json_pointer, std::string());
-    if (message.rfind("slab ", 0) == 0) slabs.push_back(message.substr(0, 11));
+    if (message.rfind("slab ", 0) == 0) slabs.push_back(message.substr(0, message.find(" (")));
   }
-  EXPECT_EQ(slabs, (std::vector<std::string>{"slab 1 of 2", "slab 2 of 2"})) << w.out;
+  ASSERT_GE(slabs.size(), 2u) << w.out;
+  EXPECT_EQ(slabs.front(), "slab 1 of 2, measuring pass 1") << w.out;
+  EXPECT_EQ(slabs.back(), "slab 2 of 2, final pass") << w.out;
   r = RunCli(server.address(), {"status", job});
   EXPECT_EQ(r.rc, 0) << r.err;
   EXPECT_THAT(r.out, HasSubstr("simplified in slabs of 4 voxel layers"));

@@ -69,9 +69,31 @@ void ExpectValidMesh(const TetMesh& m, double volume, const std::string& what) {
   EXPECT_NEAR(total, volume, 1e-6 * volume) << what;
 }
 
+// The field's RMSE on the image grid per z layer (the slabs' axis).
+std::vector<double> LayerRmse(const Volume& image, const TetMesh& mesh) {
+  GridResample r;
+  auto e = MeasureFieldError(image, mesh, 2, 1e-5, nullptr, &r);
+  EXPECT_TRUE(e.ok()) << e.status();
+  const int64_t layer = image.dims[0] * image.dims[1], nz = image.dims[2];
+  std::vector<double> rmse(nz, 0);
+  if (!e.ok()) return rmse;
+  for (int64_t z = 0; z < nz; ++z) {
+    double sum = 0;
+    for (int64_t g = z * layer; g < (z + 1) * layer; ++g) {
+      const double d = r.values[g] - image.ValueAt(g);
+      sum += d * d;
+    }
+    rmse[z] = std::sqrt(sum / double(layer));
+  }
+  return rmse;
+}
+
 // Streamed against in-memory on one case: cells and PSNR within 0.5 %, labels exact, valid.
+// With max_layer_ratio > 0 also no band along z: no layer's RMSE above max_layer_ratio times
+// the in-memory run's on that layer (slabs that give up more than their share, or seams, show as
+// bands in the difference pictures).
 void CompareWithInMemory(const Case& c, double reduction, int slab, const std::string& what,
-                         double psnr_tolerance = 0.005) {
+                         double psnr_tolerance = 0.005, double max_layer_ratio = 0) {
   const SimplifyOptions o = FieldOptions(reduction);
   auto whole = Simplify(c.mesh, o);
   ASSERT_TRUE(whole.ok()) << whole.status();
@@ -85,6 +107,18 @@ void CompareWithInMemory(const Case& c, double reduction, int slab, const std::s
               (long long)streamed->output_cells, (long long)whole->output_cells,
               100 * (double(streamed->output_cells) / double(whole->output_cells) - 1), b.psnr_db,
               a.psnr_db, streamed->passes);
+  if (max_layer_ratio > 0) {
+    const std::vector<double> in_memory = LayerRmse(c.image, whole->mesh);
+    const std::vector<double> layers = LayerRmse(c.image, streamed->mesh);
+    size_t worst = 0;
+    for (size_t z = 0; z < layers.size(); ++z) {
+      if (layers[z] * in_memory[worst] > layers[worst] * in_memory[z]) worst = z;
+    }
+    const double ratio = layers[worst] / std::max(in_memory[worst], 1e-9);
+    std::printf("%s: worst layer z=%zu, RMSE %.2f against %.2f in memory (x%.2f)\n", what.c_str(),
+                worst, layers[worst], in_memory[worst], ratio);
+    EXPECT_LE(ratio, max_layer_ratio) << what << ": a band at z=" << worst;
+  }
   EXPECT_LE(cells_diff, 0.005) << what << ": " << streamed->stop_message;
   EXPECT_GE(b.psnr_db, a.psnr_db * (1 - psnr_tolerance)) << what;
   EXPECT_EQ(b.label_mismatch, 0) << what;
@@ -99,10 +133,11 @@ void CompareWithInMemory(const Case& c, double reduction, int slab, const std::s
   }
 }
 
-// On the noisy phantoms the slabs' shares by roughness (stream.cc) follow the noise, and the
-// streamed PSNR is 0.2-0.9 % below the in-memory run's: 1 % here, not the 0.5 % (which
-// the CT head meets with slabs of 16, below). README "Streamed simplification".
-constexpr double kPhantomPsnrTolerance = 0.01;
+// The 0.5 % holds on the noisy phantoms too since the pacing is a global cost threshold
+// (stream.cc): streamed PSNR -0.20 % to +0.13 % of the in-memory run's on the cases below. With
+// the shares by roughness it was 0.2-0.9 % below, and slabs of 4 at 80 % missed the cells by 5.5 %
+// when the Newton step was taken once (the measuring pass's count missed by 7.6 %).
+constexpr double kPhantomPsnrTolerance = 0.005;
 
 TEST(SimplifyStreamedTest, MatchesInMemoryOnPhantomOddDepth) {
   const Case c = MakeCase({28, 26, 31});  // nz odd: 30 cube layers, 4 slabs of 7-8
@@ -207,6 +242,12 @@ TEST(FieldWindowTest, FrozenVerticesAreNeverRemoved) {
   EXPECT_LT(masked.output_cells, c.mesh.tet_count() / 2);  // and the rest still collapses
 }
 
+// No band along z on the CT head: the worst layer's RMSE is 1.10-1.24x the in-memory run's
+// with one cost threshold for all slabs (50 and 80 %, slabs of 16 and 8); with the shares by
+// roughness it was 1.45x (50 %, slabs of 16) and 2.0x (80 %, slabs of 8), bands the difference
+// pictures show (README "Streamed simplification").
+constexpr double kCtHeadMaxLayerRatio = 1.3;
+
 // The CT head at 50 % and 80 % (regions 3, as the job default segments it).
 TEST(SimplifyStreamedTest, MatchesInMemoryOnCtHead) {
   DECIMA_REQUIRE_SHARED_DATA(path, "ct-head-128x128x53.nii.gz");
@@ -222,8 +263,10 @@ TEST(SimplifyStreamedTest, MatchesInMemoryOnCtHead) {
   auto mesh = Tetrahedralize(*image, t);
   ASSERT_TRUE(mesh.ok()) << mesh.status();
   Case c{*std::move(image), std::move(seg->labels), *std::move(mesh)};
-  CompareWithInMemory(c, 0.5, 16, "CT head 50% slab 16");
-  CompareWithInMemory(c, 0.8, 16, "CT head 80% slab 16");
+  // Two of the four (50 and 80 %, slabs of 16 and 8) to keep the test short (they run under
+  // ASan too); the README has all four.
+  CompareWithInMemory(c, 0.5, 16, "CT head 50% slab 16", 0.005, kCtHeadMaxLayerRatio);
+  CompareWithInMemory(c, 0.8, 8, "CT head 80% slab 8", 0.005, kCtHeadMaxLayerRatio);
 }
 
 }  // namespace
