@@ -250,6 +250,11 @@ constexpr double kCtHeadMaxLayerRatio = 1.3;
 
 // The CT head at 50 % and 80 % (regions 3, as the job default segments it).
 TEST(SimplifyStreamedTest, MatchesInMemoryOnCtHead) {
+#ifdef __SANITIZE_ADDRESS__
+  // A fidelity check on real data: 348 s under AddressSanitizer (CI's budget is 45 min), where
+  // the phantom cases above run the same code paths.
+  GTEST_SKIP() << "the CT head's fidelity is checked by the plain build";
+#endif
   DECIMA_REQUIRE_SHARED_DATA(path, "ct-head-128x128x53.nii.gz");
   auto image = io::ReadVolume(path.string());
   ASSERT_TRUE(image.ok()) << image.status();
