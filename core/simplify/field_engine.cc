@@ -1747,6 +1747,7 @@ absl::Status FieldEngine::Run(int64_t target, double tolerance, const ProgressFn
   std::vector<LoggedCollapse> serial_log;
   const bool log_costs = levels_ == nullptr && window_ != nullptr && window_->cost_log != nullptr;
   if (levels_ != nullptr || log_costs) w.log = &serial_log;
+  if (log_costs) window_->cost_log->clear();
   {
     std::vector<HeapEntry> entries;
     for (int64_t v = 0; v < nv_; ++v) {
@@ -1773,13 +1774,13 @@ absl::Status FieldEngine::Run(int64_t target, double tolerance, const ProgressFn
       DECIMA_RETURN_IF_ERROR(Record(serial_log));
       serial_log.clear();
     }
-    if (drained != Drained::kLimit || total >= target) break;
-  }
-  if (log_costs) {
-    window_->cost_log->clear();
-    for (const LoggedCollapse& c : serial_log) {
-      window_->cost_log->emplace_back(c.cost, int32_t(c.deleted));
+    if (log_costs) {  // moved as it comes, so the window never holds both lists whole
+      for (const LoggedCollapse& c : serial_log) {
+        window_->cost_log->emplace_back(c.cost, int32_t(c.deleted));
+      }
+      serial_log.clear();
     }
+    if (drained != Drained::kLimit || total >= target) break;
   }
   removed += w.removed;
   AddCounts(w, &rounds);

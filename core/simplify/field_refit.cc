@@ -16,11 +16,16 @@ namespace decima::simplify_internal {
 namespace {
 
 // A sample's row of A: the vertices of the simplified cell it lies in and its barycentric
-// weights there. vertex[0] == -1: outside every cell.
+// weights there. vertex[0] == -1: outside every cell. (Storing the cell id instead of its
+// vertices would save 12 bytes per voxel, but the cells are not in sample order: the CGLS
+// passes then miss the cache on every row and the refit took twice the time on Colin27.)
 struct Row {
   std::array<int32_t, 4> vertex{-1, -1, -1, -1};
   std::array<float, 4> w{};
+  bool located() const { return vertex[0] >= 0; }
 };
+
+Row AtVertex(int32_t m) { return Row{{m, m, m, m}, {1.f, 0.f, 0.f, 0.f}}; }
 
 // The row of a sample in cell t of `mesh` with weights w.
 Row InCell(const TetMesh& mesh, int64_t t, const std::array<float, 4>& w) {
@@ -110,7 +115,7 @@ std::vector<Row> LocateSamples(const TetMesh& original, const TetMesh& mesh,
         const float* p = &original.positions[3 * v];
         const float* q = &mesh.positions[3 * int64_t(m)];
         if (p[0] == q[0] && p[1] == q[1] && p[2] == q[2]) {
-          rows[v] = Row{{m, m, m, m}, {1.f, 0.f, 0.f, 0.f}};
+          rows[v] = AtVertex(m);
           continue;
         }
         const Eigen::Vector3d x = original.Position(v);
@@ -121,7 +126,7 @@ std::vector<Row> LocateSamples(const TetMesh& original, const TetMesh& mesh,
             break;
           }
         }
-        if (rows[v].vertex[0] >= 0 || star.offsets[m] == star.offsets[m + 1]) continue;
+        if (rows[v].located() || star.offsets[m] == star.offsets[m + 1]) continue;
         // Later collapses nearby moved the boundary of m's cells past the sample: walk there
         // from m's first cell. Where the sample lies on the boundary of the cell the walk
         // ends in, the lowest id among the cells around that cell's vertices that hold it.
@@ -154,7 +159,7 @@ std::vector<Row> LocateSamples(const TetMesh& original, const TetMesh& mesh,
   }
   std::vector<int32_t> search;
   for (int64_t v = 0; v < n; ++v) {
-    if (rows[v].vertex[0] < 0) search.push_back(int32_t(v));
+    if (!rows[v].located()) search.push_back(int32_t(v));
   }
   const int64_t ns = int64_t(search.size());
   *searched = ns;
@@ -187,11 +192,11 @@ std::vector<Row> LocateSamples(const TetMesh& original, const TetMesh& mesh,
   std::vector<int32_t> members(ns);
   {
     std::vector<int64_t> fill(start.begin(), start.end() - 1);
-    for (int64_t i = 0; i < ns; ++i) members[fill[bucket[i]]++] = search[i];
+    for (int64_t i = 0; i < ns; ++i) members[fill[bucket[i]]++] = int32_t(i);  // index into search
   }
   // Cells test in parallel; each sample keeps the lowest containing cell id (an atomic
   // minimum), so the result does not depend on the thread count.
-  std::vector<std::atomic<int32_t>> owner(n);
+  std::vector<std::atomic<int32_t>> owner(ns);  // per entry of `search`
   for (auto& o : owner) o.store(std::numeric_limits<int32_t>::max(), std::memory_order_relaxed);
   std::atomic<bool> cancelled{false};
   ParallelFor(mesh.tet_count(), threads, 4096, [&](int64_t t0, int64_t t1) {
@@ -211,11 +216,11 @@ std::vector<Row> LocateSamples(const TetMesh& original, const TetMesh& mesh,
           for (int64_t bx = bucket_of(blo, 0); bx <= bucket_of(bhi, 0); ++bx) {
             const int64_t b = bx + dims[0] * (by + dims[1] * bz);
             for (int64_t i = start[b]; i < start[b + 1]; ++i) {
-              const int32_t v = members[i];
-              if (owner[v].load(std::memory_order_relaxed) < t) continue;
-              if (!WeightsIn(mesh, t, original.Position(v))) continue;
-              int32_t seen = owner[v].load(std::memory_order_relaxed);
-              while (t < seen && !owner[v].compare_exchange_weak(seen, int32_t(t))) {
+              const int32_t j = members[i];
+              if (owner[j].load(std::memory_order_relaxed) < t) continue;
+              if (!WeightsIn(mesh, t, original.Position(search[j]))) continue;
+              int32_t seen = owner[j].load(std::memory_order_relaxed);
+              while (t < seen && !owner[j].compare_exchange_weak(seen, int32_t(t))) {
               }
             }
           }
@@ -231,7 +236,7 @@ std::vector<Row> LocateSamples(const TetMesh& original, const TetMesh& mesh,
   ParallelFor(ns, threads, 4096, [&](int64_t i0, int64_t i1) {
     for (int64_t i = i0; i < i1; ++i) {
       const int32_t v = search[i];
-      const int32_t t = owner[v].load(std::memory_order_relaxed);
+      const int32_t t = owner[i].load(std::memory_order_relaxed);
       if (t == std::numeric_limits<int32_t>::max()) continue;
       rows[v] = InCell(mesh, t, *WeightsIn(mesh, t, original.Position(v)));  // it held v
     }
@@ -250,57 +255,62 @@ absl::Status RefitValues(const TetMesh& original, const std::vector<int32_t>& ve
                                               &status, &st.walked, &st.searched);
   DECIMA_RETURN_IF_ERROR(status);
   const int64_t n = original.vertex_count(), nv = simplified->vertex_count();
-  auto located = [&](int64_t i) { return rows[i].vertex[0] >= 0; };
-  // Preconditioned CGLS on min |A s - f|^2, A = the barycentric weights of each located sample. r
-  // and q stay 0 at unlocated samples, so the sums over them need no test.
-  std::vector<double> s(simplified->scalars.begin(), simplified->scalars.end());
-  std::vector<double> r(n, 0), q(n, 0), z(nv), p(nv);
-  // out = A x
-  auto apply = [&](const std::vector<double>& x, std::vector<double>& out) {
-    ParallelFor(n, threads, 16384, [&](int64_t i0, int64_t i1) {
-      for (int64_t i = i0; i < i1; ++i) {
-        if (!located(i)) continue;
-        const Row& row = rows[i];
-        double sum = 0;
-        for (int k = 0; k < 4; ++k) sum += double(row.w[k]) * x[row.vertex[k]];
-        out[i] = sum;
-      }
-    });
+  // Preconditioned CGLS on min |A s - f|^2, A = the barycentric weights of each located sample.
+  // Per sample only its row and r are stored (40 bytes, the refit's peak on a clinical scan): A p
+  // is computed twice a step where it is read rather than kept, and A^T is never stored (see
+  // scatter). r stays 0 at unlocated samples, so the sums over it need no test.
+  auto row_dot = [&](int64_t i, const std::vector<double>& x) {  // (A x)_i, 0 if unlocated
+    const Row& row = rows[i];
+    if (!row.located()) return 0.0;
+    const std::array<int32_t, 4>& vertex = row.vertex;
+    double sum = 0;
+    for (int k = 0; k < 4; ++k) sum += double(row.w[k]) * x[vertex[k]];
+    return sum;
   };
-  // A^T as rows per vertex (its samples in increasing order, with their non-zero weights), so
-  // that out = A^T y runs in parallel over vertices and still adds every vertex's terms in
-  // sample order: the same sums, bit for bit, on any thread count.
-  std::vector<int64_t> at_start(nv + 1, 0);
+  // out[v] = the sum over the samples of v's non-zero weights of term(weight, sample), added in
+  // sample order: the order of a serial scatter, so the result is the same bit for bit on any
+  // thread count. Each thread owns a range of vertices and scans the range of samples that
+  // touch them: the samples and the vertices are both in grid order, so the ranges of two
+  // threads overlap only by the cells that straddle their boundary.
+  const int chunks = std::max(1, threads);
+  std::vector<int64_t> chunk_vertex(chunks + 1), chunk_lo(chunks, n), chunk_hi(chunks, 0);
+  for (int c = 0; c <= chunks; ++c) chunk_vertex[c] = nv * c / chunks;
+  auto chunk_of = [&](int32_t v) {
+    int c = int(int64_t(v) * chunks / std::max<int64_t>(nv, 1));
+    while (c + 1 < chunks && v >= chunk_vertex[c + 1]) ++c;
+    while (c > 0 && v < chunk_vertex[c]) --c;
+    return c;
+  };
   for (int64_t i = 0; i < n; ++i) {
+    if (!rows[i].located()) continue;
+    const std::array<int32_t, 4>& vertex = rows[i].vertex;
     for (int k = 0; k < 4; ++k) {
-      if (rows[i].w[k] != 0) ++at_start[rows[i].vertex[k] + 1];
+      if (rows[i].w[k] == 0) continue;
+      const int c = chunk_of(vertex[k]);
+      chunk_lo[c] = std::min(chunk_lo[c], i);
+      chunk_hi[c] = std::max(chunk_hi[c], i + 1);
     }
   }
-  for (int64_t v = 0; v < nv; ++v) at_start[v + 1] += at_start[v];
-  struct Term {
-    int32_t sample;
-    float weight;
-  };
-  std::vector<Term> at_terms(at_start[nv]);
-  {
-    std::vector<int64_t> fill(at_start.begin(), at_start.end() - 1);
-    for (int64_t i = 0; i < n; ++i) {
-      for (int k = 0; k < 4; ++k) {
-        if (rows[i].w[k] != 0) at_terms[fill[rows[i].vertex[k]]++] = {int32_t(i), rows[i].w[k]};
-      }
-    }
-  }
-  auto apply_t = [&](const std::vector<double>& y,
-                     std::vector<double>& out) {  // out = A^T y
-    ParallelFor(nv, threads, 16384, [&](int64_t v0, int64_t v1) {
-      for (int64_t v = v0; v < v1; ++v) {
-        double sum = 0;
-        for (int64_t j = at_start[v]; j < at_start[v + 1]; ++j) {
-          sum += double(at_terms[j].weight) * y[at_terms[j].sample];
+  auto scatter = [&](std::vector<double>& out, auto&& term) {
+    ParallelFor(chunks, threads, 1, [&](int64_t c0, int64_t c1) {
+      for (int64_t c = c0; c < c1; ++c) {
+        const int64_t v0 = chunk_vertex[c], v1 = chunk_vertex[c + 1];
+        std::fill(out.begin() + v0, out.begin() + v1, 0.0);
+        for (int64_t i = chunk_lo[c]; i < chunk_hi[c]; ++i) {
+          const Row& row = rows[i];
+          if (!row.located()) continue;
+          const std::array<int32_t, 4>& vertex = row.vertex;
+          for (int k = 0; k < 4; ++k) {
+            if (row.w[k] != 0 && vertex[k] >= v0 && vertex[k] < v1) {
+              out[vertex[k]] += term(row.w[k], i);
+            }
+          }
         }
-        out[v] = sum;
       }
     });
+  };
+  auto apply_t = [&](const std::vector<double>& y, std::vector<double>& out) {  // out = A^T y
+    scatter(out, [&](float w, int64_t i) { return double(w) * y[i]; });
   };
   // Element-wise updates in parallel (each index written by one thread).
   auto each = [&](int64_t count, auto&& fn) {
@@ -308,23 +318,21 @@ absl::Status RefitValues(const TetMesh& original, const std::vector<int32_t>& ve
       for (int64_t i = i0; i < i1; ++i) fn(i);
     });
   };
-  for (int64_t i = 0; i < n; ++i) located(i) ? ++st.samples : ++st.unlocated;
-  apply(s, q);
-  each(n, [&](int64_t i) { r[i] = located(i) ? double(original.scalars[i]) - q[i] : 0.0; });
+  for (int64_t i = 0; i < n; ++i) rows[i].located() ? ++st.samples : ++st.unlocated;
+  std::vector<double> s(simplified->scalars.begin(), simplified->scalars.end());
+  std::vector<double> r(n, 0);
+  each(n, [&](int64_t i) {
+    if (rows[i].located()) r[i] = double(original.scalars[i]) - row_dot(i, s);
+  });
   double rr = BlockSum(n, threads, [&](int64_t i) { return r[i] * r[i]; });
   st.rms_before = st.samples > 0 ? std::sqrt(rr / double(st.samples)) : 0;
   // Jacobi preconditioner: 1 / (A^T A)_vv, the sum of a vertex's squared weights. The columns
   // of A differ a lot (a vertex that survived in place has its own sample at weight 1, a vertex
   // of a large cell many small weights); scaled, CGLS converges in a few steps (README
   // "Refit"). A vertex with no sample gets 0: its value is never changed.
-  std::vector<double> inv_diag(nv), h(nv);
-  each(nv, [&](int64_t v) {
-    double d = 0;
-    for (int64_t j = at_start[v]; j < at_start[v + 1]; ++j) {
-      d += double(at_terms[j].weight) * double(at_terms[j].weight);
-    }
-    inv_diag[v] = d > 0 ? 1.0 / d : 0.0;
-  });
+  std::vector<double> inv_diag(nv), z(nv), h(nv), p(nv);
+  scatter(inv_diag, [](float w, int64_t) { return double(w) * double(w); });
+  each(nv, [&](int64_t v) { inv_diag[v] = inv_diag[v] > 0 ? 1.0 / inv_diag[v] : 0.0; });
   apply_t(r, z);
   each(nv, [&](int64_t v) { h[v] = inv_diag[v] * z[v]; });
   p = h;
@@ -332,12 +340,16 @@ absl::Status RefitValues(const TetMesh& original, const std::vector<int32_t>& ve
   const double stop = 1e-12 * std::max(1.0, zz);
   for (int it = 0; it < iterations && zz > stop; ++it) {
     DECIMA_RETURN_IF_ERROR(CheckCancelled(cancel, "simplify"));
-    apply(p, q);
-    const double qq = BlockSum(n, threads, [&](int64_t i) { return q[i] * q[i]; });
+    const double qq = BlockSum(n, threads, [&](int64_t i) {  // |A p|^2
+      const double q = row_dot(i, p);
+      return q * q;
+    });
     if (!(qq > 0)) break;
     const double alpha = zz / qq;
     each(nv, [&](int64_t v) { s[v] += alpha * p[v]; });
-    each(n, [&](int64_t i) { r[i] -= alpha * q[i]; });
+    each(n, [&](int64_t i) {
+      if (rows[i].located()) r[i] -= alpha * row_dot(i, p);
+    });
     apply_t(r, z);
     each(nv, [&](int64_t v) { h[v] = inv_diag[v] * z[v]; });
     const double zz_new = BlockSum(nv, threads, [&](int64_t v) { return z[v] * h[v]; });

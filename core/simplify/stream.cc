@@ -352,6 +352,8 @@ absl::StatusOr<SimplifyResult> SimplifyStreamed(const TetMesh& mesh, const Simpl
     while (merged_into[r] >= 0 && merged_into[r] != r) r = merged_into[r];
     result.vertex_map[g] = index[r];
   }
+  std::vector<int32_t>().swap(index);  // the refit needs the room
+  std::vector<int32_t>().swap(merged_into);
   DECIMA_RETURN_IF_ERROR(simplify_internal::RefitAndReport(
       mesh, result.vertex_map, &out, options.refit_iterations, threads, cancel, progress));
   result.output_cells = ont;
