@@ -23,6 +23,7 @@
 #include <cmath>
 #include <cstdio>
 #include <cstring>
+#include <functional>
 #include <limits>
 #include <string>
 #include <string_view>
@@ -115,18 +116,30 @@ struct VtuArray {
   const char* type;     // VTK type name
   const char* name;
   int components;
-  const uint8_t* data;
+  const uint8_t* data;  // nullptr: made a block at a time by `fill`
   uint64_t bytes;
   // LZMA only: the distance of xz's delta filter in bytes (0: none). The cell offsets are an
   // arithmetic sequence, so their byte-wise differences at the value's width are constant.
   uint32_t delta = 0;
+  // With data == nullptr: writes bytes [begin, begin + n) of the array to `out`. The derived
+  // arrays (flag bits as bytes, cell offsets and types, 5 bytes per cell) are never made whole
+  // (issue 30: the write stage's memory).
+  std::function<void(uint64_t begin, uint64_t n, uint8_t* out)> fill = nullptr;
 };
+
+// Bytes [begin, begin + n) of `a`: its own, or made into `scratch` (at least n bytes).
+const uint8_t* ArrayBytes(const VtuArray& a, uint64_t begin, uint64_t n, uint8_t* scratch) {
+  if (a.data != nullptr) return a.data + begin;
+  a.fill(begin, n, scratch);
+  return scratch;
+}
 
 // One vtkLZMADataCompressor block: an .xz stream (CRC64, as VTK's own compressor writes) of
 // [delta filter,] LZMA2 at `preset`, with literal/position contexts aligned to the element
-// size for multi-byte arrays.
+// size for multi-byte arrays. Encoded into `scratch` (grown to the bound), then copied to `out` at
+// its size.
 bool LzmaBlock(const uint8_t* in, size_t n, const VtuArray& a, int preset,
-               std::vector<uint8_t>& out) {
+               std::vector<uint8_t>& scratch, std::vector<uint8_t>& out) {
   lzma_options_lzma opt;
   if (lzma_lzma_preset(&opt, static_cast<uint32_t>(preset))) return false;
   // xz's own modes: presets 1-3 are its fast mode, 4-9 normal mode (optimal parsing), which
@@ -146,12 +159,12 @@ bool LzmaBlock(const uint8_t* in, size_t n, const VtuArray& a, int preset,
   if (a.delta != 0) filters[f++] = {LZMA_FILTER_DELTA, &delta};
   filters[f++] = {LZMA_FILTER_LZMA2, &opt};
   filters[f] = {LZMA_VLI_UNKNOWN, nullptr};
-  out.resize(lzma_stream_buffer_bound(n));
+  if (scratch.size() < lzma_stream_buffer_bound(n)) scratch.resize(lzma_stream_buffer_bound(n));
   size_t out_pos = 0;
-  if (lzma_stream_buffer_encode(filters.data(), LZMA_CHECK_CRC64, nullptr, in, n, out.data(),
-                                &out_pos, out.size()) != LZMA_OK)
+  if (lzma_stream_buffer_encode(filters.data(), LZMA_CHECK_CRC64, nullptr, in, n, scratch.data(),
+                                &out_pos, scratch.size()) != LZMA_OK)
     return false;
-  out.resize(out_pos);
+  out.assign(scratch.data(), scratch.data() + out_pos);
   return true;
 }
 
@@ -163,7 +176,10 @@ struct EncodedArray {
   uint64_t offset = 0;
 };
 
-// Compresses every array into blocks of options.compressor, blocks spread over threads.
+// Compresses every array into blocks of options.compressor, blocks spread over threads. Each block
+// is encoded into a scratch buffer of its bound and kept at its compressed size: a vector sized to
+// the bound and shrunk with resize kept its whole capacity, zero-filled, so the blocks held as
+// many resident bytes as the arrays themselves (issue 30).
 absl::Status CompressArrays(const std::vector<VtuArray>& arrays, std::vector<EncodedArray>& enc,
                             const VtuWriteOptions& options, const std::filesystem::path& path) {
   struct Task {
@@ -182,26 +198,28 @@ absl::Status CompressArrays(const std::vector<VtuArray>& arrays, std::vector<Enc
   std::atomic<bool> failed{false};
   ParallelFor(static_cast<int64_t>(tasks.size()), ResolveThreads(options.threads),
               [&](int64_t first, int64_t last) {
+                std::vector<uint8_t> made(kVtuBlockBytes), scratch;
                 for (int64_t i = first; i < last && !failed; ++i) {
                   const Task& t = tasks[i];
                   const uint64_t begin = t.block * kVtuBlockBytes;
                   const uint64_t n = std::min(kVtuBlockBytes, t.array->bytes - begin);
+                  const uint8_t* in = ArrayBytes(*t.array, begin, n, made.data());
                   std::vector<uint8_t>& out = t.out->compressed_blocks[t.block];
                   if (options.compressor == VtuCompressor::kLzma) {
-                    if (!LzmaBlock(t.array->data + begin, n, *t.array, options.level, out)) {
+                    if (!LzmaBlock(in, n, *t.array, options.level, scratch, out)) {
                       failed = true;
                       return;
                     }
                     continue;
                   }
                   uLongf out_len = compressBound(static_cast<uLong>(n));
-                  out.resize(out_len);
-                  if (compress2(out.data(), &out_len, t.array->data + begin, static_cast<uLong>(n),
+                  if (scratch.size() < out_len) scratch.resize(out_len);
+                  if (compress2(scratch.data(), &out_len, in, static_cast<uLong>(n),
                                 options.level) != Z_OK) {
                     failed = true;
                     return;
                   }
-                  out.resize(out_len);
+                  out.assign(scratch.data(), scratch.data() + out_len);
                 }
               });
   if (failed)
@@ -268,37 +286,45 @@ absl::Status WriteVtu(const TetMesh& mesh, const std::filesystem::path& path,
                                                    " is outside 1..9"));
   const int64_t nv = mesh.vertex_count(), nt = mesh.tet_count();
 
-  // Derived arrays (the only copies made): flag bits as 0/1 bytes, offsets and cell types.
-  std::vector<uint8_t> feature(nv), boundary(nv), types(nt, kVtkTetra);
-  for (int64_t v = 0; v < nv; ++v) {
-    feature[v] = (mesh.vertex_flags[v] & kFeatureVertex) ? 1 : 0;
-    boundary[v] = (mesh.vertex_flags[v] & kExteriorBoundaryVertex) ? 1 : 0;
-  }
+  // Derived arrays, made a block at a time (VtuArray::fill): flag bits as 0/1 bytes, offsets and
+  // cell types.
+  auto flag_bytes = [&mesh](uint8_t bit) {
+    return [&mesh, bit](uint64_t begin, uint64_t n, uint8_t* out) {
+      for (uint64_t i = 0; i < n; ++i) out[i] = (mesh.vertex_flags[begin + i] & bit) ? 1 : 0;
+    };
+  };
+  // Cell t ends at 4 (t + 1); `width` bytes per offset, the byte range whole offsets (blocks are
+  // a multiple of 8 bytes).
+  auto offsets = [](uint64_t width) {
+    return [width](uint64_t begin, uint64_t n, uint8_t* out) {
+      for (uint64_t b = 0; b < n; b += width) {
+        const int64_t end = 4 * (int64_t((begin + b) / width) + 1);
+        if (width == 8) {
+          std::memcpy(out + b, &end, 8);
+        } else {
+          const int32_t end32 = static_cast<int32_t>(end);
+          std::memcpy(out + b, &end32, 4);
+        }
+      }
+    };
+  };
   const bool offsets64 = 4 * nt > std::numeric_limits<int32_t>::max();
-  std::vector<int32_t> offsets32;
-  std::vector<int64_t> offsets64_values;
-  if (offsets64) {
-    offsets64_values.resize(nt);
-    for (int64_t t = 0; t < nt; ++t) offsets64_values[t] = 4 * (t + 1);
-  } else {
-    offsets32.resize(nt);
-    for (int64_t t = 0; t < nt; ++t) offsets32[t] = static_cast<int32_t>(4 * (t + 1));
-  }
-
   std::vector<VtuArray> arrays = {
       {"PointData", "Float32", "scalar", 1, Bytes(mesh.scalars), 4 * uint64_t(nv)},
       {"PointData", "UInt8", "label", 1, Bytes(mesh.labels), uint64_t(nv)},
-      {"PointData", "UInt8", "feature", 1, feature.data(), uint64_t(nv)},
+      {"PointData", "UInt8", "feature", 1, nullptr, uint64_t(nv), 0, flag_bytes(kFeatureVertex)},
       {"PointData", "Float32", "interface_distance", 1, Bytes(mesh.interface_distance),
        4 * uint64_t(nv)},
-      {"PointData", "UInt8", "boundary", 1, boundary.data(), uint64_t(nv)},
+      {"PointData", "UInt8", "boundary", 1, nullptr, uint64_t(nv), 0,
+       flag_bytes(kExteriorBoundaryVertex)},
       {"CellData", "UInt8", "region", 1, Bytes(mesh.cell_regions), uint64_t(nt)},
       {"Points", "Float32", "Points", 3, Bytes(mesh.positions), 12 * uint64_t(nv)},
       {"Cells", "Int32", "connectivity", 1, Bytes(mesh.tets), 16 * uint64_t(nt)},
       offsets64
-          ? VtuArray{"Cells", "Int64", "offsets", 1, Bytes(offsets64_values), 8 * uint64_t(nt), 8}
-          : VtuArray{"Cells", "Int32", "offsets", 1, Bytes(offsets32), 4 * uint64_t(nt), 4},
-      {"Cells", "UInt8", "types", 1, types.data(), uint64_t(nt)},
+          ? VtuArray{"Cells", "Int64", "offsets", 1, nullptr, 8 * uint64_t(nt), 8, offsets(8)}
+          : VtuArray{"Cells", "Int32", "offsets", 1, nullptr, 4 * uint64_t(nt), 4, offsets(4)},
+      {"Cells", "UInt8", "types", 1, nullptr, uint64_t(nt), 0,
+       [](uint64_t, uint64_t n, uint8_t* out) { std::memset(out, kVtkTetra, n); }},
   };
 
   std::vector<EncodedArray> enc(arrays.size());
@@ -352,13 +378,20 @@ absl::Status WriteVtu(const TetMesh& mesh, const std::filesystem::path& path,
   AtomicFile file;
   DECIMA_RETURN_IF_ERROR(file.Open(path));
   DECIMA_RETURN_IF_ERROR(file.Write(xml));
+  std::vector<uint8_t> made;  // a block of a derived array, uncompressed
   for (size_t i = 0; i < arrays.size(); ++i) {
     DECIMA_RETURN_IF_ERROR(file.Write(enc[i].header.data(), enc[i].header.size()));
     if (options.compress) {
       for (const auto& b : enc[i].compressed_blocks)
         DECIMA_RETURN_IF_ERROR(file.Write(b.data(), b.size()));
-    } else {
+    } else if (arrays[i].data != nullptr) {
       DECIMA_RETURN_IF_ERROR(file.Write(arrays[i].data, arrays[i].bytes));
+    } else {
+      if (made.empty()) made.resize(kVtuBlockBytes);
+      for (uint64_t begin = 0; begin < arrays[i].bytes; begin += kVtuBlockBytes) {
+        const uint64_t n = std::min(kVtuBlockBytes, arrays[i].bytes - begin);
+        DECIMA_RETURN_IF_ERROR(file.Write(ArrayBytes(arrays[i], begin, n, made.data()), n));
+      }
     }
   }
   DECIMA_RETURN_IF_ERROR(file.Write("\n  </AppendedData>\n</VTKFile>\n"));

@@ -278,6 +278,52 @@ absl::StatusOr<FieldError> MeasureFieldError(const Volume& image, const TetMesh&
   return f;
 }
 
+absl::StatusOr<FeatureVertexCounts> CountFeatureVertices(const TetMesh& o,
+                                                         const std::vector<int32_t>& vertex_map,
+                                                         const TetMesh& simplified) {
+  if (int64_t(vertex_map.size()) != o.vertex_count() ||
+      int64_t(o.vertex_flags.size()) != o.vertex_count() ||
+      int64_t(o.positions.size()) != 3 * o.vertex_count()) {
+    return absl::InvalidArgumentError(absl::StrCat(
+        "metrics: vertex_map has ", vertex_map.size(), " entries and the original ",
+        o.vertex_flags.size(), " vertex flags and ", o.positions.size(),
+        " position floats, expected one (three) per original vertex (", o.vertex_count(), ")"));
+  }
+  FeatureVertexCounts m;
+  // An output vertex that sits exactly where one of the feature vertices mapped to it was is
+  // that vertex, unmoved; the others mapped to it were merged into it (removed). Only an
+  // output vertex at none of their places counts one of them as moved. (Deciding by the
+  // first vertex in index order instead called a vertex merged into a later one "moved".)
+  const int64_t nout = simplified.vertex_count();
+  auto same_place = [&](int64_t v, int32_t n) {
+    return simplified.positions[3 * int64_t(n)] == o.positions[3 * v] &&
+           simplified.positions[3 * int64_t(n) + 1] == o.positions[3 * v + 1] &&
+           simplified.positions[3 * int64_t(n) + 2] == o.positions[3 * v + 2];
+  };
+  std::vector<uint8_t> kept(nout, 0);  // 1: a feature vertex stayed there; 2: one moved there
+  for (int64_t v = 0; v < o.vertex_count(); ++v) {
+    if (!(o.vertex_flags[v] & kFeatureVertex)) continue;
+    const int32_t n = vertex_map[v];
+    if (n >= 0 && n < nout && same_place(v, n)) kept[n] = 1;
+  }
+  for (int64_t v = 0; v < o.vertex_count(); ++v) {
+    if (!(o.vertex_flags[v] & kFeatureVertex)) continue;
+    ++m.vertices;
+    const int32_t n = vertex_map[v];
+    if (n < 0 || n >= nout) {
+      ++m.removed;
+    } else if (kept[n] == 1) {
+      m.removed += !same_place(v, n);
+    } else if (kept[n] == 0) {
+      kept[n] = 2;
+      ++m.moved;
+    } else {
+      ++m.removed;
+    }
+  }
+  return m;
+}
+
 absl::StatusOr<FidelityMetrics> MeasureFidelity(const Volume& image, const TetMesh& simplified,
                                                 const FidelityOptions& options,
                                                 const CancelToken* cancel) {
@@ -291,6 +337,11 @@ absl::StatusOr<FidelityMetrics> MeasureFidelity(const Volume& image, const TetMe
   if ((options.original == nullptr) != (options.vertex_map == nullptr)) {
     return absl::InvalidArgumentError(
         "metrics: the feature-vertex counts need both the original mesh and the vertex map");
+  }
+  if (options.feature_counts != nullptr && options.original != nullptr) {
+    return absl::InvalidArgumentError(
+        "metrics: the feature-vertex counts come from feature_counts or from the original mesh "
+        "and the vertex map, not both");
   }
   if (options.original != nullptr) {
     DECIMA_RETURN_IF_ERROR(CheckMesh(*options.original, "original"));
@@ -365,39 +416,21 @@ absl::StatusOr<FidelityMetrics> MeasureFidelity(const Volume& image, const TetMe
         m.interface_points > 0 ? std::sqrt(interface_sq / double(m.interface_points)) : 0;
   }
 
-  if (options.original != nullptr) {
-    const TetMesh& o = *options.original;
-    // An output vertex that sits exactly where one of the feature vertices mapped to it was is
-    // that vertex, unmoved; the others mapped to it were merged into it (removed). Only an
-    // output vertex at none of their places counts one of them as moved. (Deciding by the
-    // first vertex in index order instead called a vertex merged into a later one "moved".)
-    const int64_t nout = simplified.vertex_count();
-    auto same_place = [&](int64_t v, int32_t n) {
-      return simplified.positions[3 * int64_t(n)] == o.positions[3 * v] &&
-             simplified.positions[3 * int64_t(n) + 1] == o.positions[3 * v + 1] &&
-             simplified.positions[3 * int64_t(n) + 2] == o.positions[3 * v + 2];
-    };
-    std::vector<uint8_t> kept(nout, 0);  // 1: a feature vertex stayed there; 2: one moved there
-    for (int64_t v = 0; v < o.vertex_count(); ++v) {
-      if (!(o.vertex_flags[v] & kFeatureVertex)) continue;
-      const int32_t n = (*options.vertex_map)[v];
-      if (n >= 0 && n < nout && same_place(v, n)) kept[n] = 1;
-    }
-    for (int64_t v = 0; v < o.vertex_count(); ++v) {
-      if (!(o.vertex_flags[v] & kFeatureVertex)) continue;
-      ++m.feature_vertices;
-      const int32_t n = (*options.vertex_map)[v];
-      if (n < 0 || n >= nout) {
-        ++m.feature_vertices_removed;
-      } else if (kept[n] == 1) {
-        m.feature_vertices_removed += !same_place(v, n);
-      } else if (kept[n] == 0) {
-        kept[n] = 2;
-        ++m.feature_vertices_moved;
-      } else {
-        ++m.feature_vertices_removed;
-      }
-    }
+  // The resampling (9 bytes per grid point) is not read below: freed before the face adjacency
+  // (CountFaces) is built, so the two are never resident together (issue 30).
+  r = GridResample();
+
+  if (options.feature_counts != nullptr) {
+    m.feature_vertices = options.feature_counts->vertices;
+    m.feature_vertices_moved = options.feature_counts->moved;
+    m.feature_vertices_removed = options.feature_counts->removed;
+  } else if (options.original != nullptr) {
+    DECIMA_ASSIGN_OR_RETURN(
+        const FeatureVertexCounts c,
+        CountFeatureVertices(*options.original, *options.vertex_map, simplified));
+    m.feature_vertices = c.vertices;
+    m.feature_vertices_moved = c.moved;
+    m.feature_vertices_removed = c.removed;
   }
 
   if (int64_t(simplified.interface_distance.size()) == simplified.vertex_count()) {

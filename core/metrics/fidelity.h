@@ -57,6 +57,22 @@ absl::StatusOr<FieldError> MeasureFieldError(const Volume& image, const TetMesh&
                                              const CancelToken* cancel = nullptr,
                                              GridResample* resample = nullptr);
 
+// The feature-vertex counts of FidelityMetrics (feature_vertices, _moved, _removed): from the
+// original mesh's positions and vertex_flags, Simplify's vertex_map and the simplified mesh's
+// positions, nothing else. A caller that releases the original before measuring (a job, issue 30:
+// its vertex arrays are 22 bytes per voxel) counts them first and passes them in
+// FidelityOptions::feature_counts.
+struct FeatureVertexCounts {
+  int64_t vertices = 0;  // kFeatureVertex in the original
+  int64_t moved = 0;     // survive at another position
+  int64_t removed = 0;   // gone, or merged with another feature vertex
+};
+// Errors: InvalidArgument when vertex_map or vertex_flags do not have one entry per original
+// vertex (naming them).
+absl::StatusOr<FeatureVertexCounts> CountFeatureVertices(const TetMesh& original,
+                                                         const std::vector<int32_t>& vertex_map,
+                                                         const TetMesh& simplified);
+
 struct FidelityOptions {
   // Ground-truth labels (uint8 on the image grid), e.g. the segmentation; enables Dice, the
   // label mismatch and the interface RMSE. nullptr: those stay empty / 0.
@@ -65,6 +81,9 @@ struct FidelityOptions {
   // -1); together they enable the feature-vertex counts.
   const TetMesh* original = nullptr;
   const std::vector<int32_t>* vertex_map = nullptr;
+  // Or the counts themselves, made before (CountFeatureVertices) with the same result; with
+  // them, original and vertex_map stay nullptr.
+  const FeatureVertexCounts* feature_counts = nullptr;
   // Bytes of the written mesh file (the writer lives in core/mesh); 0 = unknown.
   int64_t mesh_bytes = 0;
   // A cell with 0 <= volume < this * voxel volume counts as degenerate.
@@ -104,7 +123,7 @@ struct FidelityMetrics {
   double interface_distance_max_voxels = 0;
   double interface_distance_mean_voxels = 0;
   int64_t interface_vertices = 0;
-  // Feature vertices (with original + vertex_map).
+  // Feature vertices (with original + vertex_map, or feature_counts).
   int64_t feature_vertices = 0;          // kFeatureVertex in the original
   int64_t feature_vertices_moved = 0;    // survive at another position
   int64_t feature_vertices_removed = 0;  // gone, or merged with another feature vertex

@@ -2,6 +2,10 @@
 
 #include <sys/resource.h>
 
+#ifdef __GLIBC__
+#include <malloc.h>
+#endif
+
 #include <algorithm>
 #include <cstdlib>
 #include <fstream>
@@ -45,6 +49,17 @@ double HighWaterMb() {
   return ProcessPeakMb();
 }
 
+// Gives the heap's free pages back to the system. glibc keeps freed chunks below its mmap
+// threshold (which rises to 32 MiB as large blocks are freed) in its arenas, resident: on the CT
+// head 256x256x113 about 370 MiB of the simplify stage's work arrays stayed resident under the
+// write and render stages, more than those stages hold (issue 30). Called between stages, after
+// the stage's peak is read; the next stage reuses the pages it needs.
+void ReleaseFreeHeap() {
+#ifdef __GLIBC__
+  malloc_trim(0);
+#endif
+}
+
 }  // namespace
 
 PeakRss::PeakRss() { resettable_ = ResetHighWaterMark(); }
@@ -52,6 +67,7 @@ PeakRss::PeakRss() { resettable_ = ResetHighWaterMark(); }
 void PeakRss::EndStage(const std::string& stage) {
   const double mb = HighWaterMb();
   if (mb > 0) stages_[stage] = std::max(stages_.value(stage, 0.0), mb);
+  ReleaseFreeHeap();
   if (resettable_) resettable_ = ResetHighWaterMark();
 }
 

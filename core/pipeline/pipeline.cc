@@ -166,6 +166,10 @@ struct Rendered {
   TransferFunction transfer_function;
   DiffImageOptions heat;  // one heat-map scale for every view of the job
   PictureCaption caption;
+  // With "report": the 3D view's surfaces (ViewSurfaces), made before the render stage consumes
+  // the simplified mesh, and the triangle count before merging.
+  std::vector<RegionSurface> view_surfaces;
+  int64_t view_surfaces_extracted = 0;
 };
 
 // One point of the diff1 curve: a simplification of the original to `reduction`.
@@ -281,7 +285,9 @@ SimplifyOptions SimplifyOptionsOf(const JobSpec& spec) {
 // the original and the collapses), the curve (simplifies the original again) and the render from
 // the materialized mesh. Every other stage reads its vertices only (the fidelity's feature counts)
 // or the voxel grid, so the cells the field run dropped stay dropped (issue 30: 17 bytes per cell,
-// 85 per voxel, off the write and render peaks).
+// 85 per voxel, off the write and render peaks). These are also the only stages after simplify
+// that read the original at all: without them the simplify stage counts the feature vertices and
+// frees the whole original (SimplifyStage).
 bool NeedsOriginalCells(const JobSpec& spec) {
   return Wants(spec, "levels") || Wants(spec, "curve") ||
          spec.original_from == JobSpec::OriginalSource::kMesh;
@@ -339,11 +345,18 @@ Json PsnrFloorJson(const PsnrFloorSearch& s) {
 // Memory: this stage is the job's peak, so a plain field run frees the original's cells while it
 // runs (SimplifyDroppingCells) and writes them back only for a later stage that reads them
 // (NeedsOriginalCells); on every path the cells are dropped after it when none does.
+// When no later stage reads the original (NeedsOriginalCells: the level record, the curve and the
+// render from the mesh are also all that read its vertices), the fidelity's feature-vertex counts,
+// the only other reader of its vertices and of the vertex map, are made at the end of this stage
+// into `features`, and the original TetMesh and the vertex map are freed (issue 30: 22 + 4 bytes
+// per voxel off the write and render stages).
 absl::StatusOr<SimplifyResult> SimplifyStage(const JobSpec& spec, const Volume& image,
                                              TetMesh& original,
                                              const CheckpointOptions& checkpoints,
-                                             const std::string& key, JobRun& run) {
+                                             const std::string& key, JobRun& run,
+                                             std::optional<FeatureVertexCounts>* features) {
   DECIMA_ASSIGN_OR_RETURN(Stage stage, run.Stage("simplify"));
+  const int64_t vertices_before = original.vertex_count();
   const SimplifyOptions options = SimplifyOptionsOf(spec);
   SimplifyResult simplified;
   std::optional<PsnrFloorSearch> search;
@@ -384,9 +397,14 @@ absl::StatusOr<SimplifyResult> SimplifyStage(const JobSpec& spec, const Volume& 
   if (!NeedsOriginalCells(spec) && original.grid && !original.cells_dropped) {
     DropGridCells(&original);
   }
+  if (!NeedsOriginalCells(spec)) {
+    DECIMA_ASSIGN_OR_RETURN(*features,
+                            CountFeatureVertices(original, simplified.vertex_map, simplified.mesh));
+    original = TetMesh();
+    std::vector<int32_t>().swap(simplified.vertex_map);
+  }
   stage.End();
-  run.metrics()["simplification"] =
-      SimplifyResultToJson(simplified, options, original.vertex_count());
+  run.metrics()["simplification"] = SimplifyResultToJson(simplified, options, vertices_before);
   if (spec.levels_file) run.metrics()["simplification"]["from_levels"] = true;
   // 0: in memory; else the slab depth, the server's choice when the spec left it open.
   run.metrics()["simplification"]["stream_slab_voxels"] = spec.stream_slab_voxels;
@@ -496,16 +514,23 @@ absl::StatusOr<int64_t> WriteStage(const JobSpec& spec, const TetMesh& original,
 
 // Fidelity of the simplified mesh (field, labels, interfaces, quality), measured before rendering
 // so that a render failure still leaves the field metrics in the log.
+// The feature-vertex counts come from `features` when the simplify stage made them (and freed the
+// original), else from the original and the vertex map.
 absl::Status MeasureFidelityStep(const Volume& image, const SegmentResult& seg,
                                  const TetMesh& original, const SimplifyResult& simplified,
+                                 const std::optional<FeatureVertexCounts>& features,
                                  int64_t mesh_bytes, Stage& stage, JobRun& run) {
   // Reported under "render": its seconds belong to the picture-and-numbers part of the job, and
   // a silent gap after "write 100%" looked like a hang.
   stage.Report(0, "measuring fidelity");
   FidelityOptions fo;
   fo.labels = &seg.labels;
-  fo.original = &original;
-  fo.vertex_map = &simplified.vertex_map;
+  if (features) {
+    fo.feature_counts = &*features;
+  } else {
+    fo.original = &original;
+    fo.vertex_map = &simplified.vertex_map;
+  }
   fo.mesh_bytes = mesh_bytes;
   DECIMA_ASSIGN_OR_RETURN(const FidelityMetrics fidelity,
                           MeasureFidelity(image, simplified.mesh, fo, stage.cancel()));
@@ -544,13 +569,17 @@ absl::Status RenderOriginalViews(const JobSpec& spec, const Volume& image,
 // Memory (issue 30): the original is rendered straight from the voxel grid (RenderableGrid:
 // positions and scalars, 16 bytes per voxel; the cells and their neighbours are computed from
 // the cell id), and with `release_original` (no later stage needs it) the original TetMesh is
-// freed before that, so no per-tet array of the original is resident while rendering. The
-// original is rendered in every view first and its renderable form freed before the simplified
-// one is built. With spec.original_from == kMesh the earlier path: the original's RenderableMesh
-// (8 int32 per tet plus positions, about 170 bytes per voxel), built consuming the TetMesh when
-// it may be released. The pictures do not depend on either choice.
+// freed before that (the simplify stage already did, unless the levels need it), so no per-tet
+// array of the original is resident while rendering. The original is rendered in every view first
+// and its renderable form freed before the simplified one is built. With spec.original_from ==
+// kMesh the earlier path: the original's RenderableMesh (8 int32 per tet plus positions, about 170
+// bytes per voxel), built consuming the TetMesh when it may be released. The pictures do not depend
+// on either choice.
+// The simplified mesh is consumed (BuildRenderableMesh(TetMesh&&)): no stage after this one reads
+// it (the report's surfaces are made before), so the mesh, its renderable form and the adjacency
+// being built are never all resident (issue 30: about 20 bytes per cell off the stage's peak).
 absl::Status RenderViews(const JobSpec& spec, const Volume& image, TetMesh& original,
-                         bool release_original, const TetMesh& simplified, const Stage& stage,
+                         bool release_original, TetMesh& simplified, const Stage& stage,
                          Rendered* out) {
   if (spec.original_from == JobSpec::OriginalSource::kGrid) {
     if (release_original) original = TetMesh();
@@ -572,7 +601,7 @@ absl::Status RenderViews(const JobSpec& spec, const Volume& image, TetMesh& orig
   const double steps = 2.0 * spec.views.size();
   stage.Report(spec.views.size() / (steps + 1), "building the simplified renderable mesh");
   DECIMA_ASSIGN_OR_RETURN(const RenderableMesh simplified_r,
-                          BuildRenderableMesh(simplified, {}, stage.cancel()));
+                          BuildRenderableMesh(std::move(simplified), {}, stage.cancel()));
   for (size_t i = 0; i < out->views.size(); ++i) {
     ViewRender& v = out->views[i];
     DECIMA_ASSIGN_OR_RETURN(
@@ -636,19 +665,27 @@ PictureCaption CaptionOf(const JobSpec& spec, const SegmentResult& seg,
 
 // render: fidelity, then every view rendered and measured (diff1 is part of metrics.json); the
 // pictures are written when "images" or "report" is asked for.
+// The simplified mesh is consumed (RenderViews): only its SimplifyResult figures are left after.
 absl::StatusOr<Rendered> RenderStage(const JobSpec& spec, const Volume& image,
                                      const SegmentResult& seg, TetMesh& original,
-                                     const SimplifyResult& simplified, int64_t mesh_bytes,
-                                     JobRun& run, std::vector<ReportPicture>* report) {
+                                     SimplifyResult& simplified,
+                                     const std::optional<FeatureVertexCounts>& features,
+                                     int64_t mesh_bytes, JobRun& run,
+                                     std::vector<ReportPicture>* report) {
   DECIMA_ASSIGN_OR_RETURN(Stage stage, run.Stage("render"));
   DECIMA_RETURN_IF_ERROR(
-      MeasureFidelityStep(image, seg, original, simplified, mesh_bytes, stage, run));
+      MeasureFidelityStep(image, seg, original, simplified, features, mesh_bytes, stage, run));
   Rendered rendered;
+  if (Wants(spec, "report")) {
+    rendered.view_surfaces =
+        ViewSurfaces(simplified.mesh, kViewTriangleBudget, &rendered.view_surfaces_extracted);
+  }
   rendered.caption = CaptionOf(spec, seg, simplified);
   // Only the curve simplifies the original again after this stage.
   const bool release_original = !Wants(spec, "curve");
   DECIMA_RETURN_IF_ERROR(
       RenderViews(spec, image, original, release_original, simplified.mesh, stage, &rendered));
+  // (simplified.mesh is empty from here on.)
   Json views = Json::array();
   for (const ViewRender& v : rendered.views) {
     views.push_back({{"view", v.name},
@@ -733,8 +770,8 @@ absl::Status CurveStage(const JobSpec& spec, const TetMesh& original,
 // diff: segmentation.png, metrics.json and report.html. Not timed: its end is the job's total.
 absl::Status DiffStage(const JobSpec& spec, const Volume& image, const SegmentResult& seg,
                        const RegionTable& regions, const Rendered& rendered,
-                       const TetMesh& simplified, const std::optional<DicomDescription>& dicom,
-                       JobRun& run, std::vector<ReportPicture> report) {
+                       const std::optional<DicomDescription>& dicom, JobRun& run,
+                       std::vector<ReportPicture> report) {
   DECIMA_ASSIGN_OR_RETURN(Stage stage, run.Stage("diff", JobRun::Timing::kNotRecorded));
   // segmentation.png: what a clinician checks first, the labels over the slices.
   if (Wants(spec, "segmentation") || Wants(spec, "report")) {
@@ -758,7 +795,8 @@ absl::Status DiffStage(const JobSpec& spec, const Volume& image, const SegmentRe
     stage.Report(0.7, "report.html");
     ReportContext context;
     context.regions = &regions;
-    context.mesh = &simplified;
+    context.view_surfaces = &rendered.view_surfaces;
+    context.view_surfaces_extracted = rendered.view_surfaces_extracted;
     context.dicom = dicom;
     DECIMA_ASSIGN_OR_RETURN(const std::string html, ReportHtml(spec, rendered.caption.input_name,
                                                                run.metrics(), report, context));
@@ -953,25 +991,29 @@ absl::StatusOr<JobResult> RunJob(const JobSpec& spec, const std::filesystem::pat
   DECIMA_ASSIGN_OR_RETURN(SegmentResult seg,
                           SegmentStage(spec, image, checkpoints, segment_key, run));
   DECIMA_ASSIGN_OR_RETURN(const RegionTable regions, RegionTableOf(spec, image, seg, run));
-  // Not const: the render stage frees it once nothing after it needs the original.
+  // Not const: the simplify stage frees it when no later stage reads it (NeedsOriginalCells), else
+  // the render stage when only the curve's does not.
   DECIMA_ASSIGN_OR_RETURN(TetMesh original, TetrahedralizeStage(spec, image, seg, run));
   // The interface distances (voxels and mm, 8 bytes per voxel) are read only by the tetra stage,
   // which copies the first into the mesh's vertices (its checkpoint is written already): freed
   // here, they no longer sit under the simplify and render peaks.
   std::vector<float>().swap(seg.interface_distance_voxels);
   std::vector<float>().swap(seg.interface_distance_mm);
-  DECIMA_ASSIGN_OR_RETURN(SimplifyResult simplified,
-                          SimplifyStage(spec, image, original, checkpoints, simplify_key, run));
+  // Set when the simplify stage freed the original (no later stage reads it).
+  std::optional<FeatureVertexCounts> features;
+  DECIMA_ASSIGN_OR_RETURN(
+      SimplifyResult simplified,
+      SimplifyStage(spec, image, original, checkpoints, simplify_key, run, &features));
   DECIMA_ASSIGN_OR_RETURN(const int64_t mesh_bytes,
                           WriteStage(spec, original, simplified, regions, run));
   DECIMA_ASSIGN_OR_RETURN(
       const Rendered rendered,
-      RenderStage(spec, image, seg, original, simplified, mesh_bytes, run, &report));
+      RenderStage(spec, image, seg, original, simplified, features, mesh_bytes, run, &report));
   if (Wants(spec, "curve")) {
     DECIMA_RETURN_IF_ERROR(CurveStage(spec, original, simplified, rendered, run, &report));
   }
-  DECIMA_RETURN_IF_ERROR(DiffStage(spec, image, seg, regions, rendered, simplified.mesh, dicom, run,
-                                   std::move(report)));
+  DECIMA_RETURN_IF_ERROR(
+      DiffStage(spec, image, seg, regions, rendered, dicom, run, std::move(report)));
   JobResult result = run.TakeResult();
   result.regions = regions;
   return result;

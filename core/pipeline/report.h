@@ -33,6 +33,10 @@ struct ReportContext {
   const RegionTable* regions = nullptr;  // the job's names and colours
   // The simplified mesh: its region surfaces are the 3D view (none without it).
   const TetMesh* mesh = nullptr;
+  // Or those surfaces already made by ViewSurfaces (with the triangle count before merging), for a
+  // caller that frees the mesh before the page is written (a job, issue 30); used when set.
+  const std::vector<RegionSurface>* view_surfaces = nullptr;
+  int64_t view_surfaces_extracted = 0;
   std::optional<DicomDescription> dicom;  // for a DICOM input
 };
 

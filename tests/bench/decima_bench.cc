@@ -115,6 +115,7 @@ struct BenchOptions {
   int size = 512;
   std::string view = "anterior";
   std::string original_from = "grid";  // grid, mesh or both
+  std::string checkpoints;             // --job-out: RunJob's checkpoint folder (empty: none)
 };
 
 struct BenchState {
@@ -417,7 +418,10 @@ int RunWholeJob(const BenchOptions& o, const std::string& out_dir, Json* out_jso
   spec.views = {o.view};
   spec.original_from = o.original_from == "mesh" ? pipeline::JobSpec::OriginalSource::kMesh
                                                  : pipeline::JobSpec::OriginalSource::kGrid;
-  auto result = pipeline::RunJob(spec, out_dir, nullptr, nullptr, {});
+  pipeline::CheckpointOptions checkpoints;
+  checkpoints.dir = o.checkpoints;
+  checkpoints.key = o.input;
+  auto result = pipeline::RunJob(spec, out_dir, nullptr, nullptr, checkpoints);
   if (!result.ok()) {
     std::cerr << "decima-bench: job: " << result.status() << "\n";
     return 1;
@@ -611,6 +615,10 @@ int Main(int argc, char** argv) {
   app.add_option("--job-out", job_out,
                  "Run the whole job (RunJob) into this folder instead of the stages and print "
                  "its memory figures");
+  app.add_option("--checkpoints", o.checkpoints,
+                 "--job-out: save the segment and simplify stages' checkpoints in this folder "
+                 "and resume from them (keyed by --input and the spec), to measure the later "
+                 "stages again without simplifying again");
   app.add_flag("--json", json, "Print the JSON object (the only output format; kept for scripts)");
   CLI11_PARSE(app, argc, argv);
   if (!(o.min_psnr >= 0)) {  // NaN passes CLI::Range

@@ -147,6 +147,45 @@ TEST(Fidelity, CountsInvertedCellsAndMovedOrMergedFeatureVertices) {
   EXPECT_FALSE(f->manifold);
 }
 
+// A job counts the feature vertices before it frees the original (issue 30) and passes the
+// counts in: the same figures as from the original and the vertex map.
+TEST(Fidelity, FeatureCountsMadeBeforeGiveTheSameFigures) {
+  const Volume v = Ramp({4, 4, 4});
+  TetMesh orig = Mesh(v);
+  for (int32_t f : {0, 1, 2, 3, 5, 7}) orig.vertex_flags[f] |= kFeatureVertex;
+  TetMesh out = orig;
+  out.positions[3 * 5] += 0.1f;
+  std::vector<int32_t> map(orig.vertex_count());
+  for (int64_t i = 0; i < orig.vertex_count(); ++i) map[i] = int32_t(i);
+  map[1] = 0;
+  map[2] = -1;
+  map[3] = 7;
+  auto counts = CountFeatureVertices(orig, map, out);
+  ASSERT_TRUE(counts.ok()) << counts.status();
+  EXPECT_EQ(counts->vertices, 6);
+  EXPECT_EQ(counts->removed, 3);
+  EXPECT_EQ(counts->moved, 1);
+
+  FidelityOptions from_mesh;
+  from_mesh.original = &orig;
+  from_mesh.vertex_map = &map;
+  FidelityOptions from_counts;
+  from_counts.feature_counts = &*counts;
+  auto a = MeasureFidelity(v, out, from_mesh);
+  auto b = MeasureFidelity(v, out, from_counts);
+  ASSERT_TRUE(a.ok() && b.ok());
+  EXPECT_EQ(a->feature_vertices, b->feature_vertices);
+  EXPECT_EQ(a->feature_vertices_removed, b->feature_vertices_removed);
+  EXPECT_EQ(a->feature_vertices_moved, b->feature_vertices_moved);
+
+  // Both sources at once, or a vertex map of the wrong size, are refused.
+  from_counts.original = &orig;
+  from_counts.vertex_map = &map;
+  EXPECT_TRUE(absl::IsInvalidArgument(MeasureFidelity(v, out, from_counts).status()));
+  map.pop_back();
+  EXPECT_TRUE(absl::IsInvalidArgument(CountFeatureVertices(orig, map, out).status()));
+}
+
 TEST(Fidelity, RejectsInconsistentInputs) {
   const Volume v = Ramp({4, 4, 4});
   const TetMesh m = Mesh(v);
