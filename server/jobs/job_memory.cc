@@ -34,15 +34,19 @@ constexpr StageModel kInMemoryStages[] = {
     {int64_t{60} << 20, 58, 0},   // simplify
     {int64_t{100} << 20, 44, 0},  // render
 };
-// Simplified in slabs (core/simplify/stream.h), fitted to `decima-bench --job-out DIR
-// --stream-slab-voxels 16` on the CT head 256x256x113 at 50 and 80 % (simplify 1493 and 1096
-// MiB, render 1590 and 810; checked on the 511x511x225 CT at 80 %: simplify 7981 measured, 7671
-// estimated). The simplify stage holds the input's vertex arrays, the output mesh and its refit
-// (both scale with the cells kept) and one window's engine state (about 100 bytes per voxel of
-// a slab, from W=8/16/32 on the 256 head); render the fidelity samples and the simplified mesh.
+// Simplified in slabs (core/simplify/stream.h), fitted to the whole-job peaks of `decima-bench
+// --job-out DIR --stream-slab-voxels 16` (2026-11-29, after the refit's rows shrank and the write
+// and render stages stopped holding what they do not read): the CT head 256x256x113 at 80 and
+// 50 % (simplify 1127 and 1497 MiB, both exact here) and the 511x511x225 CT at 80 % (simplify
+// 5999 MiB measured, 6508 estimated, +8.5 %). Per kept tet (35.5 B) from the 256 pair; per
+// window voxel (450 B: one window's engine state and mesh, carried cells included) set so the
+// 511 CT stays on the high side; per tet (9.5 B: the input's vertex arrays, the run's whole-grid
+// arrays, image and labels) from the 256 head at 80 %. The render line is the earlier fit (256
+// head, before the render stage shed ~20 %: 740 MiB at 80 % now, 3410 on the 511 CT): it
+// overestimates that stage, which errs on the safe side.
 constexpr StageModel kStreamedStages[] = {
-    {int64_t{100} << 20, 18.2, 38.1, 100},  // simplify
-    {int64_t{100} << 20, 5.5, 74.9, 0},     // render
+    {int64_t{100} << 20, 9.5, 35.5, 450},  // simplify
+    {int64_t{100} << 20, 5.5, 74.9, 0},    // render
 };
 constexpr int64_t kSaturated = int64_t{1} << 50;
 constexpr int64_t kRuntimeBytes = int64_t{1} << 30;  // libraries, thread stacks, malloc arenas
