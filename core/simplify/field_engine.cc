@@ -1770,16 +1770,14 @@ absl::Status FieldEngine::Run(int64_t target, double tolerance, const ProgressFn
                                       rounds.collapses + w.collapses, total,
                                       100.0 * double(total) / double(std::max<int64_t>(1, nt_))),
                       {{"pass", 1.0}, {"cells_removed", double(total)}, {"error", w.last_error}}});
-    if (levels_ != nullptr) {
-      DECIMA_RETURN_IF_ERROR(Record(serial_log));
-      serial_log.clear();
-    }
-    if (log_costs) {  // moved as it comes, so the window never holds both lists whole
+    // The log is handed on as it comes, so the window never holds it twice.
+    if (levels_ != nullptr) DECIMA_RETURN_IF_ERROR(Record(serial_log));
+    if (log_costs) {
       for (const LoggedCollapse& c : serial_log) {
         window_->cost_log->emplace_back(c.cost, int32_t(c.deleted));
       }
-      serial_log.clear();
     }
+    serial_log.clear();
     if (drained != Drained::kLimit || total >= target) break;
   }
   removed += w.removed;

@@ -262,9 +262,8 @@ absl::Status RefitValues(const TetMesh& original, const std::vector<int32_t>& ve
   auto row_dot = [&](int64_t i, const std::vector<double>& x) {  // (A x)_i, 0 if unlocated
     const Row& row = rows[i];
     if (!row.located()) return 0.0;
-    const std::array<int32_t, 4>& vertex = row.vertex;
     double sum = 0;
-    for (int k = 0; k < 4; ++k) sum += double(row.w[k]) * x[vertex[k]];
+    for (int k = 0; k < 4; ++k) sum += double(row.w[k]) * x[row.vertex[k]];
     return sum;
   };
   // out[v] = the sum over the samples of v's non-zero weights of term(weight, sample), added in
@@ -275,18 +274,15 @@ absl::Status RefitValues(const TetMesh& original, const std::vector<int32_t>& ve
   const int chunks = std::max(1, threads);
   std::vector<int64_t> chunk_vertex(chunks + 1), chunk_lo(chunks, n), chunk_hi(chunks, 0);
   for (int c = 0; c <= chunks; ++c) chunk_vertex[c] = nv * c / chunks;
-  auto chunk_of = [&](int32_t v) {
-    int c = int(int64_t(v) * chunks / std::max<int64_t>(nv, 1));
-    while (c + 1 < chunks && v >= chunk_vertex[c + 1]) ++c;
-    while (c > 0 && v < chunk_vertex[c]) --c;
-    return c;
+  auto chunk_of = [&](int32_t v) {  // the c with chunk_vertex[c] <= v < chunk_vertex[c + 1]
+    return int(std::upper_bound(chunk_vertex.begin() + 1, chunk_vertex.end() - 1, int64_t(v)) -
+               (chunk_vertex.begin() + 1));
   };
   for (int64_t i = 0; i < n; ++i) {
     if (!rows[i].located()) continue;
-    const std::array<int32_t, 4>& vertex = rows[i].vertex;
     for (int k = 0; k < 4; ++k) {
       if (rows[i].w[k] == 0) continue;
-      const int c = chunk_of(vertex[k]);
+      const int c = chunk_of(rows[i].vertex[k]);
       chunk_lo[c] = std::min(chunk_lo[c], i);
       chunk_hi[c] = std::max(chunk_hi[c], i + 1);
     }
@@ -299,11 +295,9 @@ absl::Status RefitValues(const TetMesh& original, const std::vector<int32_t>& ve
         for (int64_t i = chunk_lo[c]; i < chunk_hi[c]; ++i) {
           const Row& row = rows[i];
           if (!row.located()) continue;
-          const std::array<int32_t, 4>& vertex = row.vertex;
           for (int k = 0; k < 4; ++k) {
-            if (row.w[k] != 0 && vertex[k] >= v0 && vertex[k] < v1) {
-              out[vertex[k]] += term(row.w[k], i);
-            }
+            const int32_t v = row.vertex[k];
+            if (row.w[k] != 0 && v >= v0 && v < v1) out[v] += term(row.w[k], i);
           }
         }
       }
