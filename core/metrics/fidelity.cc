@@ -6,6 +6,7 @@
 #include <cmath>
 #include <limits>
 #include <map>
+#include <optional>
 #include <thread>
 
 #include "absl/strings/str_cat.h"
@@ -420,17 +421,15 @@ absl::StatusOr<FidelityMetrics> MeasureFidelity(const Volume& image, const TetMe
   // (CountFaces) is built, so the two are never resident together (issue 30).
   r = GridResample();
 
-  if (options.feature_counts != nullptr) {
-    m.feature_vertices = options.feature_counts->vertices;
-    m.feature_vertices_moved = options.feature_counts->moved;
-    m.feature_vertices_removed = options.feature_counts->removed;
-  } else if (options.original != nullptr) {
+  std::optional<FeatureVertexCounts> counted;
+  if (options.feature_counts == nullptr && options.original != nullptr) {
     DECIMA_ASSIGN_OR_RETURN(
-        const FeatureVertexCounts c,
-        CountFeatureVertices(*options.original, *options.vertex_map, simplified));
-    m.feature_vertices = c.vertices;
-    m.feature_vertices_moved = c.moved;
-    m.feature_vertices_removed = c.removed;
+        counted, CountFeatureVertices(*options.original, *options.vertex_map, simplified));
+  }
+  if (const FeatureVertexCounts* c = counted ? &*counted : options.feature_counts) {
+    m.feature_vertices = c->vertices;
+    m.feature_vertices_moved = c->moved;
+    m.feature_vertices_removed = c->removed;
   }
 
   if (int64_t(simplified.interface_distance.size()) == simplified.vertex_count()) {

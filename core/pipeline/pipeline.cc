@@ -344,7 +344,7 @@ Json PsnrFloorJson(const PsnrFloorSearch& s) {
 // With a PSNR floor, the levels of the record searched for the deepest one that keeps it.
 // Memory: this stage is the job's peak, so a plain field run frees the original's cells while it
 // runs (SimplifyDroppingCells) and writes them back only for a later stage that reads them
-// (NeedsOriginalCells); on every path the cells are dropped after it when none does.
+// (NeedsOriginalCells).
 // When no later stage reads the original (NeedsOriginalCells: the level record, the curve and the
 // render from the mesh are also all that read its vertices), the fidelity's feature-vertex counts,
 // the only other reader of its vertices and of the vertex map, are made at the end of this stage
@@ -392,10 +392,6 @@ absl::StatusOr<SimplifyResult> SimplifyStage(const JobSpec& spec, const Volume& 
                                             NeedsOriginalCells(spec)));
     }
     SaveCheckpoint(checkpoints, stage, key, SerializeSimplifyResult(simplified));
-  }
-  // The paths that kept the cells (a resumed stage, a level, a PSNR floor, other policies).
-  if (!NeedsOriginalCells(spec) && original.grid && !original.cells_dropped) {
-    DropGridCells(&original);
   }
   if (!NeedsOriginalCells(spec)) {
     DECIMA_ASSIGN_OR_RETURN(*features,

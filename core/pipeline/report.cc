@@ -329,16 +329,11 @@ std::string ViewSection(const ReportContext& context) {
                     Html(std::string(ReportViewerMissingReason())), ").</p>\n");
     return h;
   }
-  if ((context.mesh == nullptr && context.view_surfaces == nullptr) || context.regions == nullptr) {
+  if (context.view_surfaces == nullptr || context.regions == nullptr) {
     return h + "<p>No 3D view: the job has no region surfaces.</p>\n";
   }
-  int64_t extracted = context.view_surfaces_extracted;
-  std::vector<RegionSurface> made;
-  if (context.view_surfaces == nullptr) {
-    made = ViewSurfaces(*context.mesh, kViewTriangleBudget, &extracted);
-  }
-  const std::vector<RegionSurface>& surfaces =
-      context.view_surfaces != nullptr ? *context.view_surfaces : made;
+  const int64_t extracted = context.view_surfaces_extracted;
+  const std::vector<RegionSurface>& surfaces = *context.view_surfaces;
   std::array<double, 6> bounds = {
       std::numeric_limits<double>::max(),    std::numeric_limits<double>::max(),
       std::numeric_limits<double>::max(),    std::numeric_limits<double>::lowest(),

@@ -31,10 +31,9 @@ struct ReportPicture {
 // What the page shows besides metrics.json.
 struct ReportContext {
   const RegionTable* regions = nullptr;  // the job's names and colours
-  // The simplified mesh: its region surfaces are the 3D view (none without it).
-  const TetMesh* mesh = nullptr;
-  // Or those surfaces already made by ViewSurfaces (with the triangle count before merging), for a
-  // caller that frees the mesh before the page is written (a job, issue 30); used when set.
+  // The 3D view: the simplified mesh's region surfaces as ViewSurfaces makes them, with the
+  // triangle count before merging (none without them). Made by the caller, which frees the mesh
+  // before the page is written (a job, issue 30).
   const std::vector<RegionSurface>* view_surfaces = nullptr;
   int64_t view_surfaces_extracted = 0;
   std::optional<DicomDescription> dicom;  // for a DICOM input
