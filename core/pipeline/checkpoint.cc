@@ -11,83 +11,18 @@
 #include <type_traits>
 
 #include "absl/strings/str_cat.h"
+#include "core/common/byte_record.h"
 
 namespace decima::pipeline {
 namespace {
 
 constexpr char kMagic[] = "DECIMA-CHECKPOINT 1\n";
-// No checkpoint field comes near this; a larger count is a damaged file, refused before any
-// allocation.
-constexpr uint64_t kMaxElements = uint64_t{1} << 40;
+using Writer = ByteWriter;
 
-class Writer {
+// Errors say "checkpoint: field F is truncated".
+class Reader : public ByteReader {
  public:
-  template <typename T>
-  void Put(T v) {
-    static_assert(std::is_trivially_copyable_v<T>);
-    out_.append(reinterpret_cast<const char*>(&v), sizeof v);
-  }
-  template <typename T>
-  void PutVector(const std::vector<T>& v) {
-    static_assert(std::is_trivially_copyable_v<T>);
-    Put<uint64_t>(v.size());
-    out_.append(reinterpret_cast<const char*>(v.data()), v.size() * sizeof(T));
-  }
-  void PutString(const std::string& s) {
-    Put<uint64_t>(s.size());
-    out_.append(s);
-  }
-  std::string Take() { return std::move(out_); }
-
- private:
-  std::string out_;
-};
-
-class Reader {
- public:
-  explicit Reader(std::string_view in) : in_(in) {}
-
-  template <typename T>
-  absl::Status Get(const char* field, T* v) {
-    static_assert(std::is_trivially_copyable_v<T>);
-    if (in_.size() - at_ < sizeof(T)) return Truncated(field);
-    std::memcpy(v, in_.data() + at_, sizeof(T));
-    at_ += sizeof(T);
-    return absl::OkStatus();
-  }
-  template <typename T>
-  absl::Status GetVector(const char* field, std::vector<T>* v) {
-    uint64_t n = 0;
-    if (auto st = Get(field, &n); !st.ok()) return st;
-    if (n > kMaxElements || n * sizeof(T) > in_.size() - at_) return Truncated(field);
-    v->resize(n);
-    // An empty vector's data() may be null, which memcpy must not get even for 0 bytes.
-    if (n > 0) std::memcpy(v->data(), in_.data() + at_, n * sizeof(T));
-    at_ += n * sizeof(T);
-    return absl::OkStatus();
-  }
-  absl::Status GetString(const char* field, std::string* s) {
-    uint64_t n = 0;
-    if (auto st = Get(field, &n); !st.ok()) return st;
-    if (n > in_.size() - at_) return Truncated(field);
-    s->assign(in_.substr(at_, n));
-    at_ += n;
-    return absl::OkStatus();
-  }
-  absl::Status Done() const {
-    if (at_ != in_.size()) {
-      return absl::InvalidArgumentError(
-          absl::StrCat("checkpoint: ", in_.size() - at_, " bytes after the last field"));
-    }
-    return absl::OkStatus();
-  }
-
- private:
-  static absl::Status Truncated(const char* field) {
-    return absl::InvalidArgumentError(absl::StrCat("checkpoint: field ", field, " is truncated"));
-  }
-  std::string_view in_;
-  size_t at_ = 0;
+  explicit Reader(std::string_view in) : ByteReader(in, "checkpoint") {}
 };
 
 #define DECIMA_CK(expr)                           \

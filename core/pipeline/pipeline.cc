@@ -3,7 +3,9 @@
 #include <algorithm>
 #include <cmath>
 #include <cstdio>
+#include <filesystem>
 #include <iterator>
+#include <limits>
 #include <optional>
 #include <utility>
 #include <vector>
@@ -159,6 +161,74 @@ void SaveCheckpoint(const CheckpointOptions& c, const Stage& stage, const std::s
   }
   if (c.on_saved) c.on_saved(stage.name());
 }
+
+// The streamed simplifier's window records (StreamJournal) as checkpoint files beside the stage
+// checkpoints, "simplify.pass-P.window-K.ckpt", each under the simplify key plus its (P, K), so
+// a record of another job, spec or window is never read back. Saving window 0 of a pass removes
+// the earlier passes' records (a run only reads back its latest pass); the stage's checkpoint
+// removes them all (Remove). The on_saved hook gets "simplify-window-N" for the run's N-th window
+// (counted from 1 across its passes), whichever attempt saved it.
+struct WindowCheckpoints {
+  const CheckpointOptions& c;
+  const Stage& stage;
+  const std::string& key;
+  StreamJournal journal;
+  double fraction = 0;  // the stage's, as last reported: the records' own messages keep it
+
+  // The stage's progress, for SimplifyStreamed.
+  ProgressFn Forward() {
+    return [this, forward = stage.Forward()](const Progress& p) {
+      fraction = p.fraction;
+      if (forward) forward(p);
+    };
+  }
+
+  static constexpr char kPrefix[] = "simplify.pass-";
+  std::filesystem::path Path(int pass, int64_t window) const {
+    return c.dir / absl::StrFormat("%s%d.window-%d.ckpt", kPrefix, pass, window);
+  }
+  std::string Key(int pass, int64_t window) const {
+    return absl::StrCat(key, " |stream window pass=", pass, " window=", window);
+  }
+  // The records of passes below `below_pass` (all of them for INT_MAX), and temporary files.
+  void Remove(int below_pass) const {
+    std::error_code ec;
+    for (const auto& e : std::filesystem::directory_iterator(c.dir, ec)) {
+      const std::string name = e.path().filename().string();
+      int pass = 0;
+      if (name.rfind(kPrefix, 0) == 0 &&
+          std::sscanf(name.c_str() + sizeof kPrefix - 1, "%d", &pass) == 1 && pass < below_pass) {
+        std::filesystem::remove(e.path(), ec);
+      }
+    }
+  }
+  WindowCheckpoints(const CheckpointOptions& options, const Stage& simplify,
+                    const std::string& simplify_key)
+      : c(options), stage(simplify), key(simplify_key) {
+    if (c.dir.empty()) return;
+    journal.save = [this](int pass, int64_t window, const std::string& record) {
+      if (absl::Status st = WriteCheckpoint(Path(pass, window), Key(pass, window), record);
+          !st.ok()) {
+        stage.Report(fraction, absl::StrCat("slab record not saved: ", st.message()));
+        return;
+      }
+      if (window == 0) Remove(pass);
+      if (c.on_saved) {
+        c.on_saved(absl::StrCat("simplify-window-", pass * journal.windows_per_pass + window + 1));
+      }
+    };
+    journal.load = [this](int pass, int64_t window) -> std::optional<std::string> {
+      absl::StatusOr<std::string> payload = ReadCheckpoint(Path(pass, window), Key(pass, window));
+      if (!payload.ok()) {
+        if (!absl::IsNotFound(payload.status())) {
+          stage.Report(fraction, absl::StrCat("slab record ignored: ", payload.status().message()));
+        }
+        return std::nullopt;
+      }
+      return std::move(*payload);
+    };
+  }
+};
 
 // What the stages after "render" use of it.
 struct Rendered {
@@ -360,6 +430,8 @@ absl::StatusOr<SimplifyResult> SimplifyStage(const JobSpec& spec, const Volume& 
   const SimplifyOptions options = SimplifyOptionsOf(spec);
   SimplifyResult simplified;
   std::optional<PsnrFloorSearch> search;
+  int64_t resumed_windows = 0;
+  std::optional<WindowCheckpoints> windows;  // a streamed run's window records
   if (auto saved = Resume(checkpoints, stage, key, &ParseSimplifyResult)) {
     simplified = std::move(*saved);
     run.Resumed("simplify");
@@ -383,15 +455,25 @@ absl::StatusOr<SimplifyResult> SimplifyStage(const JobSpec& spec, const Volume& 
       // The windows compute their cells from the grid, so the original's stay dropped (the tetra
       // stage wrote none unless a later stage reads them: those are refused with streaming).
       DropGridCells(&original);
+      windows.emplace(checkpoints, stage, key);
       DECIMA_ASSIGN_OR_RETURN(
-          simplified, SimplifyStreamed(original, options, spec.stream_slab_voxels, stage.Forward(),
-                                       stage.cancel()));
+          simplified, SimplifyStreamed(original, options, spec.stream_slab_voxels,
+                                       windows->Forward(), stage.cancel(), &windows->journal));
+      resumed_windows = windows->journal.resumed_windows;
+      // Part of the stage came from its records: its time says nothing of the machine's speed.
+      if (resumed_windows > 0) run.Resumed("simplify");
     } else {
       DECIMA_ASSIGN_OR_RETURN(
           simplified, SimplifyDroppingCells(&original, options, stage.Forward(), stage.cancel(),
                                             NeedsOriginalCells(spec)));
     }
     SaveCheckpoint(checkpoints, stage, key, SerializeSimplifyResult(simplified));
+    // Only once the stage's checkpoint is there: a stop before still finds the records.
+    std::error_code ec;
+    if (windows && !checkpoints.dir.empty() &&
+        std::filesystem::exists(checkpoints.dir / "simplify.ckpt", ec)) {
+      windows->Remove(std::numeric_limits<int>::max());
+    }
   }
   if (!NeedsOriginalCells(spec)) {
     DECIMA_ASSIGN_OR_RETURN(*features,
@@ -404,6 +486,7 @@ absl::StatusOr<SimplifyResult> SimplifyStage(const JobSpec& spec, const Volume& 
   if (spec.levels_file) run.metrics()["simplification"]["from_levels"] = true;
   // 0: in memory; else the slab depth, the server's choice when the spec left it open.
   run.metrics()["simplification"]["stream_slab_voxels"] = spec.stream_slab_voxels;
+  if (resumed_windows > 0) run.metrics()["resumed_simplify_windows"] = resumed_windows;
   if (spec.min_psnr) {
     // A resumed stage has its mesh and stop message but not the probes of the search.
     run.metrics()["min_psnr"] =

@@ -9,6 +9,7 @@
 
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_format.h"
+#include "core/common/byte_record.h"
 #include "core/common/parallel.h"
 #include "core/common/status.h"
 #include "core/mesh/tetrahedralize.h"
@@ -32,11 +33,138 @@ void AppendVertex(const TetMesh& from, const std::vector<uint8_t>& flags, int64_
   to->vertex_flags.push_back(flags[g]);
 }
 
+// One window's record (StreamJournal): the run's counters after the window, and what the window
+// changed in the run's arrays.
+struct WindowRecord {
+  int32_t pass = 0;
+  int64_t window = 0;
+  // The run's counters after the window.
+  uint8_t measure = 1;
+  int32_t measuring_passes = 0;
+  double tau = -1, band = 0, last_tau = -1;
+  int64_t measured_removed = 0, seen_cells = 0, window_count = 0, peak_window_cells = 0;
+  uint8_t stalled = 0;
+  int64_t collapses = 0;
+  double max_error = 0;
+  std::vector<SimplifyPassStats> pass_stats;  // the window's
+  std::vector<int32_t> written;               // cells written out (4 grid ids each)
+  std::vector<int32_t> merged;                // (grid id, survivor) pairs; final pass only
+  std::vector<int32_t> carried;               // the cells carried on, whole
+  std::vector<int32_t> carried_samples;       // (grid id, carried cell) pairs, whole
+};
+
+std::string SerializeWindowRecord(const WindowRecord& r, int64_t slabs, int64_t nv) {
+  ByteWriter w;
+  w.PutString("decima-stream-window 1");
+  w.Put(slabs);
+  w.Put(nv);
+  w.Put(r.pass);
+  w.Put(r.window);
+  w.Put(r.measure);
+  w.Put(r.measuring_passes);
+  w.Put(r.tau);
+  w.Put(r.band);
+  w.Put(r.last_tau);
+  w.Put(r.measured_removed);
+  w.Put(r.seen_cells);
+  w.Put(r.window_count);
+  w.Put(r.peak_window_cells);
+  w.Put(r.stalled);
+  w.Put(r.collapses);
+  w.Put(r.max_error);
+  w.PutVector(r.pass_stats);
+  w.PutVector(r.written);
+  w.PutVector(r.merged);
+  w.PutVector(r.carried);
+  w.PutVector(r.carried_samples);
+  return w.Take();
+}
+
+// The record of window `window` of pass `pass` of a run over `slabs` slabs and `nv` grid
+// vertices, whose window has the grid ids below `window_end`, checked for every index the run
+// would follow; InvalidArgument naming the field. (The file's checksum is what proves a record
+// intact; this keeps a record that parses from sending the run out of its arrays.)
+absl::StatusOr<WindowRecord> ParseWindowRecord(const std::string& bytes, int pass, int64_t window,
+                                               int64_t slabs, int64_t nv, int64_t window_end) {
+  ByteReader r(bytes, "stream window record");
+  WindowRecord w;
+  std::string tag;
+  int64_t rslabs = 0, rnv = 0;
+  DECIMA_RETURN_IF_ERROR(r.GetString("tag", &tag));
+  DECIMA_RETURN_IF_ERROR(r.Get("slabs", &rslabs));
+  DECIMA_RETURN_IF_ERROR(r.Get("vertices", &rnv));
+  DECIMA_RETURN_IF_ERROR(r.Get("pass", &w.pass));
+  DECIMA_RETURN_IF_ERROR(r.Get("window", &w.window));
+  DECIMA_RETURN_IF_ERROR(r.Get("measure", &w.measure));
+  DECIMA_RETURN_IF_ERROR(r.Get("measuring_passes", &w.measuring_passes));
+  DECIMA_RETURN_IF_ERROR(r.Get("tau", &w.tau));
+  DECIMA_RETURN_IF_ERROR(r.Get("band", &w.band));
+  DECIMA_RETURN_IF_ERROR(r.Get("last_tau", &w.last_tau));
+  DECIMA_RETURN_IF_ERROR(r.Get("measured_removed", &w.measured_removed));
+  DECIMA_RETURN_IF_ERROR(r.Get("seen_cells", &w.seen_cells));
+  DECIMA_RETURN_IF_ERROR(r.Get("window_count", &w.window_count));
+  DECIMA_RETURN_IF_ERROR(r.Get("peak_window_cells", &w.peak_window_cells));
+  DECIMA_RETURN_IF_ERROR(r.Get("stalled", &w.stalled));
+  DECIMA_RETURN_IF_ERROR(r.Get("collapses", &w.collapses));
+  DECIMA_RETURN_IF_ERROR(r.Get("max_error", &w.max_error));
+  DECIMA_RETURN_IF_ERROR(r.GetVector("pass_stats", &w.pass_stats));
+  DECIMA_RETURN_IF_ERROR(r.GetVector("written", &w.written));
+  DECIMA_RETURN_IF_ERROR(r.GetVector("merged", &w.merged));
+  DECIMA_RETURN_IF_ERROR(r.GetVector("carried", &w.carried));
+  DECIMA_RETURN_IF_ERROR(r.GetVector("carried_samples", &w.carried_samples));
+  DECIMA_RETURN_IF_ERROR(r.Done());
+  auto bad = [&](const std::string& what) {
+    return absl::InvalidArgumentError(absl::StrCat("stream window record: ", what));
+  };
+  if (tag != "decima-stream-window 1") return bad(absl::StrCat("tag '", tag, "'"));
+  if (rslabs != slabs || rnv != nv || w.pass != pass || w.window != window) {
+    return bad(absl::StrCat("window ", w.window, " of pass ", w.pass, " of a run of ", rslabs,
+                            " slabs over ", rnv, " vertices, expected window ", window, " of pass ",
+                            pass, " of ", slabs, " slabs over ", nv));
+  }
+  auto in_range = [&](const std::vector<int32_t>& ids, size_t stride, size_t at, int64_t lo,
+                      int64_t hi) {
+    if (ids.size() % stride != 0) return false;
+    for (size_t i = at; i < ids.size(); i += stride) {
+      if (ids[i] < lo || ids[i] >= hi) return false;
+    }
+    return true;
+  };
+  const int64_t ncarried = int64_t(w.carried.size() / 4);
+  auto cells_ok = [&](const std::vector<int32_t>& cells) {
+    if (cells.size() % 4 != 0 || !in_range(cells, 1, 0, 0, window_end)) return false;
+    for (size_t i = 0; i < cells.size(); i += 4) {
+      const int32_t* c = &cells[i];
+      if (c[0] == c[1] || c[0] == c[2] || c[0] == c[3] || c[1] == c[2] || c[1] == c[3] ||
+          c[2] == c[3]) {
+        return false;
+      }
+    }
+    return true;
+  };
+  if (!cells_ok(w.written)) return bad("written: not 4 distinct vertices of the window per cell");
+  if (!cells_ok(w.carried) || (window == slabs - 1 && !w.carried.empty())) {
+    return bad("carried: not 4 distinct vertices of the window per cell, or carried past the last");
+  }
+  if (!in_range(w.merged, 2, 0, 0, window_end) || !in_range(w.merged, 2, 1, -1, window_end)) {
+    return bad("merged: not (vertex, survivor) pairs of the window");
+  }
+  if (!in_range(w.carried_samples, 2, 0, 0, window_end) ||
+      !in_range(w.carried_samples, 2, 1, 0, ncarried)) {
+    return bad("carried_samples: not (vertex, carried cell) pairs of the window");
+  }
+  if (w.measure > 1 || w.stalled > 1 || w.measuring_passes < 0 || w.measuring_passes > pass ||
+      w.seen_cells < 0 || w.window_count < 0 || w.collapses < 0) {
+    return bad("counters out of range");
+  }
+  return w;
+}
+
 }  // namespace
 
 absl::StatusOr<SimplifyResult> SimplifyStreamed(const TetMesh& mesh, const SimplifyOptions& options,
                                                 int slab_voxels, const ProgressFn& progress,
-                                                const CancelToken* cancel) {
+                                                const CancelToken* cancel, StreamJournal* journal) {
   DECIMA_RETURN_IF_ERROR(ValidateSimplifyOptions(options));
   if (options.policy != SimplifyPolicy::kField) {
     return Refuse(absl::StrCat("policy = ", SimplifyPolicyName(options.policy),
@@ -132,8 +260,70 @@ absl::StatusOr<SimplifyResult> SimplifyStreamed(const TetMesh& mesh, const Simpl
   // windows' shortfall on its own.
   const int64_t slabs = (cube_layers + slab_voxels - 1) / slab_voxels;
   bool measure = true;
-  for (int pass = 0;; ++pass) {
-    if (pass > 0) {
+
+  // What an earlier run saved: the records of the latest pass whose first window is intact, in
+  // order, up to the first missing or damaged one. The passes run from start_pass, window start_k.
+  int start_pass = 0;
+  int64_t start_k = 0;
+  std::string resume_note;
+  if (journal) journal->windows_per_pass = slabs;
+  if (journal && journal->load) {
+    journal->resumed_windows = 0;
+    for (int p = kMaxMeasuringPasses; p >= 0 && start_k == 0; --p) {
+      for (int64_t k = 0; k < slabs; ++k) {
+        const std::optional<std::string> bytes = journal->load(p, k);
+        if (!bytes) break;
+        const int64_t window_end = (k + 1) * cube_layers / slabs * layer + layer;
+        absl::StatusOr<WindowRecord> rec = ParseWindowRecord(*bytes, p, k, slabs, nv, window_end);
+        if (!rec.ok()) {
+          resume_note = absl::StrCat(" (", rec.status().message(), ": simplified again)");
+          break;
+        }
+        for (int32_t g : rec->written) finalized[g] = 1;
+        out_cells.insert(out_cells.end(), rec->written.begin(), rec->written.end());
+        for (size_t i = 0; i < rec->merged.size(); i += 2)
+          merged_into[rec->merged[i]] = rec->merged[i + 1];
+        carried = std::move(rec->carried);
+        carried_samples.clear();
+        for (size_t i = 0; i < rec->carried_samples.size(); i += 2) {
+          carried_samples.emplace_back(rec->carried_samples[i], rec->carried_samples[i + 1]);
+        }
+        for (const SimplifyPassStats& st : rec->pass_stats) result.pass_stats.push_back(st);
+        measure = rec->measure != 0;
+        measuring_passes = rec->measuring_passes;
+        tau = rec->tau;
+        band = rec->band;
+        last_tau = rec->last_tau;
+        measured_removed = rec->measured_removed;
+        seen_cells = rec->seen_cells;
+        window_count = rec->window_count;
+        peak_window_cells = rec->peak_window_cells;
+        stalled = rec->stalled != 0;
+        result.collapses = rec->collapses;
+        result.max_error = rec->max_error;
+        start_pass = p;
+        start_k = k + 1;
+      }
+    }
+    journal->resumed_windows = start_k;
+    if (start_k > 0) {
+      Report(progress,
+             {"simplify",
+              measure ? (measuring_passes + double(start_k) / double(slabs)) /
+                            (2.0 * kMaxMeasuringPasses)
+                      : 0.5 + 0.5 * double(start_k) / double(slabs),
+              absl::StrFormat("resumed after slab %d of %d of the %s%s", start_k, slabs,
+                              measure ? absl::StrCat("measuring pass ", measuring_passes + 1)
+                                      : std::string("final pass"),
+                              resume_note),
+              {{"slab", double(start_k)},
+               {"slabs", double(slabs)},
+               {"resumed_windows", double(start_k)}}});
+    }
+  }
+
+  for (int pass = start_pass;; ++pass) {
+    if (pass > start_pass) {
       carried.clear();
       carried_samples.clear();
       out_cells.clear();
@@ -146,8 +336,9 @@ absl::StatusOr<SimplifyResult> SimplifyStreamed(const TetMesh& mesh, const Simpl
       result.pass_stats.clear();
       band = 0;
     }
-    for (int64_t k = 0; k < slabs; ++k) {
+    for (int64_t k = pass == start_pass ? start_k : 0; k < slabs; ++k) {
       DECIMA_RETURN_IF_ERROR(CheckCancelled(cancel, "simplify"));
+      const size_t written_before = out_cells.size();
       const int64_t z0 = k * cube_layers / slabs, z1 = (k + 1) * cube_layers / slabs;
       const bool last = z1 == cube_layers;
       const int64_t ncarried = int64_t(carried.size() / 4);
@@ -239,9 +430,17 @@ absl::StatusOr<SimplifyResult> SimplifyStreamed(const TetMesh& mesh, const Simpl
           out_global[o] = globals[v];
         }
       }
+      WindowRecord record;
+      const bool keep_record = journal && journal->save;
       for (int64_t v = 0; v < wnv; ++v) {
         const int32_t o = wr.vertex_map[v];
-        if (o >= 0) merged_into[globals[v]] = out_global[o];
+        if (o < 0) continue;
+        merged_into[globals[v]] = out_global[o];
+        // Only the final pass's survivors make the output.
+        if (keep_record && !measure) {
+          record.merged.push_back(globals[v]);
+          record.merged.push_back(out_global[o]);
+        }
       }
       // Written out: the cells wholly at or below the middle of the slab (all of them at the end).
       const int64_t cut = last ? grid.nz() : z0 + (z1 - z0 + 1) / 2;
@@ -276,6 +475,31 @@ absl::StatusOr<SimplifyResult> SimplifyStreamed(const TetMesh& mesh, const Simpl
         for (const auto& [c, d] : cost_log) {
           if (c > tau / 2 && c <= tau) band += d;
         }
+      }
+      if (keep_record) {
+        record.pass = pass;
+        record.window = k;
+        record.measure = measure;
+        record.measuring_passes = measuring_passes;
+        record.tau = tau;
+        record.band = band;
+        record.last_tau = last_tau;
+        record.measured_removed = measured_removed;
+        record.seen_cells = seen_cells;
+        record.window_count = window_count;
+        record.peak_window_cells = peak_window_cells;
+        record.stalled = stalled;
+        record.collapses = result.collapses;
+        record.max_error = result.max_error;
+        record.pass_stats = wr.pass_stats;
+        record.written.assign(out_cells.begin() + written_before, out_cells.end());
+        record.carried = carried;
+        record.carried_samples.reserve(2 * carried_samples.size());
+        for (const auto& [g, c] : carried_samples) {
+          record.carried_samples.push_back(g);
+          record.carried_samples.push_back(c);
+        }
+        journal->save(pass, k, SerializeWindowRecord(record, slabs, nv));
       }
       // The stage's fraction: measuring pass p in [p, p + 1] / (2 kMaxMeasuringPasses), the
       // final pass in [1/2, 1], so it never goes back however many measuring passes run.
@@ -348,8 +572,16 @@ absl::StatusOr<SimplifyResult> SimplifyStreamed(const TetMesh& mesh, const Simpl
   }
   result.vertex_map.resize(nv);
   for (int64_t g = 0; g < nv; ++g) {
+    // A vertex is merged at most once a window, so its chain has at most `slabs` links; a longer
+    // one is a cycle, which only a damaged record could make.
     int32_t r = int32_t(g);
-    while (merged_into[r] >= 0 && merged_into[r] != r) r = merged_into[r];
+    int64_t links = 0;
+    while (merged_into[r] >= 0 && merged_into[r] != r && links++ <= slabs) r = merged_into[r];
+    if (links > slabs) {
+      return absl::InternalError(absl::StrCat(
+          "simplify (streamed): the survivors of grid vertex ", g,
+          " form a cycle (a damaged slab record?); the stage must run again without its records"));
+    }
     result.vertex_map[g] = index[r];
   }
   std::vector<int32_t>().swap(index);  // the refit needs the room

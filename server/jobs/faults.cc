@@ -3,6 +3,7 @@
 #include <chrono>
 #include <thread>
 
+#include "absl/strings/match.h"
 #include "absl/strings/numbers.h"
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_split.h"
@@ -18,9 +19,14 @@ absl::Status Parse(const std::string& faults, bool* crash, double* sleep_s,
     if (f == "crash") {
       *crash = true;
     } else if (absl::ConsumePrefix(&f, "pause-after:")) {
-      if (f != "segment" && f != "simplify") {
-        return absl::InvalidArgumentError(absl::StrCat(kFaultMetadataKey, ": pause-after:'", f,
-                                                       "', expected segment or simplify"));
+      absl::string_view window = f;
+      int n = 0;
+      const bool simplify_window = absl::ConsumePrefix(&window, "simplify-window-") &&
+                                   absl::SimpleAtoi(window, &n) && n >= 1;
+      if (f != "segment" && f != "simplify" && !simplify_window) {
+        return absl::InvalidArgumentError(
+            absl::StrCat(kFaultMetadataKey, ": pause-after:'", f,
+                         "', expected segment, simplify or simplify-window-N (N >= 1)"));
       }
       if (pause_after) *pause_after = std::string(f);
     } else if (absl::ConsumePrefix(&f, "sleep:")) {
@@ -76,8 +82,10 @@ absl::Status PauseAfterCheckpoint(const std::string& faults, const std::string& 
     if (cancel.cancelled()) return absl::CancelledError(absl::StrCat(stage, ": cancelled"));
     // Once a second: enough for a test to see it, few enough not to flood the event log.
     if (tick % 20 == 0) {
-      Report(progress, {stage,
-                        1,
+      // A window record is saved inside the simplify stage, which is still the job's stage.
+      const bool window = absl::StartsWith(stage, "simplify-window-");
+      Report(progress, {window ? std::string("simplify") : stage,
+                        window ? 0.5 : 1,
                         absl::StrCat("test fault: paused after the ", stage, " checkpoint"),
                         {{"elapsed_s", t}}});
     }

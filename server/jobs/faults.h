@@ -7,7 +7,9 @@
 // Faults, comma separated: "crash" aborts the job process once it started; "sleep:S" spends S
 // seconds (0..3600) in a cancellable "prepare" stage reporting progress every 50 ms;
 // "pause-after:STAGE" (segment or simplify) pauses the job right after that stage's checkpoint
-// was saved (not when it was resumed), so a test can stop the server exactly at a stage boundary.
+// was saved (not when it was resumed), so a test can stop the server exactly at a stage boundary;
+// "pause-after:simplify-window-N" right after a streamed simplify stage saved the record of its
+// N-th window (counted from 1 across its passes, by the attempt that saves it).
 #pragma once
 
 #include <filesystem>

@@ -75,7 +75,15 @@ std::string CheckpointKey(const v1::Job& job, JobStore* store) {
 std::string ResumePoint(const fs::path& checkpoints) {
   std::error_code ec;
   if (fs::exists(checkpoints / "simplify.ckpt", ec)) return "simplify";
-  if (fs::exists(checkpoints / "segment.ckpt", ec)) return "segment";
+  // A streamed simplify stage's window records (core/pipeline, "Stage checkpoints").
+  int64_t windows = 0;
+  for (const auto& e : fs::directory_iterator(checkpoints, ec)) {
+    windows += e.path().filename().string().rfind("simplify.pass-", 0) == 0;
+  }
+  if (fs::exists(checkpoints / "segment.ckpt", ec)) {
+    return windows > 0 ? absl::StrCat("segment and the ", windows, " simplify slabs saved")
+                       : "segment";
+  }
   return "";
 }
 

@@ -36,7 +36,7 @@ Json Comparable(const fs::path& metrics) {
   Json j = Json::parse(ReadFile(metrics), nullptr, false);
   // What depends on the clock or the machine: times, the ETA's forecasts, memory.
   for (const char* k : {"seconds", "eta", "peak_rss_mb", "stage_peak_rss_mb",
-                        "stage_peak_rss_per_stage", "resumed_stages"}) {
+                        "stage_peak_rss_per_stage", "resumed_stages", "resumed_simplify_windows"}) {
     j.erase(k);
   }
   return j;
@@ -165,6 +165,68 @@ INSTANTIATE_TEST_SUITE_P(Boundaries, ResumeE2E,
                          ::testing::Values(Case{"segment", SIGTERM}, Case{"simplify", SIGTERM},
                                            Case{"segment", SIGKILL}, Case{"simplify", SIGKILL}),
                          CaseName);
+
+// A job killed inside a streamed simplify stage loses no work beyond the window it was in
+// (issue 30): the server is SIGKILLed right after the job saved the record of its third window;
+// the restarted server's attempt reads those three windows back and simplifies from the fourth,
+// and the outputs are those of the job run in one go.
+TEST(ResumeStreamedE2E, KilledInsideAStreamedSimplifyStageItResumesAfterTheLastSavedSlab) {
+  const fs::path scratch = testing::MakeScratchDir("resume_stream_e2e");
+  const fs::path volume = scratch / "phantom.nii";
+  WriteTinyNifti(volume, 20, 18, 14);  // 13 cube layers: 4 windows a pass in slabs of 4
+  const std::vector<std::string> streamed = {"--stream-slab-voxels", "4", "--reduction", "0.8"};
+  {
+    ServerProcess server(scratch / "reference-data");
+    std::vector<std::string> args = Submit(volume, streamed);
+    args.insert(args.end(), {"--out", (scratch / "reference").string()});
+    const CliResult r = RunCli(server.address(), args, 120s * kSlowdown);
+    ASSERT_EQ(r.rc, 0) << r.err << server.Log();
+  }
+  const fs::path data = scratch / "data";
+  const std::vector<std::string> flags = {"--workers", "1", "--allow-faults"};
+  std::string job;
+  {
+    ServerProcess server(data, flags);
+    std::vector<std::string> args = Submit(volume, streamed);
+    args.insert(args.end(), {"--fault", "pause-after:simplify-window-3"});
+    const CliResult s = RunCli(server.address(), args);
+    ASSERT_EQ(s.rc, 0) << s.err;
+    job = FirstLine(s.out);
+    ASSERT_TRUE(WaitFor(
+        [&] {
+          return GetJob(server.address(), job)
+                     .progress()
+                     .message()
+                     .find("paused after the simplify-window-3 checkpoint") != std::string::npos;
+        },
+        120s * kSlowdown))
+        << GetJob(server.address(), job).DebugString() << server.Log();
+    const fs::path ckpt = data / "jobs" / job.substr(5) / "checkpoints";
+    EXPECT_TRUE(fs::exists(ckpt / "simplify.pass-0.window-2.ckpt"));
+    EXPECT_FALSE(fs::exists(ckpt / "simplify.pass-0.window-3.ckpt"));
+    EXPECT_EQ(GetJob(server.address(), job).progress().stage(), "simplify");
+    server.Kill(SIGKILL);  // the job child dies with it (PR_SET_PDEATHSIG)
+  }
+  ServerProcess again(data, flags);
+  ASSERT_TRUE(WaitFor(
+      [&] {
+        const v1::JobState st = GetJob(again.address(), job).state();
+        return st == v1::SUCCEEDED || st == v1::FAILED || st == v1::CANCELLED;
+      },
+      120s * kSlowdown))
+      << again.Log();
+  const v1::Job done = GetJob(again.address(), job);
+  ASSERT_EQ(done.state(), v1::SUCCEEDED) << done.DebugString() << again.Log();
+  const fs::path out = scratch / "out";
+  const CliResult f = RunCli(again.address(), {"fetch", job, "--out", out.string()});
+  ASSERT_EQ(f.rc, 0) << f.err;
+  EXPECT_EQ(ReadFile(out / "mesh.vtu"), ReadFile(scratch / "reference" / "mesh.vtu"));
+  EXPECT_EQ(Comparable(out / "metrics.json"), Comparable(scratch / "reference" / "metrics.json"));
+  const Json metrics = Json::parse(ReadFile(out / "metrics.json"));
+  EXPECT_EQ(metrics["resumed_simplify_windows"], 3);
+  EXPECT_EQ(metrics["resumed_stages"], Json({"segment", "simplify"}));
+  EXPECT_EQ(metrics["simplification"]["stream_slab_voxels"], 4);
+}
 
 }  // namespace
 }  // namespace decima::e2e

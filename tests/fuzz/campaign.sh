@@ -20,11 +20,12 @@ shift $(( $# >= 3 ? 3 : 2 ))
 targets=("$@")
 if [ ${#targets[@]} -eq 0 ]; then
   targets=(nifti metaimage nrrd volume_header dicom upload create_volume vtu transfer_function dicom_receive
-           checkpoint dicom_series_check levels)
+           checkpoint dicom_series_check levels stream_window)
 fi
 declare -A max_len=([nifti]=16384 [metaimage]=16384 [nrrd]=16384 [volume_header]=16384 [dicom]=32768 [upload]=4096
                     [create_volume]=16384 [vtu]=16384 [transfer_function]=8192
-                    [dicom_receive]=16384 [dicom_series_check]=32768 [levels]=8192)
+                    [dicom_receive]=16384 [dicom_series_check]=32768 [levels]=8192
+                    [stream_window]=8192)
 
 budget=${BUDGET:-wall}
 niceness=${NICE:-19}

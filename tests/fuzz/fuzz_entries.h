@@ -48,6 +48,16 @@ int DicomEntry(const uint8_t* data, size_t size);
 // the same.
 int LevelsEntry(const uint8_t* data, size_t size);
 
+// The streamed simplifier's window records (core/simplify/stream.h, StreamJournal) as an earlier
+// attempt of a job left them, read back by SimplifyStreamed on a small fixed grid (4 windows a
+// pass). First byte: bits 0-1 the pass the records are offered for; bit 2 set: that pass's real
+// records, patched by the rest of the input taken as (record, offset low, offset high, byte)
+// quadruples; clear: the rest is the records themselves, window 0 first, cut at kFileSeparator.
+// The run must end with a Status (never crash, hang or run out of its arrays); an OK result is a
+// mesh whose arrays agree and whose indices are in range; the real records unpatched give the
+// run's own mesh. "Accepted": at least one record was read back.
+int StreamWindowEntry(const uint8_t* data, size_t size);
+
 // Upload + GetUploadStatus through the real service (in-process gRPC, LocalBlobStore in a temp
 // folder). The input chooses honest or fuzzed digest, size and offset, chunking, an interrupted
 // stream and its resume. Every answer has an expected code (not UNKNOWN/INTERNAL); an honest

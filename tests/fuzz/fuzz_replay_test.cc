@@ -61,6 +61,9 @@ TEST(FuzzReplay, EveryCheckpointSeedRunsThroughItsEntry) {
   ReplayCorpus("checkpoint", CheckpointEntry);
 }
 TEST(FuzzReplay, EveryLevelsSeedRunsThroughItsEntry) { ReplayCorpus("levels", LevelsEntry); }
+TEST(FuzzReplay, EveryStreamWindowSeedRunsThroughItsEntry) {
+  ReplayCorpus("stream_window", StreamWindowEntry);
+}
 
 // The corpus must keep files the readers accept (named ok-*), so the fuzzer starts past the
 // header checks and the entries' invariant checks run on real meshes and functions.
@@ -88,6 +91,7 @@ TEST(FuzzReplay, VolumeSeedsNamedOkAreAccepted) {
   ExpectOkSeedsAccepted("dicom", DicomEntry);
   ExpectOkSeedsAccepted("checkpoint", CheckpointEntry);
   ExpectOkSeedsAccepted("levels", LevelsEntry);
+  ExpectOkSeedsAccepted("stream_window", StreamWindowEntry);
 }
 
 }  // namespace

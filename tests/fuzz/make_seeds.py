@@ -421,3 +421,40 @@ write("levels", "bad-huge-count", levels_file(1 << 30, 12, LEVELS, count=1 << 29
 write("levels", "bad-vertex-removed-twice", levels_file(8, 12, [(1, 0, 2), (1, 2, 1)]))
 write("levels", "bad-more-cells-deleted-than-base", levels_file(8, 2, LEVELS))
 write("levels", "bad-checksum", levels_file(8, 12, LEVELS)[:-1] + b"\0")
+
+
+# ---- streamed simplify window records (core/simplify/stream.h) ------------------------------
+# First byte: bits 0-1 the pass; bit 2 the fixture's real records patched by (record, offset
+# low, offset high, byte) quadruples, else the records themselves cut at the file separator.
+def patches(*quads):
+    return b"".join(bytes(q) for q in quads)
+
+
+def window_record(pass_=0, window=0, slabs=4, nv=1260, written=(), carried=(), samples=(),
+                  merged=(), tag=b"decima-stream-window 1"):
+    out = struct.pack("<Q", len(tag)) + tag + struct.pack("<qqiq", slabs, nv, pass_, window)
+    out += bytes([1]) + struct.pack("<i", 0) + struct.pack("<ddd", 5.0, 10.0, -1.0)
+    out += struct.pack("<qqqq", 0, 405, 1, 425) + bytes([0]) + struct.pack("<qd", 10, 5.0)
+    out += struct.pack("<Q", 0)  # no pass stats
+    return out + vec("i", written) + vec("i", merged) + vec("i", carried) + vec("i", samples)
+
+
+write("stream_window", "ok-real-records-pass-0", b"\x04")
+write("stream_window", "ok-real-records-pass-1", b"\x05")
+write("stream_window", "ok-real-records-window-1-patched-late",
+      b"\x04" + patches((1, 0xf0, 0xff, 0x00)))
+write("stream_window", "bad-real-record-tag-patched", b"\x04" + patches((0, 9, 0, ord("X"))))
+write("stream_window", "bad-real-record-counts-patched",
+      b"\x04" + patches((0, 60, 0, 0xff), (0, 61, 0, 0x7f)))
+# Offsets 200-203 are in the pass statistics: read back, the run goes on.
+write("stream_window", "ok-real-records-patched-in-their-statistics",
+      b"\x05" + patches((0, 200, 0, 0xff), (1, 201, 0, 0xff), (2, 202, 0, 0x80), (3, 203, 0, 1)))
+write("stream_window", "bad-forged-window-out-of-range-cell",
+      b"\x00" + window_record(written=(0, 1, 2, 5000)))
+write("stream_window", "bad-forged-window-repeated-vertex",
+      b"\x00" + window_record(carried=(0, 0, 1, 2)))
+# A survivor cycle in a measuring pass's record: that pass's survivors are never used.
+write("stream_window", "ok-forged-measuring-window-with-a-cycle",
+      b"\x00" + window_record(merged=(0, 1, 1, 0)))
+write("stream_window", "bad-forged-window-truncated", b"\x00" + window_record()[:-5])
+write("stream_window", "bad-forged-other-run", b"\x00" + window_record(slabs=7))

@@ -7,6 +7,7 @@
 #include <gmock/gmock.h>
 #include <gtest/gtest.h>
 
+#include <algorithm>
 #include <fstream>
 #include <nlohmann/json.hpp>
 #include <sstream>
@@ -57,7 +58,7 @@ Json Comparable(const std::string& metrics_json) {
   Json j = Json::parse(metrics_json);
   // What depends on the clock or the machine: times, the ETA's forecasts, memory.
   for (const char* k : {"seconds", "eta", "peak_rss_mb", "stage_peak_rss_mb",
-                        "stage_peak_rss_per_stage", "resumed_stages"}) {
+                        "stage_peak_rss_per_stage", "resumed_stages", "resumed_simplify_windows"}) {
     j.erase(k);
   }
   return j;
@@ -173,6 +174,61 @@ TEST_F(ResumeTest, ADamagedCheckpointIsIgnoredAndTheStageRunsAgain) {
   EXPECT_THAT(run.messages, ::testing::Contains(HasSubstr("checksum mismatch")));
   EXPECT_EQ(Json::parse(run.result->metrics_json)["resumed_stages"], Json({"segment"}));
   ExpectSameOutputs(*run.result, dir_ / "a2");
+}
+
+// The window records of a streamed simplify stage (StreamJournal in checkpoint files).
+std::vector<std::string> WindowRecords(const fs::path& ckpt) {
+  std::vector<std::string> names;
+  std::error_code ec;
+  for (const auto& e : fs::directory_iterator(ckpt, ec)) {
+    const std::string name = e.path().filename().string();
+    if (name.rfind("simplify.pass-", 0) == 0) names.push_back(name);
+  }
+  std::sort(names.begin(), names.end());
+  return names;
+}
+
+// A job stopped inside a streamed simplify stage (right after its third window's record) resumes
+// after that window, not from the stage's start, with the outputs of a run in one go; a damaged
+// record is simplified again from there; the stage's own checkpoint replaces the records.
+TEST_F(ResumeTest, AStreamedSimplifyStageStoppedMidwayResumesAfterItsLastSavedWindow) {
+  JobSpec spec = spec_;
+  spec.stream_slab_voxels = 4;  // 19 cube layers: 5 windows a pass
+  spec.target_reduction = 0.8;
+  auto plain = RunJob(spec, dir_ / "plain", nullptr, nullptr);
+  ASSERT_TRUE(plain.ok()) << plain.status();
+  const Json plain_metrics = Json::parse(plain->metrics_json);
+  ASSERT_EQ(plain_metrics["simplification"]["stream_slab_voxels"], 4);
+  EXPECT_FALSE(plain_metrics.contains("resumed_simplify_windows"));
+
+  for (const bool damage : {false, true}) {
+    const fs::path ckpt = dir_ / (damage ? "ckpt-damaged" : "ckpt");
+    const Attempt first = RunWithCheckpoints(spec, dir_ / "a1", ckpt, "simplify-window-3");
+    ASSERT_EQ(first.result.status().code(), absl::StatusCode::kCancelled) << first.result.status();
+    EXPECT_THAT(WindowRecords(ckpt),
+                ElementsAre("simplify.pass-0.window-0.ckpt", "simplify.pass-0.window-1.ckpt",
+                            "simplify.pass-0.window-2.ckpt"));
+    EXPECT_FALSE(fs::exists(ckpt / "simplify.ckpt"));
+    if (damage) {
+      // One flipped bit in window 1's record: window 0 is read back, the rest simplified again.
+      const fs::path f = ckpt / "simplify.pass-0.window-1.ckpt";
+      std::string bytes = ReadAll(f);
+      bytes[bytes.size() / 2] ^= 1;
+      std::ofstream(f, std::ios::binary | std::ios::trunc) << bytes;
+    }
+    const Attempt second = RunWithCheckpoints(spec, dir_ / "a2", ckpt);
+    ASSERT_TRUE(second.result.ok()) << second.result.status();
+    const Json metrics = Json::parse(second.result->metrics_json);
+    EXPECT_EQ(metrics["resumed_stages"], Json({"segment", "simplify"}));
+    EXPECT_EQ(metrics["resumed_simplify_windows"], damage ? 1 : 3);
+    EXPECT_THAT(second.messages,
+                ::testing::Contains(
+                    HasSubstr(damage ? "resumed after slab 1 of 5" : "resumed after slab 3 of 5")));
+    EXPECT_EQ(ReadAll(dir_ / "a2" / "mesh.vtu"), ReadAll(dir_ / "plain" / "mesh.vtu"));
+    EXPECT_EQ(Comparable(second.result->metrics_json), Comparable(plain->metrics_json));
+    EXPECT_TRUE(fs::exists(ckpt / "simplify.ckpt"));
+    EXPECT_THAT(WindowRecords(ckpt), ::testing::IsEmpty()) << "replaced by simplify.ckpt";
+  }
 }
 
 // A checkpoint holds the simplified mesh, not its collapse record: a levels job resumed after

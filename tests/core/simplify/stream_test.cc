@@ -4,7 +4,10 @@
 #include "core/simplify/stream.h"
 
 #include <cmath>
+#include <map>
+#include <optional>
 #include <string>
+#include <utility>
 #include <vector>
 
 #include <gtest/gtest.h>
@@ -159,6 +162,115 @@ TEST(SimplifyStreamedTest, SameOutputOnOneAndTwoThreads) {
   ASSERT_TRUE(one.ok() && two.ok());
   EXPECT_GT(one->passes, 1);  // really streamed
   ExpectSameMesh(*one, *two, "streamed, 1 vs 2 threads");
+}
+
+// A journal of records in memory, keyed by (pass, window), that can stop the run after a given
+// number of saved records (as a killed job child would stop).
+struct MemoryJournal {
+  std::map<std::pair<int, int64_t>, std::string> records;
+  std::vector<std::pair<int, int64_t>> order;  // as saved
+  int64_t stop_after = -1;                     // records saved by this run, then cancel
+  CancelToken cancel;
+
+  StreamJournal Journal() {
+    StreamJournal j;
+    j.save = [this](int pass, int64_t window, const std::string& record) {
+      records[{pass, window}] = record;
+      order.emplace_back(pass, window);
+      if (stop_after >= 0 && int64_t(order.size()) >= stop_after) cancel.Cancel();
+    };
+    j.load = [this](int pass, int64_t window) -> std::optional<std::string> {
+      auto it = records.find({pass, window});
+      if (it == records.end()) return std::nullopt;
+      return it->second;
+    };
+    return j;
+  }
+};
+
+// The mesh of a run stopped after `stop_after` windows and run again on its records, against the
+// run in one go; returns the windows the second run read back.
+// `whole_saved`: the records the run in one go saved.
+int64_t ResumedAfter(const Case& c, const SimplifyOptions& o, int slab, int64_t stop_after,
+                     const SimplifyResult& whole, int64_t whole_saved, MemoryJournal* journal) {
+  journal->stop_after = stop_after;
+  StreamJournal first = journal->Journal();
+  auto stopped = SimplifyStreamed(c.mesh, o, slab, nullptr, &journal->cancel, &first);
+  EXPECT_EQ(stopped.status().code(), absl::StatusCode::kCancelled) << stopped.status();
+  EXPECT_EQ(first.resumed_windows, 0);
+  MemoryJournal again;
+  again.records = journal->records;
+  StreamJournal second = again.Journal();
+  auto resumed = SimplifyStreamed(c.mesh, o, slab, nullptr, nullptr, &second);
+  EXPECT_TRUE(resumed.ok()) << resumed.status();
+  if (!resumed.ok()) return -1;
+  const std::string what = "stopped after " + std::to_string(stop_after) + " records";
+  ExpectSameMesh(whole, *resumed, what);
+  EXPECT_EQ(resumed->stop_message, whole.stop_message) << what;
+  EXPECT_EQ(resumed->collapses, whole.collapses) << what;
+  EXPECT_EQ(resumed->pass_stats.size(), whole.pass_stats.size()) << what;
+  // The resumed run simplified (and saved) only the windows after the last saved one.
+  EXPECT_EQ(int64_t(again.order.size()), whole_saved - stop_after) << what;
+  return second.resumed_windows;
+}
+
+TEST(SimplifyStreamedTest, AStoppedRunResumesFromItsWindowRecordsWithTheSameMesh) {
+  const Case c = MakeCase({24, 22, 29});  // 28 cube layers: 5 slabs of 5-6
+  const SimplifyOptions o = FieldOptions(0.8, 2);
+  MemoryJournal full;
+  StreamJournal j = full.Journal();
+  auto whole = SimplifyStreamed(c.mesh, o, 6, nullptr, nullptr, &j);
+  ASSERT_TRUE(whole.ok()) << whole.status();
+  auto plain = SimplifyStreamed(c.mesh, o, 6);
+  ASSERT_TRUE(plain.ok());
+  ExpectSameMesh(*plain, *whole, "with and without a journal");
+  const int64_t saved = int64_t(full.order.size());
+  ASSERT_GE(saved, 10) << "at least one measuring pass and the final one, 5 windows each";
+  EXPECT_EQ(full.order.front(), std::make_pair(0, int64_t{0}));
+  EXPECT_EQ(full.order.back().second, 4);
+  // Stopped inside the first pass, at a pass's end, inside the final pass, and after its last
+  // window (the records then hold the whole run: only the output is made again).
+  for (int64_t stop : {int64_t{2}, int64_t{5}, saved - 2, saved}) {
+    MemoryJournal journal;
+    const int64_t read_back = ResumedAfter(c, o, 6, stop, *whole, saved, &journal);
+    const auto& [pass, window] = journal.order[stop - 1];
+    EXPECT_EQ(read_back, window + 1) << "stopped after window " << window << " of pass " << pass;
+  }
+}
+
+TEST(SimplifyStreamedTest, ADamagedOrForeignWindowRecordIsSimplifiedAgain) {
+  const Case c = MakeCase({24, 22, 29});
+  const SimplifyOptions o = FieldOptions(0.8, 2);
+  MemoryJournal full;
+  StreamJournal j = full.Journal();
+  auto whole = SimplifyStreamed(c.mesh, o, 6, nullptr, nullptr, &j);
+  ASSERT_TRUE(whole.ok()) << whole.status();
+  const auto last = full.order.back();  // the final pass's last window
+  // Window 2 of the final pass truncated, missing, or another window's: the run reads back
+  // windows 0 and 1 and simplifies the rest again, to the same mesh. (A flipped byte is the
+  // checkpoint file's checksum's to catch: core/pipeline's tests.)
+  for (int damage = 0; damage < 3; ++damage) {
+    MemoryJournal journal;
+    journal.records = full.records;
+    std::string& r = journal.records.at({last.first, 2});
+    if (damage == 0) r.resize(r.size() / 2);
+    if (damage == 1) journal.records.erase({last.first, 2});
+    if (damage == 2) r = full.records[{last.first, 3}];
+    StreamJournal second = journal.Journal();
+    auto resumed = SimplifyStreamed(c.mesh, o, 6, nullptr, nullptr, &second);
+    ASSERT_TRUE(resumed.ok()) << resumed.status();
+    const std::string what = "damage " + std::to_string(damage);
+    ExpectSameMesh(*whole, *resumed, what);
+    EXPECT_EQ(second.resumed_windows, 2) << what;
+  }
+  // A record of another run's size (another mesh) is not read back at all.
+  const Case other = MakeCase({24, 22, 23});
+  MemoryJournal foreign;
+  foreign.records = full.records;
+  StreamJournal f = foreign.Journal();
+  auto fresh = SimplifyStreamed(other.mesh, o, 6, nullptr, nullptr, &f);
+  ASSERT_TRUE(fresh.ok()) << fresh.status();
+  EXPECT_EQ(f.resumed_windows, 0);
 }
 
 TEST(SimplifyStreamedTest, OneWindowIsTheInMemoryRun) {
