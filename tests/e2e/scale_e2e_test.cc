@@ -206,6 +206,61 @@ TEST_F(ScaleE2E, KilledReplicasJobRunsElsewhereOnceWithinLeaseAndReaperPeriod) {
   ExpectArtifactsOfClaim(done, 2);
 }
 
+// Issue 30, "SIGKILL of one replica mid-slab": a job simplified in slabs whose replica dies right
+// after the record of its third window goes on with another replica, which reads the three
+// windows back from the shared data dir and simplifies from the fourth; the mesh is the one a
+// job run in one go on one replica makes. (One job's windows follow each other: they run on one
+// replica at a time, core/simplify README "Streamed simplification".)
+TEST_F(ScaleE2E, KilledReplicasStreamedJobResumesOnAnotherAfterTheLastSavedSlab) {
+  StartReplicas(2);
+  const fs::path volume = scratch_ / "slabs.nii";
+  WriteTinyNifti(volume, 20, 18, 14);  // 13 cube layers: 4 windows a pass in slabs of 4
+  auto submit = [&](size_t i, const std::vector<std::string>& extra) {
+    std::vector<std::string> args = {
+        "submit", volume.string(), "--image-size", "48", "--stream-slab-voxels",
+        "4",      "--reduction",   "0.8"};
+    args.insert(args.end(), extra.begin(), extra.end());
+    CliResult r = RunCli(addr(i), args);
+    EXPECT_EQ(r.rc, 0) << r.err;
+    return FirstLine(r.out);
+  };
+  const std::string reference = submit(0, {});
+  const v1::Job ref = WaitFinal(reference);
+  ASSERT_EQ(ref.state(), v1::SUCCEEDED) << AllLogs();
+  ASSERT_EQ(ref.attempts(), 1);
+
+  const std::string job = submit(1, {"--fault", "pause-after:simplify-window-3"});
+  const int runner = RunnerOf(job, 1);
+  ASSERT_GE(runner, 0) << AllLogs();
+  ASSERT_TRUE(WaitFor(
+      [&] {
+        return GetJob(addr(runner), job)
+                   .progress()
+                   .message()
+                   .find("paused after the simplify-window-3 checkpoint") != std::string::npos;
+      },
+      120s))
+      << AllLogs();
+  const fs::path ckpt = data_ / "jobs" / job.substr(5) / "checkpoints";
+  EXPECT_TRUE(fs::exists(ckpt / "simplify.pass-0.window-2.ckpt"));
+  replicas_[runner]->Kill(SIGKILL);
+  const v1::Job done = WaitFinal(job);
+  ASSERT_EQ(done.state(), v1::SUCCEEDED) << AllLogs();
+  EXPECT_EQ(done.attempts(), 2);
+  EXPECT_NE(RunnerOf(job, 2), runner);
+
+  const size_t alive = 1 - runner;
+  const fs::path out = scratch_ / "out", ref_out = scratch_ / "ref-out";
+  for (const auto& [name, folder] : {std::pair{job, out}, std::pair{reference, ref_out}}) {
+    const CliResult f = RunCli(addr(alive), {"fetch", name, "--out", folder.string()});
+    ASSERT_EQ(f.rc, 0) << f.err;
+  }
+  EXPECT_EQ(ReadFile(out / "mesh.vtu"), ReadFile(ref_out / "mesh.vtu"));
+  const std::string metrics = ReadFile(out / "metrics.json");
+  EXPECT_THAT(metrics, HasSubstr("\"resumed_simplify_windows\": 3"));
+  EXPECT_FALSE(fs::exists(ckpt)) << "a succeeded job keeps no checkpoint";
+}
+
 TEST_F(ScaleE2E, ReplicaPausedPastItsLeaseIsRefusedWhenItWakes) {
   StartReplicas(3);
   const std::string job = Submit(0, "sleep:4");
