@@ -160,6 +160,17 @@ absl::StatusOr<WindowRecord> ParseWindowRecord(const std::string& bytes, int pas
   return w;
 }
 
+// The stage's fraction after `slab_fraction` of a pass: the passes done over the passes known to
+// run (the one running, and the final one when it is a measuring pass), so that with the usual
+// single measuring pass each pass is half the stage and an ETA from the stage's own rate holds;
+// the last 5 % is the output and the refit. Another measuring pass lowers this; the caller keeps
+// the largest value reported, so the fraction pauses instead of going back.
+double PassFraction(bool measure, int measuring_passes, double slab_fraction) {
+  const double done = measuring_passes + slab_fraction;
+  const double passes = measuring_passes + (measure ? 2.0 : 1.0);
+  return 0.95 * done / passes;
+}
+
 }  // namespace
 
 absl::StatusOr<SimplifyResult> SimplifyStreamed(const TetMesh& mesh, const SimplifyOptions& options,
@@ -260,6 +271,7 @@ absl::StatusOr<SimplifyResult> SimplifyStreamed(const TetMesh& mesh, const Simpl
   // windows' shortfall on its own.
   const int64_t slabs = (cube_layers + slab_voxels - 1) / slab_voxels;
   bool measure = true;
+  double reported = 0;  // the largest fraction reported
 
   // What an earlier run saved: the records of the latest pass whose first window is intact, in
   // order, up to the first missing or damaged one. The passes run from start_pass, window start_k.
@@ -307,11 +319,10 @@ absl::StatusOr<SimplifyResult> SimplifyStreamed(const TetMesh& mesh, const Simpl
     }
     journal->resumed_windows = start_k;
     if (start_k > 0) {
+      reported = PassFraction(measure, measuring_passes, double(start_k) / double(slabs));
       Report(progress,
              {"simplify",
-              measure ? (measuring_passes + double(start_k) / double(slabs)) /
-                            (2.0 * kMaxMeasuringPasses)
-                      : 0.5 + 0.5 * double(start_k) / double(slabs),
+              reported,
               absl::StrFormat("resumed after slab %d of %d of the %s%s", start_k, slabs,
                               measure ? absl::StrCat("measuring pass ", measuring_passes + 1)
                                       : std::string("final pass"),
@@ -501,13 +512,11 @@ absl::StatusOr<SimplifyResult> SimplifyStreamed(const TetMesh& mesh, const Simpl
         }
         journal->save(pass, k, SerializeWindowRecord(record, slabs, nv));
       }
-      // The stage's fraction: measuring pass p in [p, p + 1] / (2 kMaxMeasuringPasses), the
-      // final pass in [1/2, 1], so it never goes back however many measuring passes run.
-      const double slab_fraction = double(z1) / double(cube_layers);
+      reported = std::max(
+          reported, PassFraction(measure, measuring_passes, double(z1) / double(cube_layers)));
       Report(progress,
              {"simplify",
-              measure ? (measuring_passes + slab_fraction) / (2.0 * kMaxMeasuringPasses)
-                      : 0.5 + 0.5 * slab_fraction,
+              reported,
               absl::StrFormat("slab %d of %d, %s (z %d..%d, threshold %g): %d cells, %d removed, "
                               "%d written out, %d carried",
                               window_count, slabs,

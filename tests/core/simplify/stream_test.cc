@@ -273,6 +273,46 @@ TEST(SimplifyStreamedTest, ADamagedOrForeignWindowRecordIsSimplifiedAgain) {
   EXPECT_EQ(f.resumed_windows, 0);
 }
 
+// The stage's fraction never goes back, gives each pass its share of the passes that run (the
+// ETA comes from it: a measuring pass shown as a sixth of the stage made the 511 CT's first ETA
+// five times too long), and reaches 1 only with the refit.
+TEST(SimplifyStreamedTest, ProgressGivesEachPassItsShareAndNeverGoesBack) {
+  const Case c = MakeCase({24, 22, 29});
+  std::vector<Progress> events;
+  auto r = SimplifyStreamed(c.mesh, FieldOptions(0.8, 2), 6,
+                            [&](const Progress& p) { events.push_back(p); });
+  ASSERT_TRUE(r.ok()) << r.status();
+  ASSERT_GE(events.size(), 10u);
+  double last = 0;
+  int measuring = 0;
+  bool final_seen = false;
+  for (const Progress& p : events) {
+    EXPECT_EQ(p.stage, "simplify");
+    EXPECT_GE(p.fraction, last) << p.message;
+    const double before = last;
+    last = p.fraction;
+    double pass = -1;
+    for (const auto& [k, v] : p.metrics) {
+      if (k == "measuring_pass") pass = v;
+    }
+    if (pass > 0) measuring = std::max(measuring, int(pass));
+    if (pass == 0 && !final_seen) {
+      final_seen = true;
+      // The measuring passes' last window ended their share.
+      EXPECT_GT(before, 0.95 * measuring / (measuring + 1.0) - 1e-9) << p.message;
+      // The final pass's first window: the measuring passes' share, plus that window's.
+      EXPECT_GT(p.fraction, 0.95 * measuring / (measuring + 1.0) - 1e-9) << p.message;
+      EXPECT_LT(p.fraction, 0.95 * (measuring + 0.3) / (measuring + 1.0)) << p.message;
+    }
+    if (pass >= 0) {
+      EXPECT_LE(p.fraction, 0.95 + 1e-12) << p.message;
+    }
+  }
+  EXPECT_GE(measuring, 1);
+  EXPECT_TRUE(final_seen);
+  EXPECT_EQ(events.back().fraction, 1.0) << events.back().message;
+}
+
 TEST(SimplifyStreamedTest, OneWindowIsTheInMemoryRun) {
   const Case c = MakeCase({20, 20, 17});  // 16 cube layers
   for (int slab : {16, 40}) {
