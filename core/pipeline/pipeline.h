@@ -108,6 +108,13 @@ absl::Status ValidateJobSpec(const JobSpec& spec, std::string* field = nullptr);
 // before choosing to stream a job that does not fit in memory.
 std::string StreamingRefusal(const JobSpec& spec);
 
+// The disk that a streamed simplify stage's checkpoints take at most, for a volume of `voxels`
+// voxels simplified to `target_reduction`: one pass's window records (the cells written out and,
+// in the final pass, the survivors; every window's carried cells) and the stage's checkpoint,
+// which is written before the records are removed (README "Stage checkpoints"). The server
+// admits a streamed job only when this fits on its data dir.
+int64_t StreamRecordBytes(int64_t voxels, double target_reduction);
+
 struct Artifact {
   std::string name;  // "mesh.vtu", "diff.png", ...
   std::filesystem::path path;

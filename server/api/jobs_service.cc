@@ -98,6 +98,17 @@ absl::StatusOr<v1::Job> SubmitJob(const ServiceDeps& d, const Principal& caller,
   // In memory or in slabs, decided once here and stored, so every replica runs the job the same
   // way and GetJob shows how.
   if (!spec->has_stream_slab_voxels()) spec->set_stream_slab_voxels(plan.stream_slab_voxels);
+  // In slabs, the job keeps records of them beside its checkpoints while it simplifies, so that
+  // a stopped attempt resumes after the last slab: their disk is admitted like an upload's.
+  if (plan.stream_record_bytes > 0) {
+    if (auto room = d.disk->Admit(plan.stream_record_bytes,
+                                  absl::StrCat("simplifying ", spec->volume(),
+                                               " in slabs (records of its slabs to resume from)"));
+        !room.ok()) {
+      detail->set_field("spec.stream_slab_voxels");
+      return room;
+    }
+  }
   const std::string id = NewId();
   const DataDir& dd = d.options->data_dir;
   if (!fault.empty()) {

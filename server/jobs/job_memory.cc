@@ -108,9 +108,15 @@ JobMemoryPlan PlanJobMemory(const v1::Volume& volume, const v1::JobSpec& spec, i
   plan.streaming_refusal =
       parsed.ok() ? pipeline::StreamingRefusal(*parsed) : std::string(parsed.status().message());
   plan.streamed_estimate_bytes = EstimateJobMemoryBytes(volume, kServerStreamSlabVoxels, reduction);
+  auto records = [&] {
+    int64_t voxels = volume.dims_size() == 3 ? 1 : 0;
+    for (int64_t d : volume.dims()) voxels *= d;
+    return plan.stream_slab_voxels > 0 ? pipeline::StreamRecordBytes(voxels, reduction) : 0;
+  };
   if (spec.has_stream_slab_voxels()) {
     plan.stream_slab_voxels = spec.stream_slab_voxels();
     plan.estimate_bytes = EstimateJobMemoryBytes(volume, plan.stream_slab_voxels, reduction);
+    plan.stream_record_bytes = records();
     return plan;
   }
   plan.estimate_bytes = EstimateJobMemoryBytes(volume, 0, reduction);
@@ -120,6 +126,7 @@ JobMemoryPlan PlanJobMemory(const v1::Volume& volume, const v1::JobSpec& spec, i
   }
   plan.stream_slab_voxels = kServerStreamSlabVoxels;
   plan.estimate_bytes = plan.streamed_estimate_bytes;
+  plan.stream_record_bytes = records();
   return plan;
 }
 

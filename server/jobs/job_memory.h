@@ -38,6 +38,9 @@ struct JobMemoryPlan {
   // Why the job cannot be simplified in slabs (pipeline::StreamingRefusal), "" when it can.
   std::string streaming_refusal;
   int64_t streamed_estimate_bytes = 0;  // the estimate in slabs of kServerStreamSlabVoxels
+  // In slabs: the disk its slab records and simplify checkpoint take at most on the data dir
+  // (pipeline::StreamRecordBytes), which CreateJob admits like an upload; 0 in memory.
+  int64_t stream_record_bytes = 0;
 };
 
 // The plan for a job with `spec` (as CreateJob receives or stores it; its volume may be empty)

@@ -414,25 +414,28 @@ TEST_F(CliE2E, StreamSlabVoxelsSimplifiesInSlabsAndBadDepthsAreRefused) {
   const std::string job = FirstLine(r.out);
   CliResult w = RunCli(server.address(), {"watch", job, "-o", "json"});
   EXPECT_EQ(w.rc, 0) << w.err;
-  // Measuring passes over the slabs find the cost threshold, then the final pass makes the mesh.
-  // The job thins its progress events out (at most a few a second), but keeps a stage's first
-  // and the one that completes it.
-  std::vector<std::string> slabs;
+  // Measuring passes over the slabs find the cost threshold, then the final pass makes the mesh
+  // and the refit completes the stage. The job thins its progress events out (at most a few a
+  // second), but keeps a stage's first and the one that completes it.
+  std::vector<std::string> simplify;
   for (const auto& l : Lines(w.out)) {
     auto j = nlohmann::json::parse(l, nullptr, false);
     ASSERT_FALSE(j.is_discarded()) << l;
+    if (j.value("/progress/stage"_json_pointer, std::string()) != "simplify") continue;
     const std::string message = j.value("/progress/message"_json_pointer, std::string());
-    if (message.rfind("slab ", 0) == 0) slabs.push_back(message.substr(0, message.find(" (")));
+    simplify.push_back(message.substr(0, message.find(" (")));
   }
-  ASSERT_GE(slabs.size(), 2u) << w.out;
-  EXPECT_EQ(slabs.front(), "slab 1 of 2, measuring pass 1") << w.out;
-  EXPECT_EQ(slabs.back(), "slab 2 of 2, final pass") << w.out;
+  ASSERT_GE(simplify.size(), 2u) << w.out;
+  EXPECT_EQ(simplify.front(), "slab 1 of 2, measuring pass 1") << w.out;
+  EXPECT_THAT(simplify.back(), HasSubstr("values refit to")) << w.out;
   r = RunCli(server.address(), {"status", job});
   EXPECT_EQ(r.rc, 0) << r.err;
   EXPECT_THAT(r.out, HasSubstr("simplified in slabs of 4 voxel layers"));
   auto metrics = nlohmann::json::parse(ReadFile(out / "metrics.json"), nullptr, false);
   ASSERT_TRUE(metrics.is_object()) << ReadFile(out / "metrics.json");
   EXPECT_EQ(metrics["simplification"]["stream_slab_voxels"], 4);
+  EXPECT_THAT(metrics["simplification"]["stop_message"].get<std::string>(),
+              HasSubstr("in 2 windows of 4 voxel layers"));
   EXPECT_EQ(metrics["fidelity"]["label_mismatch"], 0.0);
   EXPECT_TRUE(fs::exists(out / "mesh.vtu"));
 }

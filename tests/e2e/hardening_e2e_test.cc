@@ -273,6 +273,40 @@ TEST_F(HardeningE2E, FullDiskRefusesUploadsKeepsNothingAndDeletesHealIt) {
   }
 }
 
+// Issue 30, "disk needed for slabs is checked like uploads": a job simplified in slabs keeps
+// records of them on the data dir (to resume after the last one); when they cannot fit, CreateJob
+// refuses it with the bytes needed and free, and queues nothing. The same volume in memory is
+// taken. On a 48 MB tmpfs (root only; skipped otherwise).
+TEST_F(HardeningE2E, AStreamedJobWhoseSlabRecordsCannotFitIsRefusedAtSubmit) {
+  const fs::path mnt = scratch_ / "small-slabs";
+  fs::create_directories(mnt);
+  const std::string mount = "mount -t tmpfs -o size=48m tmpfs '" + mnt.string() + "' 2>/dev/null";
+  if (::geteuid() != 0 || std::system(mount.c_str()) != 0) {
+    GTEST_SKIP() << "cannot mount a 48 MB tmpfs here (needs root and CAP_SYS_ADMIN)";
+  }
+  struct Unmount {
+    fs::path dir;
+    ~Unmount() { (void)std::system(("umount -l '" + dir.string() + "'").c_str()); }
+  } unmount{mnt};
+  ServerProcess server(mnt / "data", {"--disk-reserve-mb", "4"});
+  const fs::path big = scratch_ / "slabs.nii";
+  WriteTinyNifti(big, 96, 96, 96);  // 1.8 MB; its slab records at 80 %: about 58 MB
+  CliResult r = RunCli(server.address(),
+                       {"submit", big.string(), "--stream-slab-voxels", "16", "--reduction", "0.8"},
+                       60s * kSlowdown);
+  EXPECT_NE(r.rc, 0);
+  EXPECT_THAT(r.err, HasSubstr("RESOURCE_EXHAUSTED"));
+  EXPECT_THAT(r.err, HasSubstr("in slabs (records of its slabs to resume from) needs"));
+  EXPECT_THAT(r.err, HasSubstr("free"));
+  v1::ListJobsResponse jobs;
+  ASSERT_TRUE(v1::Jobs::NewStub(SharedChannel(server.address()))
+                  ->ListJobs(Ctx().get(), v1::ListJobsRequest(), &jobs)
+                  .ok());
+  EXPECT_EQ(jobs.jobs_size(), 0) << "a refused job was queued";
+  r = RunCli(server.address(), {"submit", big.string(), "--reduction", "0.8"}, 60s * kSlowdown);
+  EXPECT_EQ(r.rc, 0) << r.err;
+}
+
 // Issue case 1: CreateVolume reads headers only (a 0.5 MB .nii.gz declaring 512 MB costs the
 // server nothing), and the job that would need far more memory than allowed is refused when it
 // is submitted, saying how much it needs: nothing is queued (issue 30).

@@ -201,6 +201,29 @@ TEST_F(ResumeTest, AStreamedSimplifyStageStoppedMidwayResumesAfterItsLastSavedWi
   ASSERT_EQ(plain_metrics["simplification"]["stream_slab_voxels"], 4);
   EXPECT_FALSE(plain_metrics.contains("resumed_simplify_windows"));
 
+  // The disk the stage's checkpoints take at most, against the estimate the server admits.
+  {
+    const fs::path ckpt = dir_ / "ckpt-size";
+    CheckpointOptions c;
+    c.dir = ckpt;
+    c.key = "volume-sha";
+    int64_t peak = 0;
+    c.on_saved = [&](const std::string&) {
+      int64_t bytes = 0;
+      for (const auto& e : fs::directory_iterator(ckpt)) {
+        const std::string name = e.path().filename().string();
+        if (name.rfind("simplify", 0) == 0) bytes += int64_t(fs::file_size(e.path()));
+      }
+      peak = std::max(peak, bytes);
+    };
+    auto sized = RunJob(spec, dir_ / "sized", nullptr, nullptr, c);
+    ASSERT_TRUE(sized.ok()) << sized.status();
+    const int64_t estimate = StreamRecordBytes(24 * 24 * 20, 0.8);
+    EXPECT_GT(peak, 0);
+    EXPECT_LE(peak, estimate);
+    EXPECT_GE(peak, estimate / 3) << "an estimate this far above is no use for admission";
+  }
+
   for (const bool damage : {false, true}) {
     const fs::path ckpt = dir_ / (damage ? "ckpt-damaged" : "ckpt");
     const Attempt first = RunWithCheckpoints(spec, dir_ / "a1", ckpt, "simplify-window-3");
