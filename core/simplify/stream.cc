@@ -33,19 +33,27 @@ void AppendVertex(const TetMesh& from, const std::vector<uint8_t>& flags, int64_
   to->vertex_flags.push_back(flags[g]);
 }
 
+// What a streamed run counts across its windows and passes (the pacing in SimplifyStreamed).
+struct RunCounters {
+  bool measure = true;  // a measuring pass runs
+  int measuring_passes = 0;
+  double tau = -1;               // the cost threshold
+  double band = 0;               // cells removed at costs in (tau / 2, tau] in this measuring pass
+  double last_tau = -1;          // the threshold of the last measuring pass
+  int64_t measured_removed = 0;  // by the last measuring pass
+  int64_t seen_cells = 0;        // original cells of the slabs so far in this pass
+  int64_t window_count = 0, peak_window_cells = 0;
+  bool stalled = false;  // the last window found no valid collapse left
+  int64_t collapses = 0;
+  double max_error = 0;
+};
+
 // One window's record (StreamJournal): the run's counters after the window, and what the window
 // changed in the run's arrays.
 struct WindowRecord {
   int32_t pass = 0;
   int64_t window = 0;
-  // The run's counters after the window.
-  uint8_t measure = 1;
-  int32_t measuring_passes = 0;
-  double tau = -1, band = 0, last_tau = -1;
-  int64_t measured_removed = 0, seen_cells = 0, window_count = 0, peak_window_cells = 0;
-  uint8_t stalled = 0;
-  int64_t collapses = 0;
-  double max_error = 0;
+  RunCounters counters;
   std::vector<SimplifyPassStats> pass_stats;  // the window's
   std::vector<int32_t> written;               // cells written out (4 grid ids each)
   std::vector<int32_t> merged;                // (grid id, survivor) pairs; final pass only
@@ -60,18 +68,19 @@ std::string SerializeWindowRecord(const WindowRecord& r, int64_t slabs, int64_t 
   w.Put(nv);
   w.Put(r.pass);
   w.Put(r.window);
-  w.Put(r.measure);
-  w.Put(r.measuring_passes);
-  w.Put(r.tau);
-  w.Put(r.band);
-  w.Put(r.last_tau);
-  w.Put(r.measured_removed);
-  w.Put(r.seen_cells);
-  w.Put(r.window_count);
-  w.Put(r.peak_window_cells);
-  w.Put(r.stalled);
-  w.Put(r.collapses);
-  w.Put(r.max_error);
+  const RunCounters& c = r.counters;
+  w.Put<uint8_t>(c.measure);
+  w.Put<int32_t>(c.measuring_passes);
+  w.Put(c.tau);
+  w.Put(c.band);
+  w.Put(c.last_tau);
+  w.Put(c.measured_removed);
+  w.Put(c.seen_cells);
+  w.Put(c.window_count);
+  w.Put(c.peak_window_cells);
+  w.Put<uint8_t>(c.stalled);
+  w.Put(c.collapses);
+  w.Put(c.max_error);
   w.PutVector(r.pass_stats);
   w.PutVector(r.written);
   w.PutVector(r.merged);
@@ -95,18 +104,24 @@ absl::StatusOr<WindowRecord> ParseWindowRecord(const std::string& bytes, int pas
   DECIMA_RETURN_IF_ERROR(r.Get("vertices", &rnv));
   DECIMA_RETURN_IF_ERROR(r.Get("pass", &w.pass));
   DECIMA_RETURN_IF_ERROR(r.Get("window", &w.window));
-  DECIMA_RETURN_IF_ERROR(r.Get("measure", &w.measure));
-  DECIMA_RETURN_IF_ERROR(r.Get("measuring_passes", &w.measuring_passes));
-  DECIMA_RETURN_IF_ERROR(r.Get("tau", &w.tau));
-  DECIMA_RETURN_IF_ERROR(r.Get("band", &w.band));
-  DECIMA_RETURN_IF_ERROR(r.Get("last_tau", &w.last_tau));
-  DECIMA_RETURN_IF_ERROR(r.Get("measured_removed", &w.measured_removed));
-  DECIMA_RETURN_IF_ERROR(r.Get("seen_cells", &w.seen_cells));
-  DECIMA_RETURN_IF_ERROR(r.Get("window_count", &w.window_count));
-  DECIMA_RETURN_IF_ERROR(r.Get("peak_window_cells", &w.peak_window_cells));
-  DECIMA_RETURN_IF_ERROR(r.Get("stalled", &w.stalled));
-  DECIMA_RETURN_IF_ERROR(r.Get("collapses", &w.collapses));
-  DECIMA_RETURN_IF_ERROR(r.Get("max_error", &w.max_error));
+  RunCounters& c = w.counters;
+  uint8_t measure = 0, stalled = 0;
+  int32_t measuring_passes = 0;
+  DECIMA_RETURN_IF_ERROR(r.Get("measure", &measure));
+  DECIMA_RETURN_IF_ERROR(r.Get("measuring_passes", &measuring_passes));
+  DECIMA_RETURN_IF_ERROR(r.Get("tau", &c.tau));
+  DECIMA_RETURN_IF_ERROR(r.Get("band", &c.band));
+  DECIMA_RETURN_IF_ERROR(r.Get("last_tau", &c.last_tau));
+  DECIMA_RETURN_IF_ERROR(r.Get("measured_removed", &c.measured_removed));
+  DECIMA_RETURN_IF_ERROR(r.Get("seen_cells", &c.seen_cells));
+  DECIMA_RETURN_IF_ERROR(r.Get("window_count", &c.window_count));
+  DECIMA_RETURN_IF_ERROR(r.Get("peak_window_cells", &c.peak_window_cells));
+  DECIMA_RETURN_IF_ERROR(r.Get("stalled", &stalled));
+  DECIMA_RETURN_IF_ERROR(r.Get("collapses", &c.collapses));
+  DECIMA_RETURN_IF_ERROR(r.Get("max_error", &c.max_error));
+  c.measure = measure != 0;
+  c.stalled = stalled != 0;
+  c.measuring_passes = measuring_passes;
   DECIMA_RETURN_IF_ERROR(r.GetVector("pass_stats", &w.pass_stats));
   DECIMA_RETURN_IF_ERROR(r.GetVector("written", &w.written));
   DECIMA_RETURN_IF_ERROR(r.GetVector("merged", &w.merged));
@@ -153,8 +168,8 @@ absl::StatusOr<WindowRecord> ParseWindowRecord(const std::string& bytes, int pas
       !in_range(w.carried_samples, 2, 1, 0, ncarried)) {
     return bad("carried_samples: not (vertex, carried cell) pairs of the window");
   }
-  if (w.measure > 1 || w.stalled > 1 || w.measuring_passes < 0 || w.measuring_passes > pass ||
-      w.seen_cells < 0 || w.window_count < 0 || w.collapses < 0) {
+  if (measure > 1 || stalled > 1 || measuring_passes < 0 || measuring_passes > pass ||
+      c.seen_cells < 0 || c.window_count < 0 || c.collapses < 0) {
     return bad("counters out of range");
   }
   return w;
@@ -247,9 +262,6 @@ absl::StatusOr<SimplifyResult> SimplifyStreamed(const TetMesh& mesh, const Simpl
   SimplifyResult result;
   result.input_cells = input_cells;
   const int64_t target = int64_t(std::ceil(options.target_reduction * double(input_cells)));
-  int64_t seen_cells = 0;  // original cells of the slabs so far
-  int64_t window_count = 0, peak_window_cells = 0;
-  bool stalled = false;
   // Pacing (README "Streamed simplification"): one cost threshold for every window, as the
   // in-memory run's single queue ends with about every collapse below some cost done.
   // Measuring passes find it: in the first, window 0 removes its share of the target by cells and
@@ -257,10 +269,14 @@ absl::StatusOr<SimplifyResult> SimplifyStreamed(const TetMesh& mesh, const Simpl
   // window (the last one too) collapses while the queue's cheapest cost is at most the threshold.
   // A Newton step on the cells the pass removed gives the next threshold (below). The final pass
   // collapses up to it in every window but the last, which removes exactly what is left.
-  double tau = -1, band = 0;     // the threshold; cells removed at costs in (tau / 2, tau]
-  int64_t measured_removed = 0;  // by the last measuring pass
-  int measuring_passes = 0;
-  double last_tau = -1;  // the threshold of the last measuring pass
+  // The counters a window record carries, under the names the loop uses.
+  RunCounters run;
+  bool& measure = run.measure;
+  int& measuring_passes = run.measuring_passes;
+  double &tau = run.tau, &band = run.band, &last_tau = run.last_tau;
+  int64_t &measured_removed = run.measured_removed, &seen_cells = run.seen_cells;
+  int64_t &window_count = run.window_count, &peak_window_cells = run.peak_window_cells;
+  bool& stalled = run.stalled;
   constexpr int kMaxMeasuringPasses = 3;
   constexpr double kMeasureTolerance = 0.03;
   std::vector<int32_t> local, globals;
@@ -270,7 +286,6 @@ absl::StatusOr<SimplifyResult> SimplifyStreamed(const TetMesh& mesh, const Simpl
   // Slabs of equal depth (at most slab_voxels): a thin last slab would have to make up the
   // windows' shortfall on its own.
   const int64_t slabs = (cube_layers + slab_voxels - 1) / slab_voxels;
-  bool measure = true;
   double reported = 0;  // the largest fraction reported
 
   // What an earlier run saved: the records of the latest pass whose first window is intact, in
@@ -301,18 +316,7 @@ absl::StatusOr<SimplifyResult> SimplifyStreamed(const TetMesh& mesh, const Simpl
           carried_samples.emplace_back(rec->carried_samples[i], rec->carried_samples[i + 1]);
         }
         for (const SimplifyPassStats& st : rec->pass_stats) result.pass_stats.push_back(st);
-        measure = rec->measure != 0;
-        measuring_passes = rec->measuring_passes;
-        tau = rec->tau;
-        band = rec->band;
-        last_tau = rec->last_tau;
-        measured_removed = rec->measured_removed;
-        seen_cells = rec->seen_cells;
-        window_count = rec->window_count;
-        peak_window_cells = rec->peak_window_cells;
-        stalled = rec->stalled != 0;
-        result.collapses = rec->collapses;
-        result.max_error = rec->max_error;
+        run = rec->counters;
         start_pass = p;
         start_k = k + 1;
       }
@@ -342,8 +346,8 @@ absl::StatusOr<SimplifyResult> SimplifyStreamed(const TetMesh& mesh, const Simpl
       std::fill(merged_into.begin(), merged_into.end(), -1);
       seen_cells = window_count = peak_window_cells = 0;
       stalled = false;
-      result.collapses = 0;
-      result.max_error = 0;
+      run.collapses = 0;
+      run.max_error = 0;
       result.pass_stats.clear();
       band = 0;
     }
@@ -423,8 +427,8 @@ absl::StatusOr<SimplifyResult> SimplifyStreamed(const TetMesh& mesh, const Simpl
       DECIMA_RETURN_IF_ERROR(simplify_internal::RunFieldSimplifyWindow(
           wm, o, threads, window_target, window, nullptr, cancel, &wr));
       ++window_count;
-      result.collapses += wr.collapses;
-      result.max_error = std::max(result.max_error, wr.max_error);
+      run.collapses += wr.collapses;
+      run.max_error = std::max(run.max_error, wr.max_error);
       for (const SimplifyPassStats& s : wr.pass_stats) result.pass_stats.push_back(s);
       stalled = wr.stop_reason != StopReason::kTargetReached;
 
@@ -490,18 +494,7 @@ absl::StatusOr<SimplifyResult> SimplifyStreamed(const TetMesh& mesh, const Simpl
       if (keep_record) {
         record.pass = pass;
         record.window = k;
-        record.measure = measure;
-        record.measuring_passes = measuring_passes;
-        record.tau = tau;
-        record.band = band;
-        record.last_tau = last_tau;
-        record.measured_removed = measured_removed;
-        record.seen_cells = seen_cells;
-        record.window_count = window_count;
-        record.peak_window_cells = peak_window_cells;
-        record.stalled = stalled;
-        record.collapses = result.collapses;
-        record.max_error = result.max_error;
+        record.counters = run;
         record.pass_stats = wr.pass_stats;
         record.written.assign(out_cells.begin() + written_before, out_cells.end());
         record.carried = carried;
@@ -597,6 +590,8 @@ absl::StatusOr<SimplifyResult> SimplifyStreamed(const TetMesh& mesh, const Simpl
   std::vector<int32_t>().swap(merged_into);
   DECIMA_RETURN_IF_ERROR(simplify_internal::RefitAndReport(
       mesh, result.vertex_map, &out, options.refit_iterations, threads, cancel, progress));
+  result.collapses = run.collapses;
+  result.max_error = run.max_error;
   result.output_cells = ont;
   result.achieved_reduction = 1.0 - double(ont) / double(input_cells);
   const int64_t removed = input_cells - ont;

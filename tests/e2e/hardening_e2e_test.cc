@@ -9,7 +9,9 @@
 
 #include <cstring>
 #include <fstream>
+#include <optional>
 #include <sstream>
+#include <utility>
 
 #include "decima/v1/jobs.grpc.pb.h"
 #include "decima/v1/uploads.grpc.pb.h"
@@ -224,20 +226,36 @@ TEST_F(HardeningE2E, UnreferencedBlobsAndAbandonedUploadsAreCollected) {
   EXPECT_EQ(FileCount(server.data_dir() / "jobs"), 0u);
 }
 
+// A 48 MB tmpfs at `dir` for as long as the object lives (root only: nullopt otherwise), so a
+// test can fill a disk without filling the machine's.
+class SmallDisk {
+ public:
+  static std::optional<SmallDisk> Mount(const fs::path& dir) {
+    fs::create_directories(dir);
+    const std::string mount = "mount -t tmpfs -o size=48m tmpfs '" + dir.string() + "' 2>/dev/null";
+    if (::geteuid() != 0 || std::system(mount.c_str()) != 0) return std::nullopt;
+    return SmallDisk(dir);
+  }
+  SmallDisk(SmallDisk&& other) noexcept : dir_(std::exchange(other.dir_, fs::path())) {}
+  SmallDisk(const SmallDisk&) = delete;
+  SmallDisk& operator=(const SmallDisk&) = delete;
+  SmallDisk& operator=(SmallDisk&&) = delete;
+  ~SmallDisk() {
+    if (!dir_.empty()) (void)std::system(("umount -l '" + dir_.string() + "'").c_str());
+  }
+
+ private:
+  explicit SmallDisk(fs::path dir) : dir_(std::move(dir)) {}
+  fs::path dir_;
+};
+
 // Issue case 2 (full disk): uploads are RESOURCE_EXHAUSTED with free and needed bytes and keep
 // nothing; deletes work on the full disk (the reserve); freeing space heals it. Needs a small
 // filesystem: a tmpfs mounted by the test (root only; skipped otherwise).
 TEST_F(HardeningE2E, FullDiskRefusesUploadsKeepsNothingAndDeletesHealIt) {
   const fs::path mnt = scratch_ / "small";
-  fs::create_directories(mnt);
-  const std::string mount = "mount -t tmpfs -o size=48m tmpfs '" + mnt.string() + "' 2>/dev/null";
-  if (::geteuid() != 0 || std::system(mount.c_str()) != 0) {
-    GTEST_SKIP() << "cannot mount a 48 MB tmpfs here (needs root and CAP_SYS_ADMIN)";
-  }
-  struct Unmount {
-    fs::path dir;
-    ~Unmount() { (void)std::system(("umount -l '" + dir.string() + "'").c_str()); }
-  } unmount{mnt};
+  const std::optional<SmallDisk> disk = SmallDisk::Mount(mnt);
+  if (!disk) GTEST_SKIP() << "cannot mount a 48 MB tmpfs here (needs root and CAP_SYS_ADMIN)";
   std::string job;
   {
     ServerProcess server(mnt / "data", {"--disk-reserve-mb", "4", "--blob-grace-seconds", "4"});
@@ -279,15 +297,8 @@ TEST_F(HardeningE2E, FullDiskRefusesUploadsKeepsNothingAndDeletesHealIt) {
 // taken. On a 48 MB tmpfs (root only; skipped otherwise).
 TEST_F(HardeningE2E, AStreamedJobWhoseSlabRecordsCannotFitIsRefusedAtSubmit) {
   const fs::path mnt = scratch_ / "small-slabs";
-  fs::create_directories(mnt);
-  const std::string mount = "mount -t tmpfs -o size=48m tmpfs '" + mnt.string() + "' 2>/dev/null";
-  if (::geteuid() != 0 || std::system(mount.c_str()) != 0) {
-    GTEST_SKIP() << "cannot mount a 48 MB tmpfs here (needs root and CAP_SYS_ADMIN)";
-  }
-  struct Unmount {
-    fs::path dir;
-    ~Unmount() { (void)std::system(("umount -l '" + dir.string() + "'").c_str()); }
-  } unmount{mnt};
+  const std::optional<SmallDisk> disk = SmallDisk::Mount(mnt);
+  if (!disk) GTEST_SKIP() << "cannot mount a 48 MB tmpfs here (needs root and CAP_SYS_ADMIN)";
   ServerProcess server(mnt / "data", {"--disk-reserve-mb", "4"});
   const fs::path big = scratch_ / "slabs.nii";
   WriteTinyNifti(big, 96, 96, 96);  // 1.8 MB; its slab records at 80 %: about 58 MB

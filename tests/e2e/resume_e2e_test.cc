@@ -42,6 +42,23 @@ Json Comparable(const fs::path& metrics) {
   return j;
 }
 
+// Waits (bounded) until `job` ends on `server`, which it must have SUCCEEDED, and fetches its
+// artifacts into `out`.
+void ExpectSucceededAndFetch(const ServerProcess& server, const std::string& job,
+                             const fs::path& out) {
+  ASSERT_TRUE(WaitFor(
+      [&] {
+        const v1::JobState st = GetJob(server.address(), job).state();
+        return st == v1::SUCCEEDED || st == v1::FAILED || st == v1::CANCELLED;
+      },
+      120s * kSlowdown))
+      << server.Log();
+  const v1::Job done = GetJob(server.address(), job);
+  ASSERT_EQ(done.state(), v1::SUCCEEDED) << done.DebugString() << server.Log();
+  const CliResult f = RunCli(server.address(), {"fetch", job, "--out", out.string()});
+  ASSERT_EQ(f.rc, 0) << f.err;
+}
+
 const std::vector<std::string> kJobFlags = {"--image-size", "48", "--outputs", "vtu,labels"};
 
 std::vector<std::string> Submit(const fs::path& volume, std::vector<std::string> extra) {
@@ -139,18 +156,8 @@ TEST_P(ResumeE2E, StoppedAtTheBoundaryTheRestartedServerResumesWithIdenticalOutp
   }
 
   ServerProcess again(data, flags);
-  ASSERT_TRUE(WaitFor(
-      [&] {
-        const v1::JobState st = GetJob(again.address(), job).state();
-        return st == v1::SUCCEEDED || st == v1::FAILED || st == v1::CANCELLED;
-      },
-      120s * kSlowdown))
-      << again.Log();
-  const v1::Job done = GetJob(again.address(), job);
-  ASSERT_EQ(done.state(), v1::SUCCEEDED) << done.DebugString() << again.Log();
   const fs::path out = scratch_ / ("out-" + CaseName({c, 0}));
-  const CliResult f = RunCli(again.address(), {"fetch", job, "--out", out.string()});
-  ASSERT_EQ(f.rc, 0) << f.err;
+  ASSERT_NO_FATAL_FAILURE(ExpectSucceededAndFetch(again, job, out));
 
   EXPECT_EQ(ReadFile(out / "mesh.vtu"), ReadFile(scratch_ / "reference" / "mesh.vtu"));
   EXPECT_EQ(ReadFile(out / "labels.nii.gz"), ReadFile(scratch_ / "reference" / "labels.nii.gz"));
@@ -208,18 +215,8 @@ TEST(ResumeStreamedE2E, KilledInsideAStreamedSimplifyStageItResumesAfterTheLastS
     server.Kill(SIGKILL);  // the job child dies with it (PR_SET_PDEATHSIG)
   }
   ServerProcess again(data, flags);
-  ASSERT_TRUE(WaitFor(
-      [&] {
-        const v1::JobState st = GetJob(again.address(), job).state();
-        return st == v1::SUCCEEDED || st == v1::FAILED || st == v1::CANCELLED;
-      },
-      120s * kSlowdown))
-      << again.Log();
-  const v1::Job done = GetJob(again.address(), job);
-  ASSERT_EQ(done.state(), v1::SUCCEEDED) << done.DebugString() << again.Log();
   const fs::path out = scratch / "out";
-  const CliResult f = RunCli(again.address(), {"fetch", job, "--out", out.string()});
-  ASSERT_EQ(f.rc, 0) << f.err;
+  ASSERT_NO_FATAL_FAILURE(ExpectSucceededAndFetch(again, job, out));
   EXPECT_EQ(ReadFile(out / "mesh.vtu"), ReadFile(scratch / "reference" / "mesh.vtu"));
   EXPECT_EQ(Comparable(out / "metrics.json"), Comparable(scratch / "reference" / "metrics.json"));
   const Json metrics = Json::parse(ReadFile(out / "metrics.json"));
