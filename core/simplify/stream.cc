@@ -545,6 +545,17 @@ absl::StatusOr<SimplifyResult> SimplifyStreamed(const TetMesh& mesh, const Simpl
     ++measuring_passes;
     measure = measuring_passes < kMaxMeasuringPasses &&
               std::abs(double(measured - target)) > kMeasureTolerance * double(target);
+    Report(progress,
+           {"simplify",
+            reported,
+            absl::StrFormat("measuring pass %d removed %d cells at threshold %g, %.1f%% of the "
+                            "target; %s at threshold %g",
+                            measuring_passes, measured, last_tau,
+                            100.0 * double(measured) / double(std::max<int64_t>(1, target)),
+                            measure ? "another measuring pass" : "the final pass", tau),
+            {{"measuring_pass", double(measuring_passes)},
+             {"measured_cells_removed", double(measured)},
+             {"threshold", tau}}});
   }
 
   // The output: the written-out cells on the grid vertices they use, in grid order. What only the

@@ -48,6 +48,7 @@
 #include <nlohmann/json.hpp>
 
 #include "absl/strings/numbers.h"
+#include "absl/strings/str_format.h"
 #include "absl/strings/str_join.h"
 #include "absl/strings/str_split.h"
 #include "core/io/volume_io.h"
@@ -116,6 +117,7 @@ struct BenchOptions {
   std::string view = "anterior";
   std::string original_from = "grid";  // grid, mesh or both
   std::string checkpoints;             // --job-out: RunJob's checkpoint folder (empty: none)
+  bool progress = false;               // --job-out: the job's progress on stderr
 };
 
 struct BenchState {
@@ -421,7 +423,18 @@ int RunWholeJob(const BenchOptions& o, const std::string& out_dir, Json* out_jso
   pipeline::CheckpointOptions checkpoints;
   checkpoints.dir = o.checkpoints;
   checkpoints.key = o.input;
-  auto result = pipeline::RunJob(spec, out_dir, nullptr, nullptr, checkpoints);
+  // Seconds since the job began, the stage, its fraction and message: what a watcher sees.
+  const auto began = std::chrono::steady_clock::now();
+  ProgressFn progress = nullptr;
+  if (o.progress) {
+    progress = [&](const Progress& p) {
+      const double t =
+          std::chrono::duration<double>(std::chrono::steady_clock::now() - began).count();
+      std::cerr << absl::StrFormat("%9.1f s %-8s %5.1f %% %s\n", t, p.stage, 100 * p.fraction,
+                                   p.message);
+    };
+  }
+  auto result = pipeline::RunJob(spec, out_dir, progress, nullptr, checkpoints);
   if (!result.ok()) {
     std::cerr << "decima-bench: job: " << result.status() << "\n";
     return 1;
@@ -619,6 +632,9 @@ int Main(int argc, char** argv) {
                  "--job-out: save the segment and simplify stages' checkpoints in this folder "
                  "and resume from them (keyed by --input and the spec), to measure the later "
                  "stages again without simplifying again");
+  app.add_flag("--progress", o.progress,
+               "--job-out: print the job's progress on stderr (seconds since the start, stage, "
+               "fraction, message)");
   app.add_flag("--json", json, "Print the JSON object (the only output format; kept for scripts)");
   CLI11_PARSE(app, argc, argv);
   if (!(o.min_psnr >= 0)) {  // NaN passes CLI::Range
