@@ -129,7 +129,10 @@ TEST(JobMemoryPlan, TheStreamedEstimateIsWithinAQuarterOfTheMeasuredPeaks) {
   };
   const Measured runs[] = {{WithDims({256, 256, 113}), 0.8, 1127},
                            {WithDims({256, 256, 113}), 0.5, 1497},
-                           {WithDims({511, 511, 225}), 0.8, 5999}};
+                           {WithDims({511, 511, 225}), 0.8, 5999},
+                           // Colin27 MRI, 1 mm (ch2) and 0.5 mm (ch2better), in slabs of 16.
+                           {WithDims({181, 217, 181}), 0.8, 1035},
+                           {WithDims({301, 370, 316}), 0.8, 4292}};
   for (const Measured& m : runs) {
     const double estimate = EstimateJobMemoryBytes(m.volume, 16, m.reduction) / kMiB;
     EXPECT_NEAR(estimate / m.peak_mib, 1.0, 0.25)
