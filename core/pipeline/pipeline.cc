@@ -7,6 +7,7 @@
 #include <iterator>
 #include <limits>
 #include <optional>
+#include <string_view>
 #include <utility>
 #include <vector>
 
@@ -151,15 +152,17 @@ std::optional<T> Resume(const CheckpointOptions& c, const Stage& stage, const st
   return std::move(*value);
 }
 
-void SaveCheckpoint(const CheckpointOptions& c, const Stage& stage, const std::string& key,
+// Whether the checkpoint was saved.
+bool SaveCheckpoint(const CheckpointOptions& c, const Stage& stage, const std::string& key,
                     const std::string& payload) {
-  if (c.dir.empty()) return;
+  if (c.dir.empty()) return false;
   const std::filesystem::path path = c.dir / absl::StrCat(stage.name(), ".ckpt");
   if (absl::Status st = WriteCheckpoint(path, key, payload); !st.ok()) {
     stage.Report(1, absl::StrCat("checkpoint not saved: ", st.message()));
-    return;
+    return false;
   }
   if (c.on_saved) c.on_saved(stage.name());
+  return true;
 }
 
 // The streamed simplifier's window records (StreamJournal) as checkpoint files beside the stage
@@ -183,7 +186,7 @@ struct WindowCheckpoints {
     };
   }
 
-  static constexpr char kPrefix[] = "simplify.pass-";
+  static constexpr std::string_view kPrefix = kSimplifyWindowRecordPrefix;
   std::filesystem::path Path(int pass, int64_t window) const {
     return c.dir / absl::StrFormat("%s%d.window-%d.ckpt", kPrefix, pass, window);
   }
@@ -197,7 +200,7 @@ struct WindowCheckpoints {
       const std::string name = e.path().filename().string();
       int pass = 0;
       if (name.rfind(kPrefix, 0) == 0 &&
-          std::sscanf(name.c_str() + sizeof kPrefix - 1, "%d", &pass) == 1 && pass < below_pass) {
+          std::sscanf(name.c_str() + kPrefix.size(), "%d", &pass) == 1 && pass < below_pass) {
         std::filesystem::remove(e.path(), ec);
       }
     }
@@ -467,13 +470,9 @@ absl::StatusOr<SimplifyResult> SimplifyStage(const JobSpec& spec, const Volume& 
           simplified, SimplifyDroppingCells(&original, options, stage.Forward(), stage.cancel(),
                                             NeedsOriginalCells(spec)));
     }
-    SaveCheckpoint(checkpoints, stage, key, SerializeSimplifyResult(simplified));
-    // Only once the stage's checkpoint is there: a stop before still finds the records.
-    std::error_code ec;
-    if (windows && !checkpoints.dir.empty() &&
-        std::filesystem::exists(checkpoints.dir / "simplify.ckpt", ec)) {
-      windows->Remove(std::numeric_limits<int>::max());
-    }
+    const bool saved = SaveCheckpoint(checkpoints, stage, key, SerializeSimplifyResult(simplified));
+    // Only once the stage's checkpoint is saved: a stop before still finds the records.
+    if (windows && saved) windows->Remove(std::numeric_limits<int>::max());
   }
   if (!NeedsOriginalCells(spec)) {
     DECIMA_ASSIGN_OR_RETURN(*features,

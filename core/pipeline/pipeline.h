@@ -108,6 +108,10 @@ absl::Status ValidateJobSpec(const JobSpec& spec, std::string* field = nullptr);
 // before choosing to stream a job that does not fit in memory.
 std::string StreamingRefusal(const JobSpec& spec);
 
+// How the file names of a streamed simplify stage's window records begin, in the checkpoint
+// folder ("simplify.pass-P.window-K.ckpt"; README "Stage checkpoints").
+inline constexpr char kSimplifyWindowRecordPrefix[] = "simplify.pass-";
+
 // The disk that a streamed simplify stage's checkpoints take at most, for a volume of `voxels`
 // voxels simplified to `target_reduction`: one pass's window records (the cells written out and,
 // in the final pass, the survivors; every window's carried cells) and the stage's checkpoint,

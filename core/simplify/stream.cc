@@ -48,17 +48,24 @@ struct RunCounters {
   double max_error = 0;
 };
 
+// A label sample (a removed voxel centre) carried to the next window with the carried cell that
+// holds it (its index among the carried cells).
+struct CarriedSample {
+  int32_t vertex;  // grid id
+  int32_t cell;
+};
+
 // One window's record (StreamJournal): the run's counters after the window, and what the window
 // changed in the run's arrays.
 struct WindowRecord {
   int32_t pass = 0;
   int64_t window = 0;
   RunCounters counters;
-  std::vector<SimplifyPassStats> pass_stats;  // the window's
-  std::vector<int32_t> written;               // cells written out (4 grid ids each)
-  std::vector<int32_t> merged;                // (grid id, survivor) pairs; final pass only
-  std::vector<int32_t> carried;               // the cells carried on, whole
-  std::vector<int32_t> carried_samples;       // (grid id, carried cell) pairs, whole
+  std::vector<SimplifyPassStats> pass_stats;   // the window's
+  std::vector<int32_t> written;                // cells written out (4 grid ids each)
+  std::vector<int32_t> merged;                 // (grid id, survivor) pairs; final pass only
+  std::vector<int32_t> carried;                // the cells carried on, whole
+  std::vector<CarriedSample> carried_samples;  // whole
 };
 
 std::string SerializeWindowRecord(const WindowRecord& r, int64_t slabs, int64_t nv) {
@@ -164,9 +171,10 @@ absl::StatusOr<WindowRecord> ParseWindowRecord(const std::string& bytes, int pas
   if (!in_range(w.merged, 2, 0, 0, window_end) || !in_range(w.merged, 2, 1, -1, window_end)) {
     return bad("merged: not (vertex, survivor) pairs of the window");
   }
-  if (!in_range(w.carried_samples, 2, 0, 0, window_end) ||
-      !in_range(w.carried_samples, 2, 1, 0, ncarried)) {
-    return bad("carried_samples: not (vertex, carried cell) pairs of the window");
+  for (const CarriedSample& cs : w.carried_samples) {
+    if (cs.vertex < 0 || cs.vertex >= window_end || cs.cell < 0 || cs.cell >= ncarried) {
+      return bad("carried_samples: not (vertex, carried cell) pairs of the window");
+    }
   }
   if (measure > 1 || stalled > 1 || measuring_passes < 0 || measuring_passes > pass ||
       c.seen_cells < 0 || c.window_count < 0 || c.collapses < 0) {
@@ -254,11 +262,11 @@ absl::StatusOr<SimplifyResult> SimplifyStreamed(const TetMesh& mesh, const Simpl
   }
   const bool free_interfaces = options.interfaces == InterfaceMode::kFree;
 
-  std::vector<int32_t> carried;                              // 4 grid vertex ids per carried cell
-  std::vector<std::pair<int32_t, int32_t>> carried_samples;  // (grid vertex, carried cell)
-  std::vector<int32_t> out_cells;                            // written out, grid vertex ids
-  std::vector<uint8_t> finalized(nv, 0);                     // a vertex of a written-out cell
-  std::vector<int32_t> merged_into(nv, -1);                  // last window's survivor, grid id
+  std::vector<int32_t> carried;  // 4 grid vertex ids per carried cell
+  std::vector<CarriedSample> carried_samples;
+  std::vector<int32_t> out_cells;            // written out, grid vertex ids
+  std::vector<uint8_t> finalized(nv, 0);     // a vertex of a written-out cell
+  std::vector<int32_t> merged_into(nv, -1);  // last window's survivor, grid id
   SimplifyResult result;
   result.input_cells = input_cells;
   const int64_t target = int64_t(std::ceil(options.target_reduction * double(input_cells)));
@@ -295,7 +303,6 @@ absl::StatusOr<SimplifyResult> SimplifyStreamed(const TetMesh& mesh, const Simpl
   std::string resume_note;
   if (journal) journal->windows_per_pass = slabs;
   if (journal && journal->load) {
-    journal->resumed_windows = 0;
     for (int p = kMaxMeasuringPasses; p >= 0 && start_k == 0; --p) {
       for (int64_t k = 0; k < slabs; ++k) {
         const std::optional<std::string> bytes = journal->load(p, k);
@@ -311,10 +318,7 @@ absl::StatusOr<SimplifyResult> SimplifyStreamed(const TetMesh& mesh, const Simpl
         for (size_t i = 0; i < rec->merged.size(); i += 2)
           merged_into[rec->merged[i]] = rec->merged[i + 1];
         carried = std::move(rec->carried);
-        carried_samples.clear();
-        for (size_t i = 0; i < rec->carried_samples.size(); i += 2) {
-          carried_samples.emplace_back(rec->carried_samples[i], rec->carried_samples[i + 1]);
-        }
+        carried_samples = std::move(rec->carried_samples);
         for (const SimplifyPassStats& st : rec->pass_stats) result.pass_stats.push_back(st);
         run = rec->counters;
         start_pass = p;
@@ -364,11 +368,11 @@ absl::StatusOr<SimplifyResult> SimplifyStreamed(const TetMesh& mesh, const Simpl
       // (so the window keeps the grid's z-major order the engine's slabs and caches expect).
       int64_t lo_id = z0 * layer;
       for (int32_t g : carried) lo_id = std::min<int64_t>(lo_id, g);
-      for (const auto& s : carried_samples) lo_id = std::min<int64_t>(lo_id, s.first);
+      for (const CarriedSample& s : carried_samples) lo_id = std::min<int64_t>(lo_id, s.vertex);
       const int64_t hi_id = (z1 + 1) * layer;  // past the top plane
       local.assign(hi_id - lo_id, -1);
       for (int32_t g : carried) local[g - lo_id] = 0;
-      for (const auto& s : carried_samples) local[s.first - lo_id] = 0;
+      for (const CarriedSample& s : carried_samples) local[s.vertex - lo_id] = 0;
       for (int64_t g = z0 * layer; g < hi_id; ++g) local[g - lo_id] = 0;
       globals.clear();
       for (int64_t i = 0; i < hi_id - lo_id; ++i) {
@@ -402,7 +406,7 @@ absl::StatusOr<SimplifyResult> SimplifyStreamed(const TetMesh& mesh, const Simpl
       }
       sample_cell.assign(wnv, -1);
       for (const auto& [g, c] : carried_samples) sample_cell[local[g - lo_id]] = c;
-      std::vector<std::pair<int32_t, int32_t>>().swap(carried_samples);
+      std::vector<CarriedSample>().swap(carried_samples);
 
       window.frozen = frozen.data();
       window.sample_cell = free_interfaces ? sample_cell.data() : nullptr;
@@ -482,7 +486,7 @@ absl::StatusOr<SimplifyResult> SimplifyStreamed(const TetMesh& mesh, const Simpl
         for (int64_t v = 0; v < wnv; ++v) {
           const int32_t h = sample_home[v];
           if (h >= 0 && carried_index[h] >= 0)
-            carried_samples.emplace_back(globals[v], carried_index[h]);
+            carried_samples.push_back({globals[v], carried_index[h]});
         }
       }
       if (measure) {
@@ -498,11 +502,7 @@ absl::StatusOr<SimplifyResult> SimplifyStreamed(const TetMesh& mesh, const Simpl
         record.pass_stats = wr.pass_stats;
         record.written.assign(out_cells.begin() + written_before, out_cells.end());
         record.carried = carried;
-        record.carried_samples.reserve(2 * carried_samples.size());
-        for (const auto& [g, c] : carried_samples) {
-          record.carried_samples.push_back(g);
-          record.carried_samples.push_back(c);
-        }
+        record.carried_samples = carried_samples;
         journal->save(pass, k, SerializeWindowRecord(record, slabs, nv));
       }
       reported = std::max(

@@ -78,7 +78,7 @@ std::string ResumePoint(const fs::path& checkpoints) {
   // A streamed simplify stage's window records (core/pipeline, "Stage checkpoints").
   int64_t windows = 0;
   for (const auto& e : fs::directory_iterator(checkpoints, ec)) {
-    windows += e.path().filename().string().rfind("simplify.pass-", 0) == 0;
+    windows += e.path().filename().string().rfind(pipeline::kSimplifyWindowRecordPrefix, 0) == 0;
   }
   if (fs::exists(checkpoints / "segment.ckpt", ec)) {
     return windows > 0 ? absl::StrCat("segment and the ", windows, " simplify slabs saved")

@@ -436,7 +436,9 @@ def window_record(pass_=0, window=0, slabs=4, nv=1260, written=(), carried=(), s
     out += bytes([1]) + struct.pack("<i", 0) + struct.pack("<ddd", 5.0, 10.0, -1.0)
     out += struct.pack("<qqqq", 0, 405, 1, 425) + bytes([0]) + struct.pack("<qd", 10, 5.0)
     out += struct.pack("<Q", 0)  # no pass stats
-    return out + vec("i", written) + vec("i", merged) + vec("i", carried) + vec("i", samples)
+    # carried_samples: (vertex, cell) pairs, counted as pairs
+    pairs = struct.pack("<Q", len(samples) // 2) + b"".join(struct.pack("<i", v) for v in samples)
+    return out + vec("i", written) + vec("i", merged) + vec("i", carried) + pairs
 
 
 write("stream_window", "ok-real-records-pass-0", b"\x04")

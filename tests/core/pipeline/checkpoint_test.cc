@@ -182,7 +182,7 @@ std::vector<std::string> WindowRecords(const fs::path& ckpt) {
   std::error_code ec;
   for (const auto& e : fs::directory_iterator(ckpt, ec)) {
     const std::string name = e.path().filename().string();
-    if (name.rfind("simplify.pass-", 0) == 0) names.push_back(name);
+    if (name.rfind(kSimplifyWindowRecordPrefix, 0) == 0) names.push_back(name);
   }
   std::sort(names.begin(), names.end());
   return names;
