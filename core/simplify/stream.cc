@@ -44,6 +44,9 @@ struct RunCounters {
   int64_t seen_cells = 0;        // original cells of the slabs so far in this pass
   int64_t window_count = 0, peak_window_cells = 0;
   bool stalled = false;  // the last window found no valid collapse left
+  // The final pass is the last measuring pass, kept (its count at tau was near enough the target
+  // for the last window to make up the rest; see kKeepTolerance).
+  bool kept_measuring_pass = false;
   int64_t collapses = 0;
   double max_error = 0;
 };
@@ -54,6 +57,9 @@ struct CarriedSample {
   int32_t vertex;  // grid id
   int32_t cell;
 };
+
+// The first field of a window record: its format (2: with RunCounters::kept_measuring_pass).
+constexpr char kWindowRecordTag[] = "decima-stream-window 2";
 
 // One window's record (StreamJournal): the run's counters after the window, and what the window
 // changed in the run's arrays.
@@ -70,7 +76,7 @@ struct WindowRecord {
 
 std::string SerializeWindowRecord(const WindowRecord& r, int64_t slabs, int64_t nv) {
   ByteWriter w;
-  w.PutString("decima-stream-window 1");
+  w.PutString(kWindowRecordTag);
   w.Put(slabs);
   w.Put(nv);
   w.Put(r.pass);
@@ -86,6 +92,7 @@ std::string SerializeWindowRecord(const WindowRecord& r, int64_t slabs, int64_t 
   w.Put(c.window_count);
   w.Put(c.peak_window_cells);
   w.Put<uint8_t>(c.stalled);
+  w.Put<uint8_t>(c.kept_measuring_pass);
   w.Put(c.collapses);
   w.Put(c.max_error);
   w.PutVector(r.pass_stats);
@@ -112,7 +119,7 @@ absl::StatusOr<WindowRecord> ParseWindowRecord(const std::string& bytes, int pas
   DECIMA_RETURN_IF_ERROR(r.Get("pass", &w.pass));
   DECIMA_RETURN_IF_ERROR(r.Get("window", &w.window));
   RunCounters& c = w.counters;
-  uint8_t measure = 0, stalled = 0;
+  uint8_t measure = 0, stalled = 0, kept = 0;
   int32_t measuring_passes = 0;
   DECIMA_RETURN_IF_ERROR(r.Get("measure", &measure));
   DECIMA_RETURN_IF_ERROR(r.Get("measuring_passes", &measuring_passes));
@@ -124,10 +131,12 @@ absl::StatusOr<WindowRecord> ParseWindowRecord(const std::string& bytes, int pas
   DECIMA_RETURN_IF_ERROR(r.Get("window_count", &c.window_count));
   DECIMA_RETURN_IF_ERROR(r.Get("peak_window_cells", &c.peak_window_cells));
   DECIMA_RETURN_IF_ERROR(r.Get("stalled", &stalled));
+  DECIMA_RETURN_IF_ERROR(r.Get("kept_measuring_pass", &kept));
   DECIMA_RETURN_IF_ERROR(r.Get("collapses", &c.collapses));
   DECIMA_RETURN_IF_ERROR(r.Get("max_error", &c.max_error));
   c.measure = measure != 0;
   c.stalled = stalled != 0;
+  c.kept_measuring_pass = kept != 0;
   c.measuring_passes = measuring_passes;
   DECIMA_RETURN_IF_ERROR(r.GetVector("pass_stats", &w.pass_stats));
   DECIMA_RETURN_IF_ERROR(r.GetVector("written", &w.written));
@@ -138,7 +147,7 @@ absl::StatusOr<WindowRecord> ParseWindowRecord(const std::string& bytes, int pas
   auto bad = [&](const std::string& what) {
     return absl::InvalidArgumentError(absl::StrCat("stream window record: ", what));
   };
-  if (tag != "decima-stream-window 1") return bad(absl::StrCat("tag '", tag, "'"));
+  if (tag != kWindowRecordTag) return bad(absl::StrCat("tag '", tag, "'"));
   if (rslabs != slabs || rnv != nv || w.pass != pass || w.window != window) {
     return bad(absl::StrCat("window ", w.window, " of pass ", w.pass, " of a run of ", rslabs,
                             " slabs over ", rnv, " vertices, expected window ", window, " of pass ",
@@ -176,8 +185,8 @@ absl::StatusOr<WindowRecord> ParseWindowRecord(const std::string& bytes, int pas
       return bad("carried_samples: not (vertex, carried cell) pairs of the window");
     }
   }
-  if (measure > 1 || stalled > 1 || measuring_passes < 0 || measuring_passes > pass ||
-      c.seen_cells < 0 || c.window_count < 0 || c.collapses < 0) {
+  if (measure > 1 || stalled > 1 || kept > 1 || (kept && measure) || measuring_passes < 0 ||
+      measuring_passes > pass || c.seen_cells < 0 || c.window_count < 0 || c.collapses < 0) {
     return bad("counters out of range");
   }
   return w;
@@ -287,6 +296,12 @@ absl::StatusOr<SimplifyResult> SimplifyStreamed(const TetMesh& mesh, const Simpl
   bool& stalled = run.stalled;
   constexpr int kMaxMeasuringPasses = 3;
   constexpr double kMeasureTolerance = 0.03;
+  // A measuring pass is kept as the final one when, at its last window, the cells left to remove
+  // differ from what that window removes at tau by at most this fraction of it: the last window
+  // then removes exactly what is left, as in a final pass, and another pass over every window is
+  // saved (the passes are most of the stage's time). The share is small because what the last
+  // window makes up alone costs fidelity (README "Pacing").
+  constexpr double kKeepTolerance = 0.03;
   std::vector<int32_t> local, globals;
   std::vector<uint8_t> frozen;
   std::vector<int32_t> sample_cell, sample_home;
@@ -301,6 +316,18 @@ absl::StatusOr<SimplifyResult> SimplifyStreamed(const TetMesh& mesh, const Simpl
   int start_pass = 0;
   int64_t start_k = 0;
   std::string resume_note;
+  // A window's record applied to the run's arrays and counters: how a window simplified now and
+  // one read back both end, so the state a later window reads cannot differ between them.
+  auto apply = [&](WindowRecord&& rec) {
+    for (int32_t g : rec.written) finalized[g] = 1;
+    out_cells.insert(out_cells.end(), rec.written.begin(), rec.written.end());
+    for (size_t i = 0; i < rec.merged.size(); i += 2)
+      merged_into[rec.merged[i]] = rec.merged[i + 1];
+    carried = std::move(rec.carried);
+    carried_samples = std::move(rec.carried_samples);
+    for (const SimplifyPassStats& st : rec.pass_stats) result.pass_stats.push_back(st);
+    run = rec.counters;
+  };
   if (journal) journal->windows_per_pass = slabs;
   if (journal && journal->load) {
     for (int p = kMaxMeasuringPasses; p >= 0 && start_k == 0; --p) {
@@ -313,14 +340,7 @@ absl::StatusOr<SimplifyResult> SimplifyStreamed(const TetMesh& mesh, const Simpl
           resume_note = absl::StrCat(" (", rec.status().message(), ": simplified again)");
           break;
         }
-        for (int32_t g : rec->written) finalized[g] = 1;
-        out_cells.insert(out_cells.end(), rec->written.begin(), rec->written.end());
-        for (size_t i = 0; i < rec->merged.size(); i += 2)
-          merged_into[rec->merged[i]] = rec->merged[i + 1];
-        carried = std::move(rec->carried);
-        carried_samples = std::move(rec->carried_samples);
-        for (const SimplifyPassStats& st : rec->pass_stats) result.pass_stats.push_back(st);
-        run = rec->counters;
+        apply(*std::move(rec));
         start_pass = p;
         start_k = k + 1;
       }
@@ -357,7 +377,6 @@ absl::StatusOr<SimplifyResult> SimplifyStreamed(const TetMesh& mesh, const Simpl
     }
     for (int64_t k = pass == start_pass ? start_k : 0; k < slabs; ++k) {
       DECIMA_RETURN_IF_ERROR(CheckCancelled(cancel, "simplify"));
-      const size_t written_before = out_cells.size();
       const int64_t z0 = k * cube_layers / slabs, z1 = (k + 1) * cube_layers / slabs;
       const bool last = z1 == cube_layers;
       const int64_t ncarried = int64_t(carried.size() / 4);
@@ -411,9 +430,9 @@ absl::StatusOr<SimplifyResult> SimplifyStreamed(const TetMesh& mesh, const Simpl
       window.frozen = frozen.data();
       window.sample_cell = free_interfaces ? sample_cell.data() : nullptr;
       window.sample_home = free_interfaces ? &sample_home : nullptr;
-      // The window's pacing (see above): the measuring pass's first window by cells, every other
-      // window of either pass up to the threshold, the final pass's last window exactly what is
-      // left (with the engine's parallel rounds).
+      // The window's pacing (see above): the first measuring pass's first window by cells, every
+      // other window of either pass up to the threshold, the final pass's last window exactly what
+      // is left (with the engine's parallel rounds).
       cost_log.clear();
       window.cost_log = measure ? &cost_log : nullptr;
       window.stop_cost = last && !measure ? -1.0 : tau;
@@ -430,10 +449,34 @@ absl::StatusOr<SimplifyResult> SimplifyStreamed(const TetMesh& mesh, const Simpl
       o.refit_iterations = 0;
       DECIMA_RETURN_IF_ERROR(simplify_internal::RunFieldSimplifyWindow(
           wm, o, threads, window_target, window, nullptr, cancel, &wr));
+      if (measure && last) {
+        // The pass's count at tau, and what the last window would have to make up to hit the
+        // target instead: small enough, and the window is run again to remove exactly what is
+        // left, which makes this pass the final one (when the window gets there).
+        const int64_t at_tau = wnt - wr.mesh.tet_count();
+        const int64_t left = target - removed_before;
+        if (left >= 0 && double(std::abs(left - at_tau)) <= kKeepTolerance * double(at_tau)) {
+          SimplifyResult exact;
+          std::vector<int32_t> exact_home;
+          simplify_internal::FieldWindow w = window;
+          w.cost_log = nullptr;
+          w.stop_cost = -1.0;
+          if (free_interfaces) w.sample_home = &exact_home;
+          DECIMA_RETURN_IF_ERROR(simplify_internal::RunFieldSimplifyWindow(
+              wm, o, threads, std::min<int64_t>(left, wnt), w, nullptr, cancel, &exact));
+          if (exact.stop_reason == StopReason::kTargetReached) {
+            sample_home.swap(exact_home);
+            last_tau = tau;
+            measured_removed = removed_before + at_tau;
+            measure = false;
+            run.kept_measuring_pass = true;
+            wr = std::move(exact);
+          }
+        }
+      }
       ++window_count;
       run.collapses += wr.collapses;
       run.max_error = std::max(run.max_error, wr.max_error);
-      for (const SimplifyPassStats& s : wr.pass_stats) result.pass_stats.push_back(s);
       stalled = wr.stop_reason != StopReason::kTargetReached;
 
       // Output vertex -> grid id: a survivor is copied by Finish with its own position, and voxel
@@ -449,17 +492,14 @@ absl::StatusOr<SimplifyResult> SimplifyStreamed(const TetMesh& mesh, const Simpl
           out_global[o] = globals[v];
         }
       }
+      // The window's record (applied below, and saved): its survivors (a measuring pass's make
+      // the output when the pass is kept, above), the cells it writes out and those it carries on.
       WindowRecord record;
-      const bool keep_record = journal && journal->save;
       for (int64_t v = 0; v < wnv; ++v) {
         const int32_t o = wr.vertex_map[v];
         if (o < 0) continue;
-        merged_into[globals[v]] = out_global[o];
-        // Only the final pass's survivors make the output.
-        if (keep_record && !measure) {
-          record.merged.push_back(globals[v]);
-          record.merged.push_back(out_global[o]);
-        }
+        record.merged.push_back(globals[v]);
+        record.merged.push_back(out_global[o]);
       }
       // Written out: the cells wholly at or below the middle of the slab (all of them at the end).
       const int64_t cut = last ? grid.nz() : z0 + (z1 - z0 + 1) / 2;
@@ -473,20 +513,17 @@ absl::StatusOr<SimplifyResult> SimplifyStreamed(const TetMesh& mesh, const Simpl
           top = std::max<int64_t>(top, t[k] / layer);
         }
         if (top <= cut) {
-          for (int k = 0; k < 4; ++k) {
-            out_cells.push_back(t[k]);
-            finalized[t[k]] = 1;
-          }
+          record.written.insert(record.written.end(), t, t + 4);
         } else {
-          carried_index[c] = int32_t(carried.size() / 4);
-          carried.insert(carried.end(), t, t + 4);
+          carried_index[c] = int32_t(record.carried.size() / 4);
+          record.carried.insert(record.carried.end(), t, t + 4);
         }
       }
       if (free_interfaces) {
         for (int64_t v = 0; v < wnv; ++v) {
           const int32_t h = sample_home[v];
           if (h >= 0 && carried_index[h] >= 0)
-            carried_samples.push_back({globals[v], carried_index[h]});
+            record.carried_samples.push_back({globals[v], carried_index[h]});
         }
       }
       if (measure) {
@@ -495,16 +532,13 @@ absl::StatusOr<SimplifyResult> SimplifyStreamed(const TetMesh& mesh, const Simpl
           if (c > tau / 2 && c <= tau) band += d;
         }
       }
-      if (keep_record) {
-        record.pass = pass;
-        record.window = k;
-        record.counters = run;
-        record.pass_stats = wr.pass_stats;
-        record.written.assign(out_cells.begin() + written_before, out_cells.end());
-        record.carried = carried;
-        record.carried_samples = carried_samples;
+      record.pass = pass;
+      record.window = k;
+      record.counters = run;
+      record.pass_stats = std::move(wr.pass_stats);
+      if (journal && journal->save)
         journal->save(pass, k, SerializeWindowRecord(record, slabs, nv));
-      }
+      apply(std::move(record));
       reported = std::max(
           reported, PassFraction(measure, measuring_passes, double(z1) / double(cube_layers)));
       Report(progress,
@@ -514,20 +548,25 @@ absl::StatusOr<SimplifyResult> SimplifyStreamed(const TetMesh& mesh, const Simpl
                               "%d written out, %d carried",
                               window_count, slabs,
                               measure ? absl::StrCat("measuring pass ", measuring_passes + 1)
-                                      : std::string("final pass"),
+                              : run.kept_measuring_pass
+                                  ? absl::StrCat("measuring pass ", measuring_passes + 1,
+                                                 " kept as the final pass")
+                                  : std::string("final pass"),
                               z0, z1, tau, wnt, wnt - ont, int64_t(out_cells.size() / 4),
                               int64_t(carried.size() / 4)),
               {{"pass", double(window_count)},
                {"slab", double(window_count)},
                {"slabs", double(slabs)},
                {"measuring_pass", measure ? double(measuring_passes + 1) : 0.0},
+               {"kept_measuring_pass", run.kept_measuring_pass ? 1.0 : 0.0},
                {"cells_removed",
                 double(seen_cells - int64_t(out_cells.size() / 4) - int64_t(carried.size() / 4))},
                {"error", wr.max_error}}});
     }
     if (!measure) break;
     // A Newton step on the removed cells as a function of ln tau, at most a factor of 4 a pass
-    // (the count is flat in tau: a 1.5x threshold moves it by ~2 % on the CT head at 80 %). The
+    // (the count is flat in tau: a 1.5x threshold moves it by ~2 % on the CT head at 80 %), or of
+    // 64 while the count misses the target by more than 10 % (a first threshold far off). The
     // slope: from the second measuring pass on, the secant through the last two passes; before,
     // the cells that the collapses in (tau / 2, tau] removed. Another measuring pass while the
     // count misses the target by more than kMeasureTolerance.
@@ -540,7 +579,9 @@ absl::StatusOr<SimplifyResult> SimplifyStreamed(const TetMesh& mesh, const Simpl
     }
     const double step = slope > 0 ? (double(target) - double(measured)) / slope : 0;
     last_tau = tau;
-    tau *= std::exp(std::clamp(step, -std::log(4.0), std::log(4.0)));
+    const double max_step =
+        std::log(std::abs(double(measured - target)) > 0.1 * double(target) ? 64.0 : 4.0);
+    tau *= std::exp(std::clamp(step, -max_step, max_step));
     measured_removed = measured;
     ++measuring_passes;
     measure = measuring_passes < kMaxMeasuringPasses &&
@@ -612,10 +653,15 @@ absl::StatusOr<SimplifyResult> SimplifyStreamed(const TetMesh& mesh, const Simpl
       result.reached_target ? StopReason::kTargetReached : StopReason::kNoValidCollapse;
   result.stop_message = absl::StrFormat(
       "%s: removed %d of %d cells (%.2f%%) in %d windows of %d voxel layers (largest %d cells), "
-      "cost threshold %g (%d measuring passes, the last removed %d)%s",
+      "cost threshold %g (%s)%s",
       result.reached_target ? "target reached" : "target not reached", removed, input_cells,
       100 * result.achieved_reduction, window_count, slab_voxels, peak_window_cells, tau,
-      measuring_passes, measured_removed,
+      run.kept_measuring_pass
+          ? absl::StrFormat("%d measuring passes, the last kept as the final pass: %d removed at "
+                            "the threshold, the last window made up the rest",
+                            measuring_passes + 1, measured_removed)
+          : absl::StrFormat("%d measuring passes, the last removed %d", measuring_passes,
+                            measured_removed),
       stalled ? "; the last window found no valid collapse left" : "");
   return result;
 }

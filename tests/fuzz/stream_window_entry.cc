@@ -49,6 +49,8 @@ const Fixture& TheFixture() {
     };
     auto whole = SimplifyStreamed(x->mesh, x->options, kSlab, nullptr, nullptr, &j);
     Require(whole.ok() && j.windows_per_pass == 4, "the fixture's run");
+    // The seeds read back the records of pass 0 (measuring) and pass 1.
+    Require(x->records.count({1, 3}) == 1, "the fixture runs two passes");
     x->whole = *std::move(whole);
     return x;
   }();

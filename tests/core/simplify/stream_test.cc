@@ -275,42 +275,62 @@ TEST(SimplifyStreamedTest, ADamagedOrForeignWindowRecordIsSimplifiedAgain) {
 
 // The stage's fraction never goes back, gives each pass its share of the passes that run (the
 // ETA comes from it: a measuring pass shown as a sixth of the stage made the 511 CT's first ETA
-// five times too long), and reaches 1 only with the refit.
+// five times too long), and reaches 1 only with the refit. A measuring pass kept as the final one
+// ends the windows' share at its last window.
 TEST(SimplifyStreamedTest, ProgressGivesEachPassItsShareAndNeverGoesBack) {
   const Case c = MakeCase({24, 22, 29});
-  std::vector<Progress> events;
-  auto r = SimplifyStreamed(c.mesh, FieldOptions(0.8, 2), 6,
-                            [&](const Progress& p) { events.push_back(p); });
-  ASSERT_TRUE(r.ok()) << r.status();
-  ASSERT_GE(events.size(), 10u);
-  double last = 0;
-  int measuring = 0;
-  bool final_seen = false;
-  for (const Progress& p : events) {
-    EXPECT_EQ(p.stage, "simplify");
-    EXPECT_GE(p.fraction, last) << p.message;
-    const double before = last;
-    last = p.fraction;
-    double pass = -1;
-    for (const auto& [k, v] : p.metrics) {
-      if (k == "measuring_pass") pass = v;
+  bool kept_seen = false, final_pass_seen = false;
+  for (double reduction : {0.8, 0.6}) {
+    SCOPED_TRACE(reduction);
+    std::vector<Progress> events;
+    auto r = SimplifyStreamed(c.mesh, FieldOptions(reduction, 2), 6,
+                              [&](const Progress& p) { events.push_back(p); });
+    ASSERT_TRUE(r.ok()) << r.status();
+    ASSERT_GE(events.size(), 6u);
+    double last = 0;
+    int measuring = 0;
+    bool final_seen = false;
+    for (const Progress& p : events) {
+      EXPECT_EQ(p.stage, "simplify");
+      EXPECT_GE(p.fraction, last) << p.message;
+      const double before = last;
+      last = p.fraction;
+      double pass = -1, kept = 0;
+      for (const auto& [k, v] : p.metrics) {
+        if (k == "measuring_pass") pass = v;
+        if (k == "kept_measuring_pass") kept = v;
+      }
+      if (pass > 0) measuring = std::max(measuring, int(pass));
+      if (pass == 0 && !final_seen) {
+        final_seen = true;
+        if (kept > 0) {
+          // The kept pass's last window ends the windows' share; its other windows had the share
+          // of a measuring pass.
+          kept_seen = true;
+          EXPECT_NE(p.message.find("kept as the final pass"), std::string::npos) << p.message;
+          EXPECT_DOUBLE_EQ(p.fraction, 0.95) << p.message;
+          EXPECT_LT(before, 0.95 * measuring / (measuring + 1.0)) << p.message;
+          EXPECT_GT(before, 0.95 * (measuring - 0.5) / (measuring + 1.0)) << p.message;
+        } else {
+          final_pass_seen = true;
+          // The measuring passes' last window ended their share.
+          EXPECT_GT(before, 0.95 * measuring / (measuring + 1.0) - 1e-9) << p.message;
+          // The final pass's first window: the measuring passes' share, plus that window's.
+          EXPECT_GT(p.fraction, 0.95 * measuring / (measuring + 1.0) - 1e-9) << p.message;
+          EXPECT_LT(p.fraction, 0.95 * (measuring + 0.3) / (measuring + 1.0)) << p.message;
+        }
+      }
+      if (pass >= 0) {
+        EXPECT_LE(p.fraction, 0.95 + 1e-12) << p.message;
+      }
     }
-    if (pass > 0) measuring = std::max(measuring, int(pass));
-    if (pass == 0 && !final_seen) {
-      final_seen = true;
-      // The measuring passes' last window ended their share.
-      EXPECT_GT(before, 0.95 * measuring / (measuring + 1.0) - 1e-9) << p.message;
-      // The final pass's first window: the measuring passes' share, plus that window's.
-      EXPECT_GT(p.fraction, 0.95 * measuring / (measuring + 1.0) - 1e-9) << p.message;
-      EXPECT_LT(p.fraction, 0.95 * (measuring + 0.3) / (measuring + 1.0)) << p.message;
-    }
-    if (pass >= 0) {
-      EXPECT_LE(p.fraction, 0.95 + 1e-12) << p.message;
-    }
+    EXPECT_GE(measuring, 1);
+    EXPECT_TRUE(final_seen);
+    EXPECT_EQ(events.back().fraction, 1.0) << events.back().message;
   }
-  EXPECT_GE(measuring, 1);
-  EXPECT_TRUE(final_seen);
-  EXPECT_EQ(events.back().fraction, 1.0) << events.back().message;
+  // One run of each kind.
+  EXPECT_TRUE(kept_seen);
+  EXPECT_TRUE(final_pass_seen);
 }
 
 TEST(SimplifyStreamedTest, OneWindowIsTheInMemoryRun) {
