@@ -1805,6 +1805,12 @@ absl::Status FieldEngine::Run(int64_t target, double tolerance, const ProgressFn
     levels_->base_cells = nt_;
     levels_->exhausted = removed < target;
   }
+  if (window_ != nullptr && window_->queued_costs != nullptr) {
+    window_->queued_costs->clear();
+    for (int64_t v = 0; v < nv_; ++v) {
+      if (Queued(v)) window_->queued_costs->push_back(float(st_[v].cost));
+    }
+  }
   if (window_ != nullptr && free_interfaces_) {
     sample_home_.assign(nv_, -1);
     for (int64_t c = 0; c < nt_; ++c) {

@@ -47,6 +47,9 @@ struct FieldWindow {
   double stop_cost = -1;
   // Out, if set: the serial loop's collapses in order, (queue cost, cells removed) each.
   std::vector<std::pair<float, int32_t>>* cost_log = nullptr;
+  // Out, if set: the costs of the collapses still queued when the run stopped (what the next ones
+  // would cost, before the collapses between them change it).
+  std::vector<float>* queued_costs = nullptr;
   // Out, InterfaceMode::kFree: per input vertex, the output cell whose bucket lists it (-1: none,
   // e.g. a surviving vertex).
   std::vector<int32_t>* sample_home = nullptr;

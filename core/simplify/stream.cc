@@ -58,8 +58,17 @@ struct CarriedSample {
   int32_t cell;
 };
 
-// The first field of a window record: its format (2: with RunCounters::kept_measuring_pass).
-constexpr char kWindowRecordTag[] = "decima-stream-window 2";
+// The first field of a window record: its format (2: with RunCounters::kept_measuring_pass; 3:
+// with the window's share cost).
+constexpr char kWindowRecordTag[] = "decima-stream-window 3";
+
+// Where a measuring window's count reached its share of the target (the cells of its slab times
+// the target reduction), or would have: the cost of the collapse that got there or, for a window
+// short of it at the threshold, of the queued collapse as many collapses on as it lacked.
+struct ShareCost {
+  double cost;
+  int64_t share;  // the window's share in cells (the estimate's weight)
+};
 
 // One window's record (StreamJournal): the run's counters after the window, and what the window
 // changed in the run's arrays.
@@ -72,6 +81,7 @@ struct WindowRecord {
   std::vector<int32_t> merged;                 // (grid id, survivor) pairs; final pass only
   std::vector<int32_t> carried;                // the cells carried on, whole
   std::vector<CarriedSample> carried_samples;  // whole
+  std::vector<ShareCost> share_cost;           // measuring passes: the window's, if it has one
 };
 
 std::string SerializeWindowRecord(const WindowRecord& r, int64_t slabs, int64_t nv) {
@@ -100,6 +110,7 @@ std::string SerializeWindowRecord(const WindowRecord& r, int64_t slabs, int64_t 
   w.PutVector(r.merged);
   w.PutVector(r.carried);
   w.PutVector(r.carried_samples);
+  w.PutVector(r.share_cost);
   return w.Take();
 }
 
@@ -143,6 +154,7 @@ absl::StatusOr<WindowRecord> ParseWindowRecord(const std::string& bytes, int pas
   DECIMA_RETURN_IF_ERROR(r.GetVector("merged", &w.merged));
   DECIMA_RETURN_IF_ERROR(r.GetVector("carried", &w.carried));
   DECIMA_RETURN_IF_ERROR(r.GetVector("carried_samples", &w.carried_samples));
+  DECIMA_RETURN_IF_ERROR(r.GetVector("share_cost", &w.share_cost));
   DECIMA_RETURN_IF_ERROR(r.Done());
   auto bad = [&](const std::string& what) {
     return absl::InvalidArgumentError(absl::StrCat("stream window record: ", what));
@@ -184,6 +196,10 @@ absl::StatusOr<WindowRecord> ParseWindowRecord(const std::string& bytes, int pas
     if (cs.vertex < 0 || cs.vertex >= window_end || cs.cell < 0 || cs.cell >= ncarried) {
       return bad("carried_samples: not (vertex, carried cell) pairs of the window");
     }
+  }
+  if (w.share_cost.size() > 1 ||
+      (!w.share_cost.empty() && (!(w.share_cost[0].cost >= 0) || w.share_cost[0].share < 0))) {
+    return bad("share_cost: at most one (cost >= 0, share >= 0)");
   }
   if (measure > 1 || stalled > 1 || kept > 1 || (kept && measure) || measuring_passes < 0 ||
       measuring_passes > pass || c.seen_cells < 0 || c.window_count < 0 || c.collapses < 0) {
@@ -306,6 +322,8 @@ absl::StatusOr<SimplifyResult> SimplifyStreamed(const TetMesh& mesh, const Simpl
   std::vector<uint8_t> frozen;
   std::vector<int32_t> sample_cell, sample_home;
   std::vector<std::pair<float, int32_t>> cost_log;
+  std::vector<float> queued_costs;
+  std::vector<ShareCost> share_costs;  // the running pass's windows'
   // Slabs of equal depth (at most slab_voxels): a thin last slab would have to make up the
   // windows' shortfall on its own.
   const int64_t slabs = (cube_layers + slab_voxels - 1) / slab_voxels;
@@ -326,6 +344,7 @@ absl::StatusOr<SimplifyResult> SimplifyStreamed(const TetMesh& mesh, const Simpl
     carried = std::move(rec.carried);
     carried_samples = std::move(rec.carried_samples);
     for (const SimplifyPassStats& st : rec.pass_stats) result.pass_stats.push_back(st);
+    share_costs.insert(share_costs.end(), rec.share_cost.begin(), rec.share_cost.end());
     run = rec.counters;
   };
   if (journal) journal->windows_per_pass = slabs;
@@ -373,6 +392,7 @@ absl::StatusOr<SimplifyResult> SimplifyStreamed(const TetMesh& mesh, const Simpl
       run.collapses = 0;
       run.max_error = 0;
       result.pass_stats.clear();
+      share_costs.clear();
       band = 0;
     }
     for (int64_t k = pass == start_pass ? start_k : 0; k < slabs; ++k) {
@@ -435,6 +455,8 @@ absl::StatusOr<SimplifyResult> SimplifyStreamed(const TetMesh& mesh, const Simpl
       // is left (with the engine's parallel rounds).
       cost_log.clear();
       window.cost_log = measure ? &cost_log : nullptr;
+      const bool at_threshold = measure && !(pass == 0 && k == 0);
+      window.queued_costs = at_threshold ? &queued_costs : nullptr;
       window.stop_cost = last && !measure ? -1.0 : tau;
       int64_t window_target = std::clamp<int64_t>(target - removed_before, 0, wnt);
       if (measure && pass == 0 && k == 0) {
@@ -449,6 +471,32 @@ absl::StatusOr<SimplifyResult> SimplifyStreamed(const TetMesh& mesh, const Simpl
       o.refit_iterations = 0;
       DECIMA_RETURN_IF_ERROR(simplify_internal::RunFieldSimplifyWindow(
           wm, o, threads, window_target, window, nullptr, cancel, &wr));
+      std::vector<ShareCost> share_cost;
+      if (at_threshold) {
+        // The window's share cost (ShareCost): from its collapses when it got there, else from
+        // its queue, at the cells per collapse it saw. A window with nothing queued has none (no
+        // threshold would take it further).
+        const int64_t share =
+            int64_t(std::ceil(options.target_reduction * double((z1 - z0) * layer_tets)));
+        int64_t removed = 0;
+        double cost = -1;
+        for (const auto& [c, d] : cost_log) {
+          removed += d;
+          if (removed >= share) {
+            cost = c;
+            break;
+          }
+        }
+        if (cost < 0 && !queued_costs.empty()) {
+          const double per_collapse =
+              cost_log.empty() ? 1.0 : std::max(1.0, double(removed) / double(cost_log.size()));
+          const size_t n = std::min(queued_costs.size() - 1,
+                                    size_t(std::ceil(double(share - removed) / per_collapse)));
+          std::nth_element(queued_costs.begin(), queued_costs.begin() + n, queued_costs.end());
+          cost = queued_costs[n];
+        }
+        if (cost >= 0) share_cost.push_back({cost, share});
+      }
       if (measure && last) {
         // The pass's count at tau, and what the last window would have to make up to hit the
         // target instead: small enough, and the window is run again to remove exactly what is
@@ -460,6 +508,7 @@ absl::StatusOr<SimplifyResult> SimplifyStreamed(const TetMesh& mesh, const Simpl
           std::vector<int32_t> exact_home;
           simplify_internal::FieldWindow w = window;
           w.cost_log = nullptr;
+          w.queued_costs = nullptr;
           w.stop_cost = -1.0;
           if (free_interfaces) w.sample_home = &exact_home;
           DECIMA_RETURN_IF_ERROR(simplify_internal::RunFieldSimplifyWindow(
@@ -536,6 +585,7 @@ absl::StatusOr<SimplifyResult> SimplifyStreamed(const TetMesh& mesh, const Simpl
       record.window = k;
       record.counters = run;
       record.pass_stats = std::move(wr.pass_stats);
+      record.share_cost = std::move(share_cost);
       if (journal && journal->save)
         journal->save(pass, k, SerializeWindowRecord(record, slabs, nv));
       apply(std::move(record));
@@ -579,9 +629,33 @@ absl::StatusOr<SimplifyResult> SimplifyStreamed(const TetMesh& mesh, const Simpl
     }
     const double step = slope > 0 ? (double(target) - double(measured)) / slope : 0;
     last_tau = tau;
-    const double max_step =
-        std::log(std::abs(double(measured - target)) > 0.1 * double(target) ? 64.0 : 4.0);
-    tau *= std::exp(std::clamp(step, -max_step, max_step));
+    // Far from the target (more than 10 %), the count can be flat over decades of tau (ch2better:
+    // its empty slabs give 83 % of the target at 8e-5, the rest needs ~10^6 times that), so no
+    // clamped Newton step gets there: the next threshold is then the median of the windows'
+    // share costs weighted by their shares, when it lies on the side the miss points to.
+    double median_share_cost = -1;
+    if (!share_costs.empty()) {
+      std::vector<ShareCost> sorted = share_costs;
+      std::sort(sorted.begin(), sorted.end(),
+                [](const ShareCost& a, const ShareCost& b) { return a.cost < b.cost; });
+      int64_t total = 0, acc = 0;
+      for (const ShareCost& sc : sorted) total += sc.share;
+      for (const ShareCost& sc : sorted) {
+        acc += sc.share;
+        if (2 * acc >= total) {
+          median_share_cost = sc.cost;
+          break;
+        }
+      }
+    }
+    const bool far = std::abs(double(measured - target)) > 0.1 * double(target);
+    if (far && ((measured < target && median_share_cost > tau) ||
+                (measured > target && median_share_cost >= 0 && median_share_cost < tau))) {
+      tau = median_share_cost;
+    } else {
+      const double max_step = std::log(far ? 64.0 : 4.0);
+      tau *= std::exp(std::clamp(step, -max_step, max_step));
+    }
     measured_removed = measured;
     ++measuring_passes;
     measure = measuring_passes < kMaxMeasuringPasses &&

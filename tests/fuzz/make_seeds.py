@@ -431,14 +431,15 @@ def patches(*quads):
 
 
 def window_record(pass_=0, window=0, slabs=4, nv=1260, written=(), carried=(), samples=(),
-                  merged=(), tag=b"decima-stream-window 2"):
+                  merged=(), tag=b"decima-stream-window 3"):
     out = struct.pack("<Q", len(tag)) + tag + struct.pack("<qqiq", slabs, nv, pass_, window)
     out += bytes([1]) + struct.pack("<i", 0) + struct.pack("<ddd", 5.0, 10.0, -1.0)
     out += struct.pack("<qqqq", 0, 405, 1, 425) + bytes([0, 0]) + struct.pack("<qd", 10, 5.0)
     out += struct.pack("<Q", 0)  # no pass stats
     # carried_samples: (vertex, cell) pairs, counted as pairs
     pairs = struct.pack("<Q", len(samples) // 2) + b"".join(struct.pack("<i", v) for v in samples)
-    return out + vec("i", written) + vec("i", merged) + vec("i", carried) + pairs
+    share_cost = struct.pack("<Q", 0)  # no (cost, share) of the window
+    return out + vec("i", written) + vec("i", merged) + vec("i", carried) + pairs + share_cost
 
 
 write("stream_window", "ok-real-records-pass-0", b"\x04")
