@@ -361,8 +361,8 @@ class PostgresJobStore : public JobStore {
   }
 
   absl::StatusOr<v1::Job> GetJob(const std::string& id) override {
-    return Run<absl::StatusOr<v1::Job>>("reading a job",
-                                        [&](pqxx::work& w) { return LoadJob(w, id, false); });
+    return Read<absl::StatusOr<v1::Job>>("reading a job",
+                                         [&](pqxx::work& w) { return LoadJob(w, id, false); });
   }
 
   absl::StatusOr<JobPage> ListJobs(const std::vector<v1::JobState>& states,
@@ -373,7 +373,7 @@ class PostgresJobStore : public JobStore {
     const int limit = ClampPageSize(page_size);
     std::vector<std::string> parts;
     for (auto s : states) parts.push_back(absl::StrCat(static_cast<int>(s)));
-    return Run<absl::StatusOr<JobPage>>(
+    return Read<absl::StatusOr<JobPage>>(
         "listing jobs", [&](pqxx::work& w) -> absl::StatusOr<JobPage> {
           auto r = w.exec_params(
               "SELECT ord, job FROM jobs WHERE ord < $1 AND ($2 OR state = ANY($3::int[])) "
@@ -396,7 +396,7 @@ class PostgresJobStore : public JobStore {
   }
 
   absl::StatusOr<int64_t> CountJobs(v1::JobState state) override {
-    return Run<absl::StatusOr<int64_t>>(
+    return Read<absl::StatusOr<int64_t>>(
         "counting jobs", [&](pqxx::work& w) -> absl::StatusOr<int64_t> {
           return w.exec_params("SELECT COUNT(*) FROM jobs WHERE state=$1", int{state})[0][0]
               .as<int64_t>();
@@ -526,7 +526,7 @@ class PostgresJobStore : public JobStore {
   }
 
   absl::StatusOr<bool> CancelRequested(const std::string& id) override {
-    return Run<absl::StatusOr<bool>>(
+    return Read<absl::StatusOr<bool>>(
         "reading a cancel request", [&](pqxx::work& w) -> absl::StatusOr<bool> {
           auto r = w.exec_params("SELECT cancel_requested FROM jobs WHERE id=$1", id);
           if (r.empty()) return absl::NotFoundError(absl::StrCat("job ", id, " not found"));
@@ -566,7 +566,7 @@ class PostgresJobStore : public JobStore {
   absl::StatusOr<std::vector<v1::JobEvent>> ListEvents(const std::string& id, int64_t after,
                                                        int limit) override {
     using Out = absl::StatusOr<std::vector<v1::JobEvent>>;
-    return Run<Out>("listing events", [&](pqxx::work& w) -> Out {
+    return Read<Out>("listing events", [&](pqxx::work& w) -> Out {
       auto r =
           w.exec_params("SELECT event FROM events WHERE job_id=$1 AND seq>$2 ORDER BY seq LIMIT $3",
                         id, after, limit);
@@ -633,7 +633,7 @@ class PostgresJobStore : public JobStore {
   }
 
   absl::StatusOr<v1::Volume> GetVolume(const std::string& id) override {
-    return Run<absl::StatusOr<v1::Volume>>(
+    return Read<absl::StatusOr<v1::Volume>>(
         "reading a volume", [&](pqxx::work& w) -> absl::StatusOr<v1::Volume> {
           auto r = w.exec_params("SELECT volume FROM volumes WHERE id=$1", id);
           if (r.empty()) return absl::NotFoundError(absl::StrCat("volumes/", id, " not found"));
@@ -646,7 +646,7 @@ class PostgresJobStore : public JobStore {
     auto before = DecodePageToken(page_token);
     if (!before.ok()) return before.status();
     const int limit = ClampPageSize(page_size);
-    return Run<absl::StatusOr<VolumePage>>(
+    return Read<absl::StatusOr<VolumePage>>(
         "listing volumes", [&](pqxx::work& w) -> absl::StatusOr<VolumePage> {
           auto r = w.exec_params(
               "SELECT ord, volume FROM volumes WHERE ord < $1 AND ($3 = '' OR creator = $3) "
@@ -695,7 +695,7 @@ class PostgresJobStore : public JobStore {
   }
 
   absl::StatusOr<bool> BlobInUse(const std::string& sha256) override {
-    return Run<absl::StatusOr<bool>>(
+    return Read<absl::StatusOr<bool>>(
         "checking blob use", [&](pqxx::work& w) -> absl::StatusOr<bool> {
           return !w.exec_params(
                        "SELECT 1 FROM volume_blobs WHERE sha256=$1 UNION ALL "
@@ -734,7 +734,7 @@ class PostgresJobStore : public JobStore {
 
   absl::StatusOr<std::vector<DicomInstanceRecord>> ListDicomInstances() override {
     using Out = absl::StatusOr<std::vector<DicomInstanceRecord>>;
-    return Run<Out>("listing DICOM instances", [&](pqxx::work& w) -> Out {
+    return Read<Out>("listing DICOM instances", [&](pqxx::work& w) -> Out {
       return Instances(w.exec(absl::StrCat(kInstanceColumns, "ORDER BY ord")));
     });
   }
@@ -777,7 +777,7 @@ class PostgresJobStore : public JobStore {
   absl::StatusOr<std::vector<DicomSeriesRecord>> ListDicomSeries(bool pending_only,
                                                                  int limit) override {
     using Out = absl::StatusOr<std::vector<DicomSeriesRecord>>;
-    return Run<Out>("listing DICOM series", [&](pqxx::work& w) -> Out {
+    return Read<Out>("listing DICOM series", [&](pqxx::work& w) -> Out {
       std::vector<DicomSeriesRecord> out;
       for (const auto& row : w.exec_params(
                absl::StrCat("SELECT instance_set, series_instance_uid, job, reason, route, "
@@ -837,7 +837,7 @@ class PostgresJobStore : public JobStore {
   }
 
   absl::StatusOr<int64_t> DicomWaitingBytes(const std::string& calling_ae) override {
-    return Run<absl::StatusOr<int64_t>>(
+    return Read<absl::StatusOr<int64_t>>(
         "summing a sender's DICOM instances", [&](pqxx::work& w) -> absl::StatusOr<int64_t> {
           return w
               .exec_params1(
@@ -849,11 +849,19 @@ class PostgresJobStore : public JobStore {
   }
 
  private:
+  // Run for a body that only reads: a connection lost during its commit is retried too, since
+  // whether a read-only transaction committed changes nothing (a watcher's listing of events
+  // failed with "the outcome is unknown" when PostgreSQL restarted under load).
+  template <typename R, typename F>
+  R Read(const char* what, F&& body) {
+    return Run<R>(what, std::forward<F>(body), /*read_only=*/true);
+  }
+
   // Runs `body` in a transaction on a pooled connection and commits when it returns OK. A lost
   // connection (before the commit) is retried on a new one until reconnect_timeout; `body` must
   // therefore only write to the transaction and to state it resets itself.
   template <typename R, typename F>
-  R Run(const char* what, F&& body) {
+  R Run(const char* what, F&& body, bool read_only = false) {
     const auto deadline = std::chrono::steady_clock::now() + options_.reconnect_timeout;
     std::chrono::milliseconds backoff(50);
     for (int attempt = 0;; ++attempt) {
@@ -867,11 +875,14 @@ class PostgresJobStore : public JobStore {
         pool_.Release(std::move(conn), false);
         return out;
       } catch (const pqxx::in_doubt_error& e) {
-        if (conn) pool_.Release(std::move(conn), true);
-        return absl::UnavailableError(absl::StrCat("job store: ", what,
-                                                   ": the connection was lost during commit; "
-                                                   "the outcome is unknown (",
-                                                   e.what(), ")"));
+        if (!read_only) {
+          if (conn) pool_.Release(std::move(conn), true);
+          return absl::UnavailableError(absl::StrCat("job store: ", what,
+                                                     ": the connection was lost during commit; "
+                                                     "the outcome is unknown (",
+                                                     e.what(), ")"));
+        }
+        error = e.what();  // released and retried below
       } catch (const pqxx::broken_connection& e) {
         error = e.what();
       } catch (const pqxx::sql_error& e) {
