@@ -78,7 +78,7 @@ struct WindowRecord {
   RunCounters counters;
   std::vector<SimplifyPassStats> pass_stats;   // the window's
   std::vector<int32_t> written;                // cells written out (4 grid ids each)
-  std::vector<int32_t> merged;                 // (grid id, survivor) pairs; final pass only
+  std::vector<int32_t> merged;                 // (grid id, survivor) pairs
   std::vector<int32_t> carried;                // the cells carried on, whole
   std::vector<CarriedSample> carried_samples;  // whole
   std::vector<ShareCost> share_cost;           // measuring passes: the window's, if it has one
@@ -633,8 +633,9 @@ absl::StatusOr<SimplifyResult> SimplifyStreamed(const TetMesh& mesh, const Simpl
     // its empty slabs give 83 % of the target at 8e-5, the rest needs ~10^6 times that), so no
     // clamped Newton step gets there: the next threshold is then the median of the windows'
     // share costs weighted by their shares, when it lies on the side the miss points to.
+    const bool far = std::abs(double(measured - target)) > 0.1 * double(target);
     double median_share_cost = -1;
-    if (!share_costs.empty()) {
+    if (far && !share_costs.empty()) {
       std::vector<ShareCost> sorted = share_costs;
       std::sort(sorted.begin(), sorted.end(),
                 [](const ShareCost& a, const ShareCost& b) { return a.cost < b.cost; });
@@ -648,7 +649,6 @@ absl::StatusOr<SimplifyResult> SimplifyStreamed(const TetMesh& mesh, const Simpl
         }
       }
     }
-    const bool far = std::abs(double(measured - target)) > 0.1 * double(target);
     if (far && ((measured < target && median_share_cost > tau) ||
                 (measured > target && median_share_cost >= 0 && median_share_cost < tau))) {
       tau = median_share_cost;

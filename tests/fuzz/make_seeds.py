@@ -431,14 +431,16 @@ def patches(*quads):
 
 
 def window_record(pass_=0, window=0, slabs=4, nv=1260, written=(), carried=(), samples=(),
-                  merged=(), tag=b"decima-stream-window 3"):
+                  merged=(), share_costs=(), tag=b"decima-stream-window 3"):
     out = struct.pack("<Q", len(tag)) + tag + struct.pack("<qqiq", slabs, nv, pass_, window)
     out += bytes([1]) + struct.pack("<i", 0) + struct.pack("<ddd", 5.0, 10.0, -1.0)
     out += struct.pack("<qqqq", 0, 405, 1, 425) + bytes([0, 0]) + struct.pack("<qd", 10, 5.0)
     out += struct.pack("<Q", 0)  # no pass stats
     # carried_samples: (vertex, cell) pairs, counted as pairs
     pairs = struct.pack("<Q", len(samples) // 2) + b"".join(struct.pack("<i", v) for v in samples)
-    share_cost = struct.pack("<Q", 0)  # no (cost, share) of the window
+    # share_cost: (cost, share) of the window, at most one
+    share_cost = struct.pack("<Q", len(share_costs)) + b"".join(
+        struct.pack("<dq", c, n) for c, n in share_costs)
     return out + vec("i", written) + vec("i", merged) + vec("i", carried) + pairs + share_cost
 
 
@@ -460,5 +462,11 @@ write("stream_window", "bad-forged-window-repeated-vertex",
 # only if that pass is kept as the final one, else its survivors are never used.
 write("stream_window", "ok-forged-measuring-window-with-a-cycle",
       b"\x00" + window_record(merged=(0, 1, 1, 0)))
+write("stream_window", "bad-forged-window-negative-share-cost",
+      b"\x00" + window_record(share_costs=((-1.0, 100),)))
+write("stream_window", "bad-forged-window-two-share-costs",
+      b"\x00" + window_record(share_costs=((1.0, 100), (2.0, 100))))
+write("stream_window", "ok-forged-window-with-a-share-cost",
+      b"\x00" + window_record(share_costs=((3.5, 100),)))
 write("stream_window", "bad-forged-window-truncated", b"\x00" + window_record()[:-5])
 write("stream_window", "bad-forged-other-run", b"\x00" + window_record(slabs=7))
