@@ -16,21 +16,40 @@ namespace decima::simplify_internal {
 namespace {
 
 // A sample's row of A: the vertices of the simplified cell it lies in and its barycentric
-// weights there. vertex[0] == -1: outside every cell. (Storing the cell id instead of its
-// vertices would save 12 bytes per voxel, but the cells are not in sample order: the CGLS
-// passes then miss the cache on every row and the refit took twice the time on Colin27.)
+// weights there, in units of 1 / kWeightUnit, summing to kWeightUnit exactly. vertex[0] == -1:
+// outside every cell. 24 bytes (issue 30: the rows are the refit's peak on a clinical scan):
+// 16-bit weights are within 7.6e-6 of the cell's coordinates, a row's value within 3e-5 of the
+// value range, far below the fit's own residual (README "Refit"). Storing the cell id instead of
+// its vertices would save 12 bytes more, but the cells are not in sample order: the CGLS passes
+// then miss the cache on every row and the refit took twice the time on Colin27.
+constexpr double kWeightUnit = 65535.0;
 struct Row {
   std::array<int32_t, 4> vertex{-1, -1, -1, -1};
-  std::array<float, 4> w{};
+  std::array<uint16_t, 4> w{};
   bool located() const { return vertex[0] >= 0; }
 };
 
-Row AtVertex(int32_t m) { return Row{{m, m, m, m}, {1.f, 0.f, 0.f, 0.f}}; }
+Row AtVertex(int32_t m) { return Row{{m, m, m, m}, {uint16_t(kWeightUnit), 0, 0, 0}}; }
 
-// The row of a sample in cell t of `mesh` with weights w.
+// The row of a sample in cell t of `mesh` with barycentric weights w (each >= -1e-6, summing to
+// 1): the weights rounded to units, the first one taking up the rounding so that they sum to the
+// unit exactly (a constant field stays exact); taken from the largest when it would go negative.
 Row InCell(const TetMesh& mesh, int64_t t, const std::array<float, 4>& w) {
   const int32_t* c = &mesh.tets[4 * t];
-  return Row{{c[0], c[1], c[2], c[3]}, w};
+  Row row{{c[0], c[1], c[2], c[3]}, {}};
+  int32_t q[4], sum = 0;
+  for (int k = 1; k < 4; ++k) {
+    q[k] = int32_t(std::lround(std::clamp(double(w[k]), 0.0, 1.0) * kWeightUnit));
+    sum += q[k];
+  }
+  q[0] = int32_t(kWeightUnit) - sum;
+  if (q[0] < 0) {
+    int32_t* largest = std::max_element(q + 1, q + 4);
+    *largest += q[0];
+    q[0] = 0;
+  }
+  for (int k = 0; k < 4; ++k) row.w[k] = uint16_t(q[k]);
+  return row;
 }
 
 // The CGLS sums: in fixed blocks (core/common BlockSum), so the thread count changes nothing.
@@ -256,19 +275,20 @@ absl::Status RefitValues(const TetMesh& original, const std::vector<int32_t>& ve
   DECIMA_RETURN_IF_ERROR(status);
   const int64_t n = original.vertex_count(), nv = simplified->vertex_count();
   // Preconditioned CGLS on min |A s - f|^2, A = the barycentric weights of each located sample.
-  // Per sample only its row and r are stored (40 bytes, the refit's peak on a clinical scan): A p
-  // is computed twice a step where it is read rather than kept, and A^T is never stored (see
-  // scatter). r stays 0 at unlocated samples, so the sums over it need no test.
+  // Per sample only its row is stored (24 bytes; the refit's peak on a clinical scan): A x is
+  // computed where it is read, the residual f - A s too (twice a step in all, where a stored
+  // residual would cost 8 bytes a sample and a pass to update it), and A^T is never stored (see
+  // scatter). An unlocated sample adds nothing to any of them.
   auto row_dot = [&](int64_t i, const std::vector<double>& x) {  // (A x)_i, 0 if unlocated
     const Row& row = rows[i];
     if (!row.located()) return 0.0;
     double sum = 0;
     for (int k = 0; k < 4; ++k) sum += double(row.w[k]) * x[row.vertex[k]];
-    return sum;
+    return sum * (1.0 / kWeightUnit);
   };
-  // out[v] = the sum over the samples of v's non-zero weights of term(weight, sample), added in
-  // sample order: the order of a serial scatter, so the result is the same bit for bit on any
-  // thread count. Each thread owns a range of vertices and scans the range of samples that
+  // out[v] = the sum over the samples of v's non-zero weights of term(weight, value(sample)),
+  // added in sample order: the order of a serial scatter, so the result is the same bit for bit
+  // on any thread count. Each thread owns a range of vertices and scans the range of samples that
   // touch them: the samples and the vertices are both in grid order, so the ranges of two
   // threads overlap only by the cells that straddle their boundary.
   const int chunks = std::max(1, threads);
@@ -287,7 +307,7 @@ absl::Status RefitValues(const TetMesh& original, const std::vector<int32_t>& ve
       chunk_hi[c] = std::max(chunk_hi[c], i + 1);
     }
   }
-  auto scatter = [&](std::vector<double>& out, auto&& term) {
+  auto scatter = [&](std::vector<double>& out, auto&& value, auto&& term) {
     ParallelFor(chunks, threads, 1, [&](int64_t c0, int64_t c1) {
       for (int64_t c = c0; c < c1; ++c) {
         const int64_t v0 = chunk_vertex[c], v1 = chunk_vertex[c + 1];
@@ -295,16 +315,19 @@ absl::Status RefitValues(const TetMesh& original, const std::vector<int32_t>& ve
         for (int64_t i = chunk_lo[c]; i < chunk_hi[c]; ++i) {
           const Row& row = rows[i];
           if (!row.located()) continue;
+          const double y = value(i);
           for (int k = 0; k < 4; ++k) {
             const int32_t v = row.vertex[k];
-            if (row.w[k] != 0 && v >= v0 && v < v1) out[v] += term(row.w[k], i);
+            if (row.w[k] != 0 && v >= v0 && v < v1) {
+              out[v] += term(double(row.w[k]) * (1.0 / kWeightUnit), y);
+            }
           }
         }
       }
     });
   };
-  auto apply_t = [&](const std::vector<double>& y, std::vector<double>& out) {  // out = A^T y
-    scatter(out, [&](float w, int64_t i) { return double(w) * y[i]; });
+  auto apply_t = [&](auto&& value, std::vector<double>& out) {  // out = A^T y, y_i = value(i)
+    scatter(out, value, [](double w, double y) { return w * y; });
   };
   // Element-wise updates in parallel (each index written by one thread).
   auto each = [&](int64_t count, auto&& fn) {
@@ -314,20 +337,24 @@ absl::Status RefitValues(const TetMesh& original, const std::vector<int32_t>& ve
   };
   for (int64_t i = 0; i < n; ++i) rows[i].located() ? ++st.samples : ++st.unlocated;
   std::vector<double> s(simplified->scalars.begin(), simplified->scalars.end());
-  std::vector<double> r(n, 0);
-  each(n, [&](int64_t i) {
-    if (rows[i].located()) r[i] = double(original.scalars[i]) - row_dot(i, s);
-  });
-  double rr = BlockSum(n, threads, [&](int64_t i) { return r[i] * r[i]; });
-  st.rms_before = st.samples > 0 ? std::sqrt(rr / double(st.samples)) : 0;
+  auto residual = [&](int64_t i) {  // (f - A s)_i, 0 if unlocated
+    return rows[i].located() ? double(original.scalars[i]) - row_dot(i, s) : 0.0;
+  };
+  auto residual_norm2 = [&] {
+    return BlockSum(n, threads, [&](int64_t i) {
+      const double r = residual(i);
+      return r * r;
+    });
+  };
+  st.rms_before = st.samples > 0 ? std::sqrt(residual_norm2() / double(st.samples)) : 0;
   // Jacobi preconditioner: 1 / (A^T A)_vv, the sum of a vertex's squared weights. The columns
   // of A differ a lot (a vertex that survived in place has its own sample at weight 1, a vertex
   // of a large cell many small weights); scaled, CGLS converges in a few steps (README
   // "Refit"). A vertex with no sample gets 0: its value is never changed.
   std::vector<double> inv_diag(nv), z(nv), h(nv), p(nv);
-  scatter(inv_diag, [](float w, int64_t) { return double(w) * double(w); });
+  scatter(inv_diag, [](int64_t) { return 0.0; }, [](double w, double) { return w * w; });
   each(nv, [&](int64_t v) { inv_diag[v] = inv_diag[v] > 0 ? 1.0 / inv_diag[v] : 0.0; });
-  apply_t(r, z);
+  apply_t(residual, z);  // z = A^T (f - A s)
   each(nv, [&](int64_t v) { h[v] = inv_diag[v] * z[v]; });
   p = h;
   double zz = BlockSum(nv, threads, [&](int64_t v) { return z[v] * h[v]; });
@@ -341,10 +368,7 @@ absl::Status RefitValues(const TetMesh& original, const std::vector<int32_t>& ve
     if (!(qq > 0)) break;
     const double alpha = zz / qq;
     each(nv, [&](int64_t v) { s[v] += alpha * p[v]; });
-    each(n, [&](int64_t i) {
-      if (rows[i].located()) r[i] -= alpha * row_dot(i, p);
-    });
-    apply_t(r, z);
+    apply_t(residual, z);
     each(nv, [&](int64_t v) { h[v] = inv_diag[v] * z[v]; });
     const double zz_new = BlockSum(nv, threads, [&](int64_t v) { return z[v] * h[v]; });
     const double beta = zz_new / zz;
@@ -352,8 +376,7 @@ absl::Status RefitValues(const TetMesh& original, const std::vector<int32_t>& ve
     each(nv, [&](int64_t v) { p[v] = h[v] + beta * p[v]; });
     st.iterations = it + 1;
   }
-  rr = BlockSum(n, threads, [&](int64_t i) { return r[i] * r[i]; });
-  st.rms_after = st.samples > 0 ? std::sqrt(rr / double(st.samples)) : 0;
+  st.rms_after = st.samples > 0 ? std::sqrt(residual_norm2() / double(st.samples)) : 0;
   for (int64_t v = 0; v < nv; ++v) simplified->scalars[v] = static_cast<float>(s[v]);
   if (stats) *stats = st;
   return absl::OkStatus();
