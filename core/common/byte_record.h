@@ -10,9 +10,11 @@
 
 #include <cstdint>
 #include <cstring>
+#include <functional>
 #include <string>
 #include <string_view>
 #include <type_traits>
+#include <utility>
 #include <vector>
 
 #include "absl/status/status.h"
@@ -22,24 +24,58 @@ namespace decima {
 
 class ByteWriter {
  public:
+  // Bytes handed over as they are written, in order, instead of kept: a record of hundreds of MB
+  // (a clinical scan's simplified mesh) goes to its file without a copy in memory. Small values
+  // are gathered up to kSinkBlock first; an array's bytes go out from the array itself.
+  using Sink = std::function<void(std::string_view bytes)>;
+  static constexpr size_t kSinkBlock = size_t{1} << 20;
+
+  ByteWriter() = default;
+  explicit ByteWriter(Sink sink) : sink_(std::move(sink)) {}
+
   template <typename T>
   void Put(T v) {
     static_assert(std::is_trivially_copyable_v<T>);
-    out_.append(reinterpret_cast<const char*>(&v), sizeof v);
+    Append(std::string_view(reinterpret_cast<const char*>(&v), sizeof v));
   }
   template <typename T>
   void PutVector(const std::vector<T>& v) {
     static_assert(std::is_trivially_copyable_v<T>);
     Put<uint64_t>(v.size());
-    out_.append(reinterpret_cast<const char*>(v.data()), v.size() * sizeof(T));
+    Append(std::string_view(reinterpret_cast<const char*>(v.data()), v.size() * sizeof(T)));
   }
   void PutString(const std::string& s) {
     Put<uint64_t>(s.size());
-    out_.append(s);
+    Append(s);
   }
-  std::string Take() { return std::move(out_); }
+  // Bytes as they are, with no length before them.
+  void PutBytes(std::string_view bytes) { Append(bytes); }
+  // Without a sink: the record. With one: "" once the rest is handed over.
+  std::string Take() {
+    Flush();
+    return std::move(out_);
+  }
+  // With a sink: hands over what is gathered.
+  void Flush() {
+    if (sink_ && !out_.empty()) {
+      sink_(out_);
+      out_.clear();
+    }
+  }
 
  private:
+  void Append(std::string_view bytes) {
+    if (sink_ && out_.size() + bytes.size() > kSinkBlock) {
+      Flush();
+      if (bytes.size() > kSinkBlock) {
+        sink_(bytes);
+        return;
+      }
+    }
+    out_.append(bytes);
+  }
+
+  Sink sink_;
   std::string out_;
 };
 

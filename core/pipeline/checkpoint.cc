@@ -68,12 +68,7 @@ absl::Status Errno(const char* what, const std::filesystem::path& path) {
       absl::StrCat("checkpoint: ", what, " ", path.string(), ": ", std::strerror(errno)));
 }
 
-}  // namespace
-
-std::string Sha256Hex(std::string_view bytes) {
-  unsigned char md[EVP_MAX_MD_SIZE];
-  unsigned int len = 0;
-  EVP_Digest(bytes.data(), bytes.size(), md, &len, EVP_sha256(), nullptr);
+std::string Hex(const unsigned char* md, unsigned int len) {
   static const char kHex[] = "0123456789abcdef";
   std::string out;
   for (unsigned int i = 0; i < len; ++i) {
@@ -81,6 +76,27 @@ std::string Sha256Hex(std::string_view bytes) {
     out.push_back(kHex[md[i] & 15]);
   }
   return out;
+}
+
+// Writes all of `bytes` at the file's offset; false (errno set) on failure.
+bool WriteAll(int fd, std::string_view bytes) {
+  size_t done = 0;
+  while (done < bytes.size()) {
+    const ssize_t n = ::write(fd, bytes.data() + done, bytes.size() - done);
+    if (n < 0 && errno == EINTR) continue;
+    if (n <= 0) return false;
+    done += static_cast<size_t>(n);
+  }
+  return true;
+}
+
+}  // namespace
+
+std::string Sha256Hex(std::string_view bytes) {
+  unsigned char md[EVP_MAX_MD_SIZE];
+  unsigned int len = 0;
+  EVP_Digest(bytes.data(), bytes.size(), md, &len, EVP_sha256(), nullptr);
+  return Hex(md, len);
 }
 
 std::string SerializeSegmentResult(const SegmentResult& seg) {
@@ -150,8 +166,7 @@ absl::StatusOr<SegmentResult> ParseSegmentResult(const std::string& bytes) {
   return seg;
 }
 
-std::string SerializeSimplifyResult(const SimplifyResult& s) {
-  Writer w;
+void PutSimplifyResult(ByteWriter& w, const SimplifyResult& s) {
   PutMesh(w, s.mesh);
   w.PutVector(s.vertex_map);
   w.Put(s.input_cells);
@@ -164,6 +179,11 @@ std::string SerializeSimplifyResult(const SimplifyResult& s) {
   w.Put(s.collapses);
   w.Put(s.max_error);
   w.PutVector(s.pass_stats);
+}
+
+std::string SerializeSimplifyResult(const SimplifyResult& s) {
+  Writer w;
+  PutSimplifyResult(w, s);
   return w.Take();
 }
 
@@ -203,40 +223,67 @@ absl::StatusOr<SimplifyResult> ParseSimplifyResult(const std::string& bytes) {
 
 absl::Status WriteCheckpoint(const std::filesystem::path& path, const std::string& key,
                              const std::string& payload) {
+  return WriteCheckpoint(path, key, [&](ByteWriter& w) { w.PutBytes(payload); });
+}
+
+absl::Status WriteCheckpoint(const std::filesystem::path& path, const std::string& key,
+                             const std::function<void(ByteWriter&)>& fill) {
   std::error_code ec;
   std::filesystem::create_directories(path.parent_path(), ec);
   if (ec) {
     return absl::InternalError(
         absl::StrCat("checkpoint: creating ", path.parent_path().string(), ": ", ec.message()));
   }
+  // The header with the payload's length and checksum zeroed; both are written over once the
+  // payload has gone by.
   Writer header;
   header.PutString(key);
-  header.Put<uint64_t>(payload.size());
-  const std::string head = std::string(kMagic) + header.Take() + Sha256Hex(payload);
+  const std::string head_before_length = std::string(kMagic) + header.Take();
+  const std::string head = head_before_length + std::string(sizeof(uint64_t) + 64, '\0');
   const std::filesystem::path tmp = path.string() + ".tmp";
   const int fd = ::open(tmp.c_str(), O_WRONLY | O_CREAT | O_TRUNC | O_CLOEXEC, 0644);
   if (fd < 0) return Errno("creating", tmp);
-  for (const std::string* part : {&head, &payload}) {
-    size_t done = 0;
-    while (done < part->size()) {
-      const ssize_t n = ::write(fd, part->data() + done, part->size() - done);
-      if (n < 0 && errno == EINTR) continue;
-      if (n <= 0) {
-        absl::Status st = Errno("writing", tmp);
-        ::close(fd);
-        std::filesystem::remove(tmp, ec);
-        return st;
-      }
-      done += static_cast<size_t>(n);
-    }
+  auto fail = [&](const char* what) {
+    absl::Status st = Errno(what, tmp);
+    ::close(fd);
+    std::filesystem::remove(tmp, ec);
+    return st;
+  };
+  if (!WriteAll(fd, head)) return fail("writing");
+  EVP_MD_CTX* sha = EVP_MD_CTX_new();
+  if (sha == nullptr || EVP_DigestInit_ex(sha, EVP_sha256(), nullptr) != 1) {
+    EVP_MD_CTX_free(sha);
+    ::close(fd);
+    std::filesystem::remove(tmp, ec);
+    return absl::InternalError("checkpoint: no sha256 context (OpenSSL)");
+  }
+  uint64_t length = 0;
+  bool written = true;
+  {
+    ByteWriter payload([&](std::string_view bytes) {
+      if (!written) return;
+      EVP_DigestUpdate(sha, bytes.data(), bytes.size());
+      written = WriteAll(fd, bytes);
+      length += bytes.size();
+    });
+    fill(payload);
+    payload.Flush();
+  }
+  unsigned char md[EVP_MAX_MD_SIZE];
+  unsigned int md_len = 0;
+  EVP_DigestFinal_ex(sha, md, &md_len);
+  EVP_MD_CTX_free(sha);
+  if (!written) return fail("writing");
+  Writer tail;
+  tail.Put<uint64_t>(length);
+  const std::string filled = tail.Take() + Hex(md, md_len);
+  if (::pwrite(fd, filled.data(), filled.size(), off_t(head_before_length.size())) !=
+      ssize_t(filled.size())) {
+    return fail("writing");
   }
   // The data must be on disk before the rename makes it the checkpoint: otherwise a power loss
   // could leave the new name with old or no blocks.
-  if (::fsync(fd) != 0) {
-    absl::Status st = Errno("syncing", tmp);
-    ::close(fd);
-    return st;
-  }
+  if (::fsync(fd) != 0) return fail("syncing");
   ::close(fd);
   if (::rename(tmp.c_str(), path.c_str()) != 0) return Errno("renaming to", path);
   const int dir = ::open(path.parent_path().c_str(), O_RDONLY | O_DIRECTORY | O_CLOEXEC);

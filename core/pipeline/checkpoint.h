@@ -17,11 +17,13 @@
 #pragma once
 
 #include <filesystem>
+#include <functional>
 #include <string>
 #include <string_view>
 
 #include "absl/status/status.h"
 #include "absl/status/statusor.h"
+#include "core/common/byte_record.h"
 #include "core/segment/segment.h"
 #include "core/simplify/simplify.h"
 
@@ -35,12 +37,20 @@ std::string Sha256Hex(std::string_view bytes);
 std::string SerializeSegmentResult(const SegmentResult& seg);
 absl::StatusOr<SegmentResult> ParseSegmentResult(const std::string& bytes);
 std::string SerializeSimplifyResult(const SimplifyResult& s);
+// SerializeSimplifyResult's bytes written into `w` (to a file by the WriteCheckpoint below).
+void PutSimplifyResult(ByteWriter& w, const SimplifyResult& s);
 absl::StatusOr<SimplifyResult> ParseSimplifyResult(const std::string& bytes);
 
 // Writes `payload` under `key` to `path` atomically (temp file, fsync, rename, fsync of the
 // folder). Internal error naming the file on failure.
 absl::Status WriteCheckpoint(const std::filesystem::path& path, const std::string& key,
                              const std::string& payload);
+// The same with the payload that `fill` writes into the writer it gets, which hands it to the
+// file as it comes (its length and checksum are filled in after it): a payload of hundreds of MB
+// (a clinical scan's simplified mesh) is never held in memory. The file is byte for byte the one
+// the string version writes.
+absl::Status WriteCheckpoint(const std::filesystem::path& path, const std::string& key,
+                             const std::function<void(ByteWriter&)>& fill);
 
 // The payload of `path` if it exists, is intact and was written under `key`; NotFound if there
 // is no file, FailedPrecondition (saying why) for another key, a bad checksum or a torn file.

@@ -352,7 +352,8 @@ absl::Status RefitValues(const TetMesh& original, const std::vector<int32_t>& ve
   // of a large cell many small weights); scaled, CGLS converges in a few steps (README
   // "Refit"). A vertex with no sample gets 0: its value is never changed.
   std::vector<double> inv_diag(nv), z(nv), h(nv), p(nv);
-  scatter(inv_diag, [](int64_t) { return 0.0; }, [](double w, double) { return w * w; });
+  scatter(
+      inv_diag, [](int64_t) { return 0.0; }, [](double w, double) { return w * w; });
   each(nv, [&](int64_t v) { inv_diag[v] = inv_diag[v] > 0 ? 1.0 / inv_diag[v] : 0.0; });
   apply_t(residual, z);  // z = A^T (f - A s)
   each(nv, [&](int64_t v) { h[v] = inv_diag[v] * z[v]; });

@@ -296,6 +296,48 @@ TEST(Checkpoint, ATornOrForeignFileIsRefusedAndAMissingOneIsNotFound) {
   EXPECT_THAT(ReadCheckpoint(f, "k").status().message(), HasSubstr("bad magic"));
 }
 
+// The simplify stage writes its checkpoint as it serializes it (no copy of a clinical scan's
+// mesh in memory): the file must be the string version's byte for byte, with arrays larger than
+// the writer's block (handed to the file from the array) between small values (gathered).
+TEST(Checkpoint, AStreamedPayloadWritesTheSameFileAsItsString) {
+  const fs::path dir = decima::testing::MakeScratchDir("checkpoint-streamed");
+  SimplifyResult s;
+  const int32_t n = 300000;  // positions alone are 3.6 MB, over ByteWriter::kSinkBlock
+  for (int32_t v = 0; v < n; ++v) {
+    for (int k = 0; k < 3; ++k) s.mesh.positions.push_back(float(v % 97) + 0.25f * float(k));
+    s.mesh.scalars.push_back(float(v) * 0.5f);
+    s.mesh.labels.push_back(uint8_t(v % 3));
+    s.mesh.interface_distance.push_back(float(v % 11));
+    s.mesh.vertex_flags.push_back(uint8_t(v % 5));
+    s.vertex_map.push_back(v / 2);
+  }
+  for (int32_t c = 0; c + 3 < n; c += 3) {
+    for (int k = 0; k < 4; ++k) s.mesh.tets.push_back(c + k);
+    s.mesh.cell_regions.push_back(uint8_t(c % 3));
+  }
+  s.input_cells = 5 * int64_t(n);
+  s.output_cells = s.mesh.tet_count();
+  s.stop_message = "target reached";
+  s.pass_stats.resize(3);
+  const std::string payload = SerializeSimplifyResult(s);
+  ASSERT_GT(payload.size(), 3 * ByteWriter::kSinkBlock);
+  ASSERT_TRUE(WriteCheckpoint(dir / "string.ckpt", "key", payload).ok());
+  absl::Status st = WriteCheckpoint(dir / "streamed.ckpt", "key",
+                                    [&](ByteWriter& w) { PutSimplifyResult(w, s); });
+  ASSERT_TRUE(st.ok()) << st;
+  EXPECT_EQ(ReadAll(dir / "streamed.ckpt"), ReadAll(dir / "string.ckpt"));
+  auto back = ReadCheckpoint(dir / "streamed.ckpt", "key");
+  ASSERT_TRUE(back.ok()) << back.status();
+  EXPECT_EQ(*back, payload);
+  EXPECT_FALSE(fs::exists(dir / "streamed.ckpt.tmp"));
+  // A folder that cannot be made is named, and no file is left.
+  std::ofstream(dir / "a-file") << "x";
+  st = WriteCheckpoint(dir / "a-file" / "x.ckpt", "key",
+                       [&](ByteWriter& w) { PutSimplifyResult(w, s); });
+  EXPECT_EQ(st.code(), absl::StatusCode::kInternal);
+  EXPECT_THAT(st.message(), HasSubstr("a-file"));
+}
+
 TEST(Checkpoint, PayloadsRoundTripAndEveryTruncationIsRefused) {
   SegmentResult seg;
   seg.labels.dims = {2, 2, 1};
