@@ -127,12 +127,16 @@ TEST(JobMemoryPlan, TheStreamedEstimateIsWithinAQuarterOfTheMeasuredPeaks) {
     v1::Volume volume;
     double reduction, peak_mib;
   };
-  const Measured runs[] = {{WithDims({256, 256, 113}), 0.8, 1127},
-                           {WithDims({256, 256, 113}), 0.5, 1497},
+  // The 256 head since the refit's rows shrank to 24 B and the checkpoint is written as it is
+  // serialized (was 1127 and 1497); the others before those two changes, which lowered the 256
+  // head's peaks by 6 and 12 %.
+  const Measured runs[] = {{WithDims({256, 256, 113}), 0.8, 1055},
+                           {WithDims({256, 256, 113}), 0.5, 1323},
                            {WithDims({511, 511, 225}), 0.8, 5999},
-                           // Colin27 MRI, 1 mm (ch2) and 0.5 mm (ch2better), in slabs of 16.
+                           // Colin27 MRI, 1 mm (ch2) and 0.5 mm (ch2better), in slabs of 16;
+                           // ch2better reaching 80 % (4292 when it stopped at 70.82 %).
                            {WithDims({181, 217, 181}), 0.8, 1035},
-                           {WithDims({301, 370, 316}), 0.8, 4292}};
+                           {WithDims({301, 370, 316}), 0.8, 3671}};
   for (const Measured& m : runs) {
     const double estimate = EstimateJobMemoryBytes(m.volume, 16, m.reduction) / kMiB;
     EXPECT_NEAR(estimate / m.peak_mib, 1.0, 0.25)
