@@ -99,8 +99,7 @@ std::string Sha256Hex(std::string_view bytes) {
   return Hex(md, len);
 }
 
-std::string SerializeSegmentResult(const SegmentResult& seg) {
-  Writer w;
+void PutSegmentResult(ByteWriter& w, const SegmentResult& seg) {
   const Volume& l = seg.labels;
   for (int64_t d : l.dims) w.Put(d);
   for (int i = 0; i < 3; ++i) w.Put(l.spacing[i]);
@@ -118,6 +117,11 @@ std::string SerializeSegmentResult(const SegmentResult& seg) {
   w.Put<uint8_t>(seg.converged);
   w.Put(seg.energy);
   w.Put(seg.within_class_sigma);
+}
+
+std::string SerializeSegmentResult(const SegmentResult& seg) {
+  Writer w;
+  PutSegmentResult(w, seg);
   return w.Take();
 }
 

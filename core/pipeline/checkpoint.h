@@ -32,12 +32,14 @@ namespace decima::pipeline {
 // Lower-case hex sha256 of `bytes` (OpenSSL's libcrypto).
 std::string Sha256Hex(std::string_view bytes);
 
-// Serialization of the two checkpointed stage outputs. Parse* return InvalidArgument naming the
-// field that is truncated or out of range; they never read past `bytes`.
+// Serialization of the two checkpointed stage outputs: Put* write it into a ByteWriter (to a file
+// by the WriteCheckpoint below, with no copy in memory), Serialize* into a string. Parse* return
+// InvalidArgument naming the field that is truncated or out of range; they never read past
+// `bytes`.
 std::string SerializeSegmentResult(const SegmentResult& seg);
+void PutSegmentResult(ByteWriter& w, const SegmentResult& seg);
 absl::StatusOr<SegmentResult> ParseSegmentResult(const std::string& bytes);
 std::string SerializeSimplifyResult(const SimplifyResult& s);
-// SerializeSimplifyResult's bytes written into `w` (to a file by the WriteCheckpoint below).
 void PutSimplifyResult(ByteWriter& w, const SimplifyResult& s);
 absl::StatusOr<SimplifyResult> ParseSimplifyResult(const std::string& bytes);
 

@@ -289,8 +289,7 @@ absl::StatusOr<SegmentResult> SegmentStage(const JobSpec& spec, const Volume& im
       so.class_means = spec.class_means;
       DECIMA_ASSIGN_OR_RETURN(seg, Segment(image, so, stage.Forward(), stage.cancel()));
     }
-    SaveCheckpoint(checkpoints, stage, key,
-                   [&](ByteWriter& w) { w.PutBytes(SerializeSegmentResult(seg)); });
+    SaveCheckpoint(checkpoints, stage, key, [&](ByteWriter& w) { PutSegmentResult(w, seg); });
   }
   stage.End();  // the stage's figures are the segmentation's, not the label map file's
   run.metrics()["segmentation"] = SegmentJson(seg, spec.label_map.has_value());
