@@ -155,6 +155,12 @@ absl::StatusOr<SegmentResult> ParseSegmentResult(const std::string& bytes) {
   DECIMA_CK(r.Get("within_class_sigma", &seg.within_class_sigma));
   DECIMA_CK(r.Done());
   seg.iterations = iterations;
+  if (converged > 1) {
+    // One encoding per value: a resumed job must see what was saved (the fuzz target's round
+    // trip found a 0xff that read back as true and was written as 1).
+    return absl::InvalidArgumentError(
+        absl::StrCat("checkpoint: converged is ", int(converged), ", expected 0 or 1"));
+  }
   seg.converged = converged != 0;
   for (int64_t d : l.dims) {
     if (d <= 0 || d > (int64_t{1} << 20)) {
@@ -209,6 +215,10 @@ absl::StatusOr<SimplifyResult> ParseSimplifyResult(const std::string& bytes) {
   DECIMA_CK(r.Get("max_error", &s.max_error));
   DECIMA_CK(r.GetVector("pass_stats", &s.pass_stats));
   DECIMA_CK(r.Done());
+  if (reached > 1) {
+    return absl::InvalidArgumentError(
+        absl::StrCat("checkpoint: reached_target is ", int(reached), ", expected 0 or 1"));
+  }
   if (reason > static_cast<uint8_t>(StopReason::kPsnrFloor)) {
     return absl::InvalidArgumentError(absl::StrCat("checkpoint: stop_reason ", int(reason)));
   }

@@ -327,21 +327,21 @@ def vec(fmt, values):
     return struct.pack("<Q", len(values)) + b"".join(struct.pack("<" + fmt, v) for v in values)
 
 
-def seg_payload(dims=(2, 2, 1), labels=(0, 1, 1, 2)):
+def seg_payload(dims=(2, 2, 1), labels=(0, 1, 1, 2), converged=1):
     n = dims[0] * dims[1] * dims[2]
     out = struct.pack("<3q", *dims) + struct.pack("<3d", 1, 1, 2) + struct.pack("<3d", 0, 0, 0)
     out += struct.pack("<9d", 1, 0, 0, 0, 1, 0, 0, 0, 1) + bytes([0])  # direction, uint8
     out += struct.pack("<Q", len(labels)) + bytes(labels) + struct.pack("<Q", 2) + b"MR"
     out += vec("f", [0.5] * n) + vec("f", [0.5] * n) + vec("d", [10, 20, 30])
     out += vec("q", [1, 2, 1]) + vec("d", [2, 4, 2])
-    return out + struct.pack("<i", 7) + bytes([1]) + struct.pack("<dd", 0.25, 3.5)
+    return out + struct.pack("<i", 7) + bytes([converged]) + struct.pack("<dd", 0.25, 3.5)
 
 
-def simplify_payload(tets=(0, 1, 2, 3), vertex_map=(0, 1, 2, 3, -1)):
+def simplify_payload(tets=(0, 1, 2, 3), vertex_map=(0, 1, 2, 3, -1), reached=1):
     out = vec("f", [0, 0, 0, 1, 0, 0, 0, 1, 0, 0, 0, 1]) + vec("f", [1, 2, 3, 4])
     out += vec("B", [0, 0, 1, 1]) + vec("f", [0.5] * 4) + vec("B", [1, 0, 0, 2])
     out += vec("i", tets) + vec("B", [3] * (len(tets) // 4)) + vec("i", vertex_map)
-    out += struct.pack("<qqd", 20, 1, 0.95) + bytes([1, 0]) + struct.pack("<Q", 4) + b"done"
+    out += struct.pack("<qqd", 20, 1, 0.95) + bytes([reached, 0]) + struct.pack("<Q", 4) + b"done"
     out += struct.pack("<iqd", 2, 3, 0.125)
     return out + struct.pack("<Q", 1) + struct.pack("<7qd", 5, 3, 19, 1, 0, 2, 0, 0.125)
 
@@ -365,6 +365,10 @@ write("checkpoint", "bad-checksum-file", b"\x03" + ckpt_file(simplify_payload(),
 write("checkpoint", "bad-other-key-file", b"\x02" + ckpt_file(seg_payload(), key=b"other"))
 write("checkpoint", "bad-torn-file", b"\x02" + ckpt_file(seg_payload())[:-10])
 write("checkpoint", "bad-huge-count", b"\x01" + struct.pack("<Q", 1 << 62) + b"\0" * 32)
+# One encoding per value (the payload must serialize back to itself): a flag byte other than 0
+# or 1 is refused (found by the fuzzer: 0xff read back as true and was written as 1).
+write("checkpoint", "bad-simplify-reached-target-not-0-or-1", b"\x01" + simplify_payload(reached=255))
+write("checkpoint", "bad-segment-converged-not-0-or-1", b"\x00" + seg_payload(converged=2))
 
 
 # ---- level records (core/simplify/levels_io.h; format in core/simplify/README.md) ------------
