@@ -273,11 +273,13 @@ absl::Status WriteCheckpoint(const std::filesystem::path& path, const std::strin
   }
   uint64_t length = 0;
   bool written = true;
+  int write_errno = 0;  // the failed write's, for the error (later calls may change errno)
   {
     ByteWriter payload([&](std::string_view bytes) {
       if (!written) return;
       EVP_DigestUpdate(sha, bytes.data(), bytes.size());
       written = WriteAll(fd, bytes);
+      if (!written) write_errno = errno;
       length += bytes.size();
     });
     fill(payload);
@@ -287,7 +289,10 @@ absl::Status WriteCheckpoint(const std::filesystem::path& path, const std::strin
   unsigned int md_len = 0;
   EVP_DigestFinal_ex(sha, md, &md_len);
   EVP_MD_CTX_free(sha);
-  if (!written) return fail("writing");
+  if (!written) {
+    errno = write_errno;
+    return fail("writing");
+  }
   Writer tail;
   tail.Put<uint64_t>(length);
   const std::string filled = tail.Take() + Hex(md, md_len);
