@@ -1,7 +1,6 @@
 #include "core/pipeline/checkpoint.h"
 
 #include <fcntl.h>
-#include <openssl/evp.h>
 #include <sys/stat.h>
 #include <unistd.h>
 
@@ -12,6 +11,7 @@
 
 #include "absl/strings/str_cat.h"
 #include "core/common/byte_record.h"
+#include "core/common/sha256.h"
 
 namespace decima::pipeline {
 namespace {
@@ -68,16 +68,6 @@ absl::Status Errno(const char* what, const std::filesystem::path& path) {
       absl::StrCat("checkpoint: ", what, " ", path.string(), ": ", std::strerror(errno)));
 }
 
-std::string Hex(const unsigned char* md, unsigned int len) {
-  static const char kHex[] = "0123456789abcdef";
-  std::string out;
-  for (unsigned int i = 0; i < len; ++i) {
-    out.push_back(kHex[md[i] >> 4]);
-    out.push_back(kHex[md[i] & 15]);
-  }
-  return out;
-}
-
 // Writes all of `bytes` at the file's offset; false (errno set) on failure.
 bool WriteAll(int fd, std::string_view bytes) {
   size_t done = 0;
@@ -93,10 +83,9 @@ bool WriteAll(int fd, std::string_view bytes) {
 }  // namespace
 
 std::string Sha256Hex(std::string_view bytes) {
-  unsigned char md[EVP_MAX_MD_SIZE];
-  unsigned int len = 0;
-  EVP_Digest(bytes.data(), bytes.size(), md, &len, EVP_sha256(), nullptr);
-  return Hex(md, len);
+  Sha256 sha;
+  sha.Update(bytes.data(), bytes.size());
+  return sha.HexDigest();
 }
 
 void PutSegmentResult(ByteWriter& w, const SegmentResult& seg) {
@@ -264,20 +253,14 @@ absl::Status WriteCheckpoint(const std::filesystem::path& path, const std::strin
     return st;
   };
   if (!WriteAll(fd, head)) return fail("writing");
-  EVP_MD_CTX* sha = EVP_MD_CTX_new();
-  if (sha == nullptr || EVP_DigestInit_ex(sha, EVP_sha256(), nullptr) != 1) {
-    EVP_MD_CTX_free(sha);
-    ::close(fd);
-    std::filesystem::remove(tmp, ec);
-    return absl::InternalError("checkpoint: no sha256 context (OpenSSL)");
-  }
+  Sha256 sha;
   uint64_t length = 0;
   bool written = true;
   int write_errno = 0;  // the failed write's, for the error (later calls may change errno)
   {
     ByteWriter payload([&](std::string_view bytes) {
       if (!written) return;
-      EVP_DigestUpdate(sha, bytes.data(), bytes.size());
+      sha.Update(bytes.data(), bytes.size());
       written = WriteAll(fd, bytes);
       if (!written) write_errno = errno;
       length += bytes.size();
@@ -285,17 +268,13 @@ absl::Status WriteCheckpoint(const std::filesystem::path& path, const std::strin
     fill(payload);
     payload.Flush();
   }
-  unsigned char md[EVP_MAX_MD_SIZE];
-  unsigned int md_len = 0;
-  EVP_DigestFinal_ex(sha, md, &md_len);
-  EVP_MD_CTX_free(sha);
   if (!written) {
     errno = write_errno;
     return fail("writing");
   }
   Writer tail;
   tail.Put<uint64_t>(length);
-  const std::string filled = tail.Take() + Hex(md, md_len);
+  const std::string filled = tail.Take() + sha.HexDigest();
   if (::pwrite(fd, filled.data(), filled.size(), off_t(head_before_length.size())) !=
       ssize_t(filled.size())) {
     return fail("writing");

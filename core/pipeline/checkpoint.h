@@ -29,7 +29,7 @@
 
 namespace decima::pipeline {
 
-// Lower-case hex sha256 of `bytes` (OpenSSL's libcrypto).
+// Lower-case hex sha256 of `bytes` (core/common Sha256).
 std::string Sha256Hex(std::string_view bytes);
 
 // Serialization of the two checkpointed stage outputs: Put* write it into a ByteWriter (to a file
