@@ -36,6 +36,26 @@ enum VertexFlag : uint8_t {
 // Labels and regions are 0..kMaxRegions-1: the segmentation's phases fit in 3 bits.
 constexpr int kMaxRegions = 8;
 
+// The label of a point of a cell whose vertices carry `label` and where the point has barycentric
+// coordinates `l`: the label whose indicator, interpolated linearly like the field, is largest
+// there (the sum of the coordinates of its vertices). Inside a two-label cell the regions then
+// meet on a plane (the indicators' level 1/2), the surface a marching-tetrahedra extraction of the
+// labels draws. Returns the slot of the first vertex of that label; ties go to the lower slot.
+// The metric (core/metrics ResampleOnGrid) and the label guard of the field engine both use it.
+inline double LabelWeight(const uint8_t label[4], const double l[4], uint8_t of) {
+  return (label[0] == of ? l[0] : 0.0) + (label[1] == of ? l[1] : 0.0) +
+         (label[2] == of ? l[2] : 0.0) + (label[3] == of ? l[3] : 0.0);
+}
+inline int DominantLabelSlot(const uint8_t label[4], const double l[4]) {
+  int best = 0;
+  double best_weight = LabelWeight(label, l, label[0]);
+  for (int c = 1; c < 4; ++c) {
+    const double w = LabelWeight(label, l, label[c]);
+    if (w > best_weight) best = c, best_weight = w;
+  }
+  return best;
+}
+
 struct TetMesh {
   std::vector<float> positions;           // x, y, z per vertex, LPS mm
   std::vector<float> scalars;             // field value per vertex (the image intensity)

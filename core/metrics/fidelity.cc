@@ -135,13 +135,13 @@ absl::StatusOr<GridResample> ResampleOnGrid(const Volume& grid, const TetMesh& m
       double l[4];
       Barycentric(MakeFrame(q), Eigen::Vector3d(double(i), double(j), double(k)), l);
       double value = 0;
-      int best = 0;
+      uint8_t label[4];
       for (int c = 0; c < 4; ++c) {
         value += l[c] * mesh.scalars[mesh.tets[4 * int64_t(t) + c]];
-        if (l[c] > l[best]) best = c;
+        label[c] = mesh.labels[mesh.tets[4 * int64_t(t) + c]];
       }
       out.values[p] = float(value);
-      out.labels[p] = mesh.labels[mesh.tets[4 * int64_t(t) + best]];
+      out.labels[p] = label[DominantLabelSlot(label, l)];
       out.cell[p] = t;
     }
   });

@@ -6,9 +6,9 @@
 // Resampling: every original grid point is located in the simplified mesh and the field is
 // interpolated barycentrically in its containing cell (the mesh's piecewise-linear field). A
 // point lying in several cells (on a shared face, edge or vertex) takes the one with the lowest
-// cell id, so the result does not depend on the thread count. Its label is the label of the
-// containing cell's vertex with the largest barycentric coordinate (the nearest vertex in the
-// cell's own metric; ties to the lower slot).
+// cell id, so the result does not depend on the thread count. Its label is the cell's dominant
+// label there (DominantLabelSlot, tet_mesh.h): the label whose indicator, interpolated
+// barycentrically like the field, is largest (ties to the lower slot).
 #pragma once
 
 #include <cstdint>

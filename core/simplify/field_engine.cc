@@ -61,13 +61,14 @@ constexpr uint8_t kOnFrontier = 1, kNearFrontier = 2;
 constexpr double kSlabAxisShare = 0.9;
 // The label guard (InterfaceMode::kFree, README "Interfaces free inside their voxels"). The metric
 // (core/metrics ResampleOnGrid) counts a point as inside a cell when every barycentric coordinate
-// is >= -kMetricInside, takes the lowest such cell id and gives the point the label of that cell's
-// vertex with the largest coordinate (ties to the lower slot). The guard computes the same
-// coordinates from the same float positions (in mm instead of grid index units: equal up to
-// rounding, ~1e-13), and makes the metric's answer independent of which cell it picks and of the
-// tie rule: every cell within kMetricInside + kInsideSlack of a sample must give the sample's own
-// label with its coordinate ahead of every other label's by kLabelMargin, and at least one new
-// cell must hold it within kMetricInside - kInsideSlack (coverage).
+// is >= -kMetricInside, takes the lowest such cell id and gives the point the cell's dominant
+// label there (DominantLabelSlot, tet_mesh.h: the largest sum of coordinates of one label's
+// vertices, ties to the lower slot). The guard computes the same coordinates from the same float
+// positions (in mm instead of grid index units: equal up to rounding, ~1e-13), and makes the
+// metric's answer independent of which cell it picks and of the tie rule: every cell within
+// kMetricInside + kInsideSlack of a sample must give the sample's own label a weight ahead of
+// every other label's by kLabelMargin, and at least one new cell must hold it within
+// kMetricInside - kInsideSlack (coverage).
 constexpr double kMetricInside = 1e-5;
 constexpr double kInsideSlack = 1e-7;
 // Also covers a sample that lies on a face the star shares with a cell outside it, whose
@@ -855,22 +856,45 @@ Freedom FieldEngine::Classify(int32_t u, Scratch& s, int32_t along[2]) const {
   // band is a distance threshold and can be more than one vertex deep; a vertex whose cells
   // all hold its own label lies inside its region, and collapsing it changes no interface.
   bool feature = (fu & kFeatureVertex) && touches_mixed;
+  bool junction = false;
   if (feature && free_interfaces_) {
-    // Free interfaces: the label guard (KeepsLabels) decides where an interface vertex may go, and
-    // its voxel layer is no constraint. Where three or more labels meet the vertex stays: a
-    // junction of the label regions keeps its place.
-    uint8_t seen[3] = {label, label, label};
+    // Free interfaces: the label guard (KeepsLabels) decides where an interface vertex of two
+    // labels may go, and its voxel layer is no constraint. Where three or more labels meet (a
+    // junction curve of the label regions) the vertex keeps the voxel-faces rules below on top of
+    // the guard: it slides along a straight run of its layers' crease (the curve) or within a
+    // plane, and a corner of its layers (a junction corner) stays.
+    uint8_t seen[2] = {label, label};
     int nlabels = 1;
     for (const StarCell& sc : star) {
-      for (int k = 0; k < 4; ++k) {
+      for (int k = 0; k < 4 && nlabels < 3; ++k) {
         const uint8_t l = in_.labels[sc.v[k]];
         if (l == seen[0] || (nlabels > 1 && l == seen[1])) continue;
-        if (nlabels == 2) return Freedom::kPinned;
-        seen[nlabels++] = l;
+        if (nlabels < 2) seen[1] = l;
+        ++nlabels;
       }
     }
-    feature = false;  // only the hull constrains it now
+    junction = nlabels >= 3;
+    if (!junction) feature = false;  // only the hull constrains it now
   }
+  // At a junction a layer face also records the label across it (key 1 + that label): where the
+  // label across changes, the curve bends even if u's layer goes on straight, and the change
+  // makes a crease edge.
+  auto across = [&](int32_t a, int32_t b) {
+    for (const StarCell& sc : star) {
+      int hits = 0;
+      uint8_t other = label;
+      for (int k = 0; k < 4; ++k) {
+        const int32_t x = sc.v[k];
+        if (x == u || x == a || x == b) {
+          ++hits;
+        } else {
+          other = in_.labels[x];
+        }
+      }
+      if (hits == 3 && other != label) return int(other);
+    }
+    return int(label);
+  };
   std::sort(faces_.begin(), faces_.end());
   // Constraint faces: hull faces (key 0), and faces of three feature vertices of u's label that
   // border a two-label cell (key 1): the voxel-interface layer u belongs to. A face of the band
@@ -897,7 +921,7 @@ Freedom FieldEngine::Classify(int32_t u, Scratch& s, int32_t along[2]) const {
     } else if (feature && (FaceMixed(faces_[i]) || FaceMixed(faces_[i + 1])) &&
                (flags_[a] & kFeatureVertex) && (flags_[b] & kFeatureVertex) &&
                in_.labels[a] == label && in_.labels[b] == label) {
-      key = 1;
+      key = junction ? 1 + across(a, b) : 1;
     }
     if (key >= 0) {
       if (ncf == int(cf.size())) return Freedom::kPinned;
@@ -916,7 +940,7 @@ Freedom FieldEngine::Classify(int32_t u, Scratch& s, int32_t along[2]) const {
   if (feature) {
     // A feature vertex moves only within (or along the rim of) its own interface layer.
     bool on_layer = false;
-    for (int f = 0; f < ncf; ++f) on_layer |= cf[f].key == 1;
+    for (int f = 0; f < ncf; ++f) on_layer |= cf[f].key >= 1;
     if (!on_layer) return Freedom::kPinned;
   }
   auto parallel = [](const Eigen::Vector3d& m, const Eigen::Vector3d& n) {
@@ -1199,10 +1223,10 @@ bool FieldEngine::KeepsLabels(int32_t u, int32_t v, const Star& star, Worker& w)
         if (c.labels[0] != own) return false;
         continue;
       }
-      double mine = -std::numeric_limits<double>::infinity(), other = mine;
+      const double mine = LabelWeight(c.labels, l, own);
+      double other = 0;
       for (int k = 0; k < 4; ++k) {
-        double& best = c.labels[k] == own ? mine : other;
-        best = std::max(best, l[k]);
+        if (c.labels[k] != own) other = std::max(other, LabelWeight(c.labels, l, c.labels[k]));
       }
       if (!(mine > other + kLabelMargin)) return false;
     }

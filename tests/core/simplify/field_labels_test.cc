@@ -169,10 +169,15 @@ TEST(FieldFreeInterfaces, TheGuardRefusesEveryCollapseThatChangesAVoxelLabel) {
             << " of them change a label by the metric)\n";
 }
 
-// Three labels: two blocks side by side in a background. Every vertex whose cells hold three
-// labels (the junction curves along the shared face's rim and their corners) stays in place,
-// also when the mesh is simplified as far as it goes; every label is kept.
-TEST(FieldFreeInterfaces, JunctionsOfThreeLabelsNeverMove) {
+// Three labels: two blocks side by side in a background. The rim of the blocks' shared face
+// (i = 7.5) is a junction curve: labels 0, 1 and 2 meet along it. It bends at the face's four
+// corners (j = 3.5 | 10.5, k = 3.5 | 7.5). Block 2's corners there (i = 8, j = 4 | 10,
+// k = 4 | 7) and block 1's at k = 4 are corners of their own label's layers; at k = 7.5 block 1
+// goes on straight and only the label across changes, between its vertices at k = 7 and 8.
+// Simplified as far as it goes: those junction corners never move, a vertex of block 1 stays at
+// each bend it has no corner at, vertices of the curve's straight runs slide along it (some
+// junction vertices are removed), and every label is kept.
+TEST(FieldFreeInterfaces, JunctionCornersOfThreeLabelsNeverMove) {
   const int64_t n = 16;
   auto label = [](int64_t i, int64_t j, int64_t k) {
     if (j < 4 || j >= 11 || k < 4 || k >= 11) return 0;
@@ -193,27 +198,31 @@ TEST(FieldFreeInterfaces, JunctionsOfThreeLabelsNeverMove) {
   auto r = Simplify(b.mesh, Field(0.99, InterfaceMode::kFree));
   ASSERT_TRUE(r.ok()) << r.status();
   EXPECT_GT(r->achieved_reduction, 0.9);
-  int junctions = 0, corner_checked = 0;
+  auto in_place = [&](int64_t i, int64_t j, int64_t k) {
+    const int64_t v = i + n * (j + n * k);
+    const int32_t out = r->vertex_map[v];
+    return out >= 0 && r->mesh.Position(out) == b.mesh.Position(v);
+  };
+  int junctions = 0, junctions_kept = 0;
   for (int64_t v = 0; v < b.mesh.vertex_count(); ++v) {
     if (around[v].size() < 3) continue;
     ++junctions;
-    const int32_t out = r->vertex_map[v];
-    ASSERT_GE(out, 0);
-    EXPECT_EQ(r->mesh.Position(out), b.mesh.Position(v)) << "junction vertex " << v << " moved";
+    junctions_kept += in_place(v % n, (v / n) % n, v / (n * n));
   }
-  // The corners where the two blocks' shared face meets the background: (i = 7 | 8, j = 4 | 10,
-  // k = 4 | 7) are junction corners of labels 0, 1, 2.
-  for (int64_t i : {7, 8}) {
-    for (int64_t j : {4, 10}) {
-      for (int64_t k : {4, 7}) {
-        const int64_t v = i + n * (j + n * k);
-        EXPECT_GE(around[v].size(), 3u);
-        corner_checked += r->mesh.Position(r->vertex_map[v]) == b.mesh.Position(v);
-      }
+  int corners_kept = 0;
+  for (int64_t j : {4, 10}) {
+    for (auto [i, k] : {std::pair<int64_t, int64_t>{8, 4}, {8, 7}, {7, 4}}) {
+      EXPECT_GE(around[i + n * (j + n * k)].size(), 3u);
+      EXPECT_TRUE(in_place(i, j, k)) << "junction corner (" << i << ", " << j << ", " << k
+                                     << ") moved";
+      corners_kept += in_place(i, j, k);
     }
+    EXPECT_TRUE(in_place(7, j, 7) || in_place(7, j, 8))
+        << "block 1 left the bend at (7.5, " << j << ", 7.5)";
   }
+  EXPECT_EQ(corners_kept, 6);
   EXPECT_GT(junctions, 16);
-  EXPECT_EQ(corner_checked, 8);
+  EXPECT_LT(junctions_kept, junctions) << "no vertex of a junction curve slid along it";
   const FidelityMetrics m = Measure(b, r->mesh);
   EXPECT_EQ(m.label_mismatch, 0);
   EXPECT_DOUBLE_EQ(m.coverage, 1.0);
