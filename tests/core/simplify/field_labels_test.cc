@@ -213,8 +213,8 @@ TEST(FieldFreeInterfaces, JunctionCornersOfThreeLabelsNeverMove) {
   for (int64_t j : {4, 10}) {
     for (auto [i, k] : {std::pair<int64_t, int64_t>{8, 4}, {8, 7}, {7, 4}}) {
       EXPECT_GE(around[i + n * (j + n * k)].size(), 3u);
-      EXPECT_TRUE(in_place(i, j, k)) << "junction corner (" << i << ", " << j << ", " << k
-                                     << ") moved";
+      EXPECT_TRUE(in_place(i, j, k))
+          << "junction corner (" << i << ", " << j << ", " << k << ") moved";
       corners_kept += in_place(i, j, k);
     }
     EXPECT_TRUE(in_place(7, j, 7) || in_place(7, j, 8))
