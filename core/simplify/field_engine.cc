@@ -341,6 +341,7 @@ struct NewCell {
   double lo[3], hi[3];  // bounding box, widened by the inside tolerance
   uint8_t labels[4];
   bool mixed;
+  bool framed;  // a and r are set (on the first sample inside the box: most cells get none)
 };
 
 // What one run of the greedy loop owns: its queue, its working memory and its counts. The serial
@@ -1169,19 +1170,8 @@ bool FieldEngine::KeepsLabels(int32_t u, int32_t v, const Star& star, Worker& w)
     for (int k = 0; k < 4; ++k) {
       for (int d = 0; d < 3; ++d) p[k][d] = pos_[3 * int64_t(c.v[k]) + d];
     }
-    double e[3][3];
-    for (int k = 0; k < 3; ++k) {
-      for (int d = 0; d < 3; ++d) e[k][d] = p[k + 1][d] - p[0][d];
-    }
-    Cross(e[1], e[2], c.r[0]);
-    Cross(e[2], e[0], c.r[1]);
-    Cross(e[0], e[1], c.r[2]);
-    const double det = Dot(e[0], c.r[0]);
-    for (int k = 0; k < 3; ++k) {
-      for (int d = 0; d < 3; ++d) c.r[k][d] /= det;
-    }
+    c.framed = false;
     for (int d = 0; d < 3; ++d) {
-      c.a[d] = p[0][d];
       c.lo[d] = std::min({p[0][d], p[1][d], p[2][d], p[3][d]});
       c.hi[d] = std::max({p[0][d], p[1][d], p[2][d], p[3][d]});
     }
@@ -1199,16 +1189,37 @@ bool FieldEngine::KeepsLabels(int32_t u, int32_t v, const Star& star, Worker& w)
       c.mixed |= c.labels[k] != c.labels[0];
     }
   }
+  // The barycentric frame of a new cell: a = its first vertex, r = the rows of T^-1.
+  auto frame = [&](NewCell& c) {
+    double p[4][3];
+    for (int k = 0; k < 4; ++k) {
+      for (int d = 0; d < 3; ++d) p[k][d] = pos_[3 * int64_t(c.v[k]) + d];
+    }
+    double e[3][3];
+    for (int k = 0; k < 3; ++k) {
+      for (int d = 0; d < 3; ++d) e[k][d] = p[k + 1][d] - p[0][d];
+    }
+    Cross(e[1], e[2], c.r[0]);
+    Cross(e[2], e[0], c.r[1]);
+    Cross(e[0], e[1], c.r[2]);
+    const double det = Dot(e[0], c.r[0]);
+    for (int k = 0; k < 3; ++k) {
+      for (int d = 0; d < 3; ++d) c.r[k][d] /= det;
+    }
+    for (int d = 0; d < 3; ++d) c.a[d] = p[0][d];
+    c.framed = true;
+  };
   // One sample: false if it would leave the new cells or get another label in one of them.
   auto place = [&](int32_t s) {
     const double q[3] = {pos_[3 * int64_t(s)], pos_[3 * int64_t(s) + 1], pos_[3 * int64_t(s) + 2]};
     const uint8_t own = labels[s];
     int32_t home = -1;
-    for (const NewCell& c : cells) {
+    for (NewCell& c : cells) {
       if (q[0] < c.lo[0] || q[0] > c.hi[0] || q[1] < c.lo[1] || q[1] > c.hi[1] || q[2] < c.lo[2] ||
           q[2] > c.hi[2]) {
         continue;
       }
+      if (!c.framed) frame(c);
       const double d[3] = {q[0] - c.a[0], q[1] - c.a[1], q[2] - c.a[2]};
       double l[4];
       l[1] = Dot(c.r[0], d);
@@ -1218,7 +1229,11 @@ bool FieldEngine::KeepsLabels(int32_t u, int32_t v, const Star& star, Worker& w)
       const double lowest = std::min({l[0], l[1], l[2], l[3]});
       if (lowest < -(kMetricInside + kInsideSlack)) continue;
       if (home < 0 && lowest >= -(kMetricInside - kInsideSlack)) home = c.id;
-      if (one_label) continue;  // every new cell has the samples' label (they had it before)
+      // Every new cell has the samples' label (they had it before): the first home is the answer.
+      if (one_label) {
+        if (home >= 0) break;
+        continue;
+      }
       if (!c.mixed) {
         if (c.labels[0] != own) return false;
         continue;
