@@ -4,7 +4,6 @@
 
 #include <fcntl.h>
 #include <netdb.h>
-#include <openssl/evp.h>
 #include <poll.h>
 #include <sys/socket.h>
 #include <unistd.h>
@@ -20,6 +19,7 @@
 #include <thread>
 
 #include "client/text.h"
+#include "core/common/sha256.h"
 
 namespace decima::client {
 namespace fs = std::filesystem;
@@ -138,26 +138,16 @@ bool HashInputs(std::vector<InputFile>* files, std::string* error) {
       *error = f.path.string() + ": cannot open";
       return false;
     }
-    EVP_MD_CTX* ctx = EVP_MD_CTX_new();
-    EVP_DigestInit_ex(ctx, EVP_sha256(), nullptr);
+    Sha256 sha;
     int64_t total = 0;
     while (in) {
       in.read(buf.data(), static_cast<std::streamsize>(buf.size()));
       std::streamsize n = in.gcount();
       if (n <= 0) break;
-      EVP_DigestUpdate(ctx, buf.data(), static_cast<size_t>(n));
+      sha.Update(buf.data(), static_cast<size_t>(n));
       total += n;
     }
-    unsigned char md[EVP_MAX_MD_SIZE];
-    unsigned int len = 0;
-    EVP_DigestFinal_ex(ctx, md, &len);
-    EVP_MD_CTX_free(ctx);
-    static const char kHex[] = "0123456789abcdef";
-    f.sha256.clear();
-    for (unsigned int i = 0; i < len; ++i) {
-      f.sha256.push_back(kHex[md[i] >> 4]);
-      f.sha256.push_back(kHex[md[i] & 15]);
-    }
+    f.sha256 = sha.HexDigest();
     f.size = total;
   }
   return true;
@@ -465,16 +455,9 @@ std::string TerminalSafe(std::string_view text) {
 }
 
 std::string Sha256HexOf(std::string_view bytes) {
-  unsigned char md[EVP_MAX_MD_SIZE];
-  unsigned int len = 0;
-  EVP_Digest(bytes.data(), bytes.size(), md, &len, EVP_sha256(), nullptr);
-  static constexpr char kHex[] = "0123456789abcdef";
-  std::string out;
-  for (unsigned i = 0; i < len; ++i) {
-    out.push_back(kHex[md[i] >> 4]);
-    out.push_back(kHex[md[i] & 15]);
-  }
-  return out;
+  Sha256 sha;
+  sha.Update(bytes.data(), bytes.size());
+  return sha.HexDigest();
 }
 
 bool AddHeaderDataFiles(std::vector<InputFile>* files, std::string* error) {
