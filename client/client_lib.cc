@@ -131,21 +131,12 @@ bool CollectInputs(const fs::path& input, std::vector<InputFile>* out, std::stri
 }
 
 bool HashInputs(std::vector<InputFile>* files, std::string* error) {
-  std::vector<char> buf(1 << 20);
   for (auto& f : *files) {
-    std::ifstream in(f.path, std::ios::binary);
-    if (!in) {
-      *error = f.path.string() + ": cannot open";
-      return false;
-    }
     Sha256 sha;
     int64_t total = 0;
-    while (in) {
-      in.read(buf.data(), static_cast<std::streamsize>(buf.size()));
-      std::streamsize n = in.gcount();
-      if (n <= 0) break;
-      sha.Update(buf.data(), static_cast<size_t>(n));
-      total += n;
+    if (absl::Status st = HashFilePrefix(f.path, -1, sha, &total); !st.ok()) {
+      *error = std::string(st.message());
+      return false;
     }
     f.sha256 = sha.HexDigest();
     f.size = total;

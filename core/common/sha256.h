@@ -3,8 +3,12 @@
 #pragma once
 
 #include <cstddef>
+#include <cstdint>
+#include <filesystem>
 #include <memory>
 #include <string>
+
+#include "absl/status/status.h"
 
 namespace decima {
 
@@ -23,5 +27,11 @@ class Sha256 {
   struct Impl;
   std::unique_ptr<Impl> impl_;
 };
+
+// Feeds the first `limit` bytes of `path` (all when limit < 0) into `hash`; `hashed`, when given,
+// gets the number of bytes fed. NotFound when the file cannot be opened, DataLoss on a read error
+// or when the file is shorter than `limit`; both name the file.
+absl::Status HashFilePrefix(const std::filesystem::path& path, int64_t limit, Sha256& hash,
+                            int64_t* hashed = nullptr);
 
 }  // namespace decima

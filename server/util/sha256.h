@@ -12,11 +12,9 @@
 
 namespace decima::server {
 
-// core/common's hasher, which the server's code names server::Sha256.
+// core/common's hasher and file reader, which the server's code names in server::.
+using ::decima::HashFilePrefix;
 using ::decima::Sha256;
-
-// Feeds the first `limit` bytes of `path` (all when limit < 0) into `hash`.
-absl::Status HashFilePrefix(const std::filesystem::path& path, int64_t limit, Sha256& hash);
 
 // Hex sha256 of a whole file.
 absl::StatusOr<std::string> Sha256OfFile(const std::filesystem::path& path);

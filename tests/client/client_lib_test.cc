@@ -50,6 +50,24 @@ TEST(CollectInputsTest, FolderGivesSortedRelativeNamesWithoutHiddenFiles) {
   EXPECT_EQ(files[0].size, 1);
 }
 
+// A file that vanished after it was listed, or a folder where a file was listed, is an error
+// that names it; neither is hashed as if it were empty.
+TEST(HashInputsTest, AFileThatCannotBeReadIsAnErrorNamingIt) {
+  fs::path d = testing::MakeScratchDir("hash_broken");
+  std::string err;
+  std::vector<InputFile> gone{{"gone.dcm", d / "gone.dcm", 0, ""}};
+  EXPECT_FALSE(HashInputs(&gone, &err));
+  EXPECT_THAT(err, HasSubstr("gone.dcm"));
+  EXPECT_THAT(err, HasSubstr("cannot open"));
+  fs::create_directories(d / "folder.dcm");
+  std::vector<InputFile> folder{{"folder.dcm", d / "folder.dcm", 0, ""}};
+  err.clear();
+  EXPECT_FALSE(HashInputs(&folder, &err));
+  EXPECT_THAT(err, HasSubstr("folder.dcm"));
+  EXPECT_THAT(err, HasSubstr("read error"));
+  EXPECT_TRUE(folder[0].sha256.empty());
+}
+
 TEST(CollectInputsTest, ASymbolicLinkInTheFolderIsRefusedByName) {
   fs::path d = testing::MakeScratchDir("collect_link");
   std::ofstream(d / "scan.mhd") << "NDims = 3";
