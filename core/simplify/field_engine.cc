@@ -359,6 +359,10 @@ struct Worker {
   std::vector<std::pair<int32_t, int32_t>> relocated;
   std::pair<int32_t, int32_t> relocated_for{-1, -1};
   int64_t label_refusals = 0;
+  // KeepsRegionTopology: one label's part of u's link.
+  std::vector<int32_t> link_vertices, link_parent;
+  std::vector<uint64_t> link_edges;
+  int64_t topology_refusals = 0;
   int64_t removed = 0, collapses = 0, pops = 0, invalid_tries = 0, requeued = 0,
           constrained_moves = 0;
   double last_error = 0, max_error = 0;
@@ -414,6 +418,7 @@ class FieldEngine {
   bool InKernel(int32_t v, const Star& star, Worker& w);
   bool Valid(int32_t u, int32_t v, const Star& star, Worker& w);
   bool KeepsLabels(int32_t u, int32_t v, const Star& star, Worker& w);
+  bool KeepsRegionTopology(int32_t u, int32_t v, const Star& star, Worker& w) const;
   int64_t Collapse(int32_t u, int32_t v, const Star& star, Worker& w);
   void Push(int32_t u, Worker& w) {
     w.heap.push({static_cast<float>(st_[u].cost), u, ++st_[u].version});
@@ -1139,12 +1144,82 @@ bool FieldEngine::Valid(int32_t u, int32_t v, const Star& star, Worker& w) {
       if (after > max_cos_ && after > MaxDihedralCos(t)) return false;
     }
   }
+  if (free_interfaces_ && !KeepsRegionTopology(u, v, star, w)) {
+    ++w.topology_refusals;
+    return false;
+  }
   // Last, the label guard: it is the dearest test and the cheap ones refuse most tries.
   if (free_interfaces_ && !KeepsLabels(u, v, star, w)) {
     ++w.label_refusals;
     return false;
   }
   return true;
+}
+
+// The link conditions for the label regions (InterfaceMode::kFree; README "Region topology").
+// Under the label rule of tet_mesh.h (DominantLabelSlot) the region of a label L deformation-
+// retracts onto K_L, the full subcomplex of the vertices labelled L: in every cell the points
+// where L's weight is largest slide straight onto the cell's L face. So a collapse keeps each
+// region's topology if it keeps each K_L's homotopy type.
+// - u -> v of one label: the mesh's own link condition, which rule 6 guarantees (v sees every
+//   face of u's link from inside), holds in every full subcomplex too. Nothing to check.
+// - u of label A -> v of label B: K_A loses u, glued to the rest along u's link in K_A; K_B gains
+//   the cone from v over T, the B part of u's link, glued along T itself (v and its B neighbours
+//   in the link are in T already). Other labels gain and lose nothing. Both keep their homotopy
+//   type if those two parts of u's link are contractible.
+// u's link is a triangulated sphere (a disk on the hull) and neither part is all of it (v is in
+// one, not the other), so neither has a 2-cycle: contractible iff non-empty, connected and of
+// Euler characteristic 1.
+bool FieldEngine::KeepsRegionTopology(int32_t u, int32_t v, const Star& star, Worker& w) const {
+  const uint8_t* labels = in_.labels.data();
+  if (labels[u] == labels[v]) return true;
+  auto contractible = [&](uint8_t label) {
+    std::vector<int32_t>& vs = w.link_vertices;
+    std::vector<uint64_t>& es = w.link_edges;
+    vs.clear();
+    es.clear();
+    int64_t triangles = 0;
+    for (const StarCell& sc : star) {
+      int32_t o[3], n = 0;
+      for (int k = 0; k < 4; ++k) {
+        if (sc.v[k] != u && labels[sc.v[k]] == label) o[n++] = sc.v[k];
+      }
+      triangles += n == 3;
+      for (int i = 0; i < n; ++i) {
+        vs.push_back(o[i]);
+        for (int j = i + 1; j < n; ++j) {
+          es.push_back(uint64_t(uint32_t(std::min(o[i], o[j]))) << 32 |
+                       uint32_t(std::max(o[i], o[j])));
+        }
+      }
+    }
+    std::sort(vs.begin(), vs.end());
+    vs.erase(std::unique(vs.begin(), vs.end()), vs.end());
+    std::sort(es.begin(), es.end());
+    es.erase(std::unique(es.begin(), es.end()), es.end());
+    if (vs.empty() || int64_t(vs.size()) - int64_t(es.size()) + triangles != 1) return false;
+    // Connected: union-find over the part's vertices, by their rank in vs.
+    std::vector<int32_t>& parent = w.link_parent;
+    parent.resize(vs.size());
+    for (size_t i = 0; i < vs.size(); ++i) parent[i] = int32_t(i);
+    auto find = [&](int32_t x) {
+      while (parent[x] != x) x = parent[x] = parent[parent[x]];
+      return x;
+    };
+    auto rank = [&](int32_t x) {
+      return int32_t(std::lower_bound(vs.begin(), vs.end(), x) - vs.begin());
+    };
+    size_t components = vs.size();
+    for (uint64_t e : es) {
+      const int32_t a = find(rank(int32_t(e >> 32))), b = find(rank(int32_t(e & 0xffffffffu)));
+      if (a != b) {
+        parent[a] = b;
+        --components;
+      }
+    }
+    return components == 1;
+  };
+  return contractible(labels[u]) && contractible(labels[v]);
 }
 
 // The label guard (InterfaceMode::kFree): whether every sample the collapse u -> v moves into new
@@ -2016,6 +2091,7 @@ FieldCollapseCheck FieldEngine::CheckOne(int32_t u, int32_t v) {
   free_interfaces_ = guard;
   if (!valid) return FieldCollapseCheck::kInvalid;
   if (guard && !KeepsLabels(u, v, star, w)) return FieldCollapseCheck::kLabelChanged;
+  if (guard && !KeepsRegionTopology(u, v, star, w)) return FieldCollapseCheck::kTopologyChanged;
   return FieldCollapseCheck::kAllowed;
 }
 

@@ -74,6 +74,7 @@ enum class FieldCollapseCheck {
   kNotATarget,    // the constraint rules (hull, voxel layers, junctions) do not let u go to v
   kInvalid,       // rule 6 (volume, a vertex's last cell) or the shape guard refuses it
   kLabelChanged,  // InterfaceMode::kFree: a voxel centre would leave the mesh or get another label
+  kTopologyChanged,  // kFree, every label kept: a label region might change its topology
 };
 FieldCollapseCheck CheckFieldCollapse(const TetMesh& mesh, const SimplifyOptions& options,
                                       int32_t u, int32_t v);
