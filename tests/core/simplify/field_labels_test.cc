@@ -124,6 +124,19 @@ TetMesh CollapseByHand(const TetMesh& in, int32_t u, int32_t v) {
   return out;
 }
 
+// Every vertex's neighbours (the vertices it shares a cell with).
+std::map<int32_t, std::set<int32_t>> Neighbours(const TetMesh& mesh) {
+  std::map<int32_t, std::set<int32_t>> out;
+  for (int64_t c = 0; c < mesh.tet_count(); ++c) {
+    for (int i = 0; i < 4; ++i) {
+      for (int j = 0; j < 4; ++j) {
+        if (i != j) out[mesh.tets[4 * c + i]].insert(mesh.tets[4 * c + j]);
+      }
+    }
+  }
+  return out;
+}
+
 // The engine's label guard against the metric on single collapses: every collapse of an
 // interface vertex of a small block is made by hand and measured. A collapse the metric sees
 // give a voxel centre another label (or none) must be refused by the guard, and one the guard
@@ -132,14 +145,7 @@ TEST(FieldFreeInterfaces, TheGuardRefusesEveryCollapseThatChangesAVoxelLabel) {
   const int64_t n = 7;
   const Labeled b = Block(n, 2, 5);
   const SimplifyOptions o = Field(0.5, InterfaceMode::kFree);
-  std::map<int32_t, std::set<int32_t>> neighbours;
-  for (int64_t c = 0; c < b.mesh.tet_count(); ++c) {
-    for (int i = 0; i < 4; ++i) {
-      for (int j = 0; j < 4; ++j) {
-        if (i != j) neighbours[b.mesh.tets[4 * c + i]].insert(b.mesh.tets[4 * c + j]);
-      }
-    }
-  }
+  const std::map<int32_t, std::set<int32_t>> neighbours = Neighbours(b.mesh);
   int refused_mismatch = 0, allowed = 0, refused = 0;
   for (const auto& [u, around] : neighbours) {
     bool interface = false;
@@ -244,27 +250,19 @@ TEST(FieldFreeInterfaces, ACollapseThatKeepsEveryLabelButChangesARegionsTopology
   const Labeled in = Speckles(10);
   auto half = Simplify(in.mesh, Field(0.65, InterfaceMode::kFree));
   ASSERT_TRUE(half.ok()) << half.status();
-  Labeled b;
-  b.mesh = half->mesh;
+  const TetMesh& mesh = half->mesh;
   const SimplifyOptions o = Field(0.5, InterfaceMode::kFree);
-  const std::map<int, RegionTopology> before = Topology(b.mesh);
-  std::map<int32_t, std::set<int32_t>> neighbours;
-  for (int64_t c = 0; c < b.mesh.tet_count(); ++c) {
-    for (int i = 0; i < 4; ++i) {
-      for (int j = 0; j < 4; ++j) {
-        if (i != j) neighbours[b.mesh.tets[4 * c + i]].insert(b.mesh.tets[4 * c + j]);
-      }
-    }
-  }
+  const std::map<int, RegionTopology> before = Topology(mesh);
+  const std::map<int32_t, std::set<int32_t>> neighbours = Neighbours(mesh);
   int allowed = 0, refused = 0, refused_changed = 0;
   for (const auto& [u, around] : neighbours) {
     for (int32_t v : around) {
-      if (b.mesh.labels[u] == b.mesh.labels[v]) continue;
-      const FieldCollapseCheck check = CheckFieldCollapse(b.mesh, o, u, v);
+      if (mesh.labels[u] == mesh.labels[v]) continue;
+      const FieldCollapseCheck check = CheckFieldCollapse(mesh, o, u, v);
       if (check != FieldCollapseCheck::kAllowed && check != FieldCollapseCheck::kTopologyChanged) {
         continue;
       }
-      const bool changed = Topology(CollapseByHand(b.mesh, u, v)) != before;
+      const bool changed = Topology(CollapseByHand(mesh, u, v)) != before;
       if (check == FieldCollapseCheck::kAllowed) {
         ++allowed;
         EXPECT_FALSE(changed) << "allowed " << u << " -> " << v << " changes a region's topology";
