@@ -8,6 +8,7 @@
 #include <iostream>
 #include <map>
 #include <set>
+#include <tuple>
 #include <vector>
 
 #include <gtest/gtest.h>
@@ -177,62 +178,69 @@ TEST(FieldFreeInterfaces, TheGuardRefusesEveryCollapseThatChangesAVoxelLabel) {
             << " of them change a label by the metric)\n";
 }
 
-// Topological invariants of every label's region in a mesh: its number of pieces and its Euler
-// characteristic. Under the label rule a region deformation-retracts onto the full subcomplex of
-// its label's vertices (field_engine.cc, KeepsRegionTopology), so both are counted there: every
-// face of a cell whose vertices all have the label, and the pieces by its edges.
+// Topological invariants of every region and union of regions in a mesh: its number of pieces and
+// its Euler characteristic, per set of labels (bit l for label l; every non-empty set of the
+// labels present). Under the label rule the union of the regions of a set S deformation-retracts
+// onto the full subcomplex of the vertices with a label in S (as one region does onto its own:
+// field_engine.cc, KeepsRegionTopology; in a cell the points where a label of S weighs most slide
+// straight onto the cell's S face), so both are counted there: every face of a cell whose
+// vertices all have a label in S, and the pieces by its edges.
 struct RegionTopology {
   int64_t pieces = 0, euler = 0;
   bool operator==(const RegionTopology&) const = default;
 };
 
-std::map<int, RegionTopology> Topology(const TetMesh& mesh) {
+std::map<uint32_t, RegionTopology> Topology(const TetMesh& mesh) {
   std::set<std::vector<int32_t>> faces;
+  uint32_t present = 0;
   for (int64_t c = 0; c < mesh.tet_count(); ++c) {
     for (int mask = 1; mask < 16; ++mask) {
       std::vector<int32_t> f;
       for (int k = 0; k < 4; ++k) {
         if (mask >> k & 1) f.push_back(mesh.tets[4 * c + k]);
       }
-      bool one = true;
-      for (int32_t x : f) one &= mesh.labels[x] == mesh.labels[f[0]];
-      if (!one) continue;
       std::sort(f.begin(), f.end());
       faces.insert(f);
+      present |= 1u << mesh.labels[f[0]];
     }
   }
-  std::map<int32_t, int32_t> parent;
-  std::function<int32_t(int32_t)> find = [&](int32_t x) {
-    return parent[x] == x ? x : parent[x] = find(parent[x]);
-  };
-  std::map<int, RegionTopology> out;
-  for (const std::vector<int32_t>& f : faces) {
-    RegionTopology& t = out[mesh.labels[f[0]]];
-    t.euler += f.size() % 2 == 1 ? 1 : -1;
-    if (f.size() == 1) {
-      parent[f[0]] = f[0];
-      ++t.pieces;
+  std::map<uint32_t, RegionTopology> out;
+  for (uint32_t set = present; set != 0; set = (set - 1) & present) {
+    auto in = [&](int32_t x) { return (set >> mesh.labels[x] & 1) != 0; };
+    std::map<int32_t, int32_t> parent;
+    std::function<int32_t(int32_t)> find = [&](int32_t x) {
+      return parent[x] == x ? x : parent[x] = find(parent[x]);
+    };
+    RegionTopology& t = out[set];
+    for (const std::vector<int32_t>& f : faces) {
+      if (!std::all_of(f.begin(), f.end(), in)) continue;
+      t.euler += f.size() % 2 == 1 ? 1 : -1;
+      if (f.size() == 1) {
+        parent[f[0]] = f[0];
+        ++t.pieces;
+      }
     }
-  }
-  for (const std::vector<int32_t>& f : faces) {
-    if (f.size() != 2) continue;
-    const int32_t a = find(f[0]), b = find(f[1]);
-    if (a != b) {
-      parent[a] = b;
-      --out[mesh.labels[f[0]]].pieces;
+    for (const std::vector<int32_t>& f : faces) {
+      if (f.size() != 2 || !in(f[0]) || !in(f[1])) continue;
+      const int32_t a = find(f[0]), b = find(f[1]);
+      if (a != b) {
+        parent[a] = b;
+        --t.pieces;
+      }
     }
   }
   return out;
 }
 
-// Speckled labels (an irregular pattern of single voxels and small clusters of label 1 in 0, with
-// many edge and corner contacts): a collapse across an interface can keep every voxel centre's
-// label and still join two pieces of a region or open a hole in it, between the samples.
-Labeled Speckles(int64_t n) {
-  auto label = [](int64_t i, int64_t j, int64_t k) {
+// Speckled labels: cubes of g^3 voxels, each of a label drawn by a hash from 2 (label 1 in 0, a
+// third of them 1) or 3, with many edge and corner contacts between cubes of one label. A
+// collapse across an interface can keep every voxel centre's label and still join two pieces of
+// a region or open a hole in it, between the samples.
+Labeled Speckles(int64_t n, int labels, int64_t g) {
+  auto label = [labels, g](int64_t i, int64_t j, int64_t k) {
     const uint64_t h =
-        uint64_t(i / 2) * 73856093u ^ uint64_t(j / 2) * 19349663u ^ uint64_t(k / 2) * 83492791u;
-    return int((h >> 4) % 3 == 0);
+        uint64_t(i / g) * 73856093u ^ uint64_t(j / g) * 19349663u ^ uint64_t(k / g) * 83492791u;
+    return labels == 2 ? int((h >> 4) % 3 == 0) : int((h >> 4) % 3);
   };
   return MakeLabeled(
       n, [&](int64_t i, int64_t j, int64_t k) { return 100.0 * label(i, j, k) + 0.2 * (i + j); },
@@ -247,12 +255,12 @@ Labeled Speckles(int64_t n) {
 // labels (u's centre is the midpoint of v and the neighbour opposite, a tie), so the label guard
 // would leave nothing to check.
 TEST(FieldFreeInterfaces, ACollapseThatKeepsEveryLabelButChangesARegionsTopologyIsRefused) {
-  const Labeled in = Speckles(10);
+  const Labeled in = Speckles(10, 2, 2);
   auto half = Simplify(in.mesh, Field(0.65, InterfaceMode::kFree));
   ASSERT_TRUE(half.ok()) << half.status();
   const TetMesh& mesh = half->mesh;
   const SimplifyOptions o = Field(0.5, InterfaceMode::kFree);
-  const std::map<int, RegionTopology> before = Topology(mesh);
+  const std::map<uint32_t, RegionTopology> before = Topology(mesh);
   const std::map<int32_t, std::set<int32_t>> neighbours = Neighbours(mesh);
   int allowed = 0, refused = 0, refused_changed = 0;
   for (const auto& [u, around] : neighbours) {
@@ -279,18 +287,22 @@ TEST(FieldFreeInterfaces, ACollapseThatKeepsEveryLabelButChangesARegionsTopology
             << " of them change a region's pieces or Euler characteristic)\n";
 }
 
-// A whole run on the speckles: every region keeps its pieces and Euler characteristic, and every
-// voxel its label.
+// Whole runs on the speckles, two labels and three: every region and every union of regions keeps
+// its pieces and Euler characteristic, and every voxel its label. With three labels the unions
+// (which regions touch which) are checked too; the engine checks single regions only, and the
+// junction rules keep the vertices where three labels meet on their curves.
 TEST(FieldFreeInterfaces, SpecklesSimplifiedKeepEveryRegionsTopology) {
-  const Labeled b = Speckles(12);
-  auto r = Simplify(b.mesh, Field(0.95, InterfaceMode::kFree));
-  ASSERT_TRUE(r.ok()) << r.status();
-  EXPECT_GT(r->achieved_reduction, 0.5);
-  EXPECT_EQ(Topology(r->mesh), Topology(b.mesh));
-  const FidelityMetrics m = Measure(b, r->mesh);
-  EXPECT_EQ(m.label_mismatch, 0);
-  EXPECT_DOUBLE_EQ(m.coverage, 1.0);
-  std::cout << "speckles reached " << r->achieved_reduction << "\n";
+  for (const auto& [n, labels, g] : {std::tuple<int64_t, int, int64_t>{12, 2, 2}, {15, 3, 3}}) {
+    const Labeled b = Speckles(n, labels, g);
+    auto r = Simplify(b.mesh, Field(0.95, InterfaceMode::kFree));
+    ASSERT_TRUE(r.ok()) << r.status();
+    EXPECT_GT(r->achieved_reduction, 0.5);
+    EXPECT_EQ(Topology(r->mesh), Topology(b.mesh)) << labels << " labels";
+    const FidelityMetrics m = Measure(b, r->mesh);
+    EXPECT_EQ(m.label_mismatch, 0);
+    EXPECT_DOUBLE_EQ(m.coverage, 1.0);
+    std::cout << labels << "-label speckles reached " << r->achieved_reduction << "\n";
+  }
 }
 
 // Three labels: two blocks side by side in a background. The rim of the blocks' shared face
