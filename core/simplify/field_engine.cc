@@ -356,6 +356,7 @@ struct Worker {
   // KeepsLabels: the new cells of the last try, and where each sample of the star goes if the last
   // valid try (relocated_for) is made.
   std::vector<NewCell> new_cells;
+  std::vector<int32_t> samples;  // KeepsLabels: the samples listed in u's cells, in list order
   std::vector<std::pair<int32_t, int32_t>> relocated;
   std::pair<int32_t, int32_t> relocated_for{-1, -1};
   int64_t label_refusals = 0;
@@ -1237,6 +1238,8 @@ bool FieldEngine::KeepsLabels(int32_t u, int32_t v, const Star& star, Worker& w)
   std::vector<NewCell>& cells = w.new_cells;
   cells.clear();
   const uint8_t* labels = in_.labels.data();
+  // The sample lists' heads are scattered loads: asked for now, read after the new cells are set.
+  for (const StarCell& sc : star) __builtin_prefetch(&bucket_head_[sc.id]);
   bool one_label = true;  // every vertex of u's star has u's label
   for (const StarCell& sc : star) {
     const int32_t* t = sc.v;
@@ -1328,11 +1331,21 @@ bool FieldEngine::KeepsLabels(int32_t u, int32_t v, const Star& star, Worker& w)
     w.relocated.emplace_back(s, home);
     return true;
   };
-  if (!place(u)) return false;
+  // The samples first, asking for their positions and labels on the way (each is a removed
+  // vertex, somewhere in the arrays): then u's own sample is placed while those loads are under
+  // way.
+  std::vector<int32_t>& samples = w.samples;
+  samples.clear();
   for (const StarCell& sc : star) {
     for (int32_t s = bucket_head_[sc.id]; s >= 0; s = sample_next_[s]) {
-      if (!place(s)) return false;
+      samples.push_back(s);
+      __builtin_prefetch(&pos_[3 * int64_t(s)]);
+      __builtin_prefetch(&labels[s]);
     }
+  }
+  if (!place(u)) return false;
+  for (int32_t s : samples) {
+    if (!place(s)) return false;
   }
   w.relocated_for = {u, v};
   return true;
