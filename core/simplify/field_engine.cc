@@ -1176,9 +1176,10 @@ bool FieldEngine::Valid(int32_t u, int32_t v, const Star& star, Worker& w) {
 //   the cone from v over T, the B part of u's link, glued along T itself (v and its B neighbours
 //   in the link are in T already). Other labels gain and lose nothing. Both keep their homotopy
 //   type if those two parts of u's link are contractible.
-// u's link is a triangulated sphere (a disk on the hull) and neither part is all of it (v is in
-// one, not the other), so neither has a 2-cycle: contractible iff non-empty, connected and of
-// Euler characteristic 1.
+// u's link is a triangulated sphere (a disk on the hull), so a part of it other than the whole
+// has no 2-cycle: contractible iff non-empty, connected and of Euler characteristic 1. The A part
+// never holds v; the B part is the whole sphere when u has no neighbour of label A, and its
+// Euler characteristic 2 refuses the collapse, rightly (K_B would gain a cone over a sphere).
 bool FieldEngine::KeepsRegionTopology(int32_t u, int32_t v, const Star& star, Worker& w) const {
   const uint8_t* labels = in_.labels.data();
   if (labels[u] == labels[v]) return true;
