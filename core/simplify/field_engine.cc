@@ -363,11 +363,9 @@ struct Worker {
   std::vector<int32_t> heads;    // KeepsLabels: the lists' current entries while they are walked
   std::vector<std::pair<int32_t, int32_t>> relocated;
   std::pair<int32_t, int32_t> relocated_for{-1, -1};
-  int64_t label_refusals = 0;
   // KeepsRegionTopology: one label's part of u's link.
   std::vector<int32_t> link_vertices, link_parent;
   std::vector<uint64_t> link_edges;
-  int64_t topology_refusals = 0;
   int64_t removed = 0, collapses = 0, pops = 0, invalid_tries = 0, requeued = 0,
           constrained_moves = 0;
   double last_error = 0, max_error = 0;
@@ -1150,16 +1148,12 @@ bool FieldEngine::Valid(int32_t u, int32_t v, const Star& star, Worker& w) {
     }
   }
   // Last, the label guard: it is the dearest test and the cheap ones refuse most tries.
-  if (free_interfaces_ && !KeepsLabels(u, v, star, w)) {
-    ++w.label_refusals;
-    return false;
-  }
+  if (free_interfaces_ && !KeepsLabels(u, v, star, w)) return false;
   // The regions' topology after the labels, although it is cheaper: of the collapses it refuses,
   // the label guard refuses nearly all too (README "Region topology"), and in this order it only
   // runs on the collapses across an interface that the label guard lets through.
   if (free_interfaces_ && !KeepsRegionTopology(u, v, star, w)) {
     w.relocated_for = {-1, -1};  // KeepsLabels' relocation is for a collapse that is not made
-    ++w.topology_refusals;
     return false;
   }
   return true;
